@@ -1,0 +1,130 @@
+"""
+The ``bcid`` command: replay, simulate, reproduce, record, play, info, demo.
+
+Each subcommand is a small function in the module that owns the work; this
+file only parses arguments and turns :class:`~bcid_ros.errors.BcidError`
+(and other expected failures) into one line on stderr and a non-zero exit.
+The offline commands never import rclpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+import sys
+import traceback
+
+from bcid_ros.errors import BcidError
+
+#: Subcommand -> 'module:function(args) -> int'.
+HANDLERS = {
+    'replay': 'bcid_ros.bag.commands:replay',
+    'simulate': 'bcid_ros.bag.commands:simulate',
+    'reproduce': 'bcid_ros.cli:reproduce',
+    'record': 'bcid_ros.bag.commands:record',
+    'play': 'bcid_ros.bag.commands:play',
+    'info': 'bcid_ros.bag.commands:info',
+    'demo': 'bcid_ros.nodes.demo:run',
+}
+
+ESTIMATOR_NAMES = ('rls', 'bcrls', 'bciv', 'cl_bcls')
+SCENARIO_NAMES = ('ding_miso', 'ding_miso_nonstationary', 'ikenoue_colored',
+                  'ikenoue_white_input', 'ikeda_closed_loop')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``bcid`` with all subcommands."""
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    parser = argparse.ArgumentParser(
+        prog='bcid', formatter_class=fmt,
+        description='Online bias-compensated system identification: offline tools.')
+    parser.add_argument('--debug', action='store_true', help='show tracebacks on errors')
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+
+    replay = sub.add_parser('replay', formatter_class=fmt,
+                            help="run an estimator over a bag's /samples, no ROS graph")
+    replay.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
+    replay.add_argument('--params', type=Path, required=True,
+                        help='identifier parameter YAML (bcid_identifier: ros__parameters:)')
+    replay.add_argument('--estimator', choices=ESTIMATOR_NAMES,
+                        help='override the estimator of the parameter file')
+    replay.add_argument('--output', type=Path, help='write the estimate trajectory '
+                        '(.mcap in the node topic format, or .csv)')
+    replay.add_argument('--json', action='store_true', help='print one JSON summary to stdout')
+
+    simulate = sub.add_parser('simulate', formatter_class=fmt,
+                              help='write a scenario bag offline, no ROS graph')
+    simulate.add_argument('--scenario', choices=SCENARIO_NAMES, required=True)
+    simulate.add_argument('--samples', type=int, required=True)
+    simulate.add_argument('--seed', type=int, default=0)
+    simulate.add_argument('--rate', type=float, default=100.0,
+                          help='sample rate for the bag time stamps (Hz)')
+    simulate.add_argument('--out', type=Path, required=True, help='output bag directory')
+
+    reproduce = sub.add_parser('reproduce', formatter_class=fmt,
+                               help="run a paper's Monte Carlo study, write docs/")
+    reproduce.add_argument('paper', choices=('ding', 'ikenoue', 'ikeda', 'all'))
+    reproduce.add_argument('--runs', type=int, help="Monte Carlo runs (default: the paper's)")
+    reproduce.add_argument('--quick', action='store_true', help='a small, fast version')
+    reproduce.add_argument('--out-dir', type=Path, default=Path('docs'),
+                           help='where to write the Markdown and PNG files')
+
+    record = sub.add_parser('record', formatter_class=fmt,
+                            help='record topics to a rosbag2 MCAP over rclpy')
+    record.add_argument('out', type=Path, help='output bag directory')
+    record.add_argument('--topics', nargs='+', required=True, help='topics to record')
+    record.add_argument('--duration', type=float, default=0.0,
+                        help='stop after this many seconds (0: until SIGINT)')
+
+    play = sub.add_parser('play', formatter_class=fmt, help='play a bag over rclpy')
+    play.add_argument('bag', type=Path)
+    play.add_argument('--rate', type=float, default=1.0,
+                      help='time scale; 0 plays as fast as possible')
+
+    info = sub.add_parser('info', formatter_class=fmt,
+                          help='topics, counts, duration and truth of a bag')
+    info.add_argument('bag', type=Path)
+
+    demo = sub.add_parser('demo', formatter_class=fmt,
+                          help='simulator + identifier nodes, converging live')
+    demo.add_argument('--scenario', choices=SCENARIO_NAMES, default='ding_miso')
+    demo.add_argument('--samples', type=int, default=0,
+                      help="samples to simulate (0: the scenario's default)")
+    demo.add_argument('--rate', type=float, default=0.0,
+                      help="sample rate in Hz (0: the scenario's default)")
+    demo.add_argument('--out-dir', type=Path, default=Path('demo_output'),
+                      help='where to write the PNG of the run')
+    return parser
+
+
+def reproduce(args: argparse.Namespace) -> int:
+    """Run ``bcid reproduce`` and list the files it wrote."""
+    from bcid_ros.reproduction import reproduce as run
+
+    if args.runs is not None and args.runs < 2:
+        raise BcidError('--runs must be at least 2 (a standard error needs two runs)')
+    for path in run(args.paper, args.runs, args.quick, args.out_dir):
+        print(f'wrote {path}')
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``bcid``; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    module, function = HANDLERS[args.command].split(':')
+    try:
+        handler = getattr(importlib.import_module(module), function)
+        return int(handler(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except (BcidError, FileNotFoundError, ValueError, OSError) as error:
+        if args.debug:
+            traceback.print_exc()
+        print(f'bcid {args.command}: error: {error}', file=sys.stderr)
+        return 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

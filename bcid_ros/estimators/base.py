@@ -1,0 +1,343 @@
+"""
+The per-sample interface that every bcid_ros estimator implements.
+
+An estimator is fed one sample at a time with :meth:`RecursiveEstimator.update`
+and exposes its current estimate through properties. The offline tools run
+the very same ``update`` over an array with :meth:`RecursiveEstimator.run`,
+so there is one code path for the node, the replay, the reproductions and
+the benchmarks.
+
+Parameter names follow SPEC section 4: ``a1,...,an`` then, for each input
+``i`` and lag ``k``, ``b{i}_{k}`` (lag 0 only with direct feedthrough).
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any, ClassVar
+
+import numpy as np
+
+
+def parameter_names(order: int, num_inputs: int, feedthrough: bool) -> tuple[str, ...]:
+    """
+    Return the SPEC section 4 names of the ARX parameter vector.
+
+    Parameters
+    ----------
+    order : int
+        Plant order n (number of ``a`` coefficients).
+    num_inputs : int
+        Number of inputs r.
+    feedthrough : bool
+        Whether the lag-0 coefficients ``b{i}_0`` are estimated.
+
+    Returns
+    -------
+    tuple of str
+        ``('a1', ..., 'an', 'b1_0' or 'b1_1', ..., 'br_n')``.
+
+    """
+    first_lag = 0 if feedthrough else 1
+    names = [f'a{k}' for k in range(1, order + 1)]
+    for i in range(1, num_inputs + 1):
+        names.extend(f'b{i}_{k}' for k in range(first_lag, order + 1))
+    return tuple(names)
+
+
+def check_int(name: str, value: Any, minimum: int) -> int:
+    """Return ``value`` as an int, or raise ValueError naming ``name``."""
+    if isinstance(value, bool) or int(value) != value or value < minimum:
+        raise ValueError(f'{name} must be an integer >= {minimum}, got {value!r}')
+    return int(value)
+
+
+def check_range(name: str, value: Any, low: float, high: float,
+                low_open: bool = False) -> float:
+    """Return ``value`` as a float in [low, high] (or (low, high]), or raise ValueError."""
+    value = float(value)
+    too_low = value <= low if low_open else value < low
+    if not np.isfinite(value) or too_low or value > high:
+        bracket = '(' if low_open else '['
+        raise ValueError(f'{name} must be in {bracket}{low}, {high}], got {value!r}')
+    return value
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorState:
+    """
+    A frozen snapshot of an estimator's full internal state.
+
+    Attributes
+    ----------
+    estimator : str
+        The registry name of the estimator that made the snapshot.
+    arrays : dict of str to numpy.ndarray
+        Copies of every array of the state.
+    scalars : dict of str to float or int or bool
+        Every scalar of the state, counters included.
+
+    """
+
+    estimator: str
+    arrays: dict[str, np.ndarray]
+    scalars: dict[str, Any]
+
+
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """
+    Estimates after every sample of a batch run, shape ``(N, ...)``.
+
+    Rows where ``valid`` is False hold whatever the estimator held then (its
+    initial values before it first updates); use ``valid`` to mask them.
+    """
+
+    theta: np.ndarray
+    theta_uncompensated: np.ndarray
+    noise: np.ndarray
+    valid: np.ndarray
+    parameter_names: tuple[str, ...]
+    noise_names: tuple[str, ...]
+
+    @property
+    def final(self) -> np.ndarray:
+        """Return the compensated estimate after the last sample, shape ``(p,)``."""
+        return self.theta[-1]
+
+
+class RecursiveEstimator(abc.ABC):
+    """
+    Base class of the per-sample estimators.
+
+    Subclasses implement :meth:`_update` (one step given ``y`` and a float
+    array ``u`` of shape ``(r,)``), :meth:`_initial_state` and the
+    ``_theta``/``_theta_uncompensated``/``_noise`` accessors. The base class
+    owns the input checks, the sample counters and the snapshot plumbing.
+
+    Parameters
+    ----------
+    order : int
+        Plant order n >= 1.
+    num_inputs : int
+        Number of inputs r >= 1.
+    feedthrough : bool
+        Estimate the lag-0 input coefficients ``b{i}_0``.
+    initial_covariance : float
+        p0 of P(0) = p0 I, > 0.
+    forgetting_factor : float
+        lambda in (0, 1]; 1 means no forgetting.
+
+    Raises
+    ------
+    ValueError
+        If a setting is out of range; the message names it.
+
+    """
+
+    #: Registry name, as in the ``estimator`` ROS parameter.
+    name: ClassVar[str] = ''
+    #: Names of the published noise estimates.
+    noise_names: tuple[str, ...] = ()
+
+    def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
+                 initial_covariance: float = 1e6, forgetting_factor: float = 1.0) -> None:
+        self.order = check_int('order', order, 1)
+        self.num_inputs = check_int('num_inputs', num_inputs, 1)
+        self.feedthrough = bool(feedthrough)
+        self.initial_covariance = check_range(
+            'initial_covariance', initial_covariance, 0.0, 1e15, low_open=True)
+        self._forgetting_factor = check_range(
+            'forgetting_factor', forgetting_factor, 0.0, 1.0, low_open=True)
+        self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
+        self.num_parameters = len(self.parameter_names)
+        self.flags: dict[str, int] = {}
+
+    # ----------------------------------------------------------------- API
+    def update(self, y: float, u: Any) -> bool:
+        """
+        Process one sample and return whether the estimate is now valid.
+
+        Parameters
+        ----------
+        y : float
+            Output sample y(t).
+        u : float or array_like, shape ``(r,)``
+            Input sample u(t).
+
+        Returns
+        -------
+        bool
+            :attr:`valid` after this sample.
+
+        Raises
+        ------
+        ValueError
+            If ``u`` does not have r elements or a value is not finite. The
+            state is left untouched in that case.
+
+        """
+        u = np.asarray(u, dtype=float).reshape(-1)
+        if u.shape[0] != self.num_inputs:
+            raise ValueError(f'u must have {self.num_inputs} elements, got {u.shape[0]}')
+        y = float(y)
+        if not (np.isfinite(y) and np.isfinite(u).all()):
+            raise ValueError('sample contains NaN or Inf')
+        self._update(y, u)
+        return self.valid
+
+    def run(self, y: Any, u: Any) -> Trajectory:
+        """
+        Run :meth:`update` over arrays and return the trajectory.
+
+        Parameters
+        ----------
+        y : array_like, shape ``(N,)``
+            Outputs.
+        u : array_like, shape ``(N,)`` or ``(N, r)``
+            Inputs.
+
+        Returns
+        -------
+        Trajectory
+            The estimates after each sample.
+
+        """
+        y = np.asarray(y, dtype=float).reshape(-1)
+        u = np.asarray(u, dtype=float).reshape(y.shape[0], -1)
+        count = y.shape[0]
+        theta = np.empty((count, self.num_parameters))
+        theta_unc = np.empty((count, self.num_parameters))
+        noise = np.empty((count, len(self.noise_names)))
+        valid = np.empty(count, dtype=bool)
+        for t in range(count):
+            valid[t] = self.update(y[t], u[t])
+            theta[t] = self._theta()
+            theta_unc[t] = self._theta_uncompensated()
+            noise[t] = self._noise()
+        return Trajectory(theta, theta_unc, noise, valid, self.parameter_names,
+                          self.noise_names)
+
+    def reset(self) -> None:
+        """Return to the state right after construction."""
+        self.flags = {}
+        self._reset()
+
+    def restart_regressor(self) -> None:
+        """
+        Forget the sample history (after a gap) but keep what was learnt.
+
+        The next samples refill the regressor before any update is made, so
+        a missing sample is never regressed over.
+        """
+        self._restart_regressor()
+
+    def get_state(self) -> EstimatorState:
+        """Return a frozen snapshot of the full state (copies)."""
+        arrays, scalars = self._state_items()
+        scalars = dict(scalars, flags=dict(self.flags))
+        return EstimatorState(self.name, {k: np.array(v, copy=True) for k, v in arrays.items()},
+                              scalars)
+
+    def set_state(self, state: EstimatorState) -> None:
+        """
+        Restore a snapshot made by :meth:`get_state` of the same configuration.
+
+        Raises
+        ------
+        ValueError
+            If the snapshot comes from another estimator or other dimensions.
+
+        """
+        if state.estimator != self.name:
+            raise ValueError(f'state is from estimator {state.estimator!r}, not {self.name!r}')
+        own_arrays, _ = self._state_items()
+        for key, value in own_arrays.items():
+            if key not in state.arrays or np.shape(state.arrays[key]) != np.shape(value):
+                raise ValueError(f'state array {key!r} does not match this configuration')
+        scalars = dict(state.scalars)
+        self.flags = dict(scalars.pop('flags', {}))
+        self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Compensated estimate, shape ``(p,)`` (a copy)."""
+        return self._theta().copy()
+
+    @property
+    def theta_uncompensated(self) -> np.ndarray:
+        """LS or IV-type estimate before compensation, shape ``(p,)`` (a copy)."""
+        return self._theta_uncompensated().copy()
+
+    @property
+    def noise(self) -> np.ndarray:
+        """Noise estimates named by :attr:`noise_names` (a copy)."""
+        return np.array(self._noise(), dtype=float)
+
+    @property
+    def forgetting_factor(self) -> float:
+        """Forgetting factor lambda in (0, 1]; may be changed while running."""
+        return self._forgetting_factor
+
+    @forgetting_factor.setter
+    def forgetting_factor(self, value: float) -> None:
+        self._forgetting_factor = check_range('forgetting_factor', value, 0.0, 1.0,
+                                              low_open=True)
+
+    @property
+    @abc.abstractmethod
+    def valid(self) -> bool:
+        """Whether the regressor is filled and the estimator is past its idle phase."""
+
+    @property
+    @abc.abstractmethod
+    def samples(self) -> int:
+        """Count the samples used in estimator updates since the last reset."""
+
+    @property
+    def covariance_trace(self) -> float:
+        """Trace of the parameter covariance P (a health indicator), or NaN if none."""
+        return float('nan')
+
+    def _flag(self, key: str) -> None:
+        """Count one occurrence of a reported condition (see :attr:`flags`)."""
+        self.flags[key] = self.flags.get(key, 0) + 1
+
+    def __repr__(self) -> str:
+        return (f'{type(self).__name__}(order={self.order}, num_inputs={self.num_inputs}, '
+                f'feedthrough={self.feedthrough}, '
+                f'forgetting_factor={self._forgetting_factor})')
+
+    # ---------------------------------------------------- subclass hooks
+    @abc.abstractmethod
+    def _update(self, y: float, u: np.ndarray) -> None:
+        """Do one step on a checked sample."""
+
+    @abc.abstractmethod
+    def _reset(self) -> None:
+        """Restore the initial state."""
+
+    @abc.abstractmethod
+    def _restart_regressor(self) -> None:
+        """Clear the sample history, keep the learnt statistics."""
+
+    @abc.abstractmethod
+    def _theta(self) -> np.ndarray:
+        """Return the compensated estimate (no copy needed)."""
+
+    @abc.abstractmethod
+    def _theta_uncompensated(self) -> np.ndarray:
+        """Return the uncompensated estimate (no copy needed)."""
+
+    @abc.abstractmethod
+    def _noise(self) -> np.ndarray:
+        """Return the noise estimates."""
+
+    @abc.abstractmethod
+    def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return (arrays, scalars) of the full state, not copied."""
+
+    @abc.abstractmethod
+    def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        """Take over (arrays, scalars) made by :meth:`_state_items`."""

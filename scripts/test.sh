@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# The README's test command: set up .venv, then run the whole test suite.
+# Extra arguments go to pytest (for example: scripts/test.sh -k bcrls).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup_venv.sh
+# Keep every ROS graph of this run on this machine and on a domain of its own.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
+exec .venv/bin/python -m pytest "$@"
