@@ -60,7 +60,7 @@ def check_range(name: str, value: Any, low: float, high: float,
     too_low = value <= low if low_open else value < low
     if not np.isfinite(value) or too_low or value > high:
         bracket = '(' if low_open else '['
-        raise ValueError(f'{name} must be in {bracket}{low}, {high}], got {value!r}')
+        raise ValueError(f'{name} must be in {bracket}{low:g}, {high:g}], got {value!r}')
     return value
 
 

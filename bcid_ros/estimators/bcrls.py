@@ -1,0 +1,191 @@
+"""
+BCRLS: bias-compensated recursive least squares for MISO output-error systems.
+
+Ding, Chen and Qiu (2006), "Bias compensation based recursive least-squares
+identification algorithm for MISO systems", eqs. (46)-(55), with the matrix
+Lambda that the printed eqs. (26)/(46) drop (see PAPER_NOTES.md) and an exact
+extension to exponential forgetting.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bcid_ros.estimators.rls import ls_batch, Rls
+
+#: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
+#: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which
+#: is about 1 + |a|^2 > 1 because LS shrinks a towards zero without flipping it.
+DENOMINATOR_MIN = 0.1
+#: A compensated estimate farther than this (relative) from theta_LS is
+#: treated as a diverging compensation and restarted from theta_LS.
+COMPENSATION_MAX = 1e6
+
+
+class Bcrls(Rls):
+    r"""
+    Bias-compensated RLS for the output-error model y = sum_i B_i/alpha u_i + v.
+
+    The LS part is :class:`~bcid_ros.estimators.rls.Rls`, eqs. (47)-(50); the
+    compensation adds, with :math:`\Lambda = \mathrm{diag}(I_n, 0)`:
+
+    .. math::
+
+        \hat\sigma^2(t) &= \frac{J(t)}{\tau(t)\,[1 + \hat\theta_c^T(t-1)\Lambda
+            \hat\theta_{LS}(t)]} && \text{(51)} \\
+        \hat\theta_c(t) &= \hat\theta_{LS}(t)
+            + \tau(t)\,\hat\sigma^2(t)\,P(t)\Lambda\hat\theta_c(t-1) && \text{(46)}
+
+    With :math:`\lambda = 1`, :math:`\tau(t) = t` and these are the paper's
+    (46) and (51) (with the :math:`\Lambda` that (46) misprints away).
+
+    **Forgetting factor.** With weights :math:`\lambda^{t-i}` the LS estimate
+    solves :math:`R_\lambda(t)\hat\theta_{LS} = \sum_i \lambda^{t-i}\varphi(i)y(i)`,
+    :math:`R_\lambda(t) = \sum_i \lambda^{t-i}\varphi(i)\varphi^T(i) = P^{-1}(t)`.
+    Repeating eqs. (21)-(24) with these weights, and using
+    :math:`E[\varphi(i)\psi^T(i)] = -\sigma^2\Lambda` at every i (v is white and
+    independent of u), gives
+
+    .. math::
+
+        R_\lambda(t)(\hat\theta_{LS}(t) - \theta) \approx
+            -\sigma^2 \Big(\sum_{i=1}^t \lambda^{t-i}\Big) \Lambda\theta
+            = -\sigma^2 \tau(t)\Lambda\theta,
+        \qquad \tau(t) = \lambda\tau(t-1) + 1,
+
+    so t becomes :math:`\tau(t)` in (46). Likewise the weighted normal
+    equations give :math:`\sum_i \lambda^{t-i}\varepsilon_{LS}(i)\varphi(i) = 0`,
+    the weighted analogue of (28), and eqs. (29)-(39) go through term by term
+    with :math:`J_\lambda(t) = \sum_i \lambda^{t-i}\varepsilon_{LS}^2(i)` and
+    :math:`\tau(t)` in place of t. Its recursion, the weighted (45)/(50), is
+    :math:`J_\lambda(t) = \lambda J_\lambda(t-1) + \lambda e^2(t)/s(t)` with
+    :math:`s(t) = \lambda + \varphi^T P(t-1)\varphi`, because the a-posteriori
+    residual is :math:`e(t)\lambda/s(t)`.
+
+    **Safeguards** (each counted in :attr:`flags`, never turned into NaN):
+
+    * ``sigma2_denominator``: the denominator of (51) fell below
+      ``DENOMINATOR_MIN``; the previous :math:`\hat\sigma^2` is kept;
+    * ``compensation_reset``: the compensated estimate became non-finite or
+      ran away (relative size above ``COMPENSATION_MAX``); it restarts from
+      :math:`\hat\theta_{LS}(t)`.
+
+    The noise estimate is published as ``sigma2``.
+
+    Parameters
+    ----------
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+
+    """
+
+    name = 'bcrls'
+    noise_names = ('sigma2',)
+    options: tuple[str, ...] = ()
+
+    def _ls_step(self, y: float, phi: np.ndarray) -> None:
+        updates_before = self._updates
+        super()._ls_step(y, phi)
+        if self._updates != updates_before:
+            self._compensate()
+
+    def _compensate(self) -> None:
+        """Apply eqs. (51) and (46) after the LS step."""
+        n = self.order
+        theta_ls = self._theta_ls
+        previous = self._theta_c
+        # denominator of (51): 1 + theta_c(t-1)' Lambda theta_LS(t)
+        denominator = 1.0 + float(previous[:n] @ theta_ls[:n])
+        if denominator >= DENOMINATOR_MIN:
+            # sigma2(t) = J(t) / (tau(t) * denominator)          (51)
+            self._sigma2 = self._loss / (self._tau * denominator)
+        else:
+            self._flag('sigma2_denominator')
+        # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46)
+        compensated = theta_ls + (self._tau * self._sigma2) * (self._p[:, :n] @ previous[:n])
+        size = float(compensated @ compensated)
+        if not size <= COMPENSATION_MAX ** 2 * (1.0 + float(theta_ls @ theta_ls)):
+            self._flag('compensation_reset')
+            compensated = theta_ls.copy()
+        self._theta_c = compensated
+
+    @property
+    def sigma2(self) -> float:
+        """Return the noise variance estimate of eq. (51)."""
+        return self._sigma2
+
+    def _theta(self) -> np.ndarray:
+        return self._theta_c
+
+    def _noise(self) -> np.ndarray:
+        return np.array([self._sigma2])
+
+    def _reset(self) -> None:
+        super()._reset()
+        self._theta_c = np.zeros(self.num_parameters)
+        self._sigma2 = 0.0
+
+    def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays, scalars = super()._state_items()
+        return {**arrays, 'theta_c': self._theta_c}, {**scalars, 'sigma2': self._sigma2}
+
+    def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        super()._load_state(arrays, scalars)
+        self._theta_c = arrays['theta_c']
+        self._sigma2 = float(scalars['sigma2'])
+
+
+def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
+                     feedthrough: bool = False, tolerance: float = 1e-12,
+                     max_iterations: int = 1000) -> tuple[np.ndarray, float, np.ndarray]:
+    r"""
+    Return the batch bias-compensated LS estimate: the fixed point of eqs. (24) and (39).
+
+    .. math::
+
+        \theta_c = \hat\theta_{LS} + \sigma^2 N P \Lambda \theta_c, \qquad
+        \sigma^2 = \frac{J/N}{1 + \theta_c^T \Lambda \hat\theta_{LS}}
+
+    with :math:`P = (\Phi^T\Phi)^{-1}` and J the LS loss over the N updates.
+    BCRLS tracks this point recursively; it is the reference its estimates
+    are tested against.
+
+    Parameters
+    ----------
+    y, u : numpy.ndarray
+        Outputs ``(N,)`` and inputs ``(N,)`` or ``(N, r)``.
+    order, num_inputs, feedthrough
+        The model structure.
+    tolerance : float
+        Stop when the estimate moves by less than this (2-norm).
+    max_iterations : int
+        Iteration cap.
+
+    Returns
+    -------
+    theta_c : numpy.ndarray, shape ``(p,)``
+        Compensated estimate.
+    sigma2 : float
+        Noise variance estimate.
+    theta_ls : numpy.ndarray, shape ``(p,)``
+        Plain LS estimate.
+
+    Raises
+    ------
+    ValueError
+        If the iteration does not converge within ``max_iterations``.
+
+    """
+    theta_ls, p, loss, count = ls_batch(y, u, order=order, num_inputs=num_inputs,
+                                        feedthrough=feedthrough)
+    n = order
+    theta_c = theta_ls.copy()
+    for _ in range(max_iterations):
+        sigma2 = loss / count / (1.0 + float(theta_c[:n] @ theta_ls[:n]))
+        updated = theta_ls + sigma2 * count * (p[:, :n] @ theta_c[:n])
+        if np.linalg.norm(updated - theta_c) < tolerance:
+            return updated, sigma2, theta_ls
+        theta_c = updated
+    raise ValueError(f'the BCLS fixed point did not converge in {max_iterations} iterations')

@@ -1,0 +1,250 @@
+"""
+Recursive least squares on the ARX regressor: the baseline estimator.
+
+The recursion is eqs. (47)-(50) of Ding, Chen and Qiu (2006) with an
+exponential forgetting factor, written so that the covariance P stays
+symmetric positive definite and cannot wind up when the data stop being
+exciting.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from bcid_ros.estimators.base import RecursiveEstimator
+from bcid_ros.estimators.regressor import ArxRegressor
+
+#: How often (in updates) the covariance is checked by a Cholesky factorisation.
+HEALTH_CHECK_PERIOD = 1000
+
+
+class Rls(RecursiveEstimator):
+    r"""
+    Recursive least squares with forgetting, anti-windup and a guarded covariance.
+
+    For the ARX regressor :math:`\varphi(t)` of Ding et al. (2006), eqs. (53)-(55):
+
+    .. math::
+
+        e(t) &= y(t) - \varphi^T(t)\hat\theta(t-1) \\
+        s(t) &= \lambda + \varphi^T(t) P(t-1) \varphi(t) \\
+        \hat\theta(t) &= \hat\theta(t-1) + P(t-1)\varphi(t)\, e(t) / s(t)
+            && \text{(47), (48)} \\
+        P(t) &= \frac{1}{\lambda}\Big[P(t-1) - \frac{P(t-1)\varphi(t)\varphi^T(t)P(t-1)}{s(t)}\Big]
+            && \text{(49)} \\
+        J(t) &= \lambda J(t-1) + \lambda e^2(t) / s(t) && \text{(50)} \\
+        \tau(t) &= \lambda \tau(t-1) + 1
+
+    With :math:`\lambda = 1` this is exactly the paper's recursion and
+    :math:`\tau(t) = t`. :math:`\tau` is the weighted sample count and
+    :math:`J/\tau` the published residual variance.
+
+    Numerical safeguards:
+
+    * the downdate is written as :math:`P - h h^T` with :math:`h = P\varphi/\sqrt{s}`,
+      which is symmetric to the last bit;
+    * anti-windup: the division by :math:`\lambda` is skipped while
+      :math:`\mathrm{tr}\,P` exceeds its initial value :math:`p_0 p`, so P stays
+      bounded when the input stops exciting the plant (flag ``windup_limited``);
+    * every ``HEALTH_CHECK_PERIOD`` updates, and whenever :math:`s \le 0`, P is
+      checked by a Cholesky factorisation and, if it has lost definiteness,
+      rebuilt from its symmetric part with eigenvalues clipped (flag
+      ``covariance_repaired``).
+
+    Parameters
+    ----------
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+
+    """
+
+    name = 'rls'
+    noise_names = ('residual_variance',)
+    #: Extra constructor keywords (ROS parameter names) beyond the base ones.
+    options: tuple[str, ...] = ()
+
+    def __init__(self, **settings: Any) -> None:
+        super().__init__(**settings)
+        self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough)
+        self._trace_limit = self.initial_covariance * self.num_parameters
+        self._reset()
+
+    # ------------------------------------------------------------- the step
+    def _update(self, y: float, u: np.ndarray) -> None:
+        phi = self._regressor.push(y, u)
+        if self._regressor.ready:
+            self._ls_step(y, phi)
+
+    def _ls_step(self, y: float, phi: np.ndarray) -> None:
+        """Do the RLS step (47)-(50) on a ready regressor ``phi``."""
+        lam = self._forgetting_factor
+        # g = P(t-1) phi(t)
+        g = self._p @ phi
+        # s = lambda + phi' P(t-1) phi
+        s = lam + float(phi @ g)
+        if not s > 0.0:
+            self._repair_covariance()
+            return
+        # e = y(t) - phi'(t) theta(t-1)
+        e = y - float(phi @ self._theta_ls)
+        # theta(t) = theta(t-1) + g e / s
+        self._theta_ls += g * (e / s)
+        # P(t) = P(t-1) - h h', h = g / sqrt(s)
+        h = g * (1.0 / math.sqrt(s))
+        self._p -= np.outer(h, h)
+        # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
+        self._loss = lam * self._loss + lam * e * e / s
+        self._tau = lam * self._tau + 1.0
+        if lam < 1.0:
+            self._forget()
+        self._updates += 1
+        if self._updates % HEALTH_CHECK_PERIOD == 0:
+            self._check_covariance()
+
+    def _forget(self) -> None:
+        """Apply P(t) <- P(t) / lambda unless that would wind P up past its start."""
+        if np.trace(self._p) < self._trace_limit:
+            self._p *= 1.0 / self._forgetting_factor
+        else:
+            self._flag('windup_limited')
+
+    def _check_covariance(self) -> None:
+        try:
+            np.linalg.cholesky(self._p)
+        except np.linalg.LinAlgError:
+            self._repair_covariance()
+
+    def _repair_covariance(self) -> None:
+        """Rebuild P as the nearest symmetric positive definite matrix."""
+        self._flag('covariance_repaired')
+        sym = 0.5 * (self._p + self._p.T)
+        if not np.isfinite(sym).all():
+            self._p = self.initial_covariance * np.eye(self.num_parameters)
+            return
+        values, vectors = np.linalg.eigh(sym)
+        floor = max(values.max(), 1.0) * 1e-12
+        self._p = (vectors * np.maximum(values, floor)) @ vectors.T
+
+    # --------------------------------------------------------- the accessors
+    @property
+    def valid(self) -> bool:
+        """Whether phi(t) is filled and at least p updates have been made."""
+        return self._updates >= self.num_parameters
+
+    @property
+    def samples(self) -> int:
+        """Count the estimator updates (samples with a filled regressor)."""
+        return self._updates
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Return the covariance matrix P(t), shape ``(p, p)`` (a copy)."""
+        return self._p.copy()
+
+    @property
+    def covariance_trace(self) -> float:
+        """Return tr P(t)."""
+        return float(np.trace(self._p))
+
+    @property
+    def loss(self) -> float:
+        """Return the weighted loss J(t) of eq. (50)."""
+        return self._loss
+
+    @property
+    def weighted_count(self) -> float:
+        """Return tau(t) = sum of lambda^(t-i); equals t when lambda = 1."""
+        return self._tau
+
+    def _theta(self) -> np.ndarray:
+        return self._theta_ls
+
+    def _theta_uncompensated(self) -> np.ndarray:
+        return self._theta_ls
+
+    def _noise(self) -> np.ndarray:
+        return np.array([self._loss / self._tau if self._tau > 0 else 0.0])
+
+    # -------------------------------------------------------------- the state
+    def _reset(self) -> None:
+        p = self.num_parameters
+        self._regressor.clear()
+        self._theta_ls = np.zeros(p)
+        self._p = self.initial_covariance * np.eye(p)
+        self._loss = 0.0
+        self._tau = 0.0
+        self._updates = 0
+
+    def _restart_regressor(self) -> None:
+        self._regressor.clear()
+
+    def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays = {'theta_ls': self._theta_ls, 'p': self._p,
+                  'history': self._regressor.history}
+        scalars = {'loss': self._loss, 'tau': self._tau, 'updates': self._updates,
+                   'filled': self._regressor.filled,
+                   'forgetting_factor': self._forgetting_factor}
+        return arrays, scalars
+
+    def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        self._theta_ls = arrays['theta_ls']
+        self._p = arrays['p']
+        self._regressor.history[:] = arrays['history']
+        self._regressor.filled = int(scalars['filled'])
+        self._loss = float(scalars['loss'])
+        self._tau = float(scalars['tau'])
+        self._updates = int(scalars['updates'])
+        self._forgetting_factor = float(scalars['forgetting_factor'])
+
+
+def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
+             feedthrough: bool = False, initial_covariance: float | None = None,
+             forgetting_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray, float, float]:
+    r"""
+    Solve the (weighted, regularised) least-squares problem that :class:`Rls` solves recursively.
+
+    .. math::
+
+        \hat\theta_{LS}(N) = \Big[\lambda^{N'} P_0^{-1} + \sum_i \lambda^{N'-i}\varphi(i)
+            \varphi^T(i)\Big]^{-1} \sum_i \lambda^{N'-i}\varphi(i) y(i)
+
+    over the N' = N - n updates that have a filled regressor. With
+    ``initial_covariance=None`` the :math:`P_0^{-1}` term is dropped (plain LS).
+
+    Parameters
+    ----------
+    y : numpy.ndarray, shape ``(N,)``
+        Outputs.
+    u : numpy.ndarray, shape ``(N,)`` or ``(N, r)``
+        Inputs.
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+        As for :class:`Rls`.
+
+    Returns
+    -------
+    theta : numpy.ndarray, shape ``(p,)``
+        The LS estimate.
+    p : numpy.ndarray, shape ``(p, p)``
+        The inverse of the (regularised) weighted information matrix.
+    loss : float
+        J = weighted sum of squared residuals at theta.
+    tau : float
+        Weighted sample count sum(lambda^(N'-i)).
+
+    """
+    y = np.asarray(y, dtype=float).reshape(-1)
+    u = np.asarray(u, dtype=float).reshape(y.shape[0], -1)
+    phi = ArxRegressor(order, num_inputs, feedthrough).regressors(y, u)
+    target = y[order:]
+    weights = forgetting_factor ** np.arange(phi.shape[0] - 1, -1, -1, dtype=float)
+    information = (phi * weights[:, None]).T @ phi
+    if initial_covariance is not None:
+        information += forgetting_factor ** phi.shape[0] / initial_covariance * np.eye(
+            phi.shape[1])
+    theta = np.linalg.solve(information, (phi * weights[:, None]).T @ target)
+    residual = target - phi @ theta
+    return theta, np.linalg.inv(information), float(weights @ residual ** 2), float(
+        weights.sum())

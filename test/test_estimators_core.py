@@ -1,0 +1,282 @@
+"""Unit and property tests of the estimator core: interface, regressor, RLS and BCRLS."""
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from bcid_ros.estimators import estimator_class, make_estimator, parameter_names
+from bcid_ros.estimators.bcrls import bcls_fixed_point
+from bcid_ros.estimators.regressor import ArxRegressor
+from bcid_ros.estimators.rls import ls_batch
+from bcid_ros.simulation import make_scenario
+
+
+def ding_data(samples, seed=1):
+    """Return Ding's stationary MISO example: y, u and the true theta."""
+    plant = make_scenario('ding_miso')
+    y, u = plant.simulate(samples, seed)
+    return y, u, plant.truth().parameters
+
+
+def test_parameter_names_follow_the_spec():
+    assert parameter_names(2, 2, False) == ('a1', 'a2', 'b1_1', 'b1_2', 'b2_1', 'b2_2')
+    assert parameter_names(1, 1, True) == ('a1', 'b1_0', 'b1_1')
+
+
+def test_regressor_by_hand():
+    reg = ArxRegressor(order=2, num_inputs=1, feedthrough=True)
+    samples = [(1.0, 10.0), (2.0, 20.0), (3.0, 30.0), (4.0, 40.0)]
+    phis = [reg.push(y, np.array([u])) for y, u in samples]
+    assert not ArxRegressor(2, 1, True).ready
+    # phi(t) = [-y(t-1), -y(t-2), u(t), u(t-1), u(t-2)]
+    np.testing.assert_array_equal(phis[2], [-2.0, -1.0, 30.0, 20.0, 10.0])
+    np.testing.assert_array_equal(phis[3], [-3.0, -2.0, 40.0, 30.0, 20.0])
+    assert reg.ready
+
+
+def test_regressor_batch_form_equals_push():
+    rng = np.random.default_rng(0)
+    y, u = rng.standard_normal(50), rng.standard_normal((50, 3))
+    for feedthrough in (False, True):
+        reg = ArxRegressor(3, 3, feedthrough)
+        pushed = [reg.push(y[t], u[t]) for t in range(50)][3:]
+        np.testing.assert_array_equal(np.array(pushed), reg.regressors(y, u))
+
+
+def test_registry_refuses_unknown_estimator():
+    with pytest.raises(ValueError, match="estimator must be one of rls, bcrls.*got 'lms'"):
+        estimator_class('lms')
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+@pytest.mark.parametrize('setting, value, message', [
+    ('order', 0, r'order must be an integer >= 1, got 0'),
+    ('num_inputs', 1.5, r'num_inputs must be an integer >= 1, got 1.5'),
+    ('forgetting_factor', 1.5, r'forgetting_factor must be in \(0, 1\], got 1.5'),
+    ('forgetting_factor', 0.0, r'forgetting_factor must be in \(0, 1\], got 0.0'),
+    ('initial_covariance', -1.0, r'initial_covariance must be in \(0, 1e\+15\], got -1.0'),
+])
+def test_constructor_validation_names_the_setting(name, setting, value, message):
+    settings = {'order': 2, 'num_inputs': 1, setting: value}
+    with pytest.raises(ValueError, match=message):
+        make_estimator(name, **settings)
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_bad_samples_are_refused_and_leave_the_state_alone(name):
+    est = make_estimator(name, order=2, num_inputs=2)
+    y, u, _ = ding_data(20)
+    est.run(y, u)
+    before = est.get_state()
+    with pytest.raises(ValueError, match='u must have 2 elements, got 3'):
+        est.update(0.0, [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match='NaN or Inf'):
+        est.update(float('nan'), [1.0, 2.0])
+    with pytest.raises(ValueError, match='NaN or Inf'):
+        est.update(0.0, [float('inf'), 2.0])
+    after = est.get_state()
+    for key, value in before.arrays.items():
+        np.testing.assert_array_equal(value, after.arrays[key])
+    assert before.scalars == after.scalars
+
+
+def test_rls_recovers_a_noise_free_arx_plant_with_feedthrough():
+    # y(t) = 0.7 y(t-1) + 0.5 u(t) + 0.2 u(t-1): a1 = -0.7, b1_0 = 0.5, b1_1 = 0.2
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal(40)
+    y = signal.lfilter([0.5, 0.2], [1.0, -0.7], u)
+    est = make_estimator('rls', order=1, num_inputs=1, feedthrough=True)
+    est.run(y, u)
+    np.testing.assert_allclose(est.theta, [-0.7, 0.5, 0.2], atol=1e-8)
+    assert est.parameter_names == ('a1', 'b1_0', 'b1_1')
+
+
+@pytest.mark.parametrize('samples', [50, 1000, 5000])
+@pytest.mark.parametrize('lam', [1.0, 0.99])
+def test_rls_equals_batch_least_squares(samples, lam):
+    y, u, _ = ding_data(samples)
+    est = make_estimator('rls', order=2, num_inputs=2, forgetting_factor=lam)
+    est.run(y, u)
+    theta, p, loss, tau = ls_batch(y, u, order=2, num_inputs=2, initial_covariance=1e6,
+                                   forgetting_factor=lam)
+    np.testing.assert_allclose(est.theta, theta, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(est.covariance, p, rtol=1e-6, atol=1e-12)
+    assert est.weighted_count == pytest.approx(tau, rel=1e-12)
+    # J of eq. (50) is the minimum of the regularised cost, which adds
+    # lambda^N' theta' P0^-1 theta to the residual sum of squares.
+    regularisation = lam ** (samples - 2) * float(theta @ theta) / 1e6
+    assert est.loss == pytest.approx(loss + regularisation, rel=1e-9)
+
+
+@pytest.mark.parametrize('samples', [1000, 3000, 10000])
+def test_bcrls_tracks_the_batch_bcls_fixed_point(samples):
+    y, u, truth = ding_data(samples, seed=2)
+    est = make_estimator('bcrls', order=2, num_inputs=2)
+    est.run(y, u)
+    theta_c, sigma2, theta_ls = bcls_fixed_point(y, u, order=2, num_inputs=2)
+    # The recursion uses theta_c(t-1) where the fixed point uses theta_c itself; the
+    # gap (measured 1e-6..3e-5) must be far below the estimation error (~1e-2).
+    assert np.abs(est.theta - theta_c).max() < 1e-4
+    assert np.abs(est.theta - theta_c).max() < 0.01 * np.linalg.norm(theta_c - truth)
+    np.testing.assert_allclose(est.theta_uncompensated, theta_ls, atol=1e-9)
+    assert est.sigma2 == pytest.approx(sigma2, rel=1e-3)
+
+
+def test_bcrls_without_forgetting_is_the_paper_recursion():
+    """Check eqs. (46)-(51) against a literal transcription on a short record."""
+    y, u, _ = ding_data(200, seed=4)
+    est = make_estimator('bcrls', order=2, num_inputs=2)
+    est.run(y, u)
+    phi = ArxRegressor(2, 2, False).regressors(y, u)
+    lam = np.diag([1.0, 1.0, 0, 0, 0, 0])
+    theta_ls, theta_c, p, loss = np.zeros(6), np.zeros(6), 1e6 * np.eye(6), 0.0
+    for t, (row, target) in enumerate(zip(phi, y[2:]), start=1):
+        gain = p @ row / (1 + row @ p @ row)
+        loss += (target - row @ theta_ls) ** 2 / (1 + row @ p @ row)
+        theta_ls = theta_ls + gain * (target - row @ theta_ls)
+        p = (np.eye(6) - np.outer(gain, row)) @ p
+        sigma2 = loss / (t * (1 + theta_c @ lam @ theta_ls))
+        theta_c = theta_ls + t * sigma2 * p @ lam @ theta_c
+    np.testing.assert_allclose(est.theta, theta_c, atol=1e-8)
+    assert est.sigma2 == pytest.approx(sigma2, rel=1e-8)
+
+
+def test_bcrls_with_forgetting_stays_consistent_on_stationary_data():
+    # With lambda = 0.999 the effective window is ~1000 samples: the compensated
+    # estimate must still be far less biased than LS over the same window.
+    y, u, truth = ding_data(20000, seed=5)
+    est = make_estimator('bcrls', order=2, num_inputs=2, forgetting_factor=0.999)
+    trajectory = est.run(y, u)
+    late = slice(5000, None, 500)
+    err_bc = np.linalg.norm(trajectory.theta[late] - truth, axis=1).mean()
+    err_ls = np.linalg.norm(trajectory.theta_uncompensated[late] - truth, axis=1).mean()
+    assert err_bc < 0.5 * err_ls
+    assert est.sigma2 == pytest.approx(0.01, rel=0.15)
+
+
+def test_rls_with_forgetting_keeps_p_symmetric_positive_definite_for_long():
+    y, u, truth = ding_data(60000, seed=6)
+    est = make_estimator('rls', order=2, num_inputs=2, forgetting_factor=0.95)
+    est.run(y, u)
+    p = est.covariance
+    assert np.array_equal(p, p.T)
+    assert np.linalg.eigvalsh(p).min() > 0
+    assert np.isfinite(est.theta).all()
+    assert np.linalg.norm(est.theta - truth) < 0.2
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_no_excitation_does_not_wind_up(name):
+    est = make_estimator(name, order=2, num_inputs=2, forgetting_factor=0.9)
+    y, u, _ = ding_data(500)
+    est.run(y, u)
+    est.run(np.zeros(20000), np.zeros((20000, 2)))
+    assert np.isfinite(est.theta).all() and np.isfinite(est.noise).all()
+    # The trace bound is p0 * p (plus one step of 1/lambda).
+    assert est.covariance_trace <= 1e6 * 6 / 0.9
+    assert est.flags.get('windup_limited', 0) > 0
+
+
+def test_bcrls_denominator_breakdown_is_flagged_and_finite():
+    y, u, _ = ding_data(300)
+    est = make_estimator('bcrls', order=2, num_inputs=2)
+    est.run(y, u)
+    state = est.get_state()
+    sigma2 = est.sigma2
+    arrays = dict(state.arrays)
+    # theta_c(t-1) with a = (+50, 0) makes 1 + theta_c' Lambda theta_LS < 0.
+    arrays['theta_c'] = np.array([50.0, 0.0, 0.1, 0.3, 0.2, 0.2])
+    est.set_state(type(state)(state.estimator, arrays, state.scalars))
+    est.update(y[0], u[0])
+    assert est.flags['sigma2_denominator'] == 1
+    assert est.sigma2 == sigma2
+    assert np.isfinite(est.theta).all()
+
+
+def test_bcrls_runaway_compensation_restarts_from_ls():
+    y, u, _ = ding_data(300)
+    est = make_estimator('bcrls', order=2, num_inputs=2)
+    est.run(y, u)
+    state = est.get_state()
+    # 1 + theta_c' Lambda theta_LS < 0 keeps sigma2, and P Lambda theta_c ~ 1e297 runs away.
+    arrays = dict(state.arrays, theta_c=np.array([1e300, 1e300, 0, 0, 0, 0]))
+    est.set_state(type(state)(state.estimator, arrays, state.scalars))
+    with np.errstate(over='ignore', invalid='ignore'):
+        est.update(y[1], u[1])
+    assert est.flags == {'sigma2_denominator': 1, 'compensation_reset': 1}
+    np.testing.assert_array_equal(est.theta, est.theta_uncompensated)
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_snapshot_restore_and_reset_replay_exactly(name):
+    y, u, _ = ding_data(1000)
+    est = make_estimator(name, order=2, num_inputs=2)
+    est.run(y[:500], u[:500])
+    snapshot = est.get_state()
+    first = est.run(y[500:], u[500:]).theta
+    est.set_state(snapshot)
+    np.testing.assert_array_equal(est.run(y[500:], u[500:]).theta, first)
+    est.reset()
+    fresh = make_estimator(name, order=2, num_inputs=2)
+    np.testing.assert_array_equal(est.run(y, u).theta, fresh.run(y, u).theta)
+    # The snapshot holds copies: running on did not change it.
+    assert snapshot.scalars['updates'] == 498
+
+
+def test_set_state_refuses_a_foreign_snapshot():
+    rls = make_estimator('rls', order=2, num_inputs=2)
+    bcrls = make_estimator('bcrls', order=2, num_inputs=2)
+    with pytest.raises(ValueError, match="state is from estimator 'rls', not 'bcrls'"):
+        bcrls.set_state(rls.get_state())
+    other = make_estimator('rls', order=3, num_inputs=2)
+    with pytest.raises(ValueError, match="state array 'theta_ls' does not match"):
+        other.set_state(rls.get_state())
+
+
+def test_validity_waits_for_the_regressor_and_p_updates():
+    est = make_estimator('bcrls', order=2, num_inputs=2)
+    y, u, _ = ding_data(20)
+    valid = [est.update(y[t], u[t]) for t in range(20)]
+    # 2 samples fill the lags, then p = 6 updates are needed: valid from sample 8 on.
+    assert valid == [False] * 7 + [True] * 13
+    est.restart_regressor()
+    assert est.samples == 6 + 12
+    est.update(y[0], u[0])
+    est.update(y[1], u[1])
+    assert est.samples == 18  # no regression over the gap
+    est.update(y[2], u[2])
+    assert est.samples == 19
+
+
+@pytest.mark.parametrize('seed', range(12))
+def test_random_stable_plants_stay_finite_and_p_positive_definite(seed):
+    """Property test: random stable MISO plants, noise levels, settings."""
+    rng = np.random.default_rng(1000 + seed)
+    order, inputs = int(rng.integers(1, 4)), int(rng.integers(1, 4))
+    feedthrough = bool(rng.integers(0, 2))
+    poles = rng.uniform(0.1, 0.95, order) * rng.choice([-1, 1], order)
+    alpha = np.poly(poles)
+    u = rng.standard_normal((3000, inputs)) * rng.uniform(0.01, 100)
+    y = np.zeros(3000)
+    for i in range(inputs):
+        b = rng.standard_normal(order + 1)
+        if not feedthrough:
+            b[0] = 0.0
+        y += signal.lfilter(b, alpha, u[:, i])
+    y += rng.uniform(0, 2) * y.std() * rng.standard_normal(3000)
+    lam = float(rng.choice([1.0, 0.99, 0.9]))
+    for name in ('rls', 'bcrls'):
+        est = make_estimator(name, order=order, num_inputs=inputs, feedthrough=feedthrough,
+                             forgetting_factor=lam)
+        trajectory = est.run(y, u)
+        assert np.isfinite(trajectory.theta).all()
+        assert np.isfinite(trajectory.noise).all()
+        assert (trajectory.noise >= 0).all()
+        p = est.covariance
+        assert np.array_equal(p, p.T)
+        assert np.linalg.eigvalsh(p).min() > 0
+
+
+def test_repr_is_one_line():
+    text = repr(make_estimator('bcrls', order=2, num_inputs=2))
+    assert text == 'Bcrls(order=2, num_inputs=2, feedthrough=False, forgetting_factor=1.0)'
