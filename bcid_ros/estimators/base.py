@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -178,11 +179,16 @@ class RecursiveEstimator(abc.ABC):
             state is left untouched in that case.
 
         """
-        u = np.asarray(u, dtype=float).reshape(-1)
+        u = np.asarray(u, dtype=float)
+        if u.ndim != 1:
+            u = u.reshape(-1)
         if u.shape[0] != self.num_inputs:
             raise ValueError(f'u must have {self.num_inputs} elements, got {u.shape[0]}')
         y = float(y)
-        if not (np.isfinite(y) and np.isfinite(u).all()):
+        # One dot product screens for NaN/Inf; an overflow of huge finite values
+        # falls through to the exact element-wise check.
+        if not math.isfinite(y + u.dot(u)) and not (math.isfinite(y)
+                                                     and np.isfinite(u).all()):
             raise ValueError('sample contains NaN or Inf')
         self._update(y, u)
         return self.valid

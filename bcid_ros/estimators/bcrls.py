@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from scipy.linalg.blas import dgemv
 
 from bcid_ros.estimators.rls import ls_batch, Rls
 
@@ -85,31 +86,28 @@ class Bcrls(Rls):
     noise_names = ('sigma2',)
     options: tuple[str, ...] = ()
 
-    def _ls_step(self, y: float, phi: np.ndarray) -> None:
-        updates_before = self._updates
-        super()._ls_step(y, phi)
-        if self._updates != updates_before:
-            self._compensate()
-
-    def _compensate(self) -> None:
+    def _after_ls_step(self) -> None:
         """Apply eqs. (51) and (46) after the LS step."""
-        n = self.order
         theta_ls = self._theta_ls
-        previous = self._theta_c
+        # Lambda theta_c(t-1)
+        previous = self._lambda_theta_c
         # denominator of (51): 1 + theta_c(t-1)' Lambda theta_LS(t)
-        denominator = 1.0 + float(previous[:n] @ theta_ls[:n])
+        denominator = 1.0 + previous.dot(theta_ls)
         if denominator >= DENOMINATOR_MIN:
             # sigma2(t) = J(t) / (tau(t) * denominator)          (51)
             self._sigma2 = self._loss / (self._tau * denominator)
         else:
             self._flag('sigma2_denominator')
-        # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46)
-        compensated = theta_ls + (self._tau * self._sigma2) * (self._p[:, :n] @ previous[:n])
-        size = float(compensated @ compensated)
-        if not size <= COMPENSATION_MAX ** 2 * (1.0 + float(theta_ls @ theta_ls)):
+        # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46), one BLAS call
+        compensated = dgemv(self._tau * self._sigma2, self._p.T, previous, beta=1.0,
+                            y=theta_ls, trans=1)
+        size = compensated.dot(compensated)
+        if not size <= COMPENSATION_MAX ** 2 and not (
+                size <= COMPENSATION_MAX ** 2 * (1.0 + theta_ls.dot(theta_ls))):
             self._flag('compensation_reset')
             compensated = theta_ls.copy()
         self._theta_c = compensated
+        self._lambda_theta_c = compensated * self._lambda_diagonal
 
     @property
     def sigma2(self) -> float:
@@ -124,7 +122,11 @@ class Bcrls(Rls):
 
     def _reset(self) -> None:
         super()._reset()
+        # the diagonal of Lambda = diag(I_n, 0)
+        self._lambda_diagonal = np.zeros(self.num_parameters)
+        self._lambda_diagonal[:self.order] = 1.0
         self._theta_c = np.zeros(self.num_parameters)
+        self._lambda_theta_c = np.zeros(self.num_parameters)
         self._sigma2 = 0.0
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -134,6 +136,7 @@ class Bcrls(Rls):
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
         self._theta_c = arrays['theta_c']
+        self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
 
 

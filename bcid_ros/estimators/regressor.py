@@ -12,12 +12,12 @@ import numpy as np
 
 class ArxRegressor:
     """
-    Sliding window of past samples that yields phi(t) with one fancy index.
+    Ring buffer of the last n+1 samples that yields phi(t) with one gather.
 
-    The window ``history`` has one row per lag k = 0..n holding
-    ``[-y(t-k), u_1(t-k), ..., u_r(t-k)]``; pushing a sample shifts it by
-    one row. phi(t) is then a fixed gather over that array, which costs the
-    same whatever n and r are.
+    Row ``k`` of ``history`` holds ``[-y, u_1, ..., u_r]`` of some sample;
+    the newest sample goes to row ``position`` and overwrites the oldest.
+    For each position a precomputed index picks phi(t) out of the buffer, so
+    a push costs one row write and one gather whatever n and r are.
 
     Parameters
     ----------
@@ -35,14 +35,20 @@ class ArxRegressor:
         self.num_inputs = num_inputs
         self.feedthrough = feedthrough
         self.history = np.zeros((order + 1, 1 + num_inputs))
+        self.position = 0
         self.filled = 0
-        width = 1 + num_inputs
-        first_lag = 0 if feedthrough else 1
-        index = [k * width for k in range(1, order + 1)]
-        for i in range(num_inputs):
-            index.extend(k * width + 1 + i for k in range(first_lag, order + 1))
-        self._index = np.array(index, dtype=np.intp)
         self._flat = self.history.reshape(-1)
+        self._index = [self._gather_index(newest) for newest in range(order + 1)]
+
+    def _gather_index(self, newest: int) -> np.ndarray:
+        """Return the flat indices of phi(t) when sample t sits in row ``newest``."""
+        rows, width = self.order + 1, 1 + self.num_inputs
+        first_lag = 0 if self.feedthrough else 1
+        index = [((newest - k) % rows) * width for k in range(1, self.order + 1)]
+        for i in range(self.num_inputs):
+            index.extend(((newest - k) % rows) * width + 1 + i
+                         for k in range(first_lag, self.order + 1))
+        return np.array(index, dtype=np.intp)
 
     def push(self, y: float, u: np.ndarray) -> np.ndarray:
         """
@@ -61,13 +67,14 @@ class ArxRegressor:
             phi(t), a fresh array.
 
         """
-        history = self.history
-        history[1:] = history[:-1]
-        history[0, 0] = -y
-        history[0, 1:] = u
+        position = self.position
+        row = self.history[position]
+        row[0] = -y
+        row[1:] = u
+        self.position = position + 1 if position < self.order else 0
         if self.filled <= self.order:
             self.filled += 1
-        return self._flat[self._index]
+        return self._flat[self._index[position]]
 
     @property
     def ready(self) -> bool:
@@ -77,6 +84,7 @@ class ArxRegressor:
     def clear(self) -> None:
         """Forget the history; phi is not ready until n+1 new samples arrive."""
         self.history[:] = 0.0
+        self.position = 0
         self.filled = 0
 
     def regressors(self, y: np.ndarray, u: np.ndarray) -> np.ndarray:

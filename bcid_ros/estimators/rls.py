@@ -13,6 +13,7 @@ import math
 from typing import Any
 
 import numpy as np
+from scipy.linalg.blas import dger
 
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.regressor import ArxRegressor
@@ -75,34 +76,40 @@ class Rls(RecursiveEstimator):
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
         phi = self._regressor.push(y, u)
-        if self._regressor.ready:
-            self._ls_step(y, phi)
+        if self._regressor.ready and self._ls_step(y, phi):
+            self._after_ls_step()
 
-    def _ls_step(self, y: float, phi: np.ndarray) -> None:
-        """Do the RLS step (47)-(50) on a ready regressor ``phi``."""
+    def _after_ls_step(self) -> None:
+        """Extend the LS step (the bias compensation of subclasses); nothing here."""
+
+    def _ls_step(self, y: float, phi: np.ndarray) -> bool:
+        """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
         lam = self._forgetting_factor
-        # g = P(t-1) phi(t)
-        g = self._p @ phi
+        theta = self._theta_ls
+        # g = P(t-1) phi(t)   (ndarray.dot: half the call overhead of @ at this size)
+        g = self._p.dot(phi)
         # s = lambda + phi' P(t-1) phi
-        s = lam + float(phi @ g)
+        s = lam + phi.dot(g)
         if not s > 0.0:
             self._repair_covariance()
-            return
+            return False
         # e = y(t) - phi'(t) theta(t-1)
-        e = y - float(phi @ self._theta_ls)
+        e = y - phi.dot(theta)
         # theta(t) = theta(t-1) + g e / s
-        self._theta_ls += g * (e / s)
-        # P(t) = P(t-1) - h h', h = g / sqrt(s)
+        theta += g * (e / s)
+        # P(t) = P(t-1) - h h', h = g / sqrt(s): symmetric to the last bit
         h = g * (1.0 / math.sqrt(s))
-        self._p -= np.outer(h, h)
+        # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view)
+        self._p = dger(-1.0, h, h, a=self._p.T, overwrite_a=True).T
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
-        self._loss = lam * self._loss + lam * e * e / s
+        self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
         if lam < 1.0:
             self._forget()
         self._updates += 1
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
+        return True
 
     def _forget(self) -> None:
         """Apply P(t) <- P(t) / lambda unless that would wind P up past its start."""
@@ -186,6 +193,7 @@ class Rls(RecursiveEstimator):
                   'history': self._regressor.history}
         scalars = {'loss': self._loss, 'tau': self._tau, 'updates': self._updates,
                    'filled': self._regressor.filled,
+                   'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor}
         return arrays, scalars
 
@@ -194,6 +202,7 @@ class Rls(RecursiveEstimator):
         self._p = arrays['p']
         self._regressor.history[:] = arrays['history']
         self._regressor.filled = int(scalars['filled'])
+        self._regressor.position = int(scalars['position'])
         self._loss = float(scalars['loss'])
         self._tau = float(scalars['tau'])
         self._updates = int(scalars['updates'])
