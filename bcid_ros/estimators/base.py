@@ -187,9 +187,9 @@ class RecursiveEstimator(abc.ABC):
         y = float(y)
         # One dot product screens for NaN/Inf; an overflow of huge finite values
         # falls through to the exact element-wise check.
-        if not math.isfinite(y + u.dot(u)) and not (math.isfinite(y)
-                                                     and np.isfinite(u).all()):
-            raise ValueError('sample contains NaN or Inf')
+        if not math.isfinite(y + u.dot(u)):
+            if not (math.isfinite(y) and np.isfinite(u).all()):
+                raise ValueError('sample contains NaN or Inf')
         self._update(y, u)
         return self.valid
 
