@@ -1,0 +1,510 @@
+"""
+The parameter tables of the identifier and simulator nodes (pure Python, no ROS).
+
+One table per node lists every parameter: name, type, default, description,
+allowed values or range, and whether it may change while the node runs. The
+nodes declare their ROS parameters from these tables, and the offline tools
+(``bcid replay``) take their defaults from the same tables, so a parameter
+file builds the same estimator online and offline:
+
+>>> values = check_identifier_parameters(load_yaml_parameters('config/ding_miso.yaml'))
+>>> estimator = estimator_from_parameters(values)
+
+The estimator-specific options (SPEC section 5: ``iv_lag``, ... for
+``bciv``; ``controller_numerator``, ... for ``cl_bcls``) default to
+``None``, which means "the estimator class's own default": they are only
+passed to the constructor when set, and the constructor validates them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+from bcid_ros.estimators import estimator_class, ESTIMATORS, RecursiveEstimator
+
+#: Parameter types, named as the ROS parameter types they become.
+TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array')
+
+#: The keyword arguments of every estimator's base constructor.
+BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
+                 'forgetting_factor')
+
+#: Parameters every ROS node has; accepted in parameter files and ignored here.
+ROS_BUILTIN = ('use_sim_time', 'start_type_description_service')
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterSpec:
+    """
+    One node parameter: its type, default and allowed values.
+
+    Attributes
+    ----------
+    name : str
+        The ROS parameter name.
+    type : str
+        One of :data:`TYPES`.
+    default : object
+        The default value; ``None`` means not set (the estimator's default).
+    description : str
+        One sentence for ``ros2 param describe`` and the docs.
+    choices : tuple of str
+        Allowed values of a string parameter (empty: any string).
+    low, high : float or None
+        Inclusive range of a number (or of every element of a double array).
+    low_open : bool
+        Whether ``low`` itself is excluded.
+    read_only : bool
+        Whether the parameter is fixed after start-up.
+
+    """
+
+    name: str
+    type: str
+    default: Any
+    description: str
+    choices: tuple[str, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    read_only: bool = True
+
+    def allowed(self) -> str:
+        """Return the allowed values in words, for messages and descriptors."""
+        if self.choices:
+            return 'one of ' + ', '.join(repr(c) for c in self.choices)
+        if self.type == 'bool':
+            return 'true or false'
+        if self.low is not None or self.high is not None:
+            low = '-inf' if self.low is None else f'{self.low:g}'
+            high = 'inf' if self.high is None else f'{self.high:g}'
+            bracket = '(' if self.low_open else '['
+            kind = {'integer': 'an integer', 'double': 'a number',
+                    'double_array': 'a list of numbers'}.get(self.type, self.type)
+            each = ' each' if self.type == 'double_array' else ''
+            return f'{kind}{each} in {bracket}{low}, {high}]'
+        return {'integer': 'an integer', 'double': 'a finite number',
+                'double_array': 'a list of numbers', 'string_array': 'a list of strings',
+                'string': 'a string'}[self.type]
+
+    def check(self, value: Any) -> Any:
+        """
+        Return ``value`` converted to this parameter's type, or raise ValueError.
+
+        Raises
+        ------
+        ValueError
+            If the value has the wrong type or is out of range; the message
+            names the parameter, the allowed values and the value given.
+
+        """
+        if value is None:
+            if self.default is None:
+                return None
+            raise ValueError(self._message(value))
+        converted = self._convert(value)
+        if converted is None:
+            raise ValueError(self._message(value))
+        numbers = ([converted] if self.type in ('integer', 'double')
+                   else converted if self.type == 'double_array' else [])
+        for number in numbers:
+            if not math.isfinite(number) or not self._in_range(number):
+                raise ValueError(self._message(value))
+        if self.choices and converted not in self.choices:
+            raise ValueError(self._message(value))
+        return converted
+
+    def _convert(self, value: Any) -> Any:
+        if self.type == 'bool':
+            return value if isinstance(value, bool) else None
+        if self.type == 'integer':
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                return None
+            return int(value) if float(value).is_integer() else None
+        if self.type == 'double':
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            return float(value) if ok else None
+        if self.type == 'string':
+            return value if isinstance(value, str) else None
+        if not isinstance(value, (list, tuple)) and not hasattr(value, 'tolist'):
+            return None
+        items = list(value.tolist() if hasattr(value, 'tolist') else value)
+        if self.type == 'double_array':
+            if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
+                return None
+            return [float(v) for v in items]
+        if any(not isinstance(v, str) for v in items):
+            return None
+        return items
+
+    def _in_range(self, number: float) -> bool:
+        if self.low is not None and (number <= self.low if self.low_open else number < self.low):
+            return False
+        return self.high is None or number <= self.high
+
+    def _message(self, value: Any) -> str:
+        return f'parameter {self.name!r} must be {self.allowed()}, got {value!r}'
+
+
+def _p(name: str, type_: str, default: Any, description: str, **kwargs: Any) -> ParameterSpec:
+    return ParameterSpec(name, type_, default, description, **kwargs)
+
+
+#: The identifier node's parameters (SPEC section 5), in declaration order.
+IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
+    # --- the estimator and the model structure
+    _p('estimator', 'string', 'bcrls', 'Estimator: rls (plain least squares), bcrls (Ding '
+       '2006, white output noise), bciv (Ikenoue 2008, errors-in-variables), cl_bcls '
+       '(Ikeda 2008, closed loop).', choices=tuple(ESTIMATORS)),
+    _p('order', 'integer', 2, 'Plant order n: number of a coefficients and of input lags.',
+       low=1, high=64),
+    _p('num_inputs', 'integer', 1, 'Number of inputs r.', low=1, high=64),
+    _p('feedthrough', 'bool', False, 'Estimate the lag-0 input coefficients b{i}_0 '
+       '(direct feedthrough).'),
+    _p('initial_covariance', 'double', 1e6, 'p0 of the initial covariance P(0) = p0 I.',
+       low=0.0, high=1e15, low_open=True),
+    _p('forgetting_factor', 'double', 1.0, 'Exponential forgetting factor lambda; 1 means no '
+       'forgetting. May be changed while running.', low=0.0, high=1.0, low_open=True,
+       read_only=False),
+    # --- bciv (Ikenoue et al. 2008)
+    _p('iv_lag', 'integer', None, 'bciv: IV lag l (the IV vector has n + 2l past inputs; '
+       'colored input noise needs l >= 2n). Unset: the estimator default.', low=1, high=1000),
+    _p('input_noise', 'string', None, 'bciv: input measurement noise model. Unset: the '
+       'estimator default.', choices=('colored', 'white')),
+    _p('idle_samples', 'integer', None, 'bciv: idle period L, samples before the bias '
+       'compensation starts. Unset: the estimator default.', low=0, high=1e9),
+    _p('bciv_iterations', 'integer', None, 'bciv: alternations K of the compensation per '
+       'sample. Unset: the estimator default.', low=1, high=10000),
+    _p('bciv_update', 'string', None, 'bciv: converged (K alternations from the IV '
+       'estimate) or printed (the paper\'s one-step recursion). Unset: the estimator '
+       'default.', choices=('converged', 'printed')),
+    _p('allow_underdetermined', 'bool', None, 'bciv: allow l < 2n with colored input noise '
+       '(under-determined, poor). Unset: the estimator default.'),
+    # --- cl_bcls (Ikeda 2008)
+    _p('controller_numerator', 'double_array', None, 'cl_bcls: controller numerator b_c in '
+       'descending powers of q.'),
+    _p('controller_denominator', 'double_array', None, 'cl_bcls: controller denominator a_c '
+       'in descending powers of q.'),
+    _p('controller_sign', 'string', None, 'cl_bcls: negative means u = (b_c/a_c)(r - y), '
+       'positive means u = (b_c/a_c)(y - r). Unset: the estimator default (negative).',
+       choices=('negative', 'positive')),
+    _p('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f in '
+       'descending powers of q. Unset: the estimator default.'),
+    _p('window', 'integer', None, 'cl_bcls: samples in the compensation and redesign window. '
+       'Unset: the estimator default.', low=0, high=1e9),
+    _p('redesign_period', 'integer', None, 'cl_bcls: samples between compensations and '
+       'prefilter redesigns. Unset: the estimator default.', low=1, high=1e9),
+    _p('max_iterations', 'integer', None, 'cl_bcls: most prefilter redesign iterations per '
+       'redesign. Unset: the estimator default.', low=1, high=10000),
+    _p('tolerance', 'double', None, 'cl_bcls: stop redesigning when the estimate moves less '
+       'than this. Unset: the estimator default.', low=0.0, high=1e6, low_open=True),
+    # --- node: input topics, pairing, publishing
+    _p('input_mode', 'string', 'combined', 'combined: y and u in one Float64MultiArray on '
+       'samples (single samples or frames). separate: u on input and y on output.',
+       choices=('combined', 'separate')),
+    _p('sync', 'string', 'arrival', 'Separate mode pairing: arrival (FIFO in arrival order) or '
+       'stamp (header stamps equal within sync_tolerance; needs JointState).',
+       choices=('arrival', 'stamp')),
+    _p('sync_tolerance', 'double', 0.001, 'Stamp pairing: largest stamp difference (s) of a '
+       'pair.', low=0.0, high=3600.0),
+    _p('queue_size', 'integer', 100, 'Separate mode: most unpaired messages kept per topic; '
+       'the oldest is dropped (and counted) beyond it.', low=1, high=1000000),
+    _p('sample_period', 'double', 0.0, 'Stamp mode: nominal sample period (s) used to detect '
+       'gaps (an interval above 1.5 periods restarts the regressor). 0: the median of the '
+       'first 20 intervals.', low=0.0, high=3600.0),
+    _p('input_type', 'string', 'float64', 'Separate mode: type of the input topic.',
+       choices=('float64', 'float64_multi_array', 'joint_state')),
+    _p('output_type', 'string', 'float64', 'Separate mode: type of the output topic.',
+       choices=('float64', 'joint_state')),
+    _p('input_joints', 'string_array', [], 'JointState input: joint names of u1..ur, in order '
+       '(empty: the first r entries).'),
+    _p('input_field', 'string', 'effort', 'JointState input: the field holding u.',
+       choices=('position', 'velocity', 'effort')),
+    _p('output_joint', 'string', '', 'JointState output: joint name of y (empty: the first '
+       'entry).'),
+    _p('output_field', 'string', 'position', 'JointState output: the field holding y.',
+       choices=('position', 'velocity', 'effort')),
+    _p('publish_period', 'integer', 1, 'Publish the estimates every this many samples. May be '
+       'changed while running.', low=1, high=1000000, read_only=False),
+    _p('excitation_window', 'integer', 200, 'Warn (and count) when the input has not changed '
+       'for this many samples (no excitation); 0 turns the check off.', low=0, high=1e9),
+)
+
+#: The simulator node's parameters (SPEC section 6), in declaration order.
+SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
+    _p('scenario', 'string', 'ding_miso', 'The papers\' scenarios, or custom (plant, noise and '
+       'input given by the custom parameters below).',
+       choices=('ding_miso', 'ding_miso_nonstationary', 'ikenoue_colored',
+                'ikenoue_white_input', 'ikeda_closed_loop', 'custom')),
+    _p('rate_hz', 'double', 100.0, 'Samples per second.', low=0.0, high=1e6, low_open=True),
+    _p('seed', 'integer', 0, 'Seed of the random generator; the same seed gives the same '
+       'data at any rate and frame size.', low=0, high=2 ** 63 - 1),
+    _p('num_samples', 'integer', 0, 'Samples to publish before exiting; 0 runs forever.',
+       low=0, high=1e12),
+    _p('frame_size', 'integer', 1, 'Samples per samples message (k > 1: SPEC section 3 '
+       'frames).', low=1, high=100000),
+    _p('output_mode', 'string', 'combined', 'combined: samples topic; separate: input and '
+       'output topics; both: all three.', choices=('combined', 'separate', 'both')),
+    _p('input_type', 'string', 'float64_multi_array', 'Type of the input topic (float64 only '
+       'for one input).', choices=('float64', 'float64_multi_array', 'joint_state')),
+    _p('output_type', 'string', 'float64', 'Type of the output topic.',
+       choices=('float64', 'joint_state')),
+    _p('start_delay', 'double', 0.5, 'Seconds to wait after start-up before the first sample, '
+       'so that subscribers can connect.', low=0.0, high=3600.0),
+    # --- the custom scenario
+    _p('plant_denominator', 'double_array', [1.0, -0.8], 'custom: A(z) = 1 + a1 z^-1 + ... + '
+       'an z^-n, as [1, a1, ..., an].'),
+    _p('plant_numerator', 'double_array', [0.0, 0.5], 'custom: B_i(z) = b_i0 + b_i1 z^-1 + '
+       '... + b_in z^-n for each input, concatenated: r (n + 1) numbers.'),
+    _p('noise_numerator', 'double_array', [1.0], 'custom: C(z) of the output noise '
+       'v = C/D e, as [1, c1, ...].'),
+    _p('noise_denominator', 'double_array', [1.0], 'custom: D(z) of the output noise, as '
+       '[1, d1, ...].'),
+    _p('noise_variance', 'double', 0.01, 'custom: variance of the white e driving the output '
+       'noise.', low=0.0, high=1e12),
+    _p('equation_error', 'bool', False, 'custom: add the noise as A y = B u + v (equation '
+       'error) instead of y = B/A u + v (output error).'),
+    _p('input_signal', 'string', 'white', 'custom: white (Gaussian) or binary (random +-1 '
+       'held for input_hold samples), times sqrt(input_variance), then input_numerator/'
+       'input_denominator.', choices=('white', 'binary')),
+    _p('input_variance', 'double', 1.0, 'custom: variance of the input driving signal.',
+       low=0.0, high=1e12),
+    _p('input_hold', 'integer', 1, 'custom: samples each binary level is held.',
+       low=1, high=1e9),
+    _p('input_numerator', 'double_array', [1.0], 'custom: numerator of the input colouring '
+       'filter.'),
+    _p('input_denominator', 'double_array', [1.0], 'custom: denominator of the input '
+       'colouring filter.'),
+    _p('input_noise_variance', 'double', 0.0, 'custom: variance of white measurement noise '
+       'added to the published inputs (errors in variables).', low=0.0, high=1e12),
+)
+
+#: The custom scenario's parameter names (passed to CustomScenario).
+CUSTOM_SETTINGS = ('plant_denominator', 'plant_numerator', 'noise_numerator',
+                   'noise_denominator', 'noise_variance', 'equation_error', 'input_signal',
+                   'input_variance', 'input_hold', 'input_numerator', 'input_denominator',
+                   'input_noise_variance')
+
+#: Parameters that may change while the identifier runs.
+IDENTIFIER_LIVE = tuple(p.name for p in IDENTIFIER_PARAMETERS if not p.read_only)
+
+
+def spec_by_name(table: tuple[ParameterSpec, ...]) -> dict[str, ParameterSpec]:
+    """Return ``{name: spec}`` of a parameter table."""
+    return {spec.name: spec for spec in table}
+
+
+def _flatten(tree: dict[str, Any], prefix: str = '') -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict):
+            flat.update(_flatten(value, name + '.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+def load_yaml_parameters(path: str | Path, node_name: str = 'bcid_identifier') -> dict[str, Any]:
+    """
+    Read the parameters of one node from a ROS 2 parameter YAML file.
+
+    Values under ``/**:`` apply to every node; those under ``<node_name>:``
+    (or ``/<node_name>:``, or any ``/namespace/<node_name>:``) override them.
+    Nested keys are flattened with dots, as ROS does.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The YAML file.
+    node_name : str
+        The node whose section to read.
+
+    Returns
+    -------
+    dict
+        ``{parameter name: value}`` as written in the file.
+
+    Raises
+    ------
+    ValueError
+        If the file is not a parameter file or has no section for the node.
+
+    """
+    import yaml
+
+    text = Path(path).read_text()
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ValueError(f'{path}: not valid YAML: {error}') from None
+    if not isinstance(document, dict):
+        raise ValueError(f'{path}: not a ROS 2 parameter file (expected a mapping)')
+    values: dict[str, Any] = {}
+    found = False
+    wildcard = [key for key in document if str(key).strip('/') == '**']
+    own = [key for key in document
+           if str(key).lstrip('/') == node_name or str(key).endswith('/' + node_name)]
+    for key in wildcard + own:
+        section = document[key]
+        if not isinstance(section, dict) or 'ros__parameters' not in section:
+            raise ValueError(f'{path}: section {key!r} has no ros__parameters')
+        parameters = section['ros__parameters'] or {}
+        if not isinstance(parameters, dict):
+            raise ValueError(f'{path}: {key}: ros__parameters must be a mapping')
+        values.update(_flatten(parameters))
+        found = True
+    if not found:
+        raise ValueError(f'{path}: no section for node {node_name!r} '
+                         f'(expected "{node_name}: ros__parameters:" or "/**:")')
+    return values
+
+
+def check_parameters(values: dict[str, Any],
+                     table: tuple[ParameterSpec, ...]) -> dict[str, Any]:
+    """
+    Check values against a parameter table and fill in the defaults.
+
+    Raises
+    ------
+    ValueError
+        For an unknown parameter name or a value that is not allowed; the
+        message names the parameter and its allowed values.
+
+    """
+    specs = spec_by_name(table)
+    unknown = sorted(set(values) - set(specs) - set(ROS_BUILTIN))
+    if unknown:
+        raise ValueError(f'unknown parameter {unknown[0]!r}; known parameters: '
+                         f'{", ".join(specs)}')
+    return {name: spec.check(values.get(name, spec.default)) for name, spec in specs.items()}
+
+
+def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
+    """
+    Check identifier parameters and return all of them, defaults filled in.
+
+    Besides each parameter's own range this checks that the estimator is
+    installed and that ``sync: stamp`` has stamped topic types. Options of
+    other estimators are allowed (so that ``--estimator`` can override a
+    file) and ignored by :func:`estimator_settings`.
+
+    Parameters
+    ----------
+    values : dict
+        ``{name: value}``, e.g. from :func:`load_yaml_parameters`.
+
+    Returns
+    -------
+    dict
+        Every parameter of :data:`IDENTIFIER_PARAMETERS`.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter and its allowed values.
+
+    """
+    checked = check_parameters(values, IDENTIFIER_PARAMETERS)
+    if checked['input_mode'] == 'separate':
+        if checked['input_type'] == 'float64' and checked['num_inputs'] != 1:
+            raise ValueError("parameter 'input_type' must be float64_multi_array or "
+                             "joint_state when num_inputs > 1, got 'float64'")
+        if checked['sync'] == 'stamp':
+            for name in ('input_type', 'output_type'):
+                if checked[name] != 'joint_state':
+                    raise ValueError(f"parameter {name!r} must be 'joint_state' (a stamped "
+                                     f"type) with sync: stamp, got {checked[name]!r}")
+    if checked['input_joints'] and len(checked['input_joints']) != checked['num_inputs']:
+        raise ValueError(f"parameter 'input_joints' must have num_inputs = "
+                         f"{checked['num_inputs']} names (or none), got "
+                         f"{checked['input_joints']!r}")
+    estimator_options(checked['estimator'])  # raises if the estimator is not installed
+    return checked
+
+
+def estimator_options(name: str) -> tuple[str, ...]:
+    """
+    Return the extra constructor keywords (ROS parameter names) of estimator ``name``.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not a registered estimator or its module is missing.
+
+    """
+    try:
+        cls = estimator_class(name)
+    except ImportError as error:
+        raise ValueError(f'parameter \'estimator\': {name!r} is not available in this '
+                         f'installation ({error})') from None
+    return tuple(getattr(cls, 'options', ()))
+
+
+def unused_options(values: dict[str, Any]) -> list[str]:
+    """Return the estimator options that are set but do not apply to the estimator."""
+    options = estimator_options(values['estimator'])
+    return [spec.name for spec in IDENTIFIER_PARAMETERS
+            if spec.default is None and values.get(spec.name) is not None
+            and spec.name not in options]
+
+
+def estimator_settings(values: dict[str, Any]) -> dict[str, Any]:
+    """
+    Return the constructor keywords of the configured estimator.
+
+    These are the base settings plus those of the class's ``options`` that
+    are set (not ``None``).
+    """
+    settings = {name: values[name] for name in BASE_SETTINGS}
+    for name in estimator_options(values['estimator']):
+        if values.get(name) is not None:
+            settings[name] = values[name]
+    return settings
+
+
+def estimator_from_parameters(values: dict[str, Any]) -> RecursiveEstimator:
+    """
+    Build the estimator that the identifier node builds from the same parameters.
+
+    Parameters
+    ----------
+    values : dict
+        Parameters; checked (and defaults filled) with
+        :func:`check_identifier_parameters` first.
+
+    Returns
+    -------
+    RecursiveEstimator
+        A fresh estimator.
+
+    Raises
+    ------
+    ValueError
+        If a parameter is not allowed (named in the message).
+
+    """
+    checked = check_identifier_parameters(values)
+    return estimator_class(checked['estimator'])(**estimator_settings(checked))
+
+
+def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
+    """
+    Check simulator parameters and return all of them, defaults filled in.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter and its allowed values.
+
+    """
+    return check_parameters(values, SIMULATOR_PARAMETERS)
+
+
+__all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS', 'ParameterSpec',
+           'SIMULATOR_PARAMETERS', 'TYPES', 'check_identifier_parameters', 'check_parameters',
+           'check_simulator_parameters', 'estimator_from_parameters', 'estimator_options',
+           'estimator_settings', 'load_yaml_parameters', 'spec_by_name', 'unused_options']
