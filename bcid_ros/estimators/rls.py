@@ -13,7 +13,7 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy.linalg.blas import dger
+from scipy.linalg.blas import daxpy, dger
 
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.regressor import ArxRegressor
@@ -95,8 +95,8 @@ class Rls(RecursiveEstimator):
             return False
         # e = y(t) - phi'(t) theta(t-1)
         e = y - phi.dot(theta)
-        # theta(t) = theta(t-1) + g e / s
-        theta += g * (e / s)
+        # theta(t) = theta(t-1) + g e / s   (BLAS axpy, in place)
+        daxpy(g, theta, a=e / s)
         # P(t) = P(t-1) - h h', h = g / sqrt(s): symmetric to the last bit
         h = g * (1.0 / math.sqrt(s))
         # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view)
