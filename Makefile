@@ -7,6 +7,7 @@ demo:
 test:
 	scripts/test.sh
 bench: venv
-	.venv/bin/python benchmarks/run.py
+	.venv/bin/python -m pip install --quiet -r benchmarks/requirements.txt
+	.venv/bin/python -m benchmarks.run
 reproduce: venv
 	.venv/bin/bcid reproduce all

@@ -1,0 +1,1 @@
+"""Performance benchmarks of bcid_ros (run with ``python -m benchmarks.run``)."""

@@ -1,0 +1,155 @@
+"""
+Per-sample estimator cost against the floor, the naive batch way and a peer, in one run.
+
+The floor is a bare textbook numpy RLS update of the same size written inline here;
+the naive way re-solves the batch problem over all data so far at every sample
+(timed at N = 1000); the peer is padasip's FilterRLS of the same size.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+
+import numpy as np
+
+from benchmarks.common import per_sample_us, Result, summary
+from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.bcrls import bcls_fixed_point
+from bcid_ros.estimators.regressor import ArxRegressor
+from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                 load_yaml_parameters)
+from bcid_ros.resources import config_file
+from bcid_ros.simulation import make_scenario
+
+SECTION = 'estimator cost'
+NAIVE_N = 1000
+
+
+def floor_rls_us(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Time a bare inline numpy RLS update per sample (the floor)."""
+    p = 1e6 * np.eye(phi.shape[1])
+    theta = np.zeros(phi.shape[1])
+    clock = time.perf_counter_ns
+    times = np.empty(len(y))
+    for t in range(len(y)):
+        start = clock()
+        x = phi[t]
+        g = p @ x
+        k = g / (1.0 + x @ g)
+        theta = theta + k * (y[t] - x @ theta)
+        p = p - np.outer(k, g)
+        times[t] = clock() - start
+    return times / 1000.0
+
+
+def naive_lstsq_us(y: np.ndarray, u: np.ndarray, at: int, repeats: int = 30) -> float:
+    """Time building Phi from the first ``at`` samples and one np.linalg.lstsq (median, us)."""
+    regressor = ArxRegressor(2, 2, False)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        phi = regressor.regressors(y[:at], u[:at])
+        np.linalg.lstsq(phi, y[2:at], rcond=None)
+        times.append(time.perf_counter_ns() - start)
+    return float(np.median(times)) / 1000.0
+
+
+def naive_bcls_us(y: np.ndarray, u: np.ndarray, at: int, repeats: int = 30) -> float:
+    """Time one batch BCLS fixed point (eq. 24) over the first ``at`` samples (median, us)."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        bcls_fixed_point(y[:at], u[:at], order=2, num_inputs=2)
+        times.append(time.perf_counter_ns() - start)
+    return float(np.median(times)) / 1000.0
+
+
+def padasip_us(phi: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """Time padasip's FilterRLS.adapt per sample, or None if padasip is not installed."""
+    if importlib.util.find_spec('padasip') is None:
+        return None
+    import padasip
+    peer = padasip.filters.FilterRLS(phi.shape[1], mu=1.0, eps=1e-6)
+    clock = time.perf_counter_ns
+    times = np.empty(len(y))
+    for t in range(len(y)):
+        start = clock()
+        peer.adapt(y[t], phi[t])
+        times[t] = clock() - start
+    return times / 1000.0
+
+
+def run(quick: bool = False) -> list[Result]:
+    """Measure everything of section 1 in one run and return the rows."""
+    samples = 3000 if quick else 20000
+    plant = make_scenario('ding_miso')
+    y, u = plant.simulate(samples, 7)
+    phi = ArxRegressor(2, 2, False).regressors(y, u)
+    target = y[2:]
+
+    floor_med, floor_p99 = summary(floor_rls_us(phi, target))
+    rows = [Result(SECTION, 'floor: bare inline numpy RLS (p = 6), median', floor_med, 'µs'),
+            Result(SECTION, 'floor p99', floor_p99, 'µs')]
+    costs = {}
+    for name in ('rls', 'bcrls'):
+        est = make_estimator(name, order=2, num_inputs=2)
+        med, p99 = summary(per_sample_us(est.update, y, u))
+        costs[name] = med
+        rows.append(Result(SECTION, f'{name} update (n = 2, r = 2), median', med, 'µs',
+                           note=f'p99 {p99:.1f} µs; {med / floor_med:.2f}× floor'))
+    rows.append(Result(SECTION, 'bcrls / floor', costs['bcrls'] / floor_med, '×', '≤ 1.5',
+                       costs['bcrls'] / floor_med <= 1.5))
+
+    lstsq = naive_lstsq_us(y, u, NAIVE_N)
+    bcls = naive_bcls_us(y, u, NAIVE_N)
+    rows.append(Result(SECTION, f'naive: build Phi + lstsq over all data at N = {NAIVE_N}', lstsq, 'µs'))
+    rows.append(Result(SECTION, f'naive: batch BCLS fixed point at N = {NAIVE_N}', bcls, 'µs'))
+    rows.append(Result(SECTION, 'naive lstsq / rls', lstsq / costs['rls'], '×', '≥ 20',
+                       lstsq / costs['rls'] >= 20))
+    rows.append(Result(SECTION, 'naive batch BCLS / bcrls', bcls / costs['bcrls'], '×', '≥ 20',
+                       bcls / costs['bcrls'] >= 20))
+
+    peer = padasip_us(phi, target)
+    if peer is None:
+        rows.append(Result(SECTION, 'padasip FilterRLS', float('nan'), 'µs',
+                           note='padasip not installed: make bench installs it'))
+    else:
+        peer_med, _ = summary(peer)
+        rows.append(Result(SECTION, 'peer: padasip FilterRLS (p = 6), median', peer_med, 'µs'))
+        for name in ('rls', 'bcrls'):
+            rows.append(Result(SECTION, f'{name} / padasip', costs[name] / peer_med, '×',
+                               '≤ 1', costs[name] <= peer_med))
+    rows.extend(_other_estimators(floor_med, quick))
+    return rows
+
+
+def _other_estimators(floor_med: float, quick: bool) -> list[Result]:
+    """Time bciv (white, coloured) and cl_bcls with their scenario configs, where they exist."""
+    rows = []
+    cases = [('ikenoue_white_input', '≤ 100 µs'), ('ikenoue_colored', '≤ 100 µs'),
+             ('ikeda_closed_loop', '≤ 3× floor')]
+    for scenario, target in cases:
+        try:
+            values = check_identifier_parameters(load_yaml_parameters(config_file(scenario)))
+            est = estimator_from_parameters(values)
+        except (FileNotFoundError, ImportError, ValueError) as error:
+            rows.append(Result(SECTION, f'estimator of {scenario}', float('nan'), 'µs',
+                               note=f'not available: {error}'))
+            continue
+        plant = make_scenario(scenario)
+        y, u = plant.simulate(3000 if quick else 10000, 11)
+        times = per_sample_us(est.update, y, u)
+        med, p99 = summary(times)
+        mean = float(times.mean())
+        label = f'{est.name} on {scenario}'
+        if est.name == 'bciv':
+            label += f' (l = {values["iv_lag"]}, {values["input_noise"]} input noise)'
+            met, value, unit = med <= 100.0, med, 'µs'
+        else:
+            # cl_bcls does its window work every redesign_period samples: amortised = mean
+            met, value, unit = mean <= 3 * floor_med, mean / floor_med, '× floor (amortised)'
+        rows.append(Result(SECTION, label, value, unit, target, met,
+                           note=f'median {med:.1f} µs, mean {mean:.1f} µs, p99 {p99:.1f} µs, '
+                           f'{med / floor_med:.1f}× floor'))
+    return rows
