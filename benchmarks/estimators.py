@@ -103,7 +103,8 @@ def run(quick: bool = False) -> list[Result]:
 
     lstsq = naive_lstsq_us(y, u, NAIVE_N)
     bcls = naive_bcls_us(y, u, NAIVE_N)
-    rows.append(Result(SECTION, f'naive: build Phi + lstsq over all data at N = {NAIVE_N}', lstsq, 'µs'))
+    rows.append(Result(SECTION, f'naive: build Phi + lstsq over all data at N = {NAIVE_N}',
+                       lstsq, 'µs'))
     rows.append(Result(SECTION, f'naive: batch BCLS fixed point at N = {NAIVE_N}', bcls, 'µs'))
     rows.append(Result(SECTION, 'naive lstsq / rls', lstsq / costs['rls'], '×', '≥ 20',
                        lstsq / costs['rls'] >= 20))
