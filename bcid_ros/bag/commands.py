@@ -1,0 +1,97 @@
+"""
+The bag subcommands of ``bcid``: replay, simulate, record, play, info.
+
+``replay``, ``simulate`` and ``info`` work offline and never import rclpy;
+``record`` and ``play`` import it (lazily, in their own modules).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from bcid_ros.errors import BcidError
+
+
+def replay(args: argparse.Namespace) -> int:
+    """Run ``bcid replay``: the estimator over a bag, a summary, an optional trajectory."""
+    from bcid_ros.bag.replay import replay as run, write_output
+    from bcid_ros.parameters import load_yaml_parameters
+
+    if not args.params.is_file():
+        raise BcidError(f'--params {args.params}: no such file')
+    result = run(args.bag, load_yaml_parameters(args.params), estimator=args.estimator)
+    if args.output is not None:
+        write_output(result, args.output)
+    if args.json:
+        print(json.dumps(result.summary()))
+        return 0
+    rate = result.samples / result.elapsed_s if result.elapsed_s > 0 else float('inf')
+    print(f'{result.estimator}: {result.samples} samples from {result.messages} messages '
+          f'in {result.elapsed_s:.3f} s ({rate:,.0f} samples/s)')
+    if result.malformed or result.nonfinite:
+        print(f'skipped: {result.malformed} malformed messages, {result.nonfinite} samples '
+              'with NaN/Inf')
+    if not result.valid:
+        print('the estimator never became valid (too few samples)')
+    truth = result.truth.as_dict()['parameters'] if result.truth is not None else {}
+    width = max(len(n) for n in result.parameter_names)
+    print(f'{"":{width}}  {"estimate":>12}  {"uncompensated":>13}' + ('  {:>10}'.format('true')
+                                                                      if truth else ''))
+    for k, name in enumerate(result.parameter_names):
+        line = (f'{name:{width}}  {result.theta[k]:12.6f}  '
+                f'{result.theta_uncompensated[k]:13.6f}')
+        if name in truth:
+            line += f'  {truth[name]:10.6f}'
+        print(line)
+    for name, value in zip(result.noise_names, result.noise):
+        true_noise = result.truth.as_dict()['noise'] if result.truth is not None else {}
+        extra = f' (true {true_noise[name]:.6g})' if name in true_noise else ''
+        print(f'{name} = {value:.6g}{extra}')
+    if result.delta is not None:
+        print(f'delta = ||theta_hat - theta|| / ||theta|| = {100 * result.delta:.3f} %')
+    if args.output is not None:
+        print(f'wrote {args.output}')
+    return 0
+
+
+def simulate(args: argparse.Namespace) -> int:
+    """Run ``bcid simulate``: write a scenario bag offline."""
+    from bcid_ros.bag.simulate import simulate_bag
+
+    out = simulate_bag(args.scenario, args.samples, args.seed, args.rate, args.out)
+    print(f'wrote {out}')
+    return 0
+
+
+def info(args: argparse.Namespace) -> int:
+    """Run ``bcid info``: topics, counts, duration and truth of a bag."""
+    from bcid_ros.bag.info import describe_bag
+
+    print(describe_bag(args.bag))
+    return 0
+
+
+def record(args: argparse.Namespace) -> int:
+    """Run ``bcid record``: record topics over rclpy until SIGINT or --duration."""
+    from bcid_ros.bag.record import record_bag
+
+    counts = record_bag(args.out, args.topics, duration=args.duration)
+    total = sum(counts.values())
+    print(f'wrote {args.out}: {total} messages '
+          f'({", ".join(f"{t}: {n}" for t, n in counts.items()) or "no topics found"})',
+          file=sys.stderr)
+    return 0
+
+
+def play(args: argparse.Namespace) -> int:
+    """Run ``bcid play``: publish a bag over rclpy with its timing and QoS."""
+    from bcid_ros.bag.play import play_bag
+
+    stats = play_bag(args.bag, rate=args.rate)
+    print(stats.describe(), file=sys.stderr)
+    return 0
+
+
+__all__ = ['info', 'play', 'record', 'replay', 'simulate']

@@ -1,0 +1,283 @@
+"""
+Read rosbag2 MCAP bags with ``mcap`` and ``mcap_ros2`` (no rclpy).
+
+:class:`BagReader` opens a bag directory (``metadata.yaml`` + ``*.mcap``) or
+a single ``.mcap`` file, checks that it is a ROS 2 MCAP (profile ``ros2``,
+``cdr`` messages), and turns every way a bag can be broken (missing,
+truncated, corrupt, not MCAP, a topic missing or of the wrong type) into a
+:class:`~bcid_ros.errors.BcidError` that says what is wrong in one line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+import struct
+from typing import Any, Iterator, Sequence
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+import numpy as np
+import yaml
+import zstandard
+
+from bcid_ros.bag.qos import parse_offered, Qos
+from bcid_ros.errors import BcidError
+from bcid_ros.samples import parse_names_label
+
+#: Failures of the MCAP and CDR layers that mean "this file is broken".
+READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError,
+               IndexError, UnicodeDecodeError, TypeError)
+
+FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
+
+
+@dataclasses.dataclass(frozen=True)
+class TopicInfo:
+    """One topic of a bag: type, message count and the QoS its publishers offered."""
+
+    name: str
+    type: str
+    count: int
+    qos: tuple[Qos, ...]
+    encoding: str
+
+
+@dataclasses.dataclass(frozen=True)
+class BagTruth:
+    """The simulator's truth as recorded in a bag (empty names when absent)."""
+
+    parameter_names: tuple[str, ...]
+    parameters: np.ndarray
+    noise_names: tuple[str, ...]
+    noise: np.ndarray
+
+    def as_dict(self) -> dict[str, dict[str, float]]:
+        """Return ``{'parameters': {name: value}, 'noise': {name: value}}``."""
+        return {'parameters': dict(zip(self.parameter_names, map(float, self.parameters))),
+                'noise': dict(zip(self.noise_names, map(float, self.noise)))}
+
+
+def bag_files(path: Path) -> list[Path]:
+    """
+    Return the MCAP files of a bag directory (in metadata order) or of a file path.
+
+    Raises
+    ------
+    BcidError
+        If the path does not exist, or holds no MCAP file.
+
+    """
+    if not path.exists():
+        raise BcidError(f'{path}: no such bag (expected a rosbag2 directory or an .mcap file)')
+    if path.is_file():
+        return [path]
+    metadata = path / 'metadata.yaml'
+    if metadata.is_file():
+        try:
+            info = yaml.safe_load(metadata.read_text())['rosbag2_bagfile_information']
+            names = list(info['relative_file_paths'])
+            storage = info.get('storage_identifier', 'mcap')
+        except (yaml.YAMLError, TypeError, KeyError) as error:
+            raise BcidError(f'{metadata}: not a rosbag2 metadata file ({error!r})') from None
+        if storage != 'mcap':
+            raise BcidError(f'{path}: storage {storage!r} is not supported; only MCAP bags')
+        files = [path / name for name in names]
+        missing = [f.name for f in files if not f.is_file()]
+        if missing:
+            raise BcidError(f'{path}: metadata.yaml lists {", ".join(missing)}, which is '
+                            'missing')
+        return files
+    files = sorted(path.glob('*.mcap'))
+    if not files:
+        raise BcidError(f'{path}: no metadata.yaml and no .mcap file; not a rosbag2 MCAP bag')
+    return files
+
+
+class BagReader:
+    """
+    A read-only view of a rosbag2 MCAP bag.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The bag directory or one ``.mcap`` file.
+
+    Raises
+    ------
+    BcidError
+        If the bag is missing, truncated, corrupt or not a ROS 2 MCAP.
+
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.files = bag_files(self.path)
+        self.topics: dict[str, TopicInfo] = {}
+        self.start_ns: int | None = None
+        self.end_ns: int | None = None
+        for file in self.files:
+            self._read_summary(file)
+
+    def _read_summary(self, file: Path) -> None:
+        try:
+            with file.open('rb') as stream:
+                reader = make_reader(stream)
+                header = reader.get_header()
+                summary = reader.get_summary()
+        except READ_ERRORS as error:
+            raise BcidError(f'{file}: not a readable MCAP file, truncated or corrupt '
+                            f'({type(error).__name__}: {error})') from None
+        if header.profile != 'ros2':
+            raise BcidError(f'{file}: MCAP profile is {header.profile!r}, not \'ros2\'')
+        if summary is None or summary.statistics is None:
+            raise BcidError(f'{file}: the MCAP has no summary (an unfinished recording?); '
+                            'it cannot be read safely')
+        counts = summary.statistics.channel_message_counts
+        for channel in summary.channels.values():
+            schema = summary.schemas.get(channel.schema_id)
+            if schema is None:
+                raise BcidError(f'{file}: topic {channel.topic} has no schema')
+            if channel.message_encoding != 'cdr' or schema.encoding not in ('ros2msg',
+                                                                            'ros2idl'):
+                raise BcidError(f'{file}: topic {channel.topic} is encoded as '
+                                f'{channel.message_encoding}/{schema.encoding}, not '
+                                'cdr/ros2msg')
+            try:
+                qos = tuple(parse_offered(channel.metadata.get('offered_qos_profiles', '')))
+            except ValueError as error:
+                raise BcidError(f'{file}: topic {channel.topic}: {error}') from None
+            previous = self.topics.get(channel.topic)
+            if previous is not None and previous.type != schema.name:
+                raise BcidError(f'{file}: topic {channel.topic} has two types, '
+                                f'{previous.type} and {schema.name}')
+            count = counts.get(channel.id, 0) + (previous.count if previous else 0)
+            self.topics[channel.topic] = TopicInfo(
+                channel.topic, schema.name, count, qos or (previous.qos if previous else ()),
+                channel.message_encoding)
+        stats = summary.statistics
+        if stats.message_count:
+            self.start_ns = (stats.message_start_time if self.start_ns is None
+                             else min(self.start_ns, stats.message_start_time))
+            self.end_ns = (stats.message_end_time if self.end_ns is None
+                           else max(self.end_ns, stats.message_end_time))
+
+    @property
+    def duration_s(self) -> float:
+        """Return the time from the first to the last message, in seconds."""
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) / 1e9
+
+    @property
+    def message_count(self) -> int:
+        """Return the number of messages on all topics."""
+        return sum(t.count for t in self.topics.values())
+
+    def require(self, topic: str, msgtype: str) -> TopicInfo:
+        """
+        Return the info of ``topic`` after checking that it exists with type ``msgtype``.
+
+        Raises
+        ------
+        BcidError
+            If the bag has no such topic, or it has another type.
+
+        """
+        info = self.topics.get(topic)
+        if info is None:
+            have = ', '.join(sorted(self.topics)) or 'none'
+            raise BcidError(f'{self.path}: no topic {topic} in the bag (topics: {have})')
+        if info.type != msgtype:
+            raise BcidError(f'{self.path}: topic {topic} has type {info.type}, expected '
+                            f'{msgtype}')
+        return info
+
+    def messages(self, topics: Sequence[str] | None = None
+                 ) -> Iterator[tuple[str, int, bytes]]:
+        """
+        Yield ``(topic, log time ns, CDR bytes)`` in log-time order.
+
+        Raises
+        ------
+        BcidError
+            If a chunk or record is corrupt.
+
+        """
+        for file in self.files:
+            try:
+                with file.open('rb') as stream:
+                    reader = make_reader(stream)
+                    for _, channel, message in reader.iter_messages(topics=topics):
+                        yield channel.topic, message.log_time, message.data
+            except READ_ERRORS as error:
+                raise BcidError(f'{file}: corrupt MCAP data ({type(error).__name__}: '
+                                f'{error})') from None
+
+    def decoded(self, topics: Sequence[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+        """
+        Yield ``(topic, log time ns, decoded message)`` in log-time order.
+
+        The messages are ``mcap_ros2`` objects with the fields of the ROS type.
+
+        Raises
+        ------
+        BcidError
+            If a chunk, record or CDR message is corrupt.
+
+        """
+        for file in self.files:
+            try:
+                with file.open('rb') as stream:
+                    reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+                    for item in reader.iter_decoded_messages(topics=topics):
+                        yield item.channel.topic, item.message.log_time, item.decoded_message
+            except READ_ERRORS as error:
+                raise BcidError(f'{file}: corrupt MCAP data or CDR message '
+                                f'({type(error).__name__}: {error})') from None
+
+    def last_decoded(self, topic: str) -> Any:
+        """Return the last message of ``topic``, decoded, or None if it has none."""
+        last = None
+        for _, _, message in self.decoded([topic]):
+            last = message
+        return last
+
+    def find_topic(self, suffix: str, msgtype: str = FLOAT64_MULTI_ARRAY) -> str | None:
+        """Return the topic whose name ends with ``/suffix`` and has ``msgtype``, if one."""
+        matches = sorted(name for name, info in self.topics.items()
+                         if name.rsplit('/', 1)[-1] == suffix and info.type == msgtype
+                         and info.count)
+        return matches[0] if matches else None
+
+    def truth(self) -> BagTruth | None:
+        """
+        Return the simulator truth recorded on ``*/true_parameters`` and ``*/true_noise_variance``.
+
+        Returns None when the bag has no ``true_parameters`` topic.
+        """
+        topic = self.find_topic('true_parameters')
+        if topic is None:
+            return None
+        names, values = _named_values(self.last_decoded(topic), topic)
+        noise_names: tuple[str, ...] = ()
+        noise = np.zeros(0)
+        noise_topic = self.find_topic('true_noise_variance')
+        if noise_topic is not None:
+            noise_names, noise = _named_values(self.last_decoded(noise_topic), noise_topic)
+        return BagTruth(names, values, noise_names, noise)
+
+
+def _named_values(message: Any, topic: str) -> tuple[tuple[str, ...], np.ndarray]:
+    """Return ``(names, values)`` of an estimate-format Float64MultiArray."""
+    dims = list(message.layout.dim)
+    values = np.asarray(message.data, dtype=float)
+    names = parse_names_label(dims[0].label) if dims else ()
+    if len(names) != values.shape[0]:
+        raise BcidError(f'topic {topic}: the label names {len(names)} values but the '
+                        f'message has {values.shape[0]}')
+    return names, values
+
+
+__all__ = ['BagReader', 'BagTruth', 'TopicInfo', 'bag_files']

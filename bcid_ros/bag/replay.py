@@ -1,0 +1,248 @@
+"""
+Offline replay: run the identifier's estimator over a bag's samples, no ROS graph.
+
+The estimator is built from the same parameter file through
+:func:`bcid_ros.parameters.estimator_from_parameters`, every message is
+decoded with :func:`bcid_ros.samples.decode_samples` and fed with
+:class:`bcid_ros.samples.SampleFeeder`, and estimates are taken at the
+samples where the node publishes them. The node does the same per message,
+so the replay's final estimate equals what ``identifier_node`` publishes for
+the same bag, to the last bit.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+import shutil
+import time
+from typing import Any
+
+import numpy as np
+
+from bcid_ros.bag.qos import LATCHED
+from bcid_ros.bag.reader import BagReader, BagTruth, FLOAT64_MULTI_ARRAY
+from bcid_ros.bag.writer import BagWriter, float64_multi_array
+from bcid_ros.errors import BcidError
+from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
+from bcid_ros.samples import decode_samples, estimate_layout, SampleFeeder
+
+#: The topic the identifier reads (combined input mode).
+SAMPLES_TOPIC = '/samples'
+
+#: The node's estimate topics (node name ``bcid_identifier``), as written by ``--output``.
+OUTPUT_TOPICS = {
+    'parameters': '/bcid_identifier/parameters',
+    'uncompensated': '/bcid_identifier/parameters_uncompensated',
+    'noise': '/bcid_identifier/noise_variance',
+}
+
+
+@dataclasses.dataclass
+class ReplayResult:
+    """
+    What a replay found: the final estimates, the counters and the trajectory.
+
+    The trajectory has one row per published estimate (every
+    ``publish_period`` samples once the estimator is valid), stamped with
+    the log time of the message that completed it.
+    """
+
+    estimator: str
+    parameter_names: tuple[str, ...]
+    noise_names: tuple[str, ...]
+    theta: np.ndarray
+    theta_uncompensated: np.ndarray
+    noise: np.ndarray
+    valid: bool
+    samples: int
+    messages: int
+    malformed: int
+    nonfinite: int
+    truth: BagTruth | None
+    elapsed_s: float
+    times_ns: np.ndarray
+    sample_counts: np.ndarray
+    theta_trajectory: np.ndarray
+    uncompensated_trajectory: np.ndarray
+    noise_trajectory: np.ndarray
+
+    @property
+    def delta(self) -> float | None:
+        """Return ||theta_hat - theta|| / ||theta|| against the bag's truth, if comparable."""
+        if self.truth is None or self.truth.parameter_names != self.parameter_names:
+            return None
+        true = self.truth.parameters
+        return float(np.linalg.norm(self.theta - true) / np.linalg.norm(true))
+
+    def summary(self) -> dict[str, Any]:
+        """
+        Return the SPEC section 8 JSON object.
+
+        Keys: ``estimator``, ``samples``, ``parameters``, ``uncompensated``,
+        ``noise`` and, when the bag carries the truth, ``truth``
+        (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
+        (the relative error ||theta_hat - theta|| / ||theta||, a fraction).
+        """
+        out: dict[str, Any] = {
+            'estimator': self.estimator,
+            'samples': self.samples,
+            'parameters': _named(self.parameter_names, self.theta),
+            'uncompensated': _named(self.parameter_names, self.theta_uncompensated),
+            'noise': _named(self.noise_names, self.noise),
+        }
+        if self.truth is not None:
+            out['truth'] = self.truth.as_dict()
+            delta = self.delta
+            if delta is not None:
+                out['delta'] = delta
+        return out
+
+
+def _named(names: tuple[str, ...], values: np.ndarray) -> dict[str, float]:
+    return {name: float(value) for name, value in zip(names, values)}
+
+
+def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
+           estimator: str | None = None, topic: str = SAMPLES_TOPIC) -> ReplayResult:
+    """
+    Run the configured estimator over the samples of a bag.
+
+    Parameters
+    ----------
+    bag : str, pathlib.Path or BagReader
+        The bag.
+    parameters : dict
+        Identifier parameters (``bcid_identifier`` section of a parameter file).
+    estimator : str, optional
+        Overrides the ``estimator`` parameter.
+    topic : str
+        The samples topic.
+
+    Returns
+    -------
+    ReplayResult
+
+    Raises
+    ------
+    BcidError
+        If the bag cannot be read, lacks the topic, or it has another type.
+    ValueError
+        If a parameter is not allowed (named in the message).
+
+    """
+    reader = bag if isinstance(bag, BagReader) else BagReader(bag)
+    values = dict(parameters)
+    if estimator is not None:
+        values['estimator'] = estimator
+    values = check_identifier_parameters(values)
+    if values['input_mode'] != 'combined':
+        raise BcidError("replay reads the combined samples topic; set input_mode: combined "
+                        f"(got {values['input_mode']!r})")
+    reader.require(topic, FLOAT64_MULTI_ARRAY)
+    truth = reader.truth()
+    est = estimator_from_parameters(values)
+    feeder = SampleFeeder(est, values['excitation_window'])
+    num_inputs = est.num_inputs
+    period = values['publish_period']
+
+    times: list[int] = []
+    counts: list[int] = []
+    thetas: list[np.ndarray] = []
+    uncompensated: list[np.ndarray] = []
+    noises: list[np.ndarray] = []
+    messages = malformed = 0
+    since_publish = 0
+    start = time.perf_counter()
+    for _, log_time, message in reader.decoded([topic]):
+        messages += 1
+        try:
+            rows = decode_samples(message, num_inputs)
+        except ValueError:
+            malformed += 1
+            feeder.gap(count=False)
+            continue
+        since_publish += feeder.feed(rows)
+        if est.valid and since_publish >= period:
+            since_publish = 0
+            times.append(log_time)
+            counts.append(feeder.used)
+            thetas.append(est.theta)
+            uncompensated.append(est.theta_uncompensated)
+            noises.append(est.noise)
+    elapsed = time.perf_counter() - start
+    if messages == 0:
+        raise BcidError(f'{reader.path}: topic {topic} has no messages')
+    p, q = est.num_parameters, len(est.noise_names)
+    return ReplayResult(
+        estimator=values['estimator'], parameter_names=est.parameter_names,
+        noise_names=tuple(est.noise_names), theta=est.theta,
+        theta_uncompensated=est.theta_uncompensated, noise=est.noise, valid=est.valid,
+        samples=feeder.used, messages=messages, malformed=malformed,
+        nonfinite=feeder.nonfinite, truth=truth, elapsed_s=elapsed,
+        times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),
+        theta_trajectory=np.array(thetas).reshape(-1, p),
+        uncompensated_trajectory=np.array(uncompensated).reshape(-1, p),
+        noise_trajectory=np.array(noises).reshape(-1, q))
+
+
+def write_output(result: ReplayResult, path: Path) -> None:
+    """
+    Write the estimate trajectory as a bag (``.mcap``) or a table (``.csv``).
+
+    A ``.mcap`` file holds the node's three estimate topics in the node's
+    format and QoS (a rosbag2 MCAP, playable with ``ros2 bag play``); a
+    ``.csv`` has one row per published estimate. An existing file is
+    replaced.
+
+    Raises
+    ------
+    BcidError
+        If the suffix is neither ``.mcap`` nor ``.csv``, or the bag exists.
+
+    """
+    suffix = path.suffix.lower()
+    if suffix == '.csv':
+        _write_csv(result, path)
+    elif suffix == '.mcap':
+        _write_mcap(result, path)
+    else:
+        raise BcidError(f'--output {path}: use a .mcap or a .csv file name')
+
+
+def _write_csv(result: ReplayResult, path: Path) -> None:
+    names = result.parameter_names
+    header = (['time_s', 'samples'] + list(names) + [f'uncompensated_{n}' for n in names]
+              + list(result.noise_names))
+    with path.open('w', newline='') as stream:
+        writer = csv.writer(stream)
+        writer.writerow(header)
+        for k in range(result.times_ns.shape[0]):
+            writer.writerow([f'{result.times_ns[k] / 1e9:.9f}', int(result.sample_counts[k])]
+                            + [repr(float(v)) for v in result.theta_trajectory[k]]
+                            + [repr(float(v)) for v in result.uncompensated_trajectory[k]]
+                            + [repr(float(v)) for v in result.noise_trajectory[k]])
+
+
+def _write_mcap(result: ReplayResult, path: Path) -> None:
+    series = (('parameters', result.parameter_names, result.theta_trajectory),
+              ('uncompensated', result.parameter_names, result.uncompensated_trajectory),
+              ('noise', result.noise_names, result.noise_trajectory))
+    # rosbags writes a bag directory; keep only its MCAP file, under the name asked for.
+    directory = path.with_name(path.name + '.partial')
+    shutil.rmtree(directory, ignore_errors=True)
+    with BagWriter(directory) as writer:
+        for key, names, _ in series:
+            if names:
+                writer.add_topic(OUTPUT_TOPICS[key], FLOAT64_MULTI_ARRAY, [LATCHED])
+        for k in range(result.times_ns.shape[0]):
+            for key, names, rows in series:
+                if names:
+                    writer.write_message(OUTPUT_TOPICS[key], int(result.times_ns[k]),
+                                         float64_multi_array([estimate_layout(names)], rows[k]))
+    (directory / f'{directory.name}_0.mcap').replace(path)
+    shutil.rmtree(directory)
+
+
+__all__ = ['OUTPUT_TOPICS', 'ReplayResult', 'SAMPLES_TOPIC', 'replay', 'write_output']
