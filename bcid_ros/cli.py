@@ -81,6 +81,12 @@ def build_parser() -> argparse.ArgumentParser:
     play.add_argument('bag', type=Path)
     play.add_argument('--rate', type=float, default=1.0,
                       help='time scale; 0 plays as fast as possible')
+    play.add_argument('--topics', nargs='+', help='play only these topics (default: all)')
+    play.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SECONDS',
+                      help='first wait up to SECONDS until every volatile topic has a '
+                      'subscriber (0: do not wait)')
+    play.add_argument('--delay', type=float, default=0.0, metavar='SECONDS',
+                      help='wait this long after creating the publishers, before playing')
 
     info = sub.add_parser('info', formatter_class=fmt,
                           help='topics, counts, duration and truth of a bag')
