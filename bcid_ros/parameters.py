@@ -191,8 +191,9 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('controller_sign', 'string', None, 'cl_bcls: negative means u = (b_c/a_c)(r - y), '
        'positive means u = (b_c/a_c)(y - r). Unset: the estimator default (negative).',
        choices=('negative', 'positive')),
-    _p('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f in '
-       'descending powers of q. Unset: the estimator default.'),
+    _p('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f(q): one pole '
+       '[p] for (q - p)^n, or its n + 1 coefficients in descending powers of q. Unset: the '
+       'estimator default.'),
     _p('window', 'integer', None, 'cl_bcls: samples in the compensation and redesign window. '
        'Unset: the estimator default.', low=0, high=1e9),
     _p('redesign_period', 'integer', None, 'cl_bcls: samples between compensations and '
@@ -254,6 +255,8 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        choices=('float64', 'joint_state')),
     _p('start_delay', 'double', 0.5, 'Seconds to wait after start-up before the first sample, '
        'so that subscribers can connect.', low=0.0, high=3600.0),
+    _p('wait_for_subscribers', 'integer', 0, 'Before the first sample, wait until the samples '
+       '(or output) topic has this many subscribers.', low=0, high=1000),
     # --- the custom scenario
     _p('plant_denominator', 'double_array', [1.0, -0.8], 'custom: A(z) = 1 + a1 z^-1 + ... + '
        'an z^-n, as [1, a1, ..., an].'),

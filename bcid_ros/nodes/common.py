@@ -1,0 +1,195 @@
+"""
+What both nodes share: QoS profiles, parameter declaration from the tables, main().
+
+The parameter tables live in :mod:`bcid_ros.parameters` (pure Python), so
+the offline tools use the same names, defaults and ranges.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, Callable, Sequence
+
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from bcid_ros.parameters import ParameterSpec
+
+#: Sample topics: reliable and volatile, deep enough for bursts of 1 kHz data.
+SAMPLES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
+#: Estimate and truth topics (SPEC section 4): latched, so late joiners get the last one.
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+_ROS_TYPES = {
+    'bool': Parameter.Type.BOOL,
+    'integer': Parameter.Type.INTEGER,
+    'double': Parameter.Type.DOUBLE,
+    'string': Parameter.Type.STRING,
+    'double_array': Parameter.Type.DOUBLE_ARRAY,
+    'string_array': Parameter.Type.STRING_ARRAY,
+}
+
+INT64_MAX = 2 ** 63 - 1
+
+
+def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
+    """Return the ROS descriptor of a table entry: description, constraints, range, read_only."""
+    result = ParameterDescriptor(description=spec.description,
+                                 additional_constraints=spec.allowed(),
+                                 read_only=spec.read_only)
+    if spec.type == 'integer' and (spec.low is not None or spec.high is not None):
+        low = -INT64_MAX if spec.low is None else int(spec.low)
+        high = INT64_MAX if spec.high is None else int(min(spec.high, INT64_MAX))
+        result.integer_range = [IntegerRange(from_value=low, to_value=high, step=0)]
+    elif spec.type == 'double' and (spec.low is not None or spec.high is not None):
+        low = -sys.float_info.max if spec.low is None else float(spec.low)
+        high = sys.float_info.max if spec.high is None else float(spec.high)
+        result.floating_point_range = [FloatingPointRange(from_value=low, to_value=high,
+                                                          step=0.0)]
+    return result
+
+
+def _coerce_integer_overrides(node: Node, table: Sequence[ParameterSpec]) -> None:
+    # `rate_hz: 1000` in YAML or `-p rate_hz:=1000` gives an INTEGER override,
+    # which rclpy refuses for a DOUBLE parameter; take it as the number it is.
+    overrides = getattr(node, '_parameter_overrides', None)
+    if not isinstance(overrides, dict):
+        return
+    for spec in table:
+        override = overrides.get(spec.name)
+        if override is None:
+            continue
+        if spec.type == 'double' and override.type_ == Parameter.Type.INTEGER:
+            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE,
+                                             float(override.value))
+        elif spec.type == 'double_array' and override.type_ == Parameter.Type.INTEGER_ARRAY:
+            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY,
+                                             [float(v) for v in override.value])
+
+
+def declare_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
+    """
+    Declare every parameter of a table on ``node`` and return their values.
+
+    A parameter whose default is ``None`` (or an empty list) is declared
+    statically typed without a value, and reads back as the default.
+
+    Raises
+    ------
+    ValueError
+        If an override has the wrong type or is out of the descriptor's
+        range; the message names the parameter.
+
+    """
+    _coerce_integer_overrides(node, table)
+    values = {}
+    for spec in table:
+        try:
+            if spec.default is None or spec.default == []:
+                parameter = node.declare_parameter(spec.name, _ROS_TYPES[spec.type],
+                                                   descriptor(spec))
+            else:
+                parameter = node.declare_parameter(spec.name, spec.default, descriptor(spec))
+        except Exception as error:  # rclpy's InvalidParameter*Exception and TypeError
+            raise ValueError(f'parameter {spec.name!r} must be {spec.allowed()}: '
+                             f'{error}') from None
+        value = parameter.value
+        if value is None:
+            value = spec.default
+        elif spec.type in ('double_array', 'string_array'):
+            value = list(value)
+        values[spec.name] = value
+    return values
+
+
+def make_parameter_check(specs: dict[str, ParameterSpec]
+                         ) -> Callable[[list[Parameter]], SetParametersResult]:
+    """Return an on-set-parameters callback that checks values against the table."""
+    def check(parameters: list[Parameter]) -> SetParametersResult:
+        for parameter in parameters:
+            spec = specs.get(parameter.name)
+            if spec is None:
+                continue
+            try:
+                spec.check(parameter.value)
+            except ValueError as error:
+                return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+    return check
+
+
+class Throttle:
+    """Log a warning at most once per ``period`` seconds per kind, with a repeat count."""
+
+    def __init__(self, logger: Any, period: float = 5.0) -> None:
+        self._logger = logger
+        self._period = period
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def warn(self, kind: str, text: str) -> None:
+        """Log ``text`` unless a ``kind`` warning was logged less than a period ago."""
+        now = time.monotonic()
+        last = self._last.get(kind)
+        if last is not None and now - last < self._period:
+            self._suppressed[kind] = self._suppressed.get(kind, 0) + 1
+            return
+        suppressed = self._suppressed.pop(kind, 0)
+        if suppressed:
+            text += f' ({suppressed} more since the last such warning)'
+        self._last[kind] = now
+        self._logger.warning(text)
+
+
+def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
+             until: Callable[[Node], bool] | None = None) -> int:
+    """
+    Run a node: init, spin until shutdown (or ``until(node)``), clean up.
+
+    Parameters
+    ----------
+    factory : callable
+        Builds the node (after ``rclpy.init``).
+    argv : list of str or None
+        Command line (``None``: ``sys.argv``).
+    program : str
+        Name for error messages.
+    until : callable, optional
+        Stop spinning once this returns True.
+
+    Returns
+    -------
+    int
+        0, or 2 if the node refused its parameters.
+
+    """
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = None
+    try:
+        node = factory()
+        if until is None:
+            rclpy.spin(node)
+        else:
+            while rclpy.ok() and not until(node):
+                rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as error:
+        print(f'{program}: error: {error}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,214 @@
+"""
+The simulator node: a scenario's samples at a fixed rate (SPEC sections 3 and 6).
+
+The samples come from :mod:`bcid_ros.simulation`, the code the paper
+reproductions use. The node draws them in blocks from one stream whose
+samples do not depend on the block size, so the same seed gives the same
+data at every rate and frame size. Pacing follows the wall clock: each
+timer tick publishes the samples that are due, so the average rate is
+exact even when ticks are late.
+
+Run it as ``simulator_node --ros-args --params-file config/ding_miso.yaml``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+from rclpy.duration import Duration
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+
+from bcid_ros.nodes.common import declare_table, LATCHED_QOS, run_node, SAMPLES_QOS
+from bcid_ros.nodes.identifier_node import estimate_message
+from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
+                                 SIMULATOR_PARAMETERS)
+from bcid_ros.samples import samples_data, samples_layout
+from bcid_ros.simulation import make_scenario
+
+#: Longest timer period (s); ticks publish whatever is due.
+MAX_TICK = 0.01
+#: Shortest timer period (s).
+MIN_TICK = 0.001
+#: Most seconds of samples published in one tick when catching up after a stall.
+MAX_BURST = 0.05
+#: Seconds to wait for the subscribers to acknowledge the last messages.
+FLUSH_TIMEOUT = 5.0
+
+
+class SimulatorNode(Node):
+    """
+    Publish a scenario's (y, u) samples and its true parameters.
+
+    Parameters
+    ----------
+    node_name : str
+        Default ``bcid_simulator``.
+    **kwargs
+        Passed to :class:`rclpy.node.Node`.
+
+    Raises
+    ------
+    ValueError
+        If a parameter is not allowed; the message names it.
+
+    """
+
+    def __init__(self, node_name: str = 'bcid_simulator', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        settings = check_simulator_parameters(declare_table(self, SIMULATOR_PARAMETERS))
+        self.settings = settings
+        if settings['scenario'] == 'custom':
+            self.scenario = make_scenario('custom',
+                                          **{k: settings[k] for k in CUSTOM_SETTINGS})
+        else:
+            self.scenario = make_scenario(settings['scenario'])
+        self.num_inputs = self.scenario.num_inputs
+        mode = settings['output_mode']
+        if mode != 'combined' and settings['input_type'] == 'float64' and self.num_inputs != 1:
+            raise ValueError(f"parameter 'input_type' must be float64_multi_array or "
+                             f"joint_state for {self.num_inputs} inputs, got 'float64'")
+        self.rate = settings['rate_hz']
+        self.frame_size = settings['frame_size']
+        self.num_samples = settings['num_samples']
+        self.stream = self.scenario.stream(np.random.default_rng(settings['seed']))
+        self.sent = 0
+        self.done = False
+        self._created = time.monotonic()
+        self._start: float | None = None
+        self._stamp0_ns = 0
+
+        truth = self.scenario.truth()
+        self.truth = truth
+        self.true_parameters_publisher = self.create_publisher(
+            Float64MultiArray, '~/true_parameters', LATCHED_QOS)
+        self.true_noise_publisher = self.create_publisher(
+            Float64MultiArray, '~/true_noise_variance', LATCHED_QOS)
+        message = estimate_message(truth.parameter_names)
+        message.data = np.asarray(truth.parameters, dtype=float).tolist()
+        self.true_parameters_publisher.publish(message)
+        message = estimate_message(truth.noise_names)
+        message.data = np.asarray(truth.noise, dtype=float).tolist()
+        self.true_noise_publisher.publish(message)
+
+        self.samples_publisher = None
+        self.input_publisher = None
+        self.output_publisher = None
+        if mode in ('combined', 'both'):
+            self.samples_publisher = self.create_publisher(
+                Float64MultiArray, 'samples', SAMPLES_QOS)
+        if mode in ('separate', 'both'):
+            self.input_type = {'float64': Float64, 'float64_multi_array': Float64MultiArray,
+                               'joint_state': JointState}[settings['input_type']]
+            self.output_type = {'float64': Float64, 'joint_state': JointState}[
+                settings['output_type']]
+            self.input_publisher = self.create_publisher(self.input_type, 'input', SAMPLES_QOS)
+            self.output_publisher = self.create_publisher(self.output_type, 'output',
+                                                          SAMPLES_QOS)
+        self._layouts: dict[int, list[MultiArrayDimension]] = {}
+        self._input_names = [f'u{i}' for i in range(1, self.num_inputs + 1)]
+
+        frame_period = self.frame_size / self.rate
+        self.timer = self.create_timer(min(max(frame_period, MIN_TICK), MAX_TICK), self.tick)
+        total = 'forever' if not self.num_samples else f'{self.num_samples} samples'
+        true = ', '.join(f'{n}={v:.6g}' for n, v in zip(truth.parameter_names, truth.parameters))
+        self.get_logger().info(
+            f'scenario {settings["scenario"]}, seed {settings["seed"]}: {total} at '
+            f'{self.rate:g} Hz, {self.frame_size} per message, output_mode {mode}; true {true}')
+
+    # ------------------------------------------------------------- pacing
+    def _ready(self) -> bool:
+        if time.monotonic() - self._created < self.settings['start_delay']:
+            return False
+        wanted = self.settings['wait_for_subscribers']
+        if wanted:
+            publisher = self.samples_publisher or self.output_publisher
+            if publisher.get_subscription_count() < wanted:
+                return False
+        return True
+
+    def tick(self) -> None:
+        """Publish the samples that are due by the wall clock."""
+        if self.done:
+            return
+        if self._start is None:
+            if not self._ready():
+                return
+            self._start = time.monotonic()
+            self._stamp0_ns = self.get_clock().now().nanoseconds
+        due = int((time.monotonic() - self._start) * self.rate) + self.frame_size
+        due = min(due, self.sent + max(self.frame_size, int(MAX_BURST * self.rate)))
+        if self.num_samples:
+            due = min(due, self.num_samples)
+        count = due - self.sent
+        if self.num_samples and due == self.num_samples:
+            pass  # the last (possibly partial) frame
+        else:
+            count -= count % self.frame_size
+        if count > 0:
+            y, u = self.stream.take(count)
+            for start in range(0, count, self.frame_size):
+                stop = min(start + self.frame_size, count)
+                self._publish(y[start:stop], u[start:stop], self.sent + start)
+            self.sent += count
+        if self.num_samples and self.sent >= self.num_samples:
+            self.finish()
+
+    def finish(self) -> None:
+        """Wait until the subscribers have the last messages, then mark the node done."""
+        for publisher in (self.samples_publisher, self.input_publisher, self.output_publisher):
+            if publisher is not None:
+                publisher.wait_for_all_acked(Duration(seconds=FLUSH_TIMEOUT))
+        self.get_logger().info(f'published all {self.sent} samples')
+        self.done = True
+
+    # ---------------------------------------------------------- messages
+    def _layout(self, count: int) -> list[MultiArrayDimension]:
+        layout = self._layouts.get(count)
+        if layout is None:
+            layout = [MultiArrayDimension(label=label, size=size, stride=stride)
+                      for label, size, stride in samples_layout(count, self.num_inputs)]
+            self._layouts[count] = layout
+        return layout
+
+    def _publish(self, y: np.ndarray, u: np.ndarray, first_index: int) -> None:
+        if self.samples_publisher is not None:
+            message = Float64MultiArray()
+            message.layout.dim = self._layout(y.shape[0])
+            message.data = samples_data(y, u).tolist()
+            self.samples_publisher.publish(message)
+        if self.input_publisher is None:
+            return
+        period_ns = 1e9 / self.rate
+        for row in range(y.shape[0]):
+            stamp = self._stamp0_ns + int(round((first_index + row) * period_ns))
+            self.input_publisher.publish(self._input_message(u[row], stamp))
+            self.output_publisher.publish(self._output_message(float(y[row]), stamp))
+
+    def _input_message(self, u: np.ndarray, stamp: int) -> Any:
+        if self.input_type is Float64:
+            return Float64(data=float(u[0]))
+        if self.input_type is Float64MultiArray:
+            return Float64MultiArray(data=u.tolist())
+        message = JointState(name=self._input_names, effort=u.tolist())
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        return message
+
+    def _output_message(self, y: float, stamp: int) -> Any:
+        if self.output_type is Float64:
+            return Float64(data=y)
+        message = JointState(name=['y'], position=[y])
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        return message
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``simulator_node`` until it has published num_samples, or SIGINT/SIGTERM."""
+    return run_node(SimulatorNode, argv, 'simulator_node', until=lambda node: node.done)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
