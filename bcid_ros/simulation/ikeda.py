@@ -174,6 +174,9 @@ class _IkedaStream(SampleStream):
         self.filters = {key: StreamingFilter(*ba) for key, ba in scenario.transfer.items()}
 
     def take(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        if count == 0:
+            # (lfilter with an empty block would return a zeroed filter state)
+            return np.zeros(0), np.zeros((0, 1))
         # One (count, 2) normal draw per block: column 0 is nu, column 1 decides the sign
         # of r where a new level starts. Samples are then independent of the blocking.
         draws = self.rng.standard_normal((count, 2))
@@ -184,8 +187,7 @@ class _IkedaStream(SampleStream):
         # r[k] = the level drawn at the last start at or before k
         last_start = np.maximum.accumulate(np.where(starts, index, -1))
         r = np.where(last_start >= 0, levels[np.maximum(last_start, 0)], self.level)
-        if count:
-            self.level = float(r[-1])
+        self.level = float(r[-1])
         self.t += count
         y = self.filters['r_to_y'](r) + self.filters['nu_to_y'](nu)
         u = self.filters['r_minus_nu_to_u'](r - nu)
