@@ -89,7 +89,8 @@ def play(args: argparse.Namespace) -> int:
     """Run ``bcid play``: publish a bag over rclpy with its timing and QoS."""
     from bcid_ros.bag.play import play_bag
 
-    stats = play_bag(args.bag, rate=args.rate)
+    stats = play_bag(args.bag, rate=args.rate, topics=args.topics,
+                     wait_for_subscribers=args.wait_for_subscribers, delay=args.delay)
     print(stats.describe(), file=sys.stderr)
     return 0
 

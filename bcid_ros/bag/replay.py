@@ -59,6 +59,7 @@ class ReplayResult:
     samples: int
     messages: int
     malformed: int
+    failures: int
     nonfinite: int
     truth: BagTruth | None
     elapsed_s: float
@@ -152,24 +153,36 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     thetas: list[np.ndarray] = []
     uncompensated: list[np.ndarray] = []
     noises: list[np.ndarray] = []
-    messages = malformed = 0
+    messages = malformed = failures = 0
     since_publish = 0
     start = time.perf_counter()
     for _, log_time, message in reader.decoded([topic]):
         messages += 1
+        # As identifier_node.on_samples: an empty message is dropped, a
+        # malformed one also restarts the regressor, and so does an estimator
+        # failure; estimates are published when valid and finite.
         try:
             rows = decode_samples(message, num_inputs)
-        except ValueError:
+        except ValueError as error:
             malformed += 1
+            if not str(error).startswith('empty'):
+                feeder.gap(count=False)
+            continue
+        try:
+            since_publish += feeder.feed(rows)
+        except Exception:  # noqa: B902 (the node counts these and goes on)
+            failures += 1
             feeder.gap(count=False)
             continue
-        since_publish += feeder.feed(rows)
-        if est.valid and since_publish >= period:
+        if since_publish >= period and est.valid:
+            theta, theta_unc = est.theta, est.theta_uncompensated
+            if not (np.isfinite(theta).all() and np.isfinite(theta_unc).all()):
+                continue
             since_publish = 0
             times.append(log_time)
             counts.append(feeder.used)
-            thetas.append(est.theta)
-            uncompensated.append(est.theta_uncompensated)
+            thetas.append(theta)
+            uncompensated.append(theta_unc)
             noises.append(est.noise)
     elapsed = time.perf_counter() - start
     if messages == 0:
@@ -179,7 +192,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         estimator=values['estimator'], parameter_names=est.parameter_names,
         noise_names=tuple(est.noise_names), theta=est.theta,
         theta_uncompensated=est.theta_uncompensated, noise=est.noise, valid=est.valid,
-        samples=feeder.used, messages=messages, malformed=malformed,
+        samples=feeder.used, messages=messages, malformed=malformed, failures=failures,
         nonfinite=feeder.nonfinite, truth=truth, elapsed_s=elapsed,
         times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),
         theta_trajectory=np.array(thetas).reshape(-1, p),

@@ -23,8 +23,8 @@ SAMPLES_TOPIC = '/samples'
 TRUE_PARAMETERS_TOPIC = '/bcid_simulator/true_parameters'
 TRUE_NOISE_TOPIC = '/bcid_simulator/true_noise_variance'
 
-#: QoS of the samples topic as a bag records it: reliable, volatile, keep_last 100.
-SAMPLES_QOS = make_qos(reliable=True, transient_local=False, depth=100)
+#: QoS of the simulator's samples topic: reliable, volatile, keep_last 1000.
+SAMPLES_QOS = make_qos(reliable=True, transient_local=False, depth=1000)
 
 
 def simulate_bag(scenario: str, samples: int, seed: int, rate_hz: float, out: Path) -> Path:
