@@ -53,7 +53,7 @@ NOTES = {
     'iterations_bc': 9.98, 'iterations_plain': 15.82,
     'mean_73': (0.788, 0.511), 'std_73': (0.048, 0.067),
 }
-#: chi-square(2) 95 % quantile: the ellipses enclose 95 % of a Gaussian with the plotted covariance.
+#: chi-square(2) 95 % quantile: the ellipses enclose 95 % of a Gaussian of that covariance.
 ELLIPSE_SCALE = math.sqrt(5.991)
 
 
