@@ -19,6 +19,7 @@ passed to the constructor when set, and the constructor validates them.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from pathlib import Path
 from typing import Any
@@ -461,11 +462,24 @@ def estimator_settings(values: dict[str, Any]) -> dict[str, Any]:
 
     These are the base settings plus those of the class's ``options`` that
     are set (not ``None``).
+
+    Raises
+    ------
+    ValueError
+        If an option the estimator requires (e.g. ``controller_numerator``
+        for ``cl_bcls``) is not set.
+
     """
     settings = {name: values[name] for name in BASE_SETTINGS}
     for name in estimator_options(values['estimator']):
         if values.get(name) is not None:
             settings[name] = values[name]
+    signature = inspect.signature(estimator_class(values['estimator']))
+    for name, argument in signature.parameters.items():
+        if argument.default is inspect.Parameter.empty and name not in settings and \
+                argument.kind is inspect.Parameter.KEYWORD_ONLY:
+            raise ValueError(f'parameter {name!r} is required by estimator '
+                             f'{values["estimator"]!r} and not set')
     return settings
 
 

@@ -1,0 +1,352 @@
+"""
+``bcid demo``: the simulator and identifier nodes, converging live.
+
+Starts ``simulator_node`` and ``identifier_node`` as two processes with the
+scenario's config file, as a user would, and watches them from a small
+in-process node: one line per second (samples, the current estimate, its
+relative error delta against the truth, sigma^2), then a summary table of
+the final estimate against the truth, and a PNG of delta(t) and the
+parameter trajectories. The child processes are stopped on every way out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from bcid_ros.errors import BcidError
+from bcid_ros.resources import config_file
+
+#: Per scenario: (samples, rate in Hz, frame size) that converge in well under a minute.
+DEMO_DEFAULTS = {
+    'ding_miso': (4000, 1000.0, 1),
+    'ding_miso_nonstationary': (4000, 1000.0, 1),
+    'ikenoue_colored': (10000, 2000.0, 20),
+    'ikenoue_white_input': (10000, 2000.0, 20),
+    'ikeda_closed_loop': (8192, 2000.0, 8),
+}
+#: Seconds to wait for the last estimate after the simulator has finished.
+SETTLE_TIMEOUT = 10.0
+#: Seconds to wait for a node to exit after SIGINT before it is killed.
+STOP_TIMEOUT = 5.0
+#: Seconds the simulator may take before its first sample (discovery included).
+START_TIMEOUT = 30.0
+
+
+def executable(name: str) -> list[str]:
+    """Return the command that runs the console script ``name`` of this installation."""
+    beside = Path(sys.executable).with_name(name)
+    if beside.is_file():
+        return [str(beside)]
+    found = shutil.which(name)
+    if found:
+        return [found]
+    module = {'identifier_node': 'bcid_ros.nodes.identifier_node',
+              'simulator_node': 'bcid_ros.nodes.simulator_node'}[name]
+    return [sys.executable, '-m', module]
+
+
+def relative_error(theta: np.ndarray, truth: np.ndarray) -> float:
+    """Return delta = ||theta - truth|| / ||truth||."""
+    return float(np.linalg.norm(theta - truth) / np.linalg.norm(truth))
+
+
+class Child:
+    """A node process whose output goes to a log file; stopped with SIGINT, then SIGKILL."""
+
+    def __init__(self, name: str, command: list[str], log: Path) -> None:
+        self.name = name
+        self.log = log
+        self._file = open(log, 'w')
+        self.process = subprocess.Popen(command, stdout=self._file, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL)
+
+    def poll(self) -> int | None:
+        """Return the exit code, or None while running."""
+        return self.process.poll()
+
+    def tail(self, lines: int = 15) -> str:
+        """Return the last lines of the log."""
+        self._file.flush()
+        try:
+            text = self.log.read_text(errors='replace').splitlines()
+        except OSError:
+            return ''
+        return '\n'.join(text[-lines:])
+
+    def stop(self) -> int | None:
+        """Stop the process (SIGINT, then SIGKILL) and return its exit code."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(STOP_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._file.close()
+        return self.process.returncode
+
+
+class Monitor:
+    """The demo's own node: listens to the estimates, the truth, the samples and diagnostics."""
+
+    def __init__(self, node: Any, identifier: str, simulator: str) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_msgs.msg import Float64MultiArray
+
+        from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS
+
+        self.node = node
+        self.samples = 0
+        self.names: tuple[str, ...] = ()
+        self.truth: np.ndarray | None = None
+        self.true_noise: np.ndarray | None = None
+        self.noise_names: tuple[str, ...] = ()
+        self.theta: np.ndarray | None = None
+        self.uncompensated: np.ndarray | None = None
+        self.noise: np.ndarray | None = None
+        self.history: list[tuple[int, np.ndarray]] = []
+        self.history_uncompensated: list[tuple[int, np.ndarray]] = []
+        self.diagnostics: dict[str, str] = {}
+        self.level = 0
+        self.last_estimate_time = 0.0
+        self._identifier_status = f'{identifier}: identifier'
+        self.subscriptions = [
+            node.create_subscription(Float64MultiArray, f'/{identifier}/parameters',
+                                     self.on_parameters, LATCHED_QOS),
+            node.create_subscription(Float64MultiArray, f'/{identifier}/parameters_uncompensated',
+                                     self.on_uncompensated, LATCHED_QOS),
+            node.create_subscription(Float64MultiArray, f'/{identifier}/noise_variance',
+                                     self.on_noise, LATCHED_QOS),
+            node.create_subscription(Float64MultiArray, f'/{simulator}/true_parameters',
+                                     self.on_truth, LATCHED_QOS),
+            node.create_subscription(Float64MultiArray, f'/{simulator}/true_noise_variance',
+                                     self.on_true_noise, LATCHED_QOS),
+            node.create_subscription(Float64MultiArray, '/samples', self.on_samples,
+                                     SAMPLES_QOS),
+            node.create_subscription(DiagnosticArray, '/diagnostics', self.on_diagnostics, 10),
+        ]
+
+    def on_samples(self, message: Any) -> None:
+        """Count samples (a frame's first dimension is its sample count)."""
+        dims = message.layout.dim
+        self.samples += dims[0].size if len(dims) == 2 else 1
+
+    def on_parameters(self, message: Any) -> None:
+        """Keep the compensated estimate and its trajectory."""
+        from bcid_ros.samples import parse_names_label
+
+        self.names = parse_names_label(message.layout.dim[0].label)
+        self.theta = np.array(message.data)
+        self.history.append((self.samples, self.theta))
+        self.last_estimate_time = time.monotonic()
+
+    def on_uncompensated(self, message: Any) -> None:
+        """Keep the uncompensated estimate and its trajectory."""
+        self.uncompensated = np.array(message.data)
+        self.history_uncompensated.append((self.samples, self.uncompensated))
+
+    def on_noise(self, message: Any) -> None:
+        """Keep the noise estimate."""
+        self.noise = np.array(message.data)
+
+    def on_truth(self, message: Any) -> None:
+        """Keep the true parameters."""
+        self.truth = np.array(message.data)
+
+    def on_true_noise(self, message: Any) -> None:
+        """Keep the true noise figures and their names."""
+        from bcid_ros.samples import parse_names_label
+
+        self.true_noise = np.array(message.data)
+        self.noise_names = parse_names_label(message.layout.dim[0].label)
+
+    def on_diagnostics(self, message: Any) -> None:
+        """Keep the identifier's latest diagnostic values."""
+        for status in message.status:
+            if status.name == self._identifier_status:
+                self.level = int.from_bytes(status.level, 'little') \
+                    if isinstance(status.level, bytes) else int(status.level)
+                self.diagnostics = {kv.key: kv.value for kv in status.values}
+                self.diagnostics['message'] = status.message
+
+    def delta(self, theta: np.ndarray | None) -> float:
+        """Return delta of an estimate against the truth (NaN if either is missing)."""
+        if theta is None or self.truth is None or theta.shape != self.truth.shape:
+            return float('nan')
+        return relative_error(theta, self.truth)
+
+
+def live_line(monitor: Monitor, total: int, elapsed: float) -> str:
+    """Return one status line: samples, delta, sigma^2 and the estimate."""
+    parts = [f'{elapsed:5.1f} s', f'samples {monitor.samples:6d}/{total}']
+    if monitor.theta is None:
+        parts.append('waiting for the first valid estimate')
+    else:
+        parts.append(f'delta {100 * monitor.delta(monitor.theta):6.2f} %')
+        if monitor.noise is not None and monitor.noise.size:
+            parts.append(f'sigma2^ {monitor.noise[0]:.4g}')
+        parts.append('theta^ [' + ' '.join(f'{v:+.3f}' for v in monitor.theta) + ']')
+    return '  '.join(parts)
+
+
+def summary(monitor: Monitor) -> str:
+    """Return the final table: estimate and uncompensated estimate against the truth."""
+    from bcid_ros.reproduction.common import markdown_table
+
+    rows = []
+    for k, name in enumerate(monitor.names):
+        true = monitor.truth[k] if monitor.truth is not None else float('nan')
+        unc = monitor.uncompensated[k] if monitor.uncompensated is not None else float('nan')
+        rows.append([name, f'{true:.4f}', f'{monitor.theta[k]:.4f}', f'{unc:.4f}'])
+    rows.append(['delta (%)', '0', f'{100 * monitor.delta(monitor.theta):.3f}',
+                 f'{100 * monitor.delta(monitor.uncompensated):.3f}'])
+    if monitor.noise is not None and monitor.true_noise is not None:
+        for k, name in enumerate(monitor.noise_names[:monitor.noise.size]):
+            if k < monitor.true_noise.size:
+                rows.append([name, f'{monitor.true_noise[k]:.4g}', f'{monitor.noise[k]:.4g}',
+                             ''])
+    return markdown_table(['parameter', 'true', 'estimate', 'uncompensated'], rows)
+
+
+def plot(monitor: Monitor, scenario: str, path: Path) -> None:
+    """Write the PNG of delta(t) and the parameter trajectories."""
+    from bcid_ros.reproduction.common import pyplot
+
+    plt = pyplot()
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    samples = np.array([s for s, _ in monitor.history])
+    theta = np.array([t for _, t in monitor.history])
+    if monitor.truth is not None:
+        deltas = [monitor.delta(t) for t in theta]
+        top.semilogy(samples, 100 * np.array(deltas), label='compensated')
+        if monitor.history_uncompensated:
+            unc_samples = np.array([s for s, _ in monitor.history_uncompensated])
+            unc = [monitor.delta(t) for _, t in monitor.history_uncompensated]
+            top.semilogy(unc_samples, 100 * np.array(unc), label='uncompensated', alpha=0.7)
+        top.legend()
+    top.set_ylabel('delta (%)')
+    top.set_title(f'bcid demo: {scenario}')
+    top.grid(True, which='both', alpha=0.3)
+    for k, name in enumerate(monitor.names):
+        line, = bottom.plot(samples, theta[:, k], label=name)
+        if monitor.truth is not None:
+            bottom.axhline(monitor.truth[k], color=line.get_color(), linestyle='--',
+                           linewidth=0.8)
+    bottom.set_xlabel('samples received')
+    bottom.set_ylabel('estimate (dashed: truth)')
+    bottom.legend(ncol=min(len(monitor.names), 4), fontsize='small')
+    bottom.grid(True, alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``bcid demo``; return the exit code."""
+    samples, rate, frame = DEMO_DEFAULTS[args.scenario]
+    samples = args.samples or samples
+    rate = args.rate or rate
+    if samples < 0 or rate < 0:
+        raise BcidError('--samples and --rate must be positive')
+    config = config_file(args.scenario)
+    out_dir = Path(args.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('bcid_demo', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    monitor = Monitor(node, 'bcid_identifier', 'bcid_simulator')
+    children: list[Child] = []
+    previous_handler = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        print(f'bcid demo: {args.scenario}, {samples} samples at {rate:g} Hz '
+              f'({frame} per message), config {config}, ROS_DOMAIN_ID='
+              f'{os.environ.get("ROS_DOMAIN_ID", "0")}', flush=True)
+        params = ['--ros-args', '--params-file', str(config)]
+        children.append(Child('identifier_node', executable('identifier_node') + params,
+                              out_dir / 'identifier.log'))
+        # The simulator waits for two subscribers on /samples: the identifier and this monitor.
+        children.append(Child('simulator_node', executable('simulator_node') + params + [
+            '-p', f'num_samples:={samples}', '-p', f'rate_hz:={float(rate)}',
+            '-p', f'frame_size:={frame}', '-p', 'wait_for_subscribers:=2',
+            '-p', 'start_delay:=0.3'], out_dir / 'simulator.log'))
+        identifier, simulator = children
+        start = time.monotonic()
+        next_line = start + 1.0
+        finished_at = None
+        while True:
+            executor.spin_once(timeout_sec=0.05)
+            now = time.monotonic()
+            code = identifier.poll()
+            if code is not None:
+                raise BcidError(f'identifier_node exited with code {code}:\n{identifier.tail()}')
+            code = simulator.poll()
+            if code is not None and code != 0:
+                raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
+            if monitor.samples == 0 and now - start > START_TIMEOUT:
+                raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
+                                f'{simulator.tail()}\nidentifier log:\n{identifier.tail()}')
+            if now >= next_line:
+                print(live_line(monitor, samples, now - start), flush=True)
+                next_line += 1.0
+            if code == 0 and finished_at is None:
+                finished_at = now
+            if finished_at is not None:
+                used = int(monitor.diagnostics.get('samples used', '0') or 0)
+                lost = int(monitor.diagnostics.get('lost in transport (messages, by sequence '
+                                                   'number)', '0') or 0)
+                settled = used + lost * frame >= samples and \
+                    now - monitor.last_estimate_time > 0.3
+                if settled or now - finished_at > SETTLE_TIMEOUT:
+                    break
+        wall = time.monotonic() - start
+    except (KeyboardInterrupt, ExternalShutdownException):
+        print('bcid demo: interrupted', file=sys.stderr)
+        return 130
+    finally:
+        for child in reversed(children):
+            child.stop()
+        signal.signal(signal.SIGTERM, previous_handler)
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
+
+    if monitor.theta is None:
+        raise BcidError('the identifier published no valid estimate; see '
+                        f'{out_dir / "identifier.log"}')
+    print(live_line(monitor, samples, wall))
+    print()
+    print(summary(monitor))
+    diag = monitor.diagnostics
+    print(f'identifier: {diag.get("samples used", "?")} samples used, '
+          f'{diag.get("samples dropped", "?")} dropped, {diag.get("bad samples", "?")} bad; '
+          f'update time mean {diag.get("update time mean (µs)", "?")} µs; '
+          f'status: {diag.get("message", "?")}')
+    png = out_dir / f'demo_{args.scenario}.png'
+    plot(monitor, args.scenario, png)
+    print(f'wall time {wall:.1f} s; final delta {100 * monitor.delta(monitor.theta):.3f} %; '
+          f'wrote {png}')
+    return 0
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
