@@ -18,6 +18,7 @@ from conftest import spin_until
 rclpy = pytest.importorskip('rclpy')
 
 from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -42,10 +43,15 @@ def config(scenario, node='bcid_identifier'):
     return load_yaml_parameters(CONFIG / f'{scenario}.yaml', node)
 
 
+#: Like the estimates' latched QoS, but deep enough to keep every message.
+RECORDER_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 class Recorder:
     """Records every message of the identifier's estimate topics on a node of its own."""
 
-    def __init__(self, context, prefix='/bcid_identifier'):
+    def __init__(self, context, prefix='/bcid_identifier', qos=RECORDER_QOS):
         self.node = rclpy.create_node('recorder', context=context)
         self.parameters = []
         self.uncompensated = []
@@ -57,7 +63,7 @@ class Recorder:
             self.node.create_subscription(
                 Float64MultiArray, f'{prefix}/{topic}',
                 lambda message, store=store, topic=topic: self._record(topic, store, message),
-                LATCHED_QOS)
+                qos)
 
     def _record(self, topic, store, message):
         self.labels[topic] = message.layout.dim[0].label
@@ -149,8 +155,7 @@ def test_frames_late_joiner_and_reset(ros_context, executor):
     assert samples // 7 - 2 <= identifier.estimates_published <= -(-samples // 7)
 
     # A late joiner gets the latest estimate at once (transient_local, depth 1).
-    late = Recorder(ros_context)
-    late.node.get_logger().info('late joiner')
+    late = Recorder(ros_context, qos=LATCHED_QOS)
     executor.add_node(late.node)
     assert spin_until(executor, lambda: late.parameters and late.noise, timeout=5)
     assert len(late.parameters) == 1
