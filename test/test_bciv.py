@@ -1,0 +1,287 @@
+"""Unit tests of the BCIV estimator (Ikenoue et al. 2008) and its batch reference."""
+
+import numpy as np
+import pytest
+
+from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.bciv import Bciv, bciv_batch, BcivSolver
+from bcid_ros.simulation import make_scenario
+
+COLORED = {'input_noise': 'colored', 'iv_lag': 5}
+WHITE = {'input_noise': 'white', 'iv_lag': 4}
+
+
+def section(name, samples, seed=11, **settings):
+    """Return (z, w, truth) of an Ikenoue scenario."""
+    plant = make_scenario(name, **settings)
+    z, w = plant.simulate(samples, seed)
+    return z, w[:, 0], plant.truth()
+
+
+def q_tilde(b, order, lag, white, feedthrough=False):
+    """Build Q~ of eq. (61) (colored) or eq. (66) (white) entry by entry."""
+    m = order + 2 * lag
+    lags = range(0 if feedthrough else 1, order + 1)
+    if white:
+        q = np.zeros((m, 1))
+        for k, value in zip(lags, b):
+            q[lag - 1 + k, 0] = value
+        return q
+    q = np.zeros((m, order + lag + (1 if feedthrough else 0)))
+    # (Q~ gamma)_i = sum_k b_k r_dd(|l - 1 - i + k|)  (PAPER_NOTES, 0-based i, lag k)
+    for i in range(m):
+        for k, value in zip(lags, b):
+            q[i, abs(lag - 1 - i + k)] += value
+    return q
+
+
+def straightforward(saug, order, lag, white, iterations, rho=1e6, feedthrough=False):
+    """Eqs. (38), (75), (53) transcribed with dense matrices (W = X = I)."""
+    p = saug.shape[1] - 1
+    s_p, s = saug[:, :p], -saug[:, p]
+    phi = s_p.T @ s_p + np.eye(p) / rho
+    theta_iv = np.linalg.solve(phi, s_p.T @ s)
+    theta = theta_iv.copy()
+    gamma = None
+    for _ in range(iterations):
+        q = q_tilde(theta[order:], order, lag, white, feedthrough)
+        gamma = np.linalg.solve(q.T @ q, q.T @ (s_p @ theta - s))
+        theta = theta_iv + np.linalg.solve(phi, s_p.T @ q @ gamma)
+    return theta, gamma, theta_iv
+
+
+# ---------------------------------------------------------------- validation
+@pytest.mark.parametrize('settings, message', [
+    ({'num_inputs': 2}, r'num_inputs must be 1 for bciv .*got 2'),
+    ({'iv_lag': 0}, r'iv_lag must be an integer >= 1, got 0'),
+    ({'input_noise': 'pink'}, r"input_noise must be 'colored' or 'white', got 'pink'"),
+    ({'bciv_update': 'fast'}, r"bciv_update must be 'converged' or 'printed', got 'fast'"),
+    ({'idle_samples': -1}, r'idle_samples must be an integer >= 0, got -1'),
+    ({'bciv_iterations': 0}, r'bciv_iterations must be an integer >= 1, got 0'),
+    ({'tolerance': -1.0}, r'tolerance must be in \[0, 1\], got -1.0'),
+    ({'allow_underdetermined': 'yes'}, r"allow_underdetermined must be true or false, got 'yes'"),
+    ({'forgetting_factor': 0.0}, r'forgetting_factor must be in \(0, 1\], got 0.0'),
+    ({'iv_weight': np.eye(3)}, r'iv_weight must have shape \(12, 12\), got \(3, 3\)'),
+    ({'noise_weight': -np.eye(12)}, r'noise_weight must be symmetric positive definite'),
+])
+def test_constructor_validation_names_the_setting(settings, message):
+    with pytest.raises(ValueError, match=message):
+        make_estimator('bciv', order=2, **settings)
+
+
+def test_underdetermined_colored_lag_is_refused_with_the_count():
+    # n = 2, l = 3: m = 8 equations against 2n + (n + l) = 9 unknowns.
+    message = (r'iv_lag must be >= 4 for order 2 with colored input noise, got 3: eq\. \(72\) '
+               r'then has m = n \+ 2l = 8 equations for 9 unknowns \(4 parameters and 5 noise '
+               r'covariances\), so it is under-determined; set allow_underdetermined')
+    with pytest.raises(ValueError, match=message):
+        Bciv(order=2, iv_lag=3)
+    assert Bciv(order=2, iv_lag=3, allow_underdetermined=True).noise_names == tuple(
+        f'r_dd{k}' for k in range(5))
+    Bciv(order=2, iv_lag=4)  # l = 2n is enough
+
+
+def test_white_input_noise_needs_one_more_equation_than_parameters():
+    # n = 2, l = 1: m = 4 = 2n, so sigma_d^2 is left free (every value is a fixed point).
+    with pytest.raises(ValueError, match=r'iv_lag must be >= 2 .*white input noise, got 1'):
+        Bciv(order=2, iv_lag=1, input_noise='white')
+    Bciv(order=2, iv_lag=2, input_noise='white')
+    # Too short for eq. (38) itself: refused even when under-determination is allowed.
+    with pytest.raises(ValueError, match=r'fewer than the 8 parameters of eq\. \(38\)'):
+        Bciv(order=4, iv_lag=1, allow_underdetermined=True)
+
+
+def test_names_and_repr():
+    colored = Bciv(order=2, iv_lag=5)
+    assert colored.parameter_names == ('a1', 'a2', 'b1_1', 'b1_2')
+    assert colored.noise_names == tuple(f'r_dd{k}' for k in range(7))
+    assert Bciv(order=2, **WHITE).noise_names == ('sigma2_d',)
+    assert Bciv.options == ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
+                            'bciv_update', 'allow_underdetermined')
+    assert repr(colored) == ("Bciv(order=2, iv_lag=5, input_noise='colored', "
+                             "bciv_update='converged', bciv_iterations=20, idle_samples=100, "
+                             'forgetting_factor=1.0)')
+
+
+# ------------------------------------------------------ the shared solver
+@pytest.mark.parametrize('white, lag, feedthrough', [
+    (False, 5, False), (False, 3, False), (True, 4, False), (False, 6, True), (True, 3, True)])
+def test_fast_alternation_equals_the_equations_written_out(white, lag, feedthrough):
+    z, w, _ = section('ikenoue_white_input' if white else 'ikenoue_colored', 3000)
+    solver = BcivSolver(order=2, iv_lag=lag, feedthrough=feedthrough,
+                        input_noise='white' if white else 'colored')
+    eta, pz = solver.data_windows(z, w)
+    saug = eta.T @ pz
+    expected, gamma, theta_iv = straightforward(saug, 2, lag, white, 7, feedthrough=feedthrough)
+    solver.prepare(saug, 1e-6)
+    theta, fast_gamma, done, _, status = solver.alternate(solver.theta_iv, 7, 0.0)
+    assert status == '' and done == 7
+    np.testing.assert_allclose(solver.theta_iv, theta_iv, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(theta, expected, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(fast_gamma, gamma, rtol=1e-9, atol=0)
+
+
+def test_white_fixed_point_is_a_fixed_point_of_the_alternation():
+    z, w, _ = section('ikenoue_white_input', 4000)
+    batch = bciv_batch(z, w, order=2, **WHITE)
+    assert batch.status == ('',)
+    solver = BcivSolver(order=2, iv_lag=4, feedthrough=False, input_noise='white')
+    eta, pz = solver.data_windows(z, w)
+    saug = eta.T @ pz
+    # 300 plain alternations (rate ~0.75) from theta_IV reach the same point.
+    plain, _, _ = straightforward(saug, 2, 4, True, 300)
+    np.testing.assert_allclose(batch.theta[0], plain, rtol=0, atol=1e-9)
+    one_more, _, _ = straightforward(saug, 2, 4, True, 1)
+    assert np.abs(one_more - batch.theta[0]).max() > 1e-4  # it did have to iterate
+
+
+# -------------------------------------------------- recursive == batch
+@pytest.mark.slow
+@pytest.mark.parametrize('name, settings', [('ikenoue_colored', COLORED),
+                                            ('ikenoue_white_input', WHITE)])
+def test_recursive_equals_batch(name, settings):
+    z, w, _ = section(name, 10000, seed=5)
+    checkpoints = (2000, 5000, 10000)
+    trajectory = Bciv(order=2, **settings).run(z, w)
+    batch = bciv_batch(z, w, order=2, checkpoints=checkpoints, **settings)
+    for row, t in enumerate(checkpoints):
+        np.testing.assert_allclose(trajectory.theta[t - 1], batch.theta[row], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(trajectory.theta_uncompensated[t - 1], batch.theta_iv[row],
+                                   rtol=0, atol=1e-10)
+        np.testing.assert_allclose(trajectory.noise[t - 1], batch.noise[row], rtol=0, atol=1e-8)
+    # Updates start when the window of m samples is full (sample m - 1, 0-based);
+    # valid after L = 100 updates.
+    first_valid = 100 + (2 + 2 * settings['iv_lag']) - 2
+    assert trajectory.valid[first_valid:].all() and not trajectory.valid[:first_valid].any()
+
+
+@pytest.mark.parametrize('name, settings', [('ikenoue_colored', COLORED),
+                                            ('ikenoue_white_input', WHITE)])
+def test_recursive_equals_batch_with_forgetting_and_idle(name, settings):
+    z, w, _ = section(name, 1500, seed=6)
+    settings = dict(settings, forgetting_factor=0.995, idle_samples=300)
+    trajectory = Bciv(order=2, **settings).run(z, w)
+    batch = bciv_batch(z, w, order=2, checkpoints=(200, 1500), **settings)
+    # During the idle period the estimate is theta_IV.
+    np.testing.assert_array_equal(trajectory.theta[199], trajectory.theta_uncompensated[199])
+    np.testing.assert_allclose(batch.theta[0], batch.theta_iv[0], rtol=0, atol=0)
+    np.testing.assert_allclose(trajectory.theta[[199, 1499]], batch.theta, rtol=0, atol=1e-8)
+
+
+def test_colored_estimate_is_k_steps_from_iv_not_warm_started():
+    z, w, _ = section('ikenoue_colored', 3000)
+    est = Bciv(order=2, **COLORED)
+    est.run(z, w)
+    assert est.last_iterations == 20
+    fresh = bciv_batch(z, w, order=2, **COLORED)
+    np.testing.assert_allclose(est.theta, fresh.theta[0], rtol=0, atol=1e-9)
+    # Twice K steps from theta_IV moves only along the neutral direction, a little.
+    longer = bciv_batch(z, w, order=2, bciv_iterations=40, **COLORED)
+    assert 0 < np.abs(longer.theta[0] - fresh.theta[0]).max() < 5e-3
+
+
+def test_printed_recursion_makes_one_alternation_per_sample():
+    z, w, _ = section('ikenoue_colored', 2000)
+    est = Bciv(order=2, bciv_update='printed', **COLORED)
+    trajectory = est.run(z, w)
+    assert est.last_iterations == 1
+    assert np.isfinite(trajectory.theta).all()
+    assert np.abs(trajectory.theta[-1] - bciv_batch(z, w, order=2, **COLORED).theta[0]).max() > 0
+
+
+# -------------------------------------------------------- failure modes
+@pytest.mark.parametrize('settings', [COLORED, WHITE, dict(COLORED, bciv_update='printed')])
+def test_fallback_on_zero_b_and_recovery(settings):
+    # No input for the first 400 samples: every moment is zero, so b_IV = 0 and
+    # Q~'XQ~ = 0. The estimate must fall back to theta_IV, flag it, and recover.
+    z, w, truth = section('ikenoue_colored' if settings is not WHITE else
+                          'ikenoue_white_input', 6000, seed=3)
+    w = w.copy()
+    w[:400] = 0.0
+    est = Bciv(order=2, idle_samples=20, **settings)
+    trajectory = est.run(z[:400], w[:400])
+    # 400 - m + 1 updates, compensated from update L = 20 on
+    assert est.flags['fallback_iv'] == (400 - est._solver.m + 1) - 20 + 1
+    assert est.flags['noise_system_singular'] == est.flags['fallback_iv']
+    np.testing.assert_array_equal(trajectory.theta, trajectory.theta_uncompensated)
+    trajectory = est.run(z[400:3000], w[400:3000])
+    after = est.flags['fallback_iv']
+    assert np.isfinite(trajectory.theta).all() and np.isfinite(trajectory.noise).all()
+    est.run(z[3000:], w[3000:])
+    assert est.flags['fallback_iv'] == after  # recovered: no new fallbacks
+    if settings.get('bciv_update') != 'printed':
+        # ... and back on the regular estimate of all the data.
+        batch = bciv_batch(z, w, order=2, idle_samples=20, **settings)
+        np.testing.assert_allclose(est.theta, batch.theta[0], rtol=0, atol=1e-8)
+    # a is identified whatever the path; the printed recursion's b can drift along the
+    # neutral direction (the gain of B, PAPER_NOTES), so only a is checked against the truth.
+    assert np.abs(est.theta[:2] - truth.parameters[:2]).max() < 0.25
+
+
+def test_ill_conditioned_noise_system_falls_back(monkeypatch):
+    z, w, _ = section('ikenoue_colored', 600)
+    monkeypatch.setattr('bcid_ros.estimators.bciv.CONDITION_MAX', 1.0)
+    est = Bciv(order=2, idle_samples=0, **COLORED)
+    trajectory = est.run(z, w)
+    assert est.flags['fallback_iv'] == est.samples
+    np.testing.assert_array_equal(trajectory.theta, trajectory.theta_uncompensated)
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_random_data_never_give_nan(seed):
+    rng = np.random.default_rng(seed)
+    count = 800
+    scale = 10.0 ** rng.uniform(-6, 6)
+    z = scale * rng.standard_normal(count) * rng.uniform(0, 3)
+    w = scale * rng.standard_normal(count)
+    w[rng.integers(0, count, 200)] = 0.0
+    z[:100] = 0.0
+    for settings in (COLORED, WHITE, dict(COLORED, bciv_update='printed'),
+                     dict(COLORED, iv_lag=2, allow_underdetermined=True)):
+        est = Bciv(order=int(rng.integers(1, 3)), idle_samples=int(rng.integers(0, 50)),
+                   forgetting_factor=float(rng.choice([1.0, 0.98])), **settings)
+        trajectory = est.run(z, w)
+        assert np.isfinite(trajectory.theta).all()
+        assert np.isfinite(trajectory.theta_uncompensated).all()
+        assert np.isfinite(trajectory.noise).all()
+        assert np.isfinite(est.covariance_trace)
+
+
+def test_huge_samples_reset_the_moments_instead_of_nan():
+    est = Bciv(order=2, idle_samples=0, **COLORED)
+    z, w, _ = section('ikenoue_colored', 300)
+    est.run(z, w)
+    with np.errstate(over='ignore', invalid='ignore'):
+        est.run(np.full(30, 1e200), np.full(30, 1e200))
+    assert est.flags.get('moments_reset', 0) > 0
+    assert np.isfinite(est.theta).all() and np.isfinite(est.noise).all()
+
+
+# ------------------------------------------------------------- the state
+@pytest.mark.parametrize('settings', [COLORED, WHITE, dict(WHITE, bciv_update='printed')])
+def test_snapshot_restore_and_reset_replay_exactly(settings):
+    z, w, _ = section('ikenoue_colored', 1200)
+    est = Bciv(order=2, **settings)
+    est.run(z[:600], w[:600])
+    snapshot = est.get_state()
+    first = est.run(z[600:], w[600:])
+    est.set_state(snapshot)
+    again = est.run(z[600:], w[600:])
+    np.testing.assert_array_equal(again.theta, first.theta)
+    np.testing.assert_array_equal(again.noise, first.noise)
+    est.reset()
+    fresh = Bciv(order=2, **settings)
+    np.testing.assert_array_equal(est.run(z, w).theta, fresh.run(z, w).theta)
+    assert snapshot.scalars['updates'] == 600 - (2 + 2 * settings['iv_lag']) + 1
+
+
+def test_restart_regressor_skips_the_gap():
+    z, w, _ = section('ikenoue_colored', 200)
+    est = Bciv(order=2, **COLORED)
+    est.run(z[:100], w[:100])
+    assert est.samples == 100 - 11
+    est.restart_regressor()
+    est.run(z[100:111], w[100:111])
+    assert est.samples == 89  # the window of m = 12 samples is not full yet
+    est.update(z[111], w[111])
+    assert est.samples == 90
