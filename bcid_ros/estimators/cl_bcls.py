@@ -803,8 +803,9 @@ class ClosedLoopBcls(RecursiveEstimator):
     the raw samples of the window, the last min(samples since reset or
     restart, ``window``) of them, starting from the prefilter in use and
     stopping after ``max_iterations`` LS solves or when the estimate (in the
-    form of eq. 13) moves by less than ``tolerance``. On success the prefilter becomes the one
-    of its last LS solve, P, theta_LS, J, N are set to that LS solution
+    form of eq. 13) moves by less than ``tolerance``. On success the prefilter
+    becomes the one of its last LS solve, P, theta_LS, J, N are set to that LS
+    solution
     (:math:`P = (\Phi^T\Phi)^{-1}`), phi continues from the filtered window,
     and c, beta are taken from its last compensation.
 
@@ -813,9 +814,12 @@ class ClosedLoopBcls(RecursiveEstimator):
     redesign (at sample R <= N), f its prefilter and c, beta its bias
     terms, eqs. (56), (58), (59) applied to the LS solution (17) over
     samples s..N prefiltered by f from rest at s. At N = R it equals the
-    result of Algorithm 1 on the window. (Exceptions, see Safety: held
-    values after a failed redesign or a failed eq. 58.) Between redesigns the LS window
-    grows by one sample per sample (up to ``window + redesign_period - 1``).
+    result of Algorithm 1 on the window. Between redesigns the LS window grows
+    by one sample per sample (up to ``window + redesign_period - 1``).
+    Exceptions: values held after a failed redesign or a failed eq. (58) (see
+    Safety), and after :meth:`restart_regressor`, which empties the window
+    and restarts the prefilter state from rest while the running LS keeps its
+    statistics until the next redesign replaces them.
     ``theta_uncompensated`` is that LS solution in the same plant form.
     Before the first successful redesign the LS runs from
     :math:`P(0) = p_0 I`, :math:`\hat\theta(0) = 0` with the initial prefilter,
@@ -860,7 +864,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         u = (b_c/a_c)(y - r).
     prefilter_initial : float or sequence of float
         f^(0): a pole p giving f(q) = (q - p)^n (default 0: f = q^n, the
-        paper's step 1), or ``[1, f_1, ..., f_n]``; must be stable.
+        paper's step 1), or ``[1, f_1, ..., f_n]``; must be stable. A rough
+        guess of the plant poles is better than the default: from f = q^n and a
+        short first window, Algorithm 1 can run to a spurious fixed point (on
+        the paper's loop, a pole near -1 in some runs of 200-1000 samples).
     window : int
         Cap on the samples kept for a redesign (default 4096, the paper's N).
     redesign_period : int
