@@ -1,0 +1,284 @@
+"""
+identifier_node throughput, latency, CPU and memory, with the node in its own process.
+
+A benchmark process publishes Ding MISO samples (bcrls, publishing every sample) at a fixed
+rate for a fixed time and reads the node's `samples used` and `lost` counters from
+`/diagnostics`; loss is what was sent minus what the node used. Latency is a ping-pong: one
+sample out, wait for the estimate it produces, against a bare rclpy echo node (subscribe,
+republish) measured in the same run. CPU per sample comes from the node's /proc stat, memory
+from its VmRSS.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from benchmarks.common import Result
+
+SECTION = 'node throughput and latency'
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG = ROOT / 'config' / 'ding_miso.yaml'
+ECHO = Path(__file__).resolve().parent / 'echo_node.py'
+CLOCK_TICK = os.sysconf('SC_CLK_TCK')
+
+
+def cpu_seconds(pid: int) -> float:
+    """Return user + system CPU seconds of process ``pid``."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICK
+
+
+def rss_mb(pid: int) -> float:
+    """Return the resident set size of process ``pid`` in MB."""
+    for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+        if line.startswith('VmRSS:'):
+            return int(line.split()[1]) / 1024.0
+    return float('nan')
+
+
+class Bench:
+    """The benchmark's own ROS node: sample publisher, estimate and diagnostics listener."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_msgs.msg import Float64MultiArray
+
+        from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS
+
+        self.rclpy = rclpy
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('bcid_bench', context=self.context)
+        self.message_type = Float64MultiArray
+        self.samples = self.node.create_publisher(Float64MultiArray, 'samples', SAMPLES_QOS)
+        self.counters: dict[str, float] = {}
+        self.arrived = threading.Event()
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        self.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
+                                      lambda _: self.arrived.set(), LATCHED_QOS)
+        self.node.create_subscription(Float64MultiArray, 'echo',
+                                      lambda _: self.arrived.set(), SAMPLES_QOS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # shutdown while spinning
+            pass
+
+    def _on_diagnostics(self, message) -> None:
+        for status in message.status:
+            if status.name.endswith('bcid_identifier') or 'bcid_identifier' in status.name:
+                for pair in status.values:
+                    try:
+                        self.counters[pair.key] = float(pair.value)
+                    except ValueError:
+                        pass
+
+    def wait_for_subscriber(self, timeout: float = 20.0) -> None:
+        """Block until something subscribes to samples."""
+        deadline = time.monotonic() + timeout
+        while self.samples.get_subscription_count() < 1:
+            if time.monotonic() > deadline:
+                raise RuntimeError('no subscriber on /samples')
+            time.sleep(0.05)
+        time.sleep(0.5)
+
+    def message(self, rows: np.ndarray):
+        """Return a samples message of one sample or a frame (SPEC section 3)."""
+        from std_msgs.msg import MultiArrayDimension
+
+        from bcid_ros.samples import samples_data, samples_layout
+        message = self.message_type()
+        message.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride)
+                              for label, size, stride in samples_layout(len(rows),
+                                                                        rows.shape[1] - 1)]
+        message.data = samples_data(rows[:, 0], rows[:, 1:]).tolist()
+        return message
+
+    def publish_at_rate(self, rows: np.ndarray, frame: int, rate: float,
+                        seconds: float) -> int:
+        """Publish frames of ``frame`` samples at ``rate`` samples/s; return samples sent."""
+        frames = [self.message(rows[k:k + frame]) for k in range(0, len(rows) - frame + 1,
+                                                                   frame)]
+        per_second = rate / frame
+        start = time.perf_counter()
+        sent = 0
+        while True:
+            elapsed = time.perf_counter() - start
+            if elapsed >= seconds or sent >= len(frames):
+                break
+            due = min(int(elapsed * per_second) + 1, len(frames))
+            while sent < due:
+                self.samples.publish(frames[sent])
+                sent += 1
+            time.sleep(0.0005)
+        return sent * frame
+
+    def used(self, settle: float = 3.0) -> float:
+        """Wait until `samples used` stops changing (diagnostics are 1 Hz) and return it."""
+        last, stable_since = None, time.monotonic()
+        while time.monotonic() - stable_since < settle:
+            value = self.counters.get('samples used')
+            if value != last:
+                last, stable_since = value, time.monotonic()
+            time.sleep(0.1)
+        return last or 0.0
+
+    def ping(self, rows: np.ndarray, count: int) -> np.ndarray:
+        """Return round-trip times (us) of ``count`` one-sample pings."""
+        times = []
+        for k in range(count):
+            message = self.message(rows[k:k + 1])
+            self.arrived.clear()
+            start = time.perf_counter_ns()
+            self.samples.publish(message)
+            if not self.arrived.wait(2.0):
+                continue
+            times.append(time.perf_counter_ns() - start)
+        return np.array(times) / 1000.0
+
+    def close(self) -> None:
+        """Stop spinning and shut the context down."""
+        self.executor.shutdown()
+        self.thread.join(5.0)
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+def start(command: list[str]) -> subprocess.Popen:
+    """Start a process quietly in its own process group."""
+    return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
+def stop(process: subprocess.Popen) -> None:
+    """SIGINT, then kill if it does not exit."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def identifier(publish_period: int = 1) -> subprocess.Popen:
+    """Start identifier_node with the Ding MISO config."""
+    binary = str(Path(sys.executable).parent / 'identifier_node')
+    return start([binary, '--ros-args', '--params-file', str(CONFIG),
+                  '-p', f'publish_period:={publish_period}'])
+
+
+def max_rate(bench: Bench, rows: np.ndarray, frame: int, rates: list[float],
+             seconds: float) -> tuple[list[Result], float]:
+    """Try ``rates`` in order on fresh nodes; return rows and the highest rate with no loss."""
+    results, best = [], 0.0
+    for rate in rates:
+        node = identifier()
+        try:
+            bench.counters.clear()
+            bench.wait_for_subscriber()
+            cpu_before = cpu_seconds(node.pid)
+            sent = bench.publish_at_rate(rows, frame, rate, seconds)
+            used = bench.used()
+            cpu = cpu_seconds(node.pid) - cpu_before
+        finally:
+            stop(node)
+        loss = sent - used
+        results.append(Result(SECTION, f'{rate:,.0f} samples/s, frames of {frame}, '
+                              f'{seconds:.0f} s', loss, 'samples lost',
+                              note=f'sent {sent:,}, used {used:,.0f}; node CPU '
+                              f'{cpu / max(used, 1) * 1e6:.1f} µs/sample'))
+        if loss == 0:
+            best = rate
+        else:
+            break
+    return results, best
+
+
+def run(quick: bool = False) -> list[Result]:
+    """Measure throughput (single samples and frames), latency, CPU and memory growth."""
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('ROS_DOMAIN_ID', str(150 + os.getpid() % 50))
+    from bcid_ros.simulation import make_scenario
+
+    y, u = make_scenario('ding_miso').simulate(1_100_000 if not quick else 200_000, 3)
+    rows = np.column_stack([y, u])
+    seconds = 3.0 if quick else 10.0
+    bench = Bench()
+    results: list[Result] = []
+    try:
+        single, best_single = max_rate(bench, rows, 1,
+                                       [1000, 2000, 3000, 4000, 5000, 6000], seconds)
+        results += single
+        results.append(Result(SECTION, 'highest zero-loss rate, one sample per message',
+                              best_single, 'samples/s', '≥ 2,000', best_single >= 2000))
+        framed, best_framed = max_rate(bench, rows, 50,
+                                       [20000, 50000, 100000, 150000], seconds)
+        results += framed
+        results.append(Result(SECTION, 'highest zero-loss rate, frames of 50', best_framed,
+                              'samples/s', '≥ 50,000', best_framed >= 50000))
+        results += latency(bench, rows, 100 if quick else 1000)
+        results += memory(bench, rows, 200_000 if quick else 1_000_000)
+    finally:
+        bench.close()
+    return results
+
+
+def latency(bench: Bench, rows: np.ndarray, count: int) -> list[Result]:
+    """Ping-pong through identifier_node and through a bare echo node, same run."""
+    results = []
+    medians = {}
+    for label, command in (
+            ('bare rclpy echo node', [sys.executable, str(ECHO)]),
+            ('identifier_node (bcrls, publish every sample)', None)):
+        process = start(command) if command else identifier()
+        try:
+            bench.wait_for_subscriber()
+            bench.ping(rows, 50)  # warm up: the regressor fills, the estimate gets valid
+            times = bench.ping(rows[50:], count)
+        finally:
+            stop(process)
+        medians[label] = float(np.median(times))
+        results.append(Result(SECTION, f'round trip via {label}, median', medians[label], 'µs',
+                              note=f'p99 {np.percentile(times, 99):.0f} µs over {len(times)}'))
+    ratio = medians['identifier_node (bcrls, publish every sample)'] / medians[
+        'bare rclpy echo node']
+    results.append(Result(SECTION, 'latency median / bare echo median', ratio, '×', '≤ 1.3',
+                          ratio <= 1.3))
+    return results
+
+
+def memory(bench: Bench, rows: np.ndarray, total: int) -> list[Result]:
+    """Feed ``total`` samples in frames of 100; RSS growth from 10 % of them to the end."""
+    node = identifier(publish_period=100)
+    try:
+        bench.counters.clear()
+        bench.wait_for_subscriber()
+        tenth = total // 10
+        bench.publish_at_rate(rows[:tenth], 100, 40000, 1e9)
+        bench.used()
+        early = rss_mb(node.pid)
+        bench.publish_at_rate(rows[tenth:total], 100, 40000, 1e9)
+        used = bench.used()
+        late = rss_mb(node.pid)
+    finally:
+        stop(node)
+    growth = late - early
+    return [Result(SECTION, f'RSS growth from {tenth:,} to {total:,} samples', growth, 'MB',
+                   '< 5 MB', growth < 5.0,
+                   note=f'{early:.1f} MB → {late:.1f} MB; node used {used:,.0f} samples')]
