@@ -112,8 +112,8 @@ class Bench:
     def publish_at_rate(self, rows: np.ndarray, frame: int, rate: float,
                         seconds: float) -> int:
         """Publish frames of ``frame`` samples at ``rate`` samples/s; return samples sent."""
-        frames = [self.message(rows[k:k + frame]) for k in range(0, len(rows) - frame + 1,
-                                                                   frame)]
+        starts = range(0, len(rows) - frame + 1, frame)
+        frames = [self.message(rows[k:k + frame]) for k in starts]
         per_second = rate / frame
         start = time.perf_counter()
         sent = 0
