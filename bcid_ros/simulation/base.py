@@ -47,8 +47,12 @@ class StreamingFilter:
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Filter the next block ``x`` (shape ``(k,)``) and return the output block."""
+        x = np.asarray(x, dtype=float)
         if self.state.size == 0:
-            return np.asarray(x, dtype=float) * (self.b[0] / self.a[0])
+            return x * (self.b[0] / self.a[0])
+        if x.size == 0:
+            # lfilter returns a zero state for an empty block; keep ours
+            return x.copy()
         out, self.state = signal.lfilter(self.b, self.a, x, zi=self.state)
         return out
 
