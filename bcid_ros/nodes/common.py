@@ -14,7 +14,7 @@ from typing import Any, Callable, Sequence
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -175,14 +175,16 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
 
     """
     rclpy.init(args=argv if argv is not None else sys.argv)
+    executor = SingleThreadedExecutor()
     node = None
     try:
         node = factory()
+        executor.add_node(node)
         if until is None:
-            rclpy.spin(node)
+            executor.spin()
         else:
             while rclpy.ok() and not until(node):
-                rclpy.spin_once(node, timeout_sec=0.1)
+                executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as error:
@@ -190,6 +192,8 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
         return 2
     finally:
         if node is not None:
+            executor.remove_node(node)
             node.destroy_node()
+        executor.shutdown()
         rclpy.try_shutdown()
     return 0

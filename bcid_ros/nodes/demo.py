@@ -118,6 +118,7 @@ class Monitor:
         self.history_uncompensated: list[tuple[int, np.ndarray]] = []
         self.diagnostics: dict[str, str] = {}
         self.level = 0
+        self.update_us = ''
         self.last_estimate_time = 0.0
         self._identifier_status = f'{identifier}: identifier'
         self.subscriptions = [
@@ -178,6 +179,8 @@ class Monitor:
                     if isinstance(status.level, bytes) else int(status.level)
                 self.diagnostics = {kv.key: kv.value for kv in status.values}
                 self.diagnostics['message'] = status.message
+                if self.diagnostics.get('updates in the last period', '0') != '0':
+                    self.update_us = self.diagnostics.get('update time mean (µs)', '')
 
     def delta(self, theta: np.ndarray | None) -> float:
         """Return delta of an estimate against the truth (NaN if either is missing)."""
@@ -339,8 +342,7 @@ def run(args: argparse.Namespace) -> int:
     diag = monitor.diagnostics
     print(f'identifier: {diag.get("samples used", "?")} samples used, '
           f'{diag.get("samples dropped", "?")} dropped, {diag.get("bad samples", "?")} bad; '
-          f'update time mean {diag.get("update time mean (µs)", "?")} µs; '
-          f'status: {diag.get("message", "?")}')
+          f'update time mean {monitor.update_us or "?"} µs (while running)')
     png = out_dir / f'demo_{args.scenario}.png'
     plot(monitor, args.scenario, png)
     print(f'wall time {wall:.1f} s; final delta {100 * monitor.delta(monitor.theta):.3f} %; '

@@ -12,6 +12,7 @@ Run it as ``identifier_node --ros-args --params-file config/ding_miso.yaml``.
 
 from __future__ import annotations
 
+import array
 import collections
 import math
 import statistics
@@ -62,6 +63,13 @@ def estimate_message(names: tuple[str, ...]) -> Float64MultiArray:
     message.layout.dim = [MultiArrayDimension(label=names_label(names), size=len(names),
                                               stride=len(names))]
     return message
+
+
+def as_doubles(values: np.ndarray) -> array.array:
+    """Return a float64 array as array('d'), which the message setter takes without a check."""
+    result = array.array('d')
+    result.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return result
 
 
 def stamp_ns(message: Any) -> int:
@@ -228,13 +236,13 @@ class IdentifierNode(Node):
                       'not published')
             return False
         self._since_publish = 0
-        self._parameters_msg.data = theta.tolist()
+        self._parameters_msg.data = as_doubles(theta)
         self.parameters_publisher.publish(self._parameters_msg)
-        self._uncompensated_msg.data = uncompensated.tolist()
+        self._uncompensated_msg.data = as_doubles(uncompensated)
         self.uncompensated_publisher.publish(self._uncompensated_msg)
         noise = estimator.noise
         if noise.size and np.isfinite(noise).all():
-            self._noise_msg.data = noise.tolist()
+            self._noise_msg.data = as_doubles(noise)
             self.noise_publisher.publish(self._noise_msg)
         self.estimates_published += 1
         return True

@@ -23,7 +23,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
 from bcid_ros.nodes.common import declare_table, LATCHED_QOS, run_node, SAMPLES_QOS
-from bcid_ros.nodes.identifier_node import estimate_message
+from bcid_ros.nodes.identifier_node import as_doubles, estimate_message
 from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
                                  SIMULATOR_PARAMETERS)
 from bcid_ros.samples import samples_data, samples_layout
@@ -178,7 +178,7 @@ class SimulatorNode(Node):
         if self.samples_publisher is not None:
             message = Float64MultiArray()
             message.layout.dim = self._layout(y.shape[0])
-            message.data = samples_data(y, u).tolist()
+            message.data = as_doubles(samples_data(y, u))
             self.samples_publisher.publish(message)
         if self.input_publisher is None:
             return
