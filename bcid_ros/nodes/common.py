@@ -152,8 +152,28 @@ class Throttle:
         self._logger.warning(text)
 
 
+def usage(program: str, summary: str, table: Sequence[ParameterSpec]) -> str:
+    """Return the ``--help`` text of a node: how to run it and every parameter."""
+    lines = [f'usage: {program} [-h] [--ros-args [--params-file FILE] [-p NAME:=VALUE ...]]',
+             '', summary, '', 'parameters (name: type = default; description; allowed):']
+    for spec in table:
+        default = 'estimator default' if spec.default is None else repr(spec.default)
+        flags = ', read-only' if spec.read_only else ', live'
+        lines.append(f'  {spec.name}: {spec.type} = {default}{flags}')
+        lines.append(f'      {spec.description} Allowed: {spec.allowed()}.')
+    return '\n'.join(lines)
+
+
+def help_requested(argv: list[str] | None) -> bool:
+    """Return whether -h/--help stands among the non-ROS arguments."""
+    args = sys.argv[1:] if argv is None else argv
+    if '--ros-args' in args:
+        args = args[:args.index('--ros-args')]
+    return '-h' in args or '--help' in args
+
+
 def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
-             until: Callable[[Node], bool] | None = None) -> int:
+             until: Callable[[Node], bool] | None = None, help_text: str = '') -> int:
     """
     Run a node: init, spin until shutdown (or ``until(node)``), clean up.
 
@@ -167,6 +187,8 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
         Name for error messages.
     until : callable, optional
         Stop spinning once this returns True.
+    help_text : str
+        Printed, without starting ROS, when ``-h`` or ``--help`` is given.
 
     Returns
     -------
@@ -174,6 +196,9 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
         0, or 2 if the node refused its parameters.
 
     """
+    if help_requested(argv):
+        print(help_text or f'usage: {program} [--ros-args ...]')
+        return 0
     rclpy.init(args=argv if argv is not None else sys.argv)
     executor = SingleThreadedExecutor()
     node = None

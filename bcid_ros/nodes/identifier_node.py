@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger
 
 from bcid_ros.estimators import estimator_class
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
-                                   SAMPLES_QOS, Throttle)
+                                   SAMPLES_QOS, Throttle, usage)
 from bcid_ros.nodes.diagnostics import DiagnosticsTimer, ERROR, OK, WARN
 from bcid_ros.parameters import (check_identifier_parameters, estimator_settings,
                                  IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
@@ -502,7 +502,9 @@ class IdentifierNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``identifier_node`` until SIGINT or SIGTERM."""
-    return run_node(IdentifierNode, argv, 'identifier_node')
+    return run_node(IdentifierNode, argv, 'identifier_node',
+                    help_text=usage('identifier_node', __doc__.strip().splitlines()[0],
+                                    IDENTIFIER_PARAMETERS))
 
 
 if __name__ == '__main__':

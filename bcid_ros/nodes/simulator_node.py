@@ -22,7 +22,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
-from bcid_ros.nodes.common import declare_table, LATCHED_QOS, run_node, SAMPLES_QOS
+from bcid_ros.nodes.common import declare_table, LATCHED_QOS, run_node, SAMPLES_QOS, usage
 from bcid_ros.nodes.identifier_node import as_doubles, estimate_message
 from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
                                  SIMULATOR_PARAMETERS)
@@ -207,7 +207,9 @@ class SimulatorNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``simulator_node`` until it has published num_samples, or SIGINT/SIGTERM."""
-    return run_node(SimulatorNode, argv, 'simulator_node', until=lambda node: node.done)
+    return run_node(SimulatorNode, argv, 'simulator_node', until=lambda node: node.done,
+                    help_text=usage('simulator_node', __doc__.strip().splitlines()[0],
+                                    SIMULATOR_PARAMETERS))
 
 
 if __name__ == '__main__':
