@@ -285,3 +285,22 @@ def test_restart_regressor_skips_the_gap():
     assert est.samples == 89  # the window of m = 12 samples is not full yet
     est.update(z[111], w[111])
     assert est.samples == 90
+
+
+@pytest.mark.parametrize('rho', [1e-2, 1.0, 1e6])
+def test_theta_iv_is_step_1_with_m0_rho(rho):
+    # theta_IV,N of Step 1 with M_0 = rho I and theta_IV,0 = 0 sums to
+    # (rho^-1 I + S'S)^-1 S's; early on (N < p) only the rho term makes it unique.
+    z, w, _ = section('ikenoue_colored', 40)
+    est = Bciv(order=2, initial_covariance=rho, idle_samples=1000, **COLORED)
+    trajectory = est.run(z, w)
+    solver = BcivSolver(order=2, iv_lag=5, feedthrough=False, input_noise='colored')
+    eta, pz = solver.data_windows(z, w)
+    for updates in (1, 3, 29):
+        s_p, s = eta[:updates].T @ pz[:updates, :4], eta[:updates].T @ -pz[:updates, 4]
+        phi = np.eye(4) / rho + s_p.T @ s_p
+        expected = np.linalg.solve(phi, s_p.T @ s)
+        # Both solves lose about cond(Phi) * eps (cond ~ 1e10 at rho = 1e6, N = 1).
+        tolerance = max(1e-9, 1e-14 * np.linalg.cond(phi))
+        np.testing.assert_allclose(trajectory.theta_uncompensated[updates + 10], expected,
+                                   rtol=tolerance, atol=1e-12)

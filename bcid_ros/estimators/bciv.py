@@ -224,8 +224,10 @@ class BcivSolver:
         self._step = np.empty(p)
         self.theta_iv = np.zeros(p)
         self.phi = np.eye(p)
-        #: W E_all, shape (m, nb q)
+        #: W E_all, shape (m, nb q), and the buffer [W S_p | -W s | W E_all]
         self._we = e_all if self.w is None else self.w @ e_all
+        self._big = np.zeros((m, p + 1 + nb * q))
+        self._big[:, p + 1:] = self._we
         # G E_all and E_all' X [S_p | -s], per sample
         self._ge = np.zeros((p, nb * q))
         self._etxs = np.zeros((nb * q, p + 1))
@@ -256,16 +258,19 @@ class BcivSolver:
         """
         p = self.num_parameters
         s_p = saug[:, :p]
-        # [Phi | -S'W s] = S_p' W [S_p | -s]
-        phi_full = s_p.T.dot(saug) if self.w is None else s_p.T.dot(self.w).dot(saug)
+        # [Phi | -S'W s | S'W E_all] = S_p' [W S_p | -W s | W E_all]
+        big = self._big
+        if self.w is None:
+            big[:, :p + 1] = saug
+        else:
+            big[:, :p + 1] = self.w.dot(saug)
+        products = s_p.T.dot(big)
         # Phi = S'WS + rho^-1 lambda^2N I   (M_N^-1 of Step 1)
-        phi = phi_full[:, :p].copy()
+        phi = products[:, :p]
         phi.flat[::p + 1] += regularisation
         self.phi = phi
         # [-theta_IV | G E_all] = Phi^-1 [-S'W s | S'W E_all], G = Phi^-1 S'W      (38)
-        rhs = np.empty((p, 1 + self._ge.shape[1]))
-        rhs[:, 0] = phi_full[:, p]
-        rhs[:, 1:] = s_p.T.dot(self._we)
+        rhs = products[:, p:]
         _, solved, info = dposv(phi, rhs)
         if info != 0:
             solved, info = _general_solve(phi, rhs)
@@ -463,9 +468,16 @@ class BcivSolver:
             ``gamma`` is unnormalised (N gamma~); divide by the weighted count.
 
         """
+        return BcivResult(*self.step(saug, regularisation, mode, iterations, tolerance, start,
+                                     start_noise))
+
+    def step(self, saug: np.ndarray, regularisation: float, mode: str, iterations: int,
+             tolerance: float, start: np.ndarray | None,
+             start_noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool, str]:
+        """Do :meth:`solve` and return the fields of :class:`BcivResult` as a tuple."""
         theta_iv = self.prepare(saug, regularisation).copy()
         if mode == 'idle':
-            return BcivResult(theta_iv, np.zeros(self.q), theta_iv, 0, True, OK)
+            return theta_iv, np.zeros(self.q), theta_iv, 0, True, OK
         if mode == 'fixed_point':
             theta, gamma, done, converged, status = self.fixed_point(start_noise, iterations,
                                                                      tolerance)
@@ -475,12 +487,11 @@ class BcivSolver:
                                                                    tolerance)
         if status == OK:
             gap = theta - theta_iv
-            size = gap.dot(gap)
-            if not size <= COMPENSATION_MAX ** 2 * (1.0 + theta_iv.dot(theta_iv)):
+            if not gap.dot(gap) <= COMPENSATION_MAX ** 2 * (1.0 + theta_iv.dot(theta_iv)):
                 status = RUNAWAY
         if status != OK:
-            return BcivResult(theta_iv, np.zeros(self.q), theta_iv, done, False, status)
-        return BcivResult(theta, gamma, theta_iv, done, converged, OK)
+            return theta_iv, np.zeros(self.q), theta_iv, done, False, status
+        return theta, gamma, theta_iv, done, converged, OK
 
     # ------------------------------------------------------------- windows
     def window_indices(self) -> tuple[np.ndarray, np.ndarray]:
@@ -693,25 +704,23 @@ class Bciv(RecursiveEstimator):
         """Compute theta_IV,N and theta_BCIV,N from the moments."""
         regularisation = self._decay / self.initial_covariance
         mode = 'idle' if self._updates < self.idle_samples else self._mode
-        result = self._solver.solve(self._saug, regularisation, mode=mode,
-                                    iterations=self._iterations, tolerance=self.tolerance,
-                                    start=self._theta_bciv,
-                                    start_noise=self._gamma[0] * self._tau)
-        theta_iv = result.theta_iv
+        theta, gamma, theta_iv, done, converged, status = self._solver.step(
+            self._saug, regularisation, mode, self._iterations, self.tolerance,
+            self._theta_bciv, self._gamma[0] * self._tau)
         if not math.isfinite(theta_iv.dot(theta_iv)):
             self._flag('moments_reset')
             self._saug = np.zeros_like(self._saug)
             self._tau, self._decay, self._updates = 0.0, 1.0, 0
             return
         self._theta_iv = theta_iv
-        self._theta_bciv = result.theta
-        self._iterations_used = result.iterations
-        if result.status:
+        self._theta_bciv = theta
+        self._iterations_used = done
+        if status:
             self._flag('fallback_iv')
-            self._flag(result.status)
+            self._flag(status)
         elif mode != 'idle':
-            self._gamma = result.gamma * (1.0 / self._tau)
-            if mode == 'fixed_point' and not result.converged:
+            self._gamma = gamma * (1.0 / self._tau)
+            if mode == 'fixed_point' and not converged:
                 self._flag('not_converged')
 
     # --------------------------------------------------------- the accessors
