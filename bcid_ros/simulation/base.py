@@ -43,6 +43,10 @@ class StreamingFilter:
     def __init__(self, b, a) -> None:
         self.b = np.atleast_1d(np.asarray(b, dtype=float))
         self.a = np.atleast_1d(np.asarray(a, dtype=float))
+        if self.a.size == 1 and self.b.size > 1:
+            # lfilter takes a convolution shortcut for FIR filters, whose rounding
+            # depends on the block boundaries; a zero-padded a keeps it recursive.
+            self.a = np.concatenate([self.a, np.zeros(self.b.size - 1)])
         self.state = np.zeros(max(len(self.a), len(self.b)) - 1)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
