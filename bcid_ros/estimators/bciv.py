@@ -66,7 +66,7 @@ class BcivResult:
     theta_iv : numpy.ndarray, shape ``(p,)``
         The IV-type estimate of eq. (38).
     iterations : int
-        Alternations (or Newton steps) made.
+        Alternations (or, white fixed point, secant steps) made.
     converged : bool
         Whether the last step was below the tolerance.
     status : str
@@ -571,8 +571,8 @@ class Bciv(RecursiveEstimator):
     * colored, ``converged``: K = ``bciv_iterations`` alternations from
       :math:`\theta_0 = \hat\theta_{IV,N}`, stopping early below ``tolerance``;
     * white, ``converged``: the unique fixed point, warm-started from the
-      previous estimate (Newton's method on the fixed-point equation, at most
-      K steps; see :meth:`BcivSolver.fixed_point`);
+      previous estimate (the secant method on the equivalent scalar equation
+      in sigma_d^2, at most K steps; see :meth:`BcivSolver.fixed_point`);
     * ``printed``: one alternation from the previous estimate (Steps 3-4 as
       printed).
 
@@ -747,7 +747,7 @@ class Bciv(RecursiveEstimator):
 
     @property
     def last_iterations(self) -> int:
-        """Return the number of alternations (or Newton steps) of the last sample."""
+        """Return the number of alternations (or secant steps) of the last sample."""
         return self._iterations_used
 
     def _theta(self) -> np.ndarray:
