@@ -255,6 +255,14 @@ def plot(monitor: Monitor, scenario: str, path: Path) -> None:
     plt.close(fig)
 
 
+def _one_decimal(text: str) -> str:
+    """Return a diagnostic number with one decimal, or '?' if there is none."""
+    try:
+        return f'{float(text):.1f}'
+    except (TypeError, ValueError):
+        return '?'
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``bcid demo``; return the exit code."""
     samples, rate, frame = DEMO_DEFAULTS[args.scenario]
@@ -342,7 +350,7 @@ def run(args: argparse.Namespace) -> int:
     diag = monitor.diagnostics
     print(f'identifier: {diag.get("samples used", "?")} samples used, '
           f'{diag.get("samples dropped", "?")} dropped, {diag.get("bad samples", "?")} bad; '
-          f'update time mean {monitor.update_us or "?"} µs (while running)')
+          f'update time mean {_one_decimal(monitor.update_us)} µs (while running)')
     png = out_dir / f'demo_{args.scenario}.png'
     plot(monitor, args.scenario, png)
     print(f'wall time {wall:.1f} s; final delta {100 * monitor.delta(monitor.theta):.3f} %; '
