@@ -45,14 +45,10 @@ from bcid_ros.simulation import make_scenario
 name, count, seed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 rows = [decode_samples(m) for _, _, m in BagReader(f'bags/{name}').decoded(['/samples'])]
 y, u = make_scenario(name).simulate(count, seed)
-# Bit for bit where the scenario's stream is independent of the block size (see
-# docs/bags.md: ikenoue_white_input differs in the last bit, 1e-15).
-if sum(r.shape[0] for r in rows) != count or not np.allclose(
-        np.vstack(rows), np.column_stack([y, u]), rtol=0, atol=1e-12):
+if sum(r.shape[0] for r in rows) != count or not np.array_equal(np.vstack(rows),
+                                                                 np.column_stack([y, u])):
     sys.exit(f'bags/{name}: the samples are not the {count} of seed {seed}; re-record it')
-exact = np.array_equal(np.vstack(rows), np.column_stack([y, u]))
-print(f'bags/{name}: all {count} samples of seed {seed}, '
-      + ('bit for bit' if exact else 'equal to 1e-12 (not bit for bit)'))
+print(f'bags/{name}: all {count} samples of seed {seed}, bit for bit')
 PY
 }
 

@@ -34,9 +34,6 @@ SAMPLES = {'ding_miso': 10000, 'ding_miso_nonstationary': 10000, 'ikenoue_colore
            'ikenoue_white_input': 10000, 'ikeda_closed_loop': 4096}
 # Samples per /samples message (frame_size of config/<name>.yaml, which the bags keep).
 FRAME = {'ikenoue_colored': 20, 'ikenoue_white_input': 20}
-# Scenarios whose sample stream depends on the block size in the last bit (SPEC section 6
-# asks for none): their bags equal the offline simulation to 1e-12, not bit for bit.
-NOT_BLOCK_EXACT = {'ikenoue_white_input'}
 TRUTH_TOPICS = ('/bcid_simulator/true_parameters', '/bcid_simulator/true_noise_variance')
 F64MA = 'std_msgs/msg/Float64MultiArray'
 
@@ -205,24 +202,14 @@ def bag_and_simulation(name):
 
 @pytest.mark.parametrize('name', sorted(SAMPLES))
 def test_bag_holds_the_simulation_of_its_seed(name):
-    """The recorded samples are the offline simulation of the seed: none lost or changed."""
+    """The recorded samples are the offline simulation of the seed, bit for bit: none lost."""
     rows, simulated, bag = bag_and_simulation(name)
-    np.testing.assert_allclose(rows, simulated, rtol=0, atol=1e-12)
-    if name not in NOT_BLOCK_EXACT:
-        np.testing.assert_array_equal(rows, simulated)
+    np.testing.assert_array_equal(rows, simulated)
     scenario = make_scenario(name)
     truth = bag.truth()
     assert truth.parameter_names == scenario.truth().parameter_names
     np.testing.assert_array_equal(truth.parameters, scenario.truth().parameters)
     np.testing.assert_array_equal(truth.noise, scenario.truth().noise)
-
-
-@pytest.mark.xfail(strict=True, reason='the FIR input shaping of ikenoue_white_input rounds '
-                   'differently with the block size (scipy lfilter with zi), so the simulator '
-                   'node, which draws blocks as time allows, differs from simulate() by 1e-15')
-def test_ikenoue_white_input_bag_is_bit_exact():
-    rows, simulated, _ = bag_and_simulation('ikenoue_white_input')
-    np.testing.assert_array_equal(rows, simulated)
 
 
 def test_bags_readme_documents_every_bag():
