@@ -43,6 +43,8 @@ DEFAULT_TOLERANCE = 1e-10
 #: The alternation checks its step against the tolerance every this many steps
 #: (and after the last), which saves a fifth of its cost.
 CHECK_PERIOD = 4
+#: Samples the history ring of :class:`Bciv` takes before it moves its window back.
+RING_SAMPLES = 512
 INPUT_NOISE = ('colored', 'white')
 UPDATES = ('converged', 'printed')
 
@@ -193,45 +195,69 @@ class BcivSolver:
         # T_jk = E_j' X E_k, shape (nb, nb, q, q)
         etxe = (self.etx @ e_all).reshape(nb, q, nb, q).transpose(0, 2, 1, 3)
         self.t = np.ascontiguousarray(etxe)
-        # The quadratic-form tensor C[s, t, :] over x = [theta; 1]; the last axis
-        # holds Ha ((q+1)^2: Q~'XQ~ bordered by a unit corner), ra (q+1:
-        # Q~'X S x, then 1) and Da (p (q+1): G Q~ with theta_IV as last column).
+        self._t_white = self.t[:, :, 0, 0].tolist()
+
+        # ---- The moments and the products of eq. (38), in fixed buffers.
+        # big = [S_p | -s | W E_all] in Fortran order, so that the moments block
+        # is contiguous and BLAS dger updates it in place (W = I: the moments
+        # themselves live in big).
+        big = np.zeros((p + 1 + nb * q, m)).T
+        big[:, p + 1:] = e_all if self.w is None else self.w @ e_all
+        self._big = big
+        self.moments = big[:, :p + 1] if self.w is None else np.zeros((p + 1, m)).T
+        # One buffer holds [Phi' ; Phi^-1 [-S'W s | S'W E_all]]' (rows of the
+        # transposed products) and E_all' X S, so that one scatter moves every
+        # per-sample number into the tensor below.
+        rows = p + 1 + nb * q
+        self._buffer = np.zeros(rows * p + nb * q * (p + 1))
+        self._products = self._buffer[:rows * p].reshape(rows, p)  # [S_p'W big]'
+        self.phi = self._products[:p].T  # Phi, Fortran order (kept: dposv copies it)
+        self._phi_diagonal = self._buffer[:p * p:p + 1]
+        self._solved = self._products[p:].T  # (p, 1 + nb q), Fortran order
+        self._ge = self._solved[:, 1:]  # G E_all
+        self._etxs = self._buffer[rows * p:].reshape(nb * q, p + 1)  # E_all' X S
+        self.theta_iv = np.zeros(p)
+
+        # ---- The quadratic-form tensor of one alternation.
+        # C[s, t, :] over x = [theta; 1]; only b and the trailing 1 can be the
+        # first factor, so s runs over xb = x[n:] = [b; 1]. The last axis holds
+        # Ha ((q+1)^2: Q~'XQ~ bordered by a unit corner), ra (q+1: Q~'X S x,
+        # then -1) and Da (p (q+1): G Q~, then -theta_IV), so that
+        # Ha^-1 ra = [gamma; -1] and Da [gamma; -1] = theta_IV + G Q~ gamma.
         qa = q + 1
-        self._slots = (qa * qa, qa * qa + qa, qa * qa + qa + p * qa)
-        width = self._slots[2]
-        self._c = np.zeros((p + 1, p + 1, width))
-        c = self._c
+        ha_end, ra_end = qa * qa, qa * qa + qa
+        width = ra_end + p * qa
+        c = np.zeros((nb + 1, p + 1, width))
         for j in range(nb):
             for k in range(nb):
-                block = c[n + j, n + k, :qa * qa].reshape(qa, qa)
-                block[:q, :q] = self.t[j, k]
-        c[p, p, qa * qa - 1] = 1.0
-        c[p, p, qa * qa + q] = 1.0
-        self._c2 = c.reshape(p + 1, (p + 1) * width)
-        # Views the per-sample update writes into.
-        self._c_rhs = c[n:p, :, qa * qa:qa * qa + q]  # (nb, p+1, q)
-        self._c_d = c[n:p, p, self._slots[1]:].reshape(nb, p, qa)[:, :, :q]  # (nb, p, q)
-        self._c_iv = c[p, p, self._slots[1]:].reshape(p, qa)[:, q]  # (p,)
-        # Work buffers of the alternation: two x = [theta; 1] (ping-pong).
+                c[j, n + k, :ha_end].reshape(qa, qa)[:q, :q] = self.t[j, k]
+        c[nb, p, ha_end - 1] = 1.0
+        c[nb, p, ra_end - 1] = -1.0
+        self._c = c.reshape(nb + 1, (p + 1) * width)
+        # Where the per-sample numbers of the buffer go in C (one scatter):
+        # solved[i, 0] = -theta_IV[i] -> C[nb, p, Da(i, q)];
+        # solved[i, 1 + j q + c] = (G E_j)[i, c] -> C[j, p, Da(i, c)];
+        # (E_all' X S)[j q + c, t] -> C[j, t, ra(c)].
+        index = np.zeros((nb + 1, p + 1, width), dtype=np.intp)
+        index.reshape(-1)[:] = np.arange(index.size)
+        target = [index[nb, p, ra_end + i * qa + q] for i in range(p)]
+        target += [index[j, p, ra_end + i * qa + col]
+                   for j in range(nb) for col in range(q) for i in range(p)]
+        target += [index[j, t, ha_end + col]
+                   for j in range(nb) for col in range(q) for t in range(p + 1)]
+        self._scatter = np.array(target, dtype=np.intp)
+        self._c_flat = c.reshape(-1)
+        # Work buffers of the alternation; x = [theta; 1], whose head is rewritten.
         self._w1 = np.empty((p + 1) * width)
         self._w1_2d = self._w1.reshape(p + 1, width)
         self._out = np.empty(width)
-        self._ha = self._out[:qa * qa].reshape(qa, qa).T  # symmetric: the F-order view
-        self._ra = self._out[qa * qa:self._slots[1]]
-        self._da = self._out[self._slots[1]:].reshape(p, qa)
-        self._x = (np.ones(p + 1), np.ones(p + 1))
-        self._heads = (self._x[0][:p], self._x[1][:p])
-        self._step = np.empty(p)
-        self.theta_iv = np.zeros(p)
-        self.phi = np.eye(p)
-        #: W E_all, shape (m, nb q), and the buffer [W S_p | -W s | W E_all]
-        self._we = e_all if self.w is None else self.w @ e_all
-        self._big = np.zeros((m, p + 1 + nb * q))
-        self._big[:, p + 1:] = self._we
-        # G E_all and E_all' X [S_p | -s], per sample
-        self._ge = np.zeros((p, nb * q))
-        self._etxs = np.zeros((nb * q, p + 1))
-        self._t_white = self.t[:, :, 0, 0].tolist()
+        self._ha = self._out[:ha_end].reshape(qa, qa).T  # symmetric: the F-order view
+        self._ra = self._out[ha_end:ra_end]
+        self._da = self._out[ra_end:].reshape(p, qa)
+        self._x = np.ones(p + 1)
+        self._head = self._x[:p]
+        self._xb = self._x[n:]
+        self._previous = np.empty(p)
 
     # ----------------------------------------------------------- per sample
     def prepare(self, saug: np.ndarray, regularisation: float) -> np.ndarray:
@@ -243,48 +269,54 @@ class BcivSolver:
             \Phi = \bar S_p^T W \bar S_p + \rho^{-1}\lambda^{2N} I, \quad
             G = \Phi^{-1}\bar S_p^T W, \quad \hat\theta_{IV} = -G\,\bar S_{:,p}
 
+        One product gives :math:`[\Phi \mid -\bar S_p^TW\bar s \mid \bar S_p^TWE]`,
+        one Cholesky solve :math:`[-\hat\theta_{IV} \mid GE]`, one product
+        :math:`E^TX\bar S`, and one scatter puts them into the tensor of
+        :meth:`alternate`.
+
         Parameters
         ----------
         saug : numpy.ndarray, shape ``(m, p + 1)``
-            The unnormalised moments :math:`[\sum\eta p^T,\ -\sum\eta z]`.
+            The unnormalised moments :math:`[\sum\eta p^T,\ -\sum\eta z]`;
+            :attr:`moments` itself (no copy) or any array (copied into it).
         regularisation : float
             :math:`\rho^{-1}\lambda^{2N}`, the M_0 = rho I term of Step 0.
 
         Returns
         -------
         numpy.ndarray, shape ``(p,)``
-            theta_IV (the solver's own array; copy it to keep it).
+            theta_IV (a new array).
 
         """
         p = self.num_parameters
-        s_p = saug[:, :p]
-        # [Phi | -S'W s | S'W E_all] = S_p' [W S_p | -W s | W E_all]
+        moments = self.moments
+        if saug is not moments:
+            moments[...] = saug
         big = self._big
-        if self.w is None:
-            big[:, :p + 1] = saug
-        else:
-            big[:, :p + 1] = self.w.dot(saug)
-        products = s_p.T.dot(big)
+        if self.w is not None:
+            big[:, :p + 1] = self.w.dot(moments)
+        # [Phi | -S'W s | S'W E_all]' = [W S_p | -W s | W E_all]' S_p
+        big.T.dot(moments[:, :p], self._products)
         # Phi = S'WS + rho^-1 lambda^2N I   (M_N^-1 of Step 1)
-        phi = products[:, :p]
-        phi.flat[::p + 1] += regularisation
-        self.phi = phi
+        self._phi_diagonal += regularisation
         # [-theta_IV | G E_all] = Phi^-1 [-S'W s | S'W E_all], G = Phi^-1 S'W      (38)
-        rhs = products[:, p:]
-        _, solved, info = dposv(phi, rhs)
+        info = dposv(self.phi, self._solved, 0, 0, 1)[2]
         if info != 0:
-            solved, info = _general_solve(phi, rhs)
-        self.theta_iv = -solved[:, 0]
-        self._ge = ge = solved[:, 1:]
+            self._fallback_solve(regularisation)
         # E_all' X [S_p | -s]
-        self._etxs = etxs = self.etx.dot(saug)
-        # rhs block: C[n+j, t, ra slot c] = (E_j' X S)[c, t]
-        nb, q = len(self.lags), self.q
-        self._c_rhs[...] = etxs.reshape(nb, q, p + 1).transpose(0, 2, 1)
-        # D block: C[n+j, p, Da slot (i, c)] = (G E_j)[i, c]; theta_IV in the last column
-        self._c_d[...] = ge.reshape(p, nb, q).transpose(1, 0, 2)
-        self._c_iv[...] = self.theta_iv
-        return self.theta_iv
+        self.etx.dot(moments, self._etxs)
+        # Into the tensor of the alternation
+        self._c_flat[self._scatter] = self._buffer[p * p:]
+        self.theta_iv = theta_iv = -self._solved[:, 0]
+        return theta_iv
+
+    def _fallback_solve(self, regularisation: float) -> None:
+        """Redo the solve of :meth:`prepare` with LU after the Cholesky factorisation failed."""
+        p = self.num_parameters
+        products = self._big.T.dot(self.moments[:, :p]).T
+        products[:, :p] += regularisation * np.eye(p)
+        solved, _ = _general_solve(products[:, :p], products[:, p:])
+        self._solved[...] = solved
 
     def alternate(self, start: np.ndarray, iterations: int,
                   tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
@@ -298,8 +330,11 @@ class BcivSolver:
             \theta_{k+1} &= \hat\theta_{IV} + (\hat R^T_{\eta p} W \hat R_{\eta p})^{-1}
                 \hat R^T_{\eta p} W \tilde Q_k \tilde\gamma_{k+1} && \text{(53)}
 
-        with :math:`\tilde Q_k = \tilde Q(b_k)`. Stops early once a step is
-        below ``tolerance`` (2-norm). Call :meth:`prepare` first.
+        with :math:`\tilde Q_k = \tilde Q(b_k)`. One alternation is four calls:
+        two products for the quadratic form, one in-place Cholesky solve and one
+        product. Checks the step every :data:`CHECK_PERIOD` steps and after the
+        last, and stops once it is below ``tolerance`` (2-norm). Call
+        :meth:`prepare` first.
 
         Returns
         -------
@@ -309,45 +344,43 @@ class BcivSolver:
 
         """
         q = self.q
-        c2, w1, w1_2d, out = self._c2, self._w1, self._w1_2d, self._out
+        c, w1, w1_2d, out = self._c, self._w1, self._w1_2d, self._out
         ha, ra, da = self._ha, self._ra, self._da
-        cur, nxt = self._x
-        head_cur, head_nxt = self._heads
-        step = self._step
-        head_cur[...] = start
-        gamma = None
+        x, xb, head, previous = self._x, self._xb, self._head, self._previous
+        head[...] = start
         tol2 = tolerance * tolerance
         converged = False
         done = 0
         while done < iterations:
-            done += 1
-            # [vec Ha, ra, vec Da] = sum_st x_s x_t C[s, t, :]
-            np.dot(cur, c2, out=w1)
-            np.dot(cur, w1_2d, out=out)
-            # [gamma; 1] = Ha^-1 ra      (75)
-            factor, gamma, info = dposv(ha, ra)
-            if info != 0:
-                return head_cur, gamma, done, False, SINGULAR
-            # theta = theta_IV + G Q~ gamma = Da [gamma; 1]      (53)
-            np.dot(da, gamma, out=head_nxt)
-            cur, nxt = nxt, cur
-            head_cur, head_nxt = head_nxt, head_cur
-            if done % CHECK_PERIOD and done < iterations:
-                continue
-            np.subtract(head_cur, head_nxt, out=step)
+            burst = min(CHECK_PERIOD, iterations - done)
+            for k in range(burst):
+                if k == burst - 1:
+                    previous[...] = head
+                # [vec Ha, ra, vec Da] = sum_st x_s x_t C[s, t, :]
+                # (positional arguments: keywords cost more than the arithmetic)
+                xb.dot(c, w1)
+                x.dot(w1_2d, out)
+                # [gamma; -1] = Ha^-1 ra, in place      (75)
+                info = dposv(ha, ra, 0, 1, 1)[2]
+                if info != 0:
+                    return head.copy(), ra[:q].copy(), done + k + 1, False, SINGULAR
+                # theta = theta_IV + G Q~ gamma = Da [gamma; -1]      (53)
+                da.dot(ra, head)
+            done += burst
+            step = np.subtract(head, previous, out=previous)
             change = step.dot(step)
             if not math.isfinite(change):
-                return head_cur, gamma, done, False, RUNAWAY
+                return head.copy(), ra[:q].copy(), done, False, RUNAWAY
             if change <= tol2:
                 converged = True
                 break
-        if gamma is None:
-            return head_cur.copy(), np.zeros(q), 0, False, OK
+        if done == 0:
+            return head.copy(), np.zeros(q), 0, False, OK
         # Cholesky factor diagonal of Q~'XQ~: cond ~ (max/min)^2
-        diagonal = factor.diagonal()[:q]
-        if not diagonal.min() * math.sqrt(CONDITION_MAX) > diagonal.max():
-            return head_cur, gamma, done, converged, SINGULAR
-        return head_cur.copy(), gamma[:q].copy(), done, converged, OK
+        diagonal = ha.diagonal()[:q].tolist()
+        if not min(diagonal) * math.sqrt(CONDITION_MAX) > max(diagonal):
+            return head.copy(), ra[:q].copy(), done, converged, SINGULAR
+        return head.copy(), ra[:q].copy(), done, converged, OK
 
     def fixed_point(self, start: float, max_iterations: int,
                     tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
@@ -475,7 +508,7 @@ class BcivSolver:
              tolerance: float, start: np.ndarray | None,
              start_noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool, str]:
         """Do :meth:`solve` and return the fields of :class:`BcivResult` as a tuple."""
-        theta_iv = self.prepare(saug, regularisation).copy()
+        theta_iv = self.prepare(saug, regularisation)
         if mode == 'idle':
             return theta_iv, np.zeros(self.q), theta_iv, 0, True, OK
         if mode == 'fixed_point':
@@ -671,29 +704,37 @@ class Bciv(RecursiveEstimator):
         self._mode = ('printed' if bciv_update == 'printed'
                       else 'fixed_point' if input_noise == 'white' else 'steps')
         self._iterations = 1 if bciv_update == 'printed' else self.bciv_iterations
-        self._eta_index, self._pz_index = solver.window_indices()
-        self._history = np.zeros((solver.m, 2))
-        self._flat = self._history.reshape(-1)
+        # The sample history is a ring of [-z, w] pairs written backwards, so
+        # that the newest m samples are the contiguous window
+        # ring[start:start + 2m] (row k of its (m, 2) view: sample t - k).
+        self._ring = np.zeros(2 * (RING_SAMPLES + solver.m))
+        self._start = 2 * RING_SAMPLES
+        self._gather = np.concatenate(solver.window_indices())
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
-        history = self._history
-        history[1:] = history[:-1]
-        history[0, 0] = -y
-        history[0, 1] = u[0]
-        if self._filled < self._solver.m:
+        m = self._solver.m
+        ring = self._ring
+        start = self._start - 2
+        if start < 0:
+            # move the newest m - 1 samples to the end of the ring
+            start = 2 * RING_SAMPLES
+            ring[start + 2:] = ring[:2 * m - 2]
+        ring[start] = -y
+        ring[start + 1] = u[0]
+        self._start = start
+        if self._filled < m:
             self._filled += 1
-            if self._filled < self._solver.m:
+            if self._filled < m:
                 return
-        flat = self._flat
-        eta = flat[self._eta_index]
-        pz = flat[self._pz_index]
+        # [eta; p; -z] of eqs. (54), (68)-(70)
+        sample = ring[start:start + 2 * m][self._gather]
         lam = self._forgetting_factor
         if lam != 1.0:
             self._saug *= lam
-        # S = lambda S + eta [p', -z]      (Step 2, unnormalised; S' is F-ordered)
-        self._saug = dger(1.0, pz, eta, a=self._saug.T, overwrite_a=True).T
+        # S = lambda S + eta [p', -z]      (Step 2, unnormalised, in place)
+        dger(1.0, sample[:m], sample[m:], 1, 1, self._saug, 1, 1, 1)
         # tau = lambda tau + 1 ; decay = lambda^2N
         self._tau = lam * self._tau + 1.0
         self._decay *= lam * lam
@@ -709,7 +750,7 @@ class Bciv(RecursiveEstimator):
             self._theta_bciv, self._gamma[0] * self._tau)
         if not math.isfinite(theta_iv.dot(theta_iv)):
             self._flag('moments_reset')
-            self._saug = np.zeros_like(self._saug)
+            self._saug[...] = 0.0
             self._tau, self._decay, self._updates = 0.0, 1.0, 0
             return
         self._theta_iv = theta_iv
@@ -760,11 +801,19 @@ class Bciv(RecursiveEstimator):
         return self._gamma
 
     # -------------------------------------------------------------- the state
+    @property
+    def _history(self) -> np.ndarray:
+        """Return the (m, 2) window of [-z, w] (row k: sample t - k), a view into the ring."""
+        return self._ring[self._start:self._start + 2 * self._solver.m].reshape(-1, 2)
+
     def _reset(self) -> None:
         p = self.num_parameters
-        self._history[:] = 0.0
+        self._ring[:] = 0.0
+        self._start = 2 * RING_SAMPLES
         self._filled = 0
-        self._saug = np.zeros((self._solver.m, p + 1))
+        #: The moments S live in the solver's buffer, updated in place.
+        self._saug = self._solver.moments
+        self._saug[...] = 0.0
         self._tau = 0.0
         self._decay = 1.0
         self._updates = 0
@@ -787,8 +836,8 @@ class Bciv(RecursiveEstimator):
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
-        self._saug = np.array(arrays['moments'], dtype=float)
-        self._history[:] = arrays['history']
+        self._saug[...] = arrays['moments']
+        self._history[...] = arrays['history']
         self._theta_iv = arrays['theta_iv']
         self._theta_bciv = arrays['theta_bciv']
         self._gamma = arrays['gamma']
