@@ -253,11 +253,12 @@ class BcivSolver:
         self._out = np.empty(width)
         self._ha = self._out[:ha_end].reshape(qa, qa).T  # symmetric: the F-order view
         self._ra = self._out[ha_end:ra_end]
+        self._ha_diagonal = self._out[:ha_end - 1:qa + 1]  # the first q
+        self._check_cache: dict[int, tuple[bool, ...]] = {}
         self._da = self._out[ra_end:].reshape(p, qa)
-        self._x = np.ones(p + 1)
-        self._head = self._x[:p]
-        self._xb = self._x[n:]
-        self._previous = np.empty(p)
+        x = np.ones(p + 1)
+        self._loop = (self._c, self._w1, self._w1_2d, self._out, self._ha, self._ra,
+                      self._da, x, x[n:], x[:p])
 
     # ----------------------------------------------------------- per sample
     def prepare(self, saug: np.ndarray, regularisation: float) -> np.ndarray:
@@ -344,43 +345,50 @@ class BcivSolver:
 
         """
         q = self.q
-        c, w1, w1_2d, out = self._c, self._w1, self._w1_2d, self._out
-        ha, ra, da = self._ha, self._ra, self._da
-        x, xb, head, previous = self._x, self._xb, self._head, self._previous
+        c, w1, w1_2d, out, ha, ra, da, x, xb, head = self._loop
+        # bound methods, positional arguments: at these sizes the call overhead
+        # is the cost, and keywords add a third to it
+        quadratic, contract, update = xb.dot, x.dot, da.dot
         head[...] = start
-        tol2 = tolerance * tolerance
         converged = False
         done = 0
-        while done < iterations:
-            burst = min(CHECK_PERIOD, iterations - done)
-            for k in range(burst):
-                if k == burst - 1:
-                    previous[...] = head
-                # [vec Ha, ra, vec Da] = sum_st x_s x_t C[s, t, :]
-                # (positional arguments: keywords cost more than the arithmetic)
-                xb.dot(c, w1)
-                x.dot(w1_2d, out)
-                # [gamma; -1] = Ha^-1 ra, in place      (75)
-                info = dposv(ha, ra, 0, 1, 1)[2]
-                if info != 0:
-                    return head.copy(), ra[:q].copy(), done + k + 1, False, SINGULAR
+        checks = self._check_cache.get(iterations) or self._checks(iterations)
+        for check in checks:
+            done += 1
+            # [vec Ha, ra, vec Da] = sum_st x_s x_t C[s, t, :]
+            quadratic(c, w1)
+            contract(w1_2d, out)
+            # [gamma; -1] = Ha^-1 ra, in place      (75)
+            if dposv(ha, ra, 0, 1, 1)[2] != 0:
+                return head.copy(), ra[:q].copy(), done, False, SINGULAR
+            if not check:
                 # theta = theta_IV + G Q~ gamma = Da [gamma; -1]      (53)
-                da.dot(ra, head)
-            done += burst
-            step = np.subtract(head, previous, out=previous)
-            change = step.dot(step)
+                update(ra, head)
+                continue
+            previous = head.tolist()
+            update(ra, head)
+            change = math.dist(head.tolist(), previous)
             if not math.isfinite(change):
                 return head.copy(), ra[:q].copy(), done, False, RUNAWAY
-            if change <= tol2:
+            if change <= tolerance:
                 converged = True
                 break
         if done == 0:
             return head.copy(), np.zeros(q), 0, False, OK
         # Cholesky factor diagonal of Q~'XQ~: cond ~ (max/min)^2
-        diagonal = ha.diagonal()[:q].tolist()
+        diagonal = self._ha_diagonal.tolist()
         if not min(diagonal) * math.sqrt(CONDITION_MAX) > max(diagonal):
             return head.copy(), ra[:q].copy(), done, converged, SINGULAR
         return head.copy(), ra[:q].copy(), done, converged, OK
+
+    def _checks(self, iterations: int) -> tuple[bool, ...]:
+        """Return, per alternation, whether to check the step (every CHECK_PERIOD and the last)."""
+        checks = self._check_cache.get(iterations)
+        if checks is None:
+            checks = tuple((k + 1) % CHECK_PERIOD == 0 or k + 1 == iterations
+                           for k in range(iterations))
+            self._check_cache[iterations] = checks
+        return checks
 
     def fixed_point(self, start: float, max_iterations: int,
                     tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
@@ -509,7 +517,10 @@ class BcivSolver:
              start_noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool, str]:
         """Do :meth:`solve` and return the fields of :class:`BcivResult` as a tuple."""
         theta_iv = self.prepare(saug, regularisation)
-        if mode == 'idle':
+        iv_list = theta_iv.tolist()
+        iv_norm2 = sum(v * v for v in iv_list)
+        if mode == 'idle' or not math.isfinite(iv_norm2):
+            # (non-finite theta_IV: the caller resets the moments)
             return theta_iv, np.zeros(self.q), theta_iv, 0, True, OK
         if mode == 'fixed_point':
             theta, gamma, done, converged, status = self.fixed_point(start_noise, iterations,
@@ -519,8 +530,8 @@ class BcivSolver:
             theta, gamma, done, converged, status = self.alternate(first, iterations,
                                                                    tolerance)
         if status == OK:
-            gap = theta - theta_iv
-            if not gap.dot(gap) <= COMPENSATION_MAX ** 2 * (1.0 + theta_iv.dot(theta_iv)):
+            gap = math.dist(theta.tolist(), iv_list)
+            if not gap * gap <= COMPENSATION_MAX ** 2 * (1.0 + iv_norm2):
                 status = RUNAWAY
         if status != OK:
             return theta_iv, np.zeros(self.q), theta_iv, done, False, status
