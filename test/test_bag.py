@@ -427,3 +427,18 @@ def test_bad_output_and_existing_bag_are_clean_errors(small_bag, tmp_path, capsy
     assert_clean_error(code, err, 'simulate', 'exists already')
     code, _, err = run_cli(capsys, 'replay', small_bag, '--params', tmp_path / 'none.yaml')
     assert_clean_error(code, err, 'replay', 'no such file')
+
+
+@pytest.mark.parametrize('bag', sorted(p.parent.name for p in BAGS.glob('*/metadata.yaml')))
+def test_fast_cdr_decoder_equals_mcap_ros2(bag):
+    reader = BagReader(BAGS / bag)
+    slow = [m for _, _, m in reader.decoded(['/samples'])]
+    fast = [m for _, m in reader.float64_multi_arrays('/samples')]
+    assert len(fast) == len(slow)
+    for a, b in zip(slow, fast):
+        assert [(d.label, d.size, d.stride) for d in a.layout.dim] == list(b.layout.dim)
+        assert a.layout.data_offset == b.layout.data_offset
+        np.testing.assert_array_equal(np.asarray(a.data), b.data)
+    truth = reader.truth()
+    last = reader.last_decoded(reader.find_topic('true_parameters'))
+    np.testing.assert_array_equal(truth.parameters, np.asarray(last.data))

@@ -156,7 +156,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     messages = malformed = failures = 0
     since_publish = 0
     start = time.perf_counter()
-    for _, log_time, message in reader.decoded([topic]):
+    for log_time, message in reader.float64_multi_arrays(topic):
         messages += 1
         # As identifier_node.on_samples: an empty message is dropped, a
         # malformed one also restarts the regressor, and so does an estimator
