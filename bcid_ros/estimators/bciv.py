@@ -217,6 +217,7 @@ class BcivSolver:
         self._ge = self._solved[:, 1:]  # G E_all
         self._etxs = self._buffer[rows * p:].reshape(nb * q, p + 1)  # E_all' X S
         self.theta_iv = np.zeros(p)
+        self._scattered = True
 
         # ---- The quadratic-form tensor of one alternation.
         # C[s, t, :] over x = [theta; 1]; only b and the trailing 1 can be the
@@ -306,8 +307,7 @@ class BcivSolver:
             self._fallback_solve(regularisation)
         # E_all' X [S_p | -s]
         self.etx.dot(moments, self._etxs)
-        # Into the tensor of the alternation
-        self._c_flat[self._scatter] = self._buffer[p * p:]
+        self._scattered = False  # the tensor of :meth:`alternate` is filled on demand
         self.theta_iv = theta_iv = -self._solved[:, 0]
         return theta_iv
 
@@ -346,6 +346,10 @@ class BcivSolver:
         """
         q = self.q
         c, w1, w1_2d, out, ha, ra, da, x, xb, head = self._loop
+        if not self._scattered:
+            # the per-sample numbers of prepare() into the tensor
+            self._c_flat[self._scatter] = self._buffer[self.num_parameters ** 2:]
+            self._scattered = True
         # bound methods, positional arguments: at these sizes the call overhead
         # is the cost, and keywords add a third to it
         quadratic, contract, update = xb.dot, x.dot, da.dot
@@ -518,7 +522,7 @@ class BcivSolver:
         """Do :meth:`solve` and return the fields of :class:`BcivResult` as a tuple."""
         theta_iv = self.prepare(saug, regularisation)
         iv_list = theta_iv.tolist()
-        iv_norm2 = sum(v * v for v in iv_list)
+        iv_norm2 = float(theta_iv.dot(theta_iv))
         if mode == 'idle' or not math.isfinite(iv_norm2):
             # (non-finite theta_IV: the caller resets the moments)
             return theta_iv, np.zeros(self.q), theta_iv, 0, True, OK
