@@ -150,6 +150,13 @@ class BcivSolver:
     :math:`\tilde Q^TX\bar S x` and :math:`G\tilde Q` at once,
     :math:`G = (\bar S_p^TW\bar S_p + \rho^{-1}\lambda^{2N} I)^{-1}\bar S_p^TW`.
 
+    **Cost.** At n = 2, l = 5 every array is tiny, so the cost is the number
+    of numpy/LAPACK calls, not arithmetic: one alternation is four calls
+    (two products, an in-place Cholesky solve, one product) with positional
+    arguments, and :meth:`prepare` is two products, one Cholesky solve and one
+    scatter. The moments :attr:`moments` live in a Fortran-ordered buffer
+    that :class:`Bciv` updates in place with BLAS ``dger``.
+
     Parameters
     ----------
     order : int
