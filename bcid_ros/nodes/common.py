@@ -15,6 +15,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -212,6 +213,11 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
                 executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except rclpy_implementation.RCLError:
+        # SIGINT/SIGTERM can shut the context down between two waits of the
+        # executor, which then fails to build its wait set: that is a shutdown too
+        if rclpy.ok():
+            raise
     except ValueError as error:
         print(f'{program}: error: {error}', file=sys.stderr)
         return 2
