@@ -181,6 +181,11 @@ class SampleFeeder:
       input is counted in ``unexcited`` (the samples are still used; the
       estimators guard their covariance against wind-up).
 
+    :meth:`take_message`, :meth:`take_rows` and :meth:`due_estimates` are the
+    identifier's whole per-message rule (what is dropped, what restarts the
+    regressor, when estimates are published). identifier_node and
+    ``bcid replay`` both go through them, which is why they agree bit for bit.
+
     Parameters
     ----------
     estimator : RecursiveEstimator
@@ -188,12 +193,20 @@ class SampleFeeder:
     excitation_window : int
         Samples of unchanged input before a sample counts as unexcited;
         0 turns the check off.
+    publish_period : int
+        Samples between published estimates (see :meth:`due_estimates`).
 
     """
 
-    def __init__(self, estimator: Any, excitation_window: int = 0) -> None:
+    def __init__(self, estimator: Any, excitation_window: int = 0,
+                 publish_period: int = 1) -> None:
         self.estimator = estimator
         self.excitation_window = int(excitation_window)
+        self.publish_period = int(publish_period)
+        self.since_publish = 0
+        self.nonfinite_estimates = 0
+        #: What went wrong with the last message or rows that were refused.
+        self.problem = ''
         self.used = 0
         self.nonfinite = 0
         self.unexcited = 0
@@ -251,6 +264,59 @@ class SampleFeeder:
         self.used += used
         return used
 
+    def take_message(self, message: Any) -> str | None:
+        """
+        Decode and feed one samples message; return what was wrong with it, or None.
+
+        An empty message is dropped; a malformed one is dropped and restarts
+        the regressor (a sample may be missing); see :meth:`take_rows` for the
+        rest. The reason is left in :attr:`problem`.
+
+        Returns
+        -------
+        str or None
+            ``'empty'``, ``'bad_layout'``, ``'estimator_errors'`` or None.
+
+        """
+        try:
+            rows = decode_samples(message, self.estimator.num_inputs)
+        except ValueError as error:
+            self.problem = str(error)
+            if self.problem.startswith('empty'):
+                return 'empty'
+            self.gap(count=False)
+            return 'bad_layout'
+        return self.take_rows(rows)
+
+    def take_rows(self, rows: np.ndarray) -> str | None:
+        """Feed rows; return ``'estimator_errors'`` if the estimator raised, else None."""
+        try:
+            self.since_publish += self.feed(rows)
+        except Exception as error:  # an estimator failure must not stop the stream
+            self.gap(count=False)
+            self.problem = repr(error)
+            return 'estimator_errors'
+        return None
+
+    def due_estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """
+        Return ``(theta, theta_uncompensated, noise)`` if it is time to publish them.
+
+        It is time once ``publish_period`` samples were used since the last
+        publication and the estimate is valid. A non-finite estimate is never
+        returned: it is counted in :attr:`nonfinite_estimates` instead.
+        """
+        estimator = self.estimator
+        if self.since_publish < self.publish_period or not estimator.valid:
+            return None
+        theta = estimator.theta
+        uncompensated = estimator.theta_uncompensated
+        if not (np.isfinite(theta).all() and np.isfinite(uncompensated).all()):
+            self.nonfinite_estimates += 1
+            return None
+        self.since_publish = 0
+        return theta, uncompensated, estimator.noise
+
     def gap(self, count: bool = True) -> None:
         """
         Note that samples are missing here: restart the regressor before the next update.
@@ -268,6 +334,7 @@ class SampleFeeder:
     def reset(self) -> None:
         """Reset the estimator and forget the input history (counters are kept)."""
         self.estimator.reset()
+        self.since_publish = 0
         self._last_u = None
         self._constant_run = 0
         self._restart_pending = False

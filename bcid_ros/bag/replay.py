@@ -2,12 +2,12 @@
 Offline replay: run the identifier's estimator over a bag's samples, no ROS graph.
 
 The estimator is built from the same parameter file through
-:func:`bcid_ros.parameters.estimator_from_parameters`, every message is
-decoded with :func:`bcid_ros.samples.decode_samples` and fed with
-:class:`bcid_ros.samples.SampleFeeder`, and estimates are taken at the
-samples where the node publishes them. The node does the same per message,
-so the replay's final estimate equals what ``identifier_node`` publishes for
-the same bag, to the last bit.
+:func:`bcid_ros.parameters.estimator_from_parameters`, and every message
+goes through the node's own per-message rule,
+:meth:`bcid_ros.samples.SampleFeeder.take_message` and
+:meth:`~bcid_ros.samples.SampleFeeder.due_estimates`, which also decide the
+samples where estimates are published. So the replay's final estimate
+equals what ``identifier_node`` publishes for the same bag, to the last bit.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from bcid_ros.bag.reader import BagReader, BagTruth, FLOAT64_MULTI_ARRAY
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.errors import BcidError
 from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
-from bcid_ros.samples import decode_samples, estimate_layout, SampleFeeder
+from bcid_ros.samples import estimate_layout, SampleFeeder
 
 #: The topic the identifier reads (combined input mode).
 SAMPLES_TOPIC = '/samples'
@@ -144,9 +144,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     reader.require(topic, FLOAT64_MULTI_ARRAY)
     truth = reader.truth()
     est = estimator_from_parameters(values)
-    feeder = SampleFeeder(est, values['excitation_window'])
-    num_inputs = est.num_inputs
-    period = values['publish_period']
+    feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'])
 
     times: list[int] = []
     counts: list[int] = []
@@ -154,36 +152,22 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     uncompensated: list[np.ndarray] = []
     noises: list[np.ndarray] = []
     messages = malformed = failures = 0
-    since_publish = 0
     start = time.perf_counter()
     for log_time, message in reader.float64_multi_arrays(topic):
         messages += 1
-        # As identifier_node.on_samples: an empty message is dropped, a
-        # malformed one also restarts the regressor, and so does an estimator
-        # failure; estimates are published when valid and finite.
-        try:
-            rows = decode_samples(message, num_inputs)
-        except ValueError as error:
-            malformed += 1
-            if not str(error).startswith('empty'):
-                feeder.gap(count=False)
-            continue
-        try:
-            since_publish += feeder.feed(rows)
-        except Exception:  # noqa: B902 (the node counts these and goes on)
+        # The node's own per-message rule (SampleFeeder), so that the estimates are equal.
+        problem = feeder.take_message(message)
+        if problem == 'estimator_errors':
             failures += 1
-            feeder.gap(count=False)
-            continue
-        if since_publish >= period and est.valid:
-            theta, theta_unc = est.theta, est.theta_uncompensated
-            if not (np.isfinite(theta).all() and np.isfinite(theta_unc).all()):
-                continue
-            since_publish = 0
+        elif problem:
+            malformed += 1
+        estimates = None if problem else feeder.due_estimates()
+        if estimates is not None:
             times.append(log_time)
             counts.append(feeder.used)
-            thetas.append(theta)
-            uncompensated.append(theta_unc)
-            noises.append(est.noise)
+            thetas.append(estimates[0])
+            uncompensated.append(estimates[1])
+            noises.append(estimates[2])
     elapsed = time.perf_counter() - start
     if messages == 0:
         raise BcidError(f'{reader.path}: topic {topic} has no messages')

@@ -2,7 +2,7 @@
 The identification node: samples in, bias-compensated estimates out (SPEC sections 3-5).
 
 The node holds one estimator and does no numerics of its own: it decodes
-messages (:func:`bcid_ros.samples.decode_samples`), pairs separate input and
+messages (:meth:`bcid_ros.samples.SampleFeeder.take_message`), pairs separate input and
 output topics, and feeds the samples through the same
 :class:`bcid_ros.samples.SampleFeeder` that the offline replay uses, so it
 gives the same estimates as ``bcid replay`` on the same samples.
@@ -32,7 +32,7 @@ from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_ch
 from bcid_ros.nodes.diagnostics import DiagnosticsTimer, ERROR, OK, WARN
 from bcid_ros.parameters import (check_identifier_parameters, estimator_settings,
                                  IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
-from bcid_ros.samples import decode_samples, names_label, SampleFeeder
+from bcid_ros.samples import names_label, SampleFeeder
 
 #: Intervals used to learn the sample period in stamp mode when sample_period is 0.
 PERIOD_LEARNING_INTERVALS = 20
@@ -106,13 +106,13 @@ class IdentifierNode(Node):
             self.get_logger().warning(f'parameter {name!r} does not apply to estimator '
                                       f'{settings["estimator"]!r}; ignored')
         self.estimator = estimator_class(settings['estimator'])(**estimator_settings(settings))
-        self.feeder = SampleFeeder(self.estimator, settings['excitation_window'])
+        self.feeder = SampleFeeder(self.estimator, settings['excitation_window'],
+                                   settings['publish_period'])
+        self._seen = {'nonfinite': 0, 'unexcited': 0}
         self.num_inputs = settings['num_inputs']
-        self.publish_period = settings['publish_period']
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.messages = 0
         self.estimates_published = 0
-        self._since_publish = 0
         self._throttle = Throttle(self.get_logger())
         self._last_used = 0
         self._last_counts: dict[str, int] = {}
@@ -155,6 +155,11 @@ class IdentifierNode(Node):
             + (f' (sync {settings["sync"]})' if settings['input_mode'] == 'separate' else '')
             + f'; parameters {names_label(self.estimator.parameter_names)}')
 
+    @property
+    def publish_period(self) -> int:
+        """Return the samples between published estimates (live parameter)."""
+        return self.feeder.publish_period
+
     # ------------------------------------------------------------ parameters
     def check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """Refuse values outside the table's ranges or that the estimator does not take."""
@@ -180,7 +185,7 @@ class IdentifierNode(Node):
                 self.estimator.forgetting_factor = parameter.value
                 self.settings['forgetting_factor'] = parameter.value
             elif parameter.name == 'publish_period':
-                self.publish_period = parameter.value
+                self.feeder.publish_period = parameter.value
                 self.settings['publish_period'] = parameter.value
             else:
                 continue
@@ -192,55 +197,46 @@ class IdentifierNode(Node):
         self.messages += 1
         if self._lost('samples', info):
             self.feeder.gap(count=False)
-        try:
-            rows = decode_samples(message, self.num_inputs)
-        except ValueError as error:
-            empty = str(error).startswith('empty')
-            self._bad('empty' if empty else 'bad_layout', f'samples message dropped: {error}')
-            if not empty:
-                self.feeder.gap(count=False)
-            return
-        self._feed(rows)
+        self._after_feed(self.feeder.take_message(message))
 
     def _feed(self, rows: np.ndarray) -> None:
-        nonfinite = self.feeder.nonfinite
-        unexcited = self.feeder.unexcited
-        try:
-            used = self.feeder.feed(rows)
-        except Exception as error:  # an estimator failure must not kill the node
-            self.feeder.gap(count=False)
-            self._bad('estimator_errors', f'estimator update failed: {error!r}')
+        self._after_feed(self.feeder.take_rows(rows))
+
+    def _after_feed(self, problem: str | None) -> None:
+        """Count and warn about what the feeder refused or noticed; publish when due."""
+        feeder = self.feeder
+        if problem == 'estimator_errors':
+            self._bad(problem, f'estimator update failed: {feeder.problem}')
             return
-        if self.feeder.nonfinite != nonfinite:
-            self.counters['nonfinite'] += self.feeder.nonfinite - nonfinite
-            self._throttle.warn('nonfinite', 'sample with NaN or Inf dropped; the regressor '
-                                'refills before the next update')
-        if self.feeder.unexcited != unexcited:
-            self.counters['unexcited'] += self.feeder.unexcited - unexcited
-            self._throttle.warn('unexcited', 'the input has been constant for '
-                                f'{self.feeder.excitation_window} samples or more: no '
-                                'excitation, the estimate cannot improve')
-        self._since_publish += used
-        if self._since_publish >= self.publish_period and self.estimator.valid:
-            self.publish_estimates()
+        if problem:
+            self._bad(problem, f'samples message dropped: {feeder.problem}')
+            return
+        for kind, text in (
+                ('nonfinite', 'sample with NaN or Inf dropped; the regressor refills before '
+                 'the next update'),
+                ('unexcited', f'the input has been constant for {feeder.excitation_window} '
+                 'samples or more: no excitation, the estimate cannot improve')):
+            new = getattr(feeder, kind) - self._seen[kind]
+            if new:
+                self._seen[kind] += new
+                self.counters[kind] += new
+                self._throttle.warn(kind, text)
+        self.publish_estimates()
 
     def publish_estimates(self) -> bool:
-        """Publish the current estimates if they are valid and finite; return whether."""
-        estimator = self.estimator
-        if not estimator.valid:
-            return False
-        theta = estimator.theta
-        uncompensated = estimator.theta_uncompensated
-        if not (np.isfinite(theta).all() and np.isfinite(uncompensated).all()):
+        """Publish the estimates if they are due, valid and finite; return whether."""
+        withheld = self.feeder.nonfinite_estimates
+        estimates = self.feeder.due_estimates()
+        if self.feeder.nonfinite_estimates != withheld:
             self._bad('nonfinite_estimates', 'the estimator returned a non-finite estimate; '
                       'not published')
+        if estimates is None:
             return False
-        self._since_publish = 0
+        theta, uncompensated, noise = estimates
         self._parameters_msg.data = as_doubles(theta)
         self.parameters_publisher.publish(self._parameters_msg)
         self._uncompensated_msg.data = as_doubles(uncompensated)
         self.uncompensated_publisher.publish(self._uncompensated_msg)
-        noise = estimator.noise
         if noise.size and np.isfinite(noise).all():
             self._noise_msg.data = as_doubles(noise)
             self.noise_publisher.publish(self._noise_msg)
@@ -423,7 +419,6 @@ class IdentifierNode(Node):
         self._inputs.clear()
         self._outputs.clear()
         self._last_pair_ns = None
-        self._since_publish = 0
         response.success = True
         response.message = f'estimator reset after {used} samples'
         self.get_logger().info(response.message)
