@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.bciv import Bciv, bciv_batch, BcivSolver
+from bcid_ros.estimators.bciv import Bciv, bciv_batch, BcivSolver, published_noise
 from bcid_ros.simulation import make_scenario
 
 COLORED = {'input_noise': 'colored', 'iv_lag': 5}
@@ -148,7 +148,8 @@ def test_recursive_equals_batch(name, settings):
         np.testing.assert_allclose(trajectory.theta[t - 1], batch.theta[row], rtol=0, atol=1e-8)
         np.testing.assert_allclose(trajectory.theta_uncompensated[t - 1], batch.theta_iv[row],
                                    rtol=0, atol=1e-10)
-        np.testing.assert_allclose(trajectory.noise[t - 1], batch.noise[row], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(trajectory.noise[t - 1], published_noise(batch.noise[row]),
+                                   rtol=0, atol=1e-8)
     # Updates start when the window of m samples is full (sample m - 1, 0-based);
     # valid after L = 100 updates.
     first_valid = 100 + (2 + 2 * settings['iv_lag']) - 2
@@ -304,3 +305,16 @@ def test_theta_iv_is_step_1_with_m0_rho(rho):
         tolerance = max(1e-9, 1e-14 * np.linalg.cond(phi))
         np.testing.assert_allclose(trajectory.theta_uncompensated[updates + 10], expected,
                                    rtol=tolerance, atol=1e-12)
+
+
+def test_a_negative_variance_estimate_is_flagged_and_published_as_zero():
+    # Seed 5, white input noise, l = 4: sigma_d^2 comes out at -1.11 at sample 2000
+    # (the white-case variance estimate is that noisy at 2000 samples).
+    z, w, _ = section('ikenoue_white_input', 2000, seed=5)
+    est = Bciv(order=2, input_noise='white', iv_lag=4)
+    est.run(z, w)
+    raw = bciv_batch(z, w, order=2, input_noise='white', iv_lag=4).noise[0]
+    assert raw[0] < 0
+    assert est.flags['negative_variance'] > 0
+    np.testing.assert_array_equal(est.noise, [0.0])
+    np.testing.assert_array_equal(published_noise(np.array([-0.5, -0.2])), [0.0, -0.2])

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bcid_ros.estimators.bciv import Bciv, BcivSolver, CHECK_PERIOD, RING_SAMPLES
+from bcid_ros.estimators.bciv import (Bciv, BcivSolver, CHECK_PERIOD, published_noise,
+                                      RING_SAMPLES)
 from bcid_ros.simulation import make_scenario
 from test_bciv import straightforward
 
@@ -49,8 +50,15 @@ def test_trajectory_equals_the_implementation_before_the_speed_up(case):
     np.testing.assert_allclose(run.theta[rows], saved[f'{case}/theta'], rtol=0, atol=1e-10)
     np.testing.assert_allclose(run.theta_uncompensated[rows],
                                saved[f'{case}/theta_uncompensated'], rtol=0, atol=1e-10)
-    np.testing.assert_allclose(run.noise[rows], saved[f'{case}/noise'], rtol=1e-9, atol=1e-12)
-    assert est.flags == json.loads(str(saved[f'{case}/flags']))
+    # the saved gammas are raw; the estimator publishes the variance entry no lower than 0
+    expected = np.array([published_noise(gamma) for gamma in saved[f'{case}/noise']])
+    np.testing.assert_allclose(run.noise[rows], expected, rtol=1e-9, atol=1e-12)
+    # negative_variance is newer than the reference: it only reports negative gamma[0] rows
+    flags = {key: count for key, count in est.flags.items() if key != 'negative_variance'}
+    assert flags == json.loads(str(saved[f'{case}/flags']))
+    # every saved row whose variance came out negative was an update that flagged it
+    negative_rows = int((saved[f'{case}/noise'][:, 0] < 0).sum())
+    assert est.flags.get('negative_variance', 0) >= negative_rows
 
 
 @pytest.mark.parametrize('scenario, settings, iterations', [
@@ -77,7 +85,8 @@ def test_recursive_run_equals_the_equations_written_out(scenario, settings, iter
         # seen with feedthrough, for both the old and the new implementation).
         np.testing.assert_allclose(run.theta_uncompensated[t], theta_iv, rtol=0, atol=1e-10)
         np.testing.assert_allclose(run.theta[t], theta, rtol=0, atol=1e-8)
-        np.testing.assert_allclose(run.noise[t], gamma / updates, rtol=1e-6, atol=1e-10)
+        np.testing.assert_allclose(run.noise[t], published_noise(gamma / updates), rtol=1e-6,
+                                   atol=1e-10)
 
 
 def test_early_stop_checks_every_period_and_stops_below_the_tolerance():

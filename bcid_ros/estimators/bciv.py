@@ -785,6 +785,9 @@ class Bciv(RecursiveEstimator):
             self._gamma = gamma * (1.0 / self._tau)
             if mode == 'fixed_point' and not converged:
                 self._flag('not_converged')
+            if self._gamma[0] < 0.0:
+                # a finite-sample estimate of a variance below zero (see _noise)
+                self._flag('negative_variance')
 
     # --------------------------------------------------------- the accessors
     @property
@@ -820,7 +823,8 @@ class Bciv(RecursiveEstimator):
         return self._theta_iv
 
     def _noise(self) -> np.ndarray:
-        return self._gamma
+        # The raw gamma stays in the state: the next white fixed point starts from it.
+        return published_noise(self._gamma)
 
     # -------------------------------------------------------------- the state
     @property
@@ -904,6 +908,21 @@ class BcivBatch:
     noise: np.ndarray
     iterations: np.ndarray
     status: tuple[str, ...]
+
+
+def published_noise(gamma: np.ndarray) -> np.ndarray:
+    """
+    Return the noise estimates as published: gamma with its variance entry no lower than 0.
+
+    gamma[0] is a variance (r_dd(0), or sigma_d^2 with white input noise). Its
+    finite-sample estimate can come out negative (flag ``negative_variance``);
+    a consumer gets 0 instead. The covariances at other lags keep their sign.
+    """
+    if gamma[0] >= 0.0:
+        return gamma
+    noise = np.array(gamma, dtype=float)
+    noise[0] = 0.0
+    return noise
 
 
 def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str = 'colored',
