@@ -1,5 +1,7 @@
 """Unit tests of the closed-loop BCLS estimator (Ikeda 2008) and its scenario."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -7,6 +9,8 @@ from scipy import signal
 
 from bcid_ros.estimators import cl_bcls as cl
 from bcid_ros.estimators import estimator_class, make_estimator
+from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                 load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
 
@@ -322,12 +326,13 @@ def test_online_form_equals_batch_for_a_second_order_loop():
     checks = run_and_check_against_batch(y, u[:, 0], est, controller)
     # this loop is poorly excited: Algorithm 1 contracts slowly and some redesigns stop at
     # max_iterations, which the batch run must reproduce as well
-    assert est.redesigns == 5 and checks > 10 and est.flags == {'not_converged': 2}
+    assert est.redesigns == 4 and checks > 10 and est.flags == {'not_converged': 2}
 
 
 def test_before_the_first_redesign_the_estimate_is_the_ls_and_not_valid():
     y, u = PAPER.simulate(400, 1)
-    est = make(redesign_period=200)
+    # window 400: the first redesign may come at first_window = 200
+    est = make(window=400, redesign_period=200)
     trajectory = est.run(y[:199], u[:199])
     assert not trajectory.valid.any()
     np.testing.assert_array_equal(trajectory.theta, trajectory.theta_uncompensated)
@@ -354,8 +359,10 @@ def test_default_settings_reach_the_truth_on_the_paper_loop():
     y, u = PAPER.simulate(6000, 21)
     est = make()
     trajectory = est.run(y, u)
-    # the first redesign (1000 samples, from f = q) may use all 20 iterations
-    assert est.redesigns == 6 and set(est.flags) <= {'not_converged'}
+    # the first redesign waits for first_window = 2048 samples, then one every 1000; the
+    # first one (from f = q) may use all 20 iterations
+    assert est.first_window == 2048
+    assert est.redesigns == 4 and set(est.flags) <= {'not_converged'}
     assert np.isfinite(trajectory.theta).all()
     # one run of N = 4096 (the window): section 7.3 spread is 0.05 / 0.07
     np.testing.assert_allclose(est.theta, PAPER.truth().parameters, atol=0.2)
@@ -392,7 +399,7 @@ def test_unstable_estimated_loop_keeps_the_last_good_estimate():
 
 def test_unstable_estimated_loop_before_any_good_estimate_stays_invalid():
     y, u = PAPER.simulate(500, 4)
-    est = make(controller_numerator=[50.0], redesign_period=100)
+    est = make(controller_numerator=[50.0], window=200, redesign_period=100)
     trajectory = est.run(y, u)
     assert_no_nan(trajectory)
     assert not trajectory.valid.any() and not est.holding
@@ -401,7 +408,7 @@ def test_unstable_estimated_loop_before_any_good_estimate_stays_invalid():
 
 def test_lyapunov_failure_is_flagged_and_held(monkeypatch):
     y, u = PAPER.simulate(500, 4)
-    est = make(redesign_period=200, prefilter_initial=0.7)
+    est = make(window=400, redesign_period=200, prefilter_initial=0.7)
     est.run(y[:300], u[:300])
     assert est.valid and not est.flags
 
@@ -422,7 +429,7 @@ def test_unstable_redesigned_prefilter_stops_the_iteration(monkeypatch):
     result = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, **CONTROLLER)
     assert result.failure == 'unstable_prefilter' and result.iterations == 1
     np.testing.assert_array_equal(result.next_prefilter, [1.0, -0.5])
-    est = make(redesign_period=200, prefilter_initial=0.5)
+    est = make(window=400, redesign_period=200, prefilter_initial=0.5)
     trajectory = est.run(y, u)
     assert_no_nan(trajectory)
     assert est.flags == {'unstable_prefilter': 2} and est.valid
@@ -431,7 +438,7 @@ def test_unstable_redesigned_prefilter_stops_the_iteration(monkeypatch):
 
 def test_negative_eq58_argument_at_a_sample_keeps_the_last_estimate():
     y, u = PAPER.simulate(300, 9)
-    est = make(redesign_period=200)
+    est = make(window=400, redesign_period=200)
     est.run(y[:250], u[:250])
     state = est.get_state()
     arrays = dict(state.arrays, direction=state.arrays['direction'] * 1e4)
@@ -445,7 +452,7 @@ def test_negative_eq58_argument_at_a_sample_keeps_the_last_estimate():
 
 
 def test_no_excitation_gives_no_nan():
-    est = make(redesign_period=50)
+    est = make(window=100, redesign_period=50)
     trajectory = est.run(np.zeros(300), np.zeros(300))
     assert_no_nan(trajectory)
     assert not est.valid and est.flags == {'singular_information': 6}
@@ -521,3 +528,71 @@ def test_scenario_positive_sign_and_zero_reference():
     assert not quiet.simulate(100, 1)[0].any()
     with pytest.raises(ValueError, match='the closed loop must be stable'):
         IkedaClosedLoop(controller_numerator=[20.0])
+
+
+# ------------------------------------------- regression: drifting first redesign
+def test_is_contracting_compares_the_last_step_with_the_first():
+    steps = [np.array([0.0, 0.0]), np.array([0.1, 0.0]), np.array([0.15, 0.0])]
+    assert cl.is_contracting(steps)
+    drifting = [np.array([0.0, 0.0]), np.array([0.05, 0.0]), np.array([0.2, 0.0])]
+    assert not cl.is_contracting(drifting)
+    assert cl.is_contracting(drifting[:2]) and cl.is_contracting(drifting[:1])
+
+
+def config_estimator(**overrides):
+    """Build the estimator the node builds from config/ikeda_closed_loop.yaml."""
+    path = Path(__file__).resolve().parent.parent / 'config' / 'ikeda_closed_loop.yaml'
+    values = check_identifier_parameters(load_yaml_parameters(str(path)))
+    return estimator_from_parameters({**values, **overrides})
+
+
+def relative_error(theta):
+    truth = PAPER.truth().parameters
+    return np.linalg.norm(theta - truth) / np.linalg.norm(truth)
+
+
+# Seed 1082 of the bag Monte Carlo (bags/convergence_mc.py): with the first redesign at
+# 1000 samples, Algorithm 1 drifted for 20 iterations from pole 0.7 to -0.91 (each step
+# longer than the last), the online form adopted that end point, and later redesigns
+# converged to a spurious fixed point at pole -1.01 (Remark 3 mirroring the prefilter):
+# delta = 196 %. Bound: batch Algorithm 1 on the full 4096-sample records of the same 100
+# Monte Carlo seeds, from f = q - 0.7, never exceeded delta = 27.1 %; 0.3 is above that and
+# far below the failure.
+def test_seed_1082_default_config_stays_near_the_plant():
+    y, u = make_scenario('ikeda_closed_loop').simulate(4096, 1082)
+    est = config_estimator()
+    trajectory = est.run(y, u)
+    assert_no_nan(trajectory)
+    assert est.first_window == 2048 and trajectory.valid.argmax() == 2047
+    assert np.abs(trajectory.theta[trajectory.valid, 0]).max() < 1.0
+    assert relative_error(est.theta) < 0.3
+
+
+def test_seed_1082_drifting_first_redesign_is_dropped_and_flagged():
+    # window 2000 puts the first redesign at sample 1000, as before the first_window rule
+    y, u = make_scenario('ikeda_closed_loop').simulate(4096, 1082)
+    u = u[:, 0]
+    est = config_estimator(window=2000)
+    assert est.first_window == 1000
+    first = est.run(y[:1000], u[:1000])
+    assert est.flags == {'not_converged': 1, 'not_contracting': 1}
+    assert not est.valid and est.redesigns == 0 and not first.valid.any()
+    # the prefilter and the running LS stay as they were: the LS with f = q - 0.7
+    np.testing.assert_array_equal(est.prefilter, [1.0, -0.7])
+    ls = cl.prefiltered_ls(y[:1000], u[:1000], np.array([1.0, -0.7]))
+    np.testing.assert_allclose(est.theta, cl.plant_from_regression(ls.theta, est.prefilter),
+                               atol=1e-9)
+    # the next redesign starts again from f = q - 0.7, on 2000 samples
+    rest = est.run(y[1000:2000], u[1000:2000])
+    batch = cl.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
+                                max_iterations=est.max_iterations, **CONTROLLER)
+    assert est.valid and batch.converged
+    np.testing.assert_allclose(est.theta, batch.theta, atol=1e-10)
+    rest = est.run(y[2000:], u[2000:])
+    assert_no_nan(first)
+    assert_no_nan(rest)
+    assert est.flags == {'not_converged': 1, 'not_contracting': 1}
+    assert np.abs(rest.theta[:, 0]).max() < 1.0
+    # a 2000-sample window has about twice the variance of 4096: a looser 0.5 than the
+    # 0.3 above, still far below the 196 % of the failure
+    assert relative_error(est.theta) < 0.5
