@@ -13,7 +13,6 @@ both use it, so they give the same estimates on the same messages.
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any, Iterable, Sequence
 
@@ -236,13 +235,20 @@ class SampleFeeder:
         used = 0
         clock = time.perf_counter_ns
         window = self.excitation_window
-        for row in rows.tolist():
-            if not all(math.isfinite(value) for value in row):
+        # The checks of estimator.update, done once for the block: the shape
+        # above, finiteness here; then each sample goes in unchecked.
+        finite = np.isfinite(rows).all(axis=1).tolist()
+        outputs = rows[:, 0].tolist()
+        inputs = rows[:, 1:]
+        input_lists = inputs.tolist() if window else None
+        update = estimator.update_trusted
+        for k, y in enumerate(outputs):
+            if not finite[k]:
                 self.nonfinite += 1
                 self.gap(count=False)
                 continue
-            u = row[1:]
             if window:
+                u = input_lists[k]
                 if u == self._last_u:
                     self._constant_run += 1
                     if self._constant_run >= window:
@@ -254,7 +260,7 @@ class SampleFeeder:
                 estimator.restart_regressor()
                 self._restart_pending = False
             start = clock()
-            estimator.update(row[0], u)
+            update(y, inputs[k])
             elapsed = clock() - start
             self.update_count += 1
             self.update_ns_total += elapsed

@@ -280,3 +280,15 @@ def test_random_stable_plants_stay_finite_and_p_positive_definite(seed):
 def test_repr_is_one_line():
     text = repr(make_estimator('bcrls', order=2, num_inputs=2))
     assert text == 'Bcrls(order=2, num_inputs=2, feedthrough=False, forgetting_factor=1.0)'
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_update_trusted_equals_update(name):
+    y, u, _ = ding_data(500)
+    checked = make_estimator(name, order=2, num_inputs=2)
+    trusted = make_estimator(name, order=2, num_inputs=2)
+    for t in range(500):
+        checked.update(y[t], u[t])
+        trusted.update_trusted(float(y[t]), u[t])
+    np.testing.assert_array_equal(checked.theta, trusted.theta)
+    np.testing.assert_array_equal(checked.noise, trusted.noise)

@@ -193,6 +193,16 @@ class RecursiveEstimator(abc.ABC):
         self._update(y, u)
         return self.valid
 
+    def update_trusted(self, y: float, u: np.ndarray) -> None:
+        """
+        Process one sample that the caller has already checked, without checking it again.
+
+        For callers that check whole blocks of samples at once (the node's
+        frames): ``y`` must be a finite float and ``u`` a finite float64 array
+        of shape ``(r,)``. The result is the same as :meth:`update`'s.
+        """
+        self._update(y, u)
+
     def run(self, y: Any, u: Any) -> Trajectory:
         """
         Run :meth:`update` over arrays and return the trajectory.
