@@ -8,6 +8,18 @@ import pytest
 
 _domains = itertools.count()
 
+#: Test modules that read data made on another machine (committed bags, saved
+#: references). `.ci/run` runs them a second time with numpy's highest SIMD
+#: targets disabled, so a test that depends on the CPU fails on any machine.
+RECORDED_DATA_MODULES = {'test_bag.py', 'test_bag_ros.py', 'test_bciv_speed_equivalence.py'}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of :data:`RECORDED_DATA_MODULES` as ``recorded_data``."""
+    for item in items:
+        if item.path.name in RECORDED_DATA_MODULES:
+            item.add_marker(pytest.mark.recorded_data)
+
 
 def fresh_domain_id():
     """Return a ROS domain id for one test, apart from scripts/test.sh's 1..100."""

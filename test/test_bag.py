@@ -3,9 +3,15 @@ Offline bag tests: the committed bags, replay, simulate, info, and broken bags.
 
 Every committed bag is read by two independent readers (``mcap``/``mcap_ros2``
 and ``rosbags``), its CDR is round-tripped through ``rclpy.serialization``,
-its samples are compared bit for bit with the offline simulation of the same
-seed (so the recording lost nothing), and replaying it must reach the
-convergence that a Monte Carlo of the same estimator and length predicts.
+its samples are compared with the offline simulation of the same seed (so the
+recording lost nothing), and replaying it must reach the convergence that a
+Monte Carlo of the same estimator and length predicts.
+
+The bags were recorded on another machine, and numpy picks its SIMD kernels at
+run time, so data from the bags are compared with data computed here within a
+few ulps, never bit for bit. Bit equality is asserted only between two
+computations of this run (replay against the estimator run on the bag's own
+samples).
 """
 
 from pathlib import Path
@@ -55,6 +61,13 @@ DELTA_LIMIT_PERCENT = {
 # 7.59 +- 0.42 % (mean +- std, same Monte Carlo), so at least 5 % (6 std below the mean)
 # on the bag, and BCRLS must remove most of that.
 LS_BIAS_MIN_PERCENT = {'ding_miso': 5.0, 'ding_miso_nonstationary': 5.0}
+# Recorded samples against the simulation here: the simulators' filters and noise shaping
+# round differently under other SIMD kernels (seen: 2.8e-14 on samples of size ~30, about
+# 4 ulps of the column's largest value), so allow 64 ulps of each column's largest value.
+SAMPLE_ULPS = 64
+# Truth values are a few floating-point operations on the scenario constants (seen:
+# 0.022092 against 0.022092000000000004, 1 ulp), so 4 ulps relative.
+TRUTH_RTOL = 4 * np.finfo(float).eps
 
 
 def bag_path(name):
@@ -192,24 +205,43 @@ def test_two_readers_and_rclpy_agree(name):
                     decoded['/samples'][k]))
 
 
-def bag_and_simulation(name):
-    """Return the bag's samples, the offline simulation of its seed, and the bag."""
+def bag_rows(name):
+    """Return the samples of the committed bag ``name`` as rows ``[y, u1, ..., ur]``."""
     bag = BagReader(bag_path(name))
-    rows = np.vstack([decode_samples(m) for _, _, m in bag.decoded(['/samples'])])
-    y, u = make_scenario(name).simulate(SAMPLES[name], SEED)
-    return rows, np.column_stack([y, u]), bag
+    return np.vstack([decode_samples(m) for _, _, m in bag.decoded(['/samples'])])
+
+
+def assert_within_ulps(actual, expected, ulps):
+    """Assert equal shapes and columns equal within ``ulps`` of each column's largest value."""
+    assert actual.shape == expected.shape
+    scale = np.max(np.abs(expected), axis=0)
+    tolerance = ulps * np.spacing(scale)
+    worst = np.max(np.abs(actual - expected), axis=0)
+    assert np.all(worst <= tolerance), (worst, tolerance)
 
 
 @pytest.mark.parametrize('name', sorted(SAMPLES))
 def test_bag_holds_the_simulation_of_its_seed(name):
-    """The recorded samples are the offline simulation of the seed, bit for bit: none lost."""
-    rows, simulated, bag = bag_and_simulation(name)
-    np.testing.assert_array_equal(rows, simulated)
+    """The recorded samples are the offline simulation of the seed, to rounding: none lost."""
+    y, u = make_scenario(name).simulate(SAMPLES[name], SEED)
+    assert_within_ulps(bag_rows(name), np.column_stack([y, u]), SAMPLE_ULPS)
     scenario = make_scenario(name)
-    truth = bag.truth()
+    truth = BagReader(bag_path(name)).truth()
     assert truth.parameter_names == scenario.truth().parameter_names
-    np.testing.assert_array_equal(truth.parameters, scenario.truth().parameters)
-    np.testing.assert_array_equal(truth.noise, scenario.truth().noise)
+    np.testing.assert_allclose(truth.parameters, scenario.truth().parameters,
+                               rtol=TRUTH_RTOL, atol=0)
+    np.testing.assert_allclose(truth.noise, scenario.truth().noise, rtol=TRUTH_RTOL, atol=0)
+
+
+def test_within_ulps_fails_on_a_lost_or_changed_sample():
+    """The rounding tolerance above is tight enough to see one changed sample."""
+    rows = bag_rows('ding_miso')
+    changed = rows.copy()
+    changed[5000, 0] += 1e-9
+    with pytest.raises(AssertionError):
+        assert_within_ulps(changed, rows, SAMPLE_ULPS)
+    with pytest.raises(AssertionError):
+        assert_within_ulps(rows[1:], rows[:-1], SAMPLE_ULPS)
 
 
 def test_bags_readme_documents_every_bag():
@@ -237,10 +269,12 @@ def test_replay_converges(name):
 
 @pytest.mark.parametrize('estimator', ['rls', 'bcrls'])
 def test_replay_equals_the_estimator_run_on_the_samples(estimator):
+    # Both runs here, on the bag's own samples: bit equality holds on any machine.
     path = bag_path('ding_miso')
     values = params('ding_miso')
     result = replay(path, values, estimator=estimator)
-    y, u = make_scenario('ding_miso').simulate(SAMPLES['ding_miso'], SEED)
+    rows = bag_rows('ding_miso')
+    y, u = rows[:, 0], rows[:, 1:]
     direct = estimator_from_parameters({**values, 'estimator': estimator}).run(y, u)
     np.testing.assert_array_equal(result.theta, direct.final)
     np.testing.assert_array_equal(result.theta_uncompensated, direct.theta_uncompensated[-1])
@@ -262,8 +296,8 @@ def test_replay_json_is_the_spec_object(capsys):
     names = ['a1', 'a2', 'b1_1', 'b1_2', 'b2_1', 'b2_2']
     assert list(summary['parameters']) == names == list(summary['uncompensated'])
     assert list(summary['noise']) == ['sigma2']
-    assert summary['truth']['parameters'] == dict(zip(names, [-0.84, 0.16, 0.12, 0.324, 0.25,
-                                                              0.186]))
+    assert summary['truth']['parameters'] == pytest.approx(
+        dict(zip(names, [-0.84, 0.16, 0.12, 0.324, 0.25, 0.186])), rel=TRUTH_RTOL)
     theta = np.array(list(summary['parameters'].values()))
     true = np.array(list(summary['truth']['parameters'].values()))
     assert summary['delta'] == pytest.approx(np.linalg.norm(theta - true) / np.linalg.norm(true))
