@@ -1,4 +1,5 @@
-"""Print the SIMD dispatch targets numpy found on this CPU, space-separated.
+"""
+Print the SIMD dispatch targets numpy found on this CPU, space-separated.
 
 `.ci/run` passes them to NPY_DISABLE_CPU_FEATURES to re-run the tests that read
 data made elsewhere under another dispatch (numpy's baseline kernels only).
