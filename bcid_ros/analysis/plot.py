@@ -150,8 +150,8 @@ def _fit_against_order(ax, analysis: Analysis) -> None:
     failed = sorted({c.order for c in analysis.candidates if not c.usable}
                     - {c.order for c in analysis.candidates if c.usable})
     if failed:
-        ax.plot(failed, [bottom + 0.06 * (top - bottom)] * len(failed), 'v', color='tab:purple', ms=9,
-                label='unstable or not fitted')
+        ax.plot(failed, [bottom + 0.06 * (top - bottom)] * len(failed), 'v',
+                color='tab:purple', ms=9, label='unstable or not fitted')
     ax.plot(chosen.order, chosen.fit, '*', color='gold', mec='k', ms=18, zorder=5,
             label=f'recommended: n = {chosen.order}, d = {chosen.delay}')
     ax.set_ylim(bottom, top)
@@ -160,7 +160,7 @@ def _fit_against_order(ax, analysis: Analysis) -> None:
     ax.set_xlabel('order n')
     ax.set_ylabel('fit (%)')
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, loc='lower right', ncol=2)
+    ax.legend(fontsize=8, loc='best', ncol=2)
 
 
 def _normal_quantile(probability: float) -> float:

@@ -24,7 +24,7 @@ from bcid_ros.parameters import check_identifier_parameters, estimator_from_para
 
 #: A candidate is "as good as the best" when its validation RMS error is at
 #: most (1 + FIT_MARGIN) times the best one's (docs/analyze.md).
-FIT_MARGIN = 0.02
+FIT_MARGIN = 0.10
 #: Level of the Ljung-Box whiteness test: residuals pass when p >= this.
 WHITENESS_LEVEL = 0.01
 #: Estimation samples needed per parameter of the largest model.
