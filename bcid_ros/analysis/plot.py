@@ -50,7 +50,7 @@ def write_plot(analysis: Analysis, path: str | Path, title: str = '') -> Path:
     _bode(axes[2, 0], axes[2, 1], analysis)
     figure.tight_layout(rect=(0, 0, 1, 0.97))
     path = Path(path)
-    figure.savefig(path, dpi=90)
+    figure.savefig(path, dpi=80)
     plt.close(figure)
     return path
 

@@ -344,7 +344,9 @@ def _fit_candidate(values: dict[str, Any], order: int, delay: int, y: np.ndarray
         return candidate
     est.run(y[:estimation], u[:estimation])
     if not est.valid:
-        candidate.error = f'the estimator was not valid after {estimation} samples'
+        flags = ', '.join(f'{name} x{count}' for name, count in sorted(est.flags.items()))
+        candidate.error = (f'the estimator was not valid after {estimation} samples'
+                           + (f' (flags: {flags})' if flags else ''))
         return candidate
     theta = np.asarray(est.theta, dtype=float)
     if not np.isfinite(theta).all():
