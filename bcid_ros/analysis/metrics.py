@@ -20,7 +20,9 @@ def simulate(a: np.ndarray, b: np.ndarray, u: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     a : numpy.ndarray, shape ``(n + 1,)``
+        A = [1, a1, ..., an].
     b : numpy.ndarray, shape ``(r, n + 1)``
+        One row [b_i0, ..., b_in] per input.
     u : numpy.ndarray, shape ``(N, r)``
         Inputs, already delayed.
 

@@ -1,5 +1,5 @@
 """
-Order-recovery study: does ``bcid analyze`` find the true order and delay?
+Order-recovery study: whether ``bcid analyze`` finds the true order and delay.
 
 For each order n and seed, a random stable plant q^-d B(q)/A(q) of order n
 with a dead time d is drawn from the seed (:func:`random_plant`), simulated
