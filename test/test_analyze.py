@@ -187,3 +187,12 @@ def test_bad_ranges_are_refused():
         analyze(y, u, {'num_inputs': 1}, validation=1.5)
     with pytest.raises(BcidError, match='num_inputs'):
         analyze(y, u, {'num_inputs': 2})
+
+
+def test_an_integrator_gives_json_safe_figures():
+    model = DiscreteModel(np.poly([1.0, 0.5]), np.array([[0.0, 1.0, 0.0]]))
+    found = model.continuous(0.1)
+    assert found['dc_gain'] is None
+    times = sorted(m['time_constant_s'] is None for m in found['modes'])
+    assert times == [False, True]
+    json.dumps(found, allow_nan=False)

@@ -110,8 +110,10 @@ def _model_lines(analysis: Analysis) -> list[str]:
                      f'{continuous["dead_time_s"]:g} s):')
         for mode in continuous['modes']:
             if mode['kind'] == 'real':
-                lines.append(f'  real pole s = {mode["pole"][0]:.5g} 1/s: time constant '
-                             f'{mode["time_constant_s"]:.5g} s')
+                tau = mode['time_constant_s']
+                lines.append(f'  real pole s = {mode["pole"][0]:.5g} 1/s: '
+                             + ('an integrator' if tau is None else
+                                f'time constant {tau:.5g} s'))
             else:
                 lines.append(f'  complex pair s = {mode["pole"][0]:.5g} +- '
                              f'{mode["pole"][1]:.5g}j: natural frequency '

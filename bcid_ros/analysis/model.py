@@ -118,7 +118,8 @@ class DiscreteModel:
         for s in continuous:
             if _is_real(s):
                 s = complex(s.real, 0.0)
-                tau = -1.0 / s.real if s.real != 0.0 else float('inf')
+                # an integrator (s = 0) has no time constant: None (JSON null)
+                tau = None if abs(s.real) * period <= REAL_TOLERANCE else -1.0 / s.real
                 modes.append({'kind': 'real', 'pole': [s.real, 0.0], 'time_constant_s': tau})
                 listed.append(s)
             elif s.imag > 0:
@@ -127,12 +128,12 @@ class DiscreteModel:
                               'natural_frequency_rad_s': wn, 'damping': -s.real / wn,
                               'damped_frequency_rad_s': s.imag})
                 listed.append(s)
-        gains = self.dc_gain()
+        gains = [float(g) if np.isfinite(g) else None for g in self.dc_gain()]
         return {'sample_period_s': period,
                 'poles': [[float(s.real), float(s.imag)] for s in listed],
                 'modes': modes,
                 'no_equivalent': [[float(p.real), float(p.imag)] for p in bad],
-                'dc_gain': gains.tolist() if gains.size > 1 else float(gains[0]),
+                'dc_gain': gains if len(gains) > 1 else gains[0],
                 'dead_time_s': self.delay * period}
 
 

@@ -44,7 +44,7 @@ SEPARATION = 0.2
 #: sample longer in the data, a negligible b_n lets a model with one sample
 #: less of dead time fit as well.
 END_COEFFICIENTS = 0.3
-#: Samples per /samples message (a SPEC frame) in the study's bags.
+#: Samples per /samples message (a frame, docs/nodes.md) in the study's bags.
 FRAME = 50
 
 
