@@ -10,7 +10,7 @@ from typing import Any
 
 from bcid_ros.analysis.data import read_samples
 from bcid_ros.analysis.search import (Analysis, analyze, FIT_MARGIN, parse_delays,
-                                      parse_orders, WHITENESS_LEVEL)
+                                      parse_orders, short_error, WHITENESS_LEVEL)
 from bcid_ros.errors import BcidError
 
 
@@ -67,7 +67,7 @@ def report(analysis: Analysis) -> str:
     for c in analysis.candidates:
         mark = ' *' if c is analysis.recommended else ''
         if c.error is not None:
-            lines.append(f'{c.order:5d} {c.delay:5d}  not fitted: {c.error}')
+            lines.append(f'{c.order:5d} {c.delay:5d}  not fitted: {short_error(c.error)}')
             continue
         fit = _number(c.fit) if c.stable else 'unstable'
         lines.append(f'{c.order:5d} {c.delay:5d} {fit:>8} '

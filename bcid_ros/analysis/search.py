@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from typing import Any, Callable
+import warnings
 
 import numpy as np
 
@@ -327,9 +328,14 @@ def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
                     y_dev[estimation_count:], sample_period)
 
 
+def short_error(text: str, width: int = 110) -> str:
+    """Return an error message cut to ``width`` characters for one table row (JSON keeps all)."""
+    return text if len(text) <= width else text[:width - 1].rstrip() + '\u2026'
+
+
 def _describe(candidate: Candidate) -> str:
     if candidate.error is not None:
-        return f'not fitted ({candidate.error})'
+        return f'not fitted ({short_error(candidate.error)})'
     return (f'fit {candidate.fit:.2f} %, whiteness p = {candidate.whiteness_p:.3g}'
             + ('' if candidate.stable else ', unstable'))
 
@@ -342,7 +348,11 @@ def _fit_candidate(values: dict[str, Any], order: int, delay: int, y: np.ndarray
     except ValueError as error:
         candidate.error = str(error)
         return candidate
-    est.run(y[:estimation], u[:estimation])
+    with warnings.catch_warnings():
+        # an ill-suited candidate makes the estimator warn per sample (ill-conditioned
+        # solves); its figures below say what came of it
+        warnings.simplefilter('ignore')
+        est.run(y[:estimation], u[:estimation])
     if not est.valid:
         flags = ', '.join(f'{name} x{count}' for name, count in sorted(est.flags.items()))
         candidate.error = (f'the estimator was not valid after {estimation} samples'
