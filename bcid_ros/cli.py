@@ -27,6 +27,7 @@ HANDLERS = {
     'play': 'bcid_ros.bag.commands:play',
     'info': 'bcid_ros.bag.commands:info',
     'demo': 'bcid_ros.nodes.demo:run',
+    'analyze': 'bcid_ros.analysis.command:run',
 }
 
 ESTIMATOR_NAMES = ('rls', 'bcrls', 'bciv', 'cl_bcls')
@@ -102,6 +103,23 @@ def build_parser() -> argparse.ArgumentParser:
                       help="sample rate in Hz (0: the scenario's default)")
     demo.add_argument('--out-dir', type=Path, default=Path('demo_output'),
                       help='where to write the PNG of the run')
+
+    analyze = sub.add_parser('analyze', formatter_class=fmt,
+                             help='choose the order and delay, validate and describe the model')
+    analyze.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
+    analyze.add_argument('--params', type=Path, required=True,
+                         help='identifier parameter YAML (its estimator and settings)')
+    analyze.add_argument('--orders', default='1-4', help='order range A-B')
+    analyze.add_argument('--delays', default='0', help='dead-time range A-B in samples '
+                         '(single-input bags)')
+    analyze.add_argument('--estimator', choices=ESTIMATOR_NAMES,
+                         help='override the estimator of the parameter file')
+    analyze.add_argument('--validation', type=float, default=0.3,
+                         help='fraction of the bag, at its end, kept for validation')
+    analyze.add_argument('--sample-period', type=float, metavar='T',
+                         help='sample period in seconds: adds continuous-time equivalents')
+    analyze.add_argument('--plot', type=Path, metavar='OUT.png', help='write the figure')
+    analyze.add_argument('--json', action='store_true', help='print one JSON object to stdout')
     return parser
 
 
