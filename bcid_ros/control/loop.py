@@ -24,10 +24,10 @@ Each refused estimate increments exactly one of these counters and keeps
 the controller in the loop: the fallback until a first estimate passes,
 the last good design after. Estimates that stop arriving for
 ``estimate_timeout`` seconds are reported once per silence
-(``estimates_silent``); an estimate turning invalid is reported
-(``estimate_invalidated``). A non-finite output or reference is refused
-(``nonfinite_output``, ``nonfinite_reference``): the input is then held,
-and is never NaN.
+(``estimates_silent``); an estimate turning invalid (``estimate_invalidated``)
+and an identifier that disappears (``identifier_lost``) are reported. A
+non-finite output or reference is refused (``nonfinite_output``,
+``nonfinite_reference``): the input is then held, and is never NaN.
 """
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ EVENTS = {
     'saturated': 'samples with the input saturated',
     'estimates_silent': 'estimate silences (last controller kept)',
     'estimate_invalidated': 'estimates turned invalid',
+    'identifier_lost': 'identifier gone (no publisher; last controller kept)',
 }
 
 
@@ -77,7 +78,7 @@ class Outcome:
     ----------
     kind : str
         ``switched`` (a new controller is in the loop), ``refused`` (with
-        ``reason``), ``silent``, ``invalidated`` or ``none``.
+        ``reason``), ``silent``, ``invalidated``, ``lost`` or ``none``.
     message : str
         One log line for a person ('' for ``none``).
     reason : str
@@ -282,6 +283,13 @@ class AdaptiveController:
         if not relative <= limit:
             raise DesignRefused('std_too_large', f'relative std {relative:.3g} > '
                                 f'max_relative_std {limit:g}')
+
+    def identifier_lost(self) -> Outcome:
+        """Count that the identifier disappeared (the node sees its publishers go)."""
+        self.counters['identifier_lost'] += 1
+        kept = 'last designed' if self.trusted else 'fallback'
+        return Outcome('lost', f'the identifier is gone (no publisher on its parameters); '
+                       f'keeping the {kept} controller')
 
     # ------------------------------------------------------ the diagnostics
     def predicted_poles(self) -> np.ndarray | None:
