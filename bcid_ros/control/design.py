@@ -58,7 +58,7 @@ from typing import Sequence
 import numpy as np
 
 #: Default largest condition number of the scaled Sylvester matrix.
-DEFAULT_MAX_CONDITION = 1e6
+DEFAULT_MAX_CONDITION = 1e4
 #: Largest relative residual of (D) accepted after the solve.
 MAX_RESIDUAL = 1e-8
 #: The parameter names this module understands: ``a<i>`` and ``b1_<lag>``.

@@ -39,7 +39,7 @@ CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('computation_delay', 'bool', True, 'The plant applies the input computed from y_t at '
        'the next sample, as a zero-order hold of the latest command does: the controller is '
        'then strictly proper, and u_t = C(q)(r\'_t - y_t) in the plant\'s sample index.'),
-    _p('max_condition', 'double', 1e6, 'Refuse a design whose scaled Sylvester matrix has a '
+    _p('max_condition', 'double', 1e4, 'Refuse a design whose scaled Sylvester matrix has a '
        'larger condition number (near pole-zero cancellation); keep the last controller.',
        low=1.0, high=1e300),
     # --- the trust gate
