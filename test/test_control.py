@@ -474,7 +474,8 @@ def test_offline_loop_with_the_true_plant_places_the_poles_and_readapts():
                                  samples=6000, noise_std=0.0, rng=np.random.default_rng(0),
                                  redesign_every=1000, y0=2.0, u0=1.0, change_at=3000,
                                  theta_after=after)
-    assert run.outcomes == ['switched'] * 6
+    # the same estimate again is met by the controller in the loop: no switch
+    assert run.outcomes == ['switched', 'kept', 'kept', 'switched', 'kept', 'kept']
     for poles in run.poles:
         np.testing.assert_allclose(np.sort(poles.real), [0.4, 0.5, 0.5], atol=1e-6)
     # at sample 3000 (plant changed, old controller) the poles are off; at 4000 redesigned
@@ -488,3 +489,27 @@ def test_offline_loop_with_the_true_plant_places_the_poles_and_readapts():
     assert np.max(settled[30:40]) > 1e-8  # plant changed at 3000, old design until 4000
     assert np.max(settled[40:]) < 1e-9  # re-adapted
     assert np.all(np.isfinite(run.u)) and np.max(np.abs(run.u)) <= 100.0
+
+
+@pytest.mark.parametrize('tolerance, kind', [(0.0, 'switched'), (0.02, 'kept'),
+                                             (0.001, 'switched')])
+def test_a_trusted_estimate_close_to_the_last_one_keeps_the_controller(tolerance, kind):
+    loop = trusted_loop(redesign_tolerance=tolerance)
+    designed = loop.controller
+    # the controller 0.18/(q - 0.2) on a1 = -0.8 + 1e-4 gives poles 0.49995 +- 0.0055j:
+    # the double pole splits by about sqrt(1e-4 * 0.3)
+    loop.offer_parameters(['a1', 'b1_1'], [-0.8 + 1e-4, 0.5], 1.0)
+    outcome = loop.redesign(1.0)
+    assert outcome.kind == kind
+    assert (loop.controller is designed) == (kind == 'kept')
+    assert loop.counters['kept'] == (kind == 'kept')
+    assert loop.refusals == 0
+
+
+def test_pole_distance():
+    from bcid_ros.control.design import pole_distance
+
+    assert pole_distance([0.5, 0.5], [0.5, 0.5]) == 0.0
+    assert pole_distance([0.5 + 0.01j, 0.5 - 0.01j], [0.5, 0.5]) == pytest.approx(0.01)
+    assert pole_distance([0.5, 0.9], [0.5, 0.5]) == pytest.approx(0.4)
+    assert pole_distance([0.5, 0.5], [0.5, 0.9]) == pytest.approx(0.4)

@@ -312,6 +312,22 @@ def closed_loop_poles(plant: Plant, controller: Controller) -> np.ndarray:
     return roots[np.argsort(-np.abs(roots), kind='stable')]
 
 
+def pole_distance(achieved: Sequence[complex], target: Sequence[complex]) -> float:
+    """
+    Return the distance between two sets of poles (Hausdorff, in the complex plane).
+
+    The largest distance from a pole of either set to the nearest pole of
+    the other: 0 when the sets are equal, at most d when every pole is
+    within d of one of the other set and the other way round.
+    """
+    a = np.asarray(achieved, dtype=complex).reshape(-1, 1)
+    b = np.asarray(target, dtype=complex).reshape(1, -1)
+    if a.size == 0 or b.size == 0:
+        return 0.0 if a.size == b.size else math.inf
+    gaps = np.abs(a - b)
+    return float(max(gaps.min(axis=1).max(), gaps.min(axis=0).max()))
+
+
 def controller_degree(structure: ModelStructure, *, strictly_proper: bool) -> int:
     """Return the smallest m = deg R' of a causal design (module docstring, Degrees)."""
     must_be_strict = strictly_proper or structure.lags[0] == 0
@@ -439,5 +455,6 @@ def place_poles(plant: Plant, poles: Sequence[float], *, integral: bool = False,
 
 __all__ = ['Controller', 'DEFAULT_MAX_CONDITION', 'DesignRefused', 'ModelStructure', 'Plant',
            'check_estimate', 'closed_loop_polynomial', 'closed_loop_poles',
-           'controller_degree', 'parse_names', 'place_poles', 'required_pole_count',
+           'controller_degree', 'parse_names', 'place_poles', 'pole_distance',
+           'required_pole_count',
            'sylvester_matrix']

@@ -20,6 +20,12 @@ used only if, in this order,
 4. the design is well-conditioned (``ill_conditioned``) and exact
    (``design_residual``).
 
+A trusted estimate for which the controller in the loop already places the
+closed-loop poles within ``redesign_tolerance`` of the target (distance of
+:func:`~bcid_ros.control.design.pole_distance`) is not designed for
+(``kept``): every switch restarts the compensation window of a closed-loop
+identifier, so the loop switches only when it matters.
+
 Each refused estimate increments exactly one of these counters and keeps
 the controller in the loop: the fallback until a first estimate passes,
 the last good design after. Estimates that stop arriving for
@@ -39,7 +45,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.control.design import (check_estimate, closed_loop_poles, Controller,
-                                     DesignRefused, place_poles, Plant)
+                                     DesignRefused, place_poles, Plant, pole_distance)
 from bcid_ros.control.parameters import check_controller_parameters, structure_of
 from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.control.runtime import ControllerRuntime
@@ -60,6 +66,7 @@ REFUSALS = {
 #: The other counters, with their diagnostic keys.
 EVENTS = {
     'redesigns': 'redesigns (controller switched)',
+    'kept': 'trusted estimates met by the controller in the loop (not switched)',
     'nonfinite_output': 'refused outputs: NaN or Inf (input held)',
     'nonfinite_reference': 'refused references: NaN or Inf (last kept)',
     'saturated': 'samples with the input saturated',
@@ -77,8 +84,10 @@ class Outcome:
     Attributes
     ----------
     kind : str
-        ``switched`` (a new controller is in the loop), ``refused`` (with
-        ``reason``), ``silent``, ``invalidated``, ``lost`` or ``none``.
+        ``switched`` (a new controller is in the loop), ``kept`` (a trusted
+        estimate that the controller in the loop already meets within
+        ``redesign_tolerance``), ``refused`` (with ``reason``), ``silent``,
+        ``invalidated``, ``lost`` or ``none``.
     message : str
         One log line for a person ('' for ``none``).
     reason : str
@@ -238,12 +247,26 @@ class AdaptiveController:
             return Outcome()
         self._fresh = False
         try:
-            controller = self._design()
+            plant = self._trusted_plant()
+            tolerance = self.settings['redesign_tolerance']
+            if self.trusted and tolerance > 0.0:
+                distance = pole_distance(closed_loop_poles(plant, self.controller), self.poles)
+                if distance <= tolerance:
+                    self.plant = plant
+                    self.counters['kept'] += 1
+                    return Outcome('kept', f'the controller in the loop places the poles of '
+                                   f'the new estimate within {distance:.3g} of the target '
+                                   f'(redesign_tolerance {tolerance:g}); not switched')
+            controller = place_poles(plant, self.poles,
+                                     integral=self.settings['integral_action'],
+                                     strictly_proper=self.strictly_proper,
+                                     max_condition=self.settings['max_condition'])
         except DesignRefused as refusal:
             self.counters[refusal.reason] += 1
             kept = 'last designed' if self.trusted else 'fallback'
             return Outcome('refused', f'estimate not used ({refusal.reason}): {refusal}; '
                            f'keeping the {kept} controller', refusal.reason)
+        self.plant = plant
         self.runtime.switch(controller)
         self.trusted = True
         self.counters['redesigns'] += 1
@@ -252,7 +275,8 @@ class AdaptiveController:
                        f'{np.array2string(controller.denominator, precision=6)} '
                        f'(condition {controller.condition:.3g})')
 
-    def _design(self) -> Controller:
+    def _trusted_plant(self) -> Plant:
+        """Return the plant of the latest estimate if it passes the trust gate (1-3)."""
         names, values = self._parameters
         values = check_estimate(names, values, self.structure)
         plant = Plant.from_estimate(values, self.structure)
@@ -264,11 +288,7 @@ class AdaptiveController:
         limit = self.settings['max_relative_std']
         if limit > 0.0:
             self._check_std(names, values, limit)
-        controller = place_poles(plant, self.poles, integral=self.settings['integral_action'],
-                                 strictly_proper=self.strictly_proper,
-                                 max_condition=self.settings['max_condition'])
-        self.plant = plant
-        return controller
+        return plant
 
     def _check_std(self, names: tuple[str, ...], values: np.ndarray, limit: float) -> None:
         if self._std is None:

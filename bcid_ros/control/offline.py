@@ -97,7 +97,8 @@ def simulate_adaptive_loop(estimator_factory: Callable[[Controller], Any],
                            samples: int, noise_std: float, rng: np.random.Generator,
                            redesign_every: int = 1000, restart_on_switch: bool = False,
                            y0: float = 0.0, u0: float = 0.0, change_at: int | None = None,
-                           theta_after: Sequence[float] | None = None) -> LoopRun:
+                           theta_after: Sequence[float] | None = None,
+                           std_of: Callable[[Any], Sequence[float]] | None = None) -> LoopRun:
     """
     Run plant, estimator and adaptive controller together for ``samples`` samples.
 
@@ -127,6 +128,10 @@ def simulate_adaptive_loop(estimator_factory: Callable[[Controller], Any],
         Sample at which the plant becomes ``theta_after``.
     theta_after : sequence of float, optional
         The plant after the change.
+    std_of : callable, optional
+        ``std_of(estimator)`` returns the standard deviations offered as
+        ``parameter_std`` (none offered without it: set ``max_relative_std``
+        to 0 then).
 
     Returns
     -------
@@ -167,6 +172,8 @@ def simulate_adaptive_loop(estimator_factory: Callable[[Controller], Any],
         valid = bool(estimator.valid)
         values = np.asarray(estimator.theta, dtype=float)
         loop.offer_parameters(structure.names, values, float(t))
+        if std_of is not None:
+            loop.offer_std(structure.names, std_of(estimator))
         loop.offer_valid(valid)
         outcome = loop.redesign(float(t))
         if outcome.kind == 'switched' and restart_on_switch:

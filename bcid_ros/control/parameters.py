@@ -42,6 +42,10 @@ CONTROLLER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('max_condition', 'double', 1e4, 'Refuse a design whose scaled Sylvester matrix has a '
        'larger condition number (near pole-zero cancellation); keep the last controller.',
        low=1.0, high=1e300),
+    _p('redesign_tolerance', 'double', 0.02, 'Do not switch when the controller in the loop '
+       'already places the closed-loop poles of a new trusted estimate within this distance '
+       'of the target (every switch restarts a closed-loop identifier\'s window); 0 switches '
+       'at every trusted estimate.', low=0.0, high=2.0),
     # --- the trust gate
     _p('redesign_period', 'double', 1.0, 'Seconds between two looks at the latest estimate '
        '(and redesigns).', low=0.0, high=3600.0, low_open=True),
