@@ -165,6 +165,8 @@ class AdaptiveControllerNode(Node):
     def _report(self, outcome: Outcome) -> None:
         if outcome.kind == 'switched':
             self.get_logger().info(outcome.message)
+        elif outcome.kind == 'kept':
+            self.get_logger().debug(outcome.message)
         elif outcome.kind == 'refused':
             self._last_refusal = outcome.reason
             self._throttle.warn(outcome.reason, outcome.message)
