@@ -252,6 +252,12 @@ def test_near_pole_zero_cancellation_is_refused():
         else:
             controller = place_poles(plant, poles, strictly_proper=True)
             assert controller.condition < 1e3
+    # with the condition check off, a gap of 1e-13 leaves a solution that misses (D) by
+    # ~1e-4 (condition ~1e14 times the rounding), far above the 1e-8 accepted
+    plant = Plant.from_estimate(np.concatenate([a, 0.5 * np.poly([0.8 + 1e-13])]), structure)
+    with pytest.raises(DesignRefused, match='misses') as caught:
+        place_poles(plant, poles, strictly_proper=True, max_condition=1e300)
+    assert caught.value.reason == 'design_residual'
     # a plant zero at 1 makes integral action impossible
     plant = Plant.from_estimate(np.concatenate([a, np.poly([1.0])]), structure)
     with pytest.raises(DesignRefused, match='condition'):
