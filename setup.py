@@ -36,6 +36,7 @@ setup(
         'console_scripts': [
             'identifier_node = bcid_ros.nodes.identifier_node:main',
             'simulator_node = bcid_ros.nodes.simulator_node:main',
+            'adaptive_controller_node = bcid_ros.nodes.adaptive_controller_node:main',
             'bcid = bcid_ros.cli:main',
         ],
     },
