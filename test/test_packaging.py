@@ -85,3 +85,14 @@ def test_setup_does_not_force_the_pypi_ros_wheels():
     text = (ROOT / 'setup.py').read_text()
     assert "install_requires=['setuptools', 'numpy', 'scipy']," in text
     assert 'ros-jazzy' not in text
+
+
+@pytest.mark.slow
+def test_adaptive_controller_node_is_where_ros2_run_looks(workspace):
+    path = workspace / 'install' / 'bcid_ros' / 'lib' / 'bcid_ros' / 'adaptive_controller_node'
+    assert path.is_file()
+    result = run_in_workspace(workspace, f'{path} --help')
+    assert result.returncode == 0, result.stderr
+    assert 'closed_loop_poles' in result.stdout
+    installed = workspace / 'install' / 'bcid_ros' / 'share' / 'bcid_ros' / 'config'
+    assert (installed / 'adaptive_loop.yaml').is_file()
