@@ -109,16 +109,11 @@ class ClosedLoopBcls(RecursiveEstimator):
 
     Parameters
     ----------
-    order : int
-        Plant order n.
-    num_inputs : int
-        Must be 1 (SISO).
-    feedthrough : bool
-        Must be False: b_p has degree < n (eq. 3).
-    initial_covariance : float
-        p0 of P(0) = p0 I, used only before the first redesign.
-    forgetting_factor : float
-        Must be 1: the estimator forgets through its finite ``window``.
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+        As for :class:`~bcid_ros.estimators.base.RecursiveEstimator`, with
+        ``num_inputs`` 1 (SISO), ``feedthrough`` False (eq. 3) and
+        ``forgetting_factor`` 1 (the estimator forgets through its ``window``);
+        :math:`P(0) = p_0 I` is used only before the first redesign.
     controller_numerator, controller_denominator : sequence of float
         b_c(q) and a_c(q) in descending powers of q (eqs. 5, 6); b_c is
         left-padded with zeros to the length of a_c. The paper's (60) is

@@ -590,23 +590,11 @@ def algorithm1(y: np.ndarray, u: np.ndarray, controller: Controller, prefilter: 
                max_iterations: int, tolerance: float, bias_compensation: bool = True
                ) -> ClosedLoopResult:
     """
-    Run :func:`closed_loop_bcls` on arguments that are already checked and normalised.
+    Run :func:`closed_loop_bcls` on checked arguments.
 
-    Parameters
-    ----------
-    y, u : numpy.ndarray, shape ``(N,)``
-        Float records of the same length.
-    controller : Controller
-        From :func:`~bcid_ros.estimators.lti.make_controller`.
-    prefilter : numpy.ndarray, shape ``(n + 1,)``
-        :math:`f^{(0)}`, monic and stable (:func:`prefilter_polynomial`).
-    max_iterations : int
-        >= 1.
-    tolerance : float
-        > 0.
-    bias_compensation : bool
-        As for :func:`closed_loop_bcls`.
-
+    ``y`` and ``u`` are float arrays of one length, ``controller`` comes from
+    :func:`~bcid_ros.estimators.lti.make_controller` and ``prefilter`` from
+    :func:`prefilter_polynomial`.
     """
     history: list[np.ndarray] = []
     previous = None
