@@ -29,22 +29,7 @@ CONTROLLER_SIGNS = ('negative', 'positive')
 
 
 def finite_vector(name: str, value: Any) -> np.ndarray:
-    """
-    Return ``value`` as a non-empty 1-D float array of finite numbers.
-
-    Parameters
-    ----------
-    name : str
-        Argument name for the error message.
-    value : float or sequence of float
-        A scalar is taken as a one-element vector.
-
-    Raises
-    ------
-    ValueError
-        If ``value`` is not numeric, is empty, is not 1-D or holds a NaN or an infinity.
-
-    """
+    """Return ``value`` as a non-empty 1-D array of finite floats; ValueError names ``name``."""
     try:
         vector = np.atleast_1d(np.asarray(value, dtype=float))
     except (TypeError, ValueError):
@@ -55,15 +40,7 @@ def finite_vector(name: str, value: Any) -> np.ndarray:
 
 
 def spectral_radius(polynomial: Any) -> float:
-    """
-    Return the largest root modulus of a polynomial (0 for a constant).
-
-    Parameters
-    ----------
-    polynomial : array_like, shape ``(k + 1,)``
-        Coefficients in descending powers; leading zeros are ignored.
-
-    """
+    """Return the largest root modulus of a polynomial in descending powers (0 if constant)."""
     polynomial = np.trim_zeros(np.asarray(polynomial, dtype=float), 'f')
     if polynomial.size <= 1:
         return 0.0
