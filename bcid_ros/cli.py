@@ -17,6 +17,8 @@ import sys
 import traceback
 
 from bcid_ros.errors import BcidError
+from bcid_ros.estimators import ESTIMATORS
+from bcid_ros.simulation import SCENARIOS
 
 #: Subcommand -> 'module:function(args) -> int'.
 HANDLERS = {
@@ -30,9 +32,9 @@ HANDLERS = {
     'analyze': 'bcid_ros.analysis.command:run',
 }
 
-ESTIMATOR_NAMES = ('rls', 'bcrls', 'bciv', 'cl_bcls')
-SCENARIO_NAMES = ('ding_miso', 'ding_miso_nonstationary', 'ikenoue_colored',
-                  'ikenoue_white_input', 'ikeda_closed_loop')
+ESTIMATOR_NAMES = tuple(ESTIMATORS)
+#: The papers' scenarios; ``custom`` takes its plant from ROS parameters, which the CLI lacks.
+SCENARIO_NAMES = tuple(name for name in SCENARIOS if name != 'custom')
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,7 +8,8 @@ import scipy.linalg
 from scipy import signal
 
 from bcid_ros.estimators import cl_bcls as cl
-from bcid_ros.estimators import estimator_class, make_estimator
+from bcid_ros.estimators import cl_bcls_batch as batch
+from bcid_ros.estimators import estimator_class, lti, make_estimator
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
                                  load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
@@ -87,68 +88,23 @@ def test_registry_options_and_names():
 
 
 def test_prefilter_from_a_pole_or_coefficients():
-    np.testing.assert_allclose(cl.prefilter_polynomial(0.5, 1), [1.0, -0.5])
-    np.testing.assert_allclose(cl.prefilter_polynomial([0.5], 2), [1.0, -1.0, 0.25])
-    np.testing.assert_allclose(cl.prefilter_polynomial([2.0, -1.0, 0.18], 2), [1.0, -0.5, 0.09])
-    np.testing.assert_allclose(cl.prefilter_polynomial(0.0, 3), [1.0, 0.0, 0.0, 0.0])
-
-
-def test_controller_sign_folds_into_the_numerator():
-    negative = cl.make_controller([0.2289], [1.0, -0.09004], 'negative')
-    positive = cl.make_controller([-0.2289], [1.0, -0.09004], 'positive')
-    np.testing.assert_array_equal(negative.feedback_numerator, positive.feedback_numerator)
-    np.testing.assert_array_equal(negative.numerator, [0.0, 0.2289])
+    np.testing.assert_allclose(batch.prefilter_polynomial(0.5, 1), [1.0, -0.5])
+    np.testing.assert_allclose(batch.prefilter_polynomial([0.5], 2), [1.0, -1.0, 0.25])
+    np.testing.assert_allclose(batch.prefilter_polynomial([2.0, -1.0, 0.18], 2), [1.0, -0.5, 0.09])
+    np.testing.assert_allclose(batch.prefilter_polynomial(0.0, 3), [1.0, 0.0, 0.0, 0.0])
 
 
 # ------------------------------------------------- the linear-algebra pieces
-def test_schur_cohn_agrees_with_the_roots():
-    rng = np.random.default_rng(3)
-    for _ in range(300):
-        polynomial = np.concatenate(([1.0], rng.uniform(-2, 2, rng.integers(1, 6))))
-        radius = np.abs(np.roots(polynomial)).max()
-        if abs(radius - 1.0) > 1e-3:
-            assert cl.is_stable(polynomial) == (radius < 1.0)
-    assert not cl.is_stable([1.0, -1.0])
-    assert not cl.is_stable([1.0, float('nan')])
-    assert cl.is_stable([1.0])
-
-
-def test_stable_reflection_is_all_pass_and_stable():
-    a_p = np.real(np.poly([1.25, 0.5, 1.1 + 0.6j, 1.1 - 0.6j]))
-    bar = cl.stable_reflection(a_p)
-    assert cl.is_stable(bar)
-    gain = np.abs(np.polyval(a_p, np.exp(1j * np.linspace(0, np.pi, 50))) /
-                  np.polyval(bar, np.exp(1j * np.linspace(0, np.pi, 50))))
-    np.testing.assert_allclose(gain, gain[0], rtol=1e-10)
-    np.testing.assert_array_equal(cl.stable_reflection([1.0, -0.8]), [1.0, -0.8])
-
-
-def test_stein_solver_against_residual_and_scipy():
-    rng = np.random.default_rng(4)
-    for _ in range(20):
-        rows, cols = rng.integers(1, 6, size=2)
-        a = rng.standard_normal((rows, rows))
-        a *= 0.95 / max(np.abs(np.linalg.eigvals(a)).max(), 1e-3)
-        b = rng.standard_normal((cols, cols))
-        b *= 0.95 / max(np.abs(np.linalg.eigvals(b)).max(), 1e-3)
-        c = rng.standard_normal((rows, cols))
-        x = cl.solve_stein(a, b, c)
-        np.testing.assert_allclose(x, a @ x @ b + c, atol=1e-10)
-        q = c @ c.T if rows == cols else np.eye(rows)
-        np.testing.assert_allclose(cl.solve_stein(a, a.T, q),
-                                   scipy.linalg.solve_discrete_lyapunov(a, q), atol=1e-9)
-
-
 @pytest.mark.parametrize('seed', range(6))
 def test_sylvester_and_lyapunov_pieces_match_the_full_lyapunov_eq36(seed):
     rng = np.random.default_rng(seed)
     n, m = rng.integers(1, 4), rng.integers(0, 3)
-    a_cl, b_cl = cl.controller_canonical(random_stable_polynomial(rng, n + m))
-    f_matrix, g = cl.controller_canonical(random_stable_polynomial(rng, n))
+    a_cl, b_cl = lti.controller_canonical(random_stable_polynomial(rng, n + m))
+    f_matrix, g = lti.controller_canonical(random_stable_polynomial(rng, n))
     h = rng.standard_normal(n)
-    p22 = cl.solve_p22(f_matrix, g)
-    p12 = cl.solve_p12(a_cl, b_cl, f_matrix, g, h, p22)
-    full = cl.noise_state_covariance(a_cl, b_cl, f_matrix, g, h)  # scipy, eq. (36)
+    p22 = batch.solve_p22(f_matrix, g)
+    p12 = batch.solve_p12(a_cl, b_cl, f_matrix, g, h, p22)
+    full = batch.noise_state_covariance(a_cl, b_cl, f_matrix, g, h)  # scipy, eq. (36)
     k = n + m
     np.testing.assert_allclose(p22, scipy.linalg.solve_discrete_lyapunov(f_matrix,
                                                                          np.outer(g, g)),
@@ -190,30 +146,30 @@ def test_bias_terms_are_the_noise_moments_of_theorem1(seed, sign):
     while True:
         a_p = random_stable_polynomial(rng, n, radius=0.95)
         b_p = rng.uniform(-1, 1, n)
-        controller = cl.make_controller(rng.uniform(-0.5, 0.5, m + 1),
-                                        random_stable_polynomial(rng, m), sign)
-        d_cl, *_ = cl.closed_loop_realisation(a_p, b_p, controller)
-        if cl.is_stable(d_cl, 0.1):
+        controller = lti.make_controller(rng.uniform(-0.5, 0.5, m + 1),
+                                         random_stable_polynomial(rng, m), sign)
+        d_cl, *_ = batch.closed_loop_realisation(a_p, b_p, controller)
+        if lti.is_stable(d_cl, 0.1):
             break
     prefilter = random_stable_polynomial(rng, n)
-    direction, beta = cl.bias_terms(np.concatenate((a_p[1:], b_p)), prefilter, controller)
+    direction, beta = batch.bias_terms(np.concatenate((a_p[1:], b_p)), prefilter, controller)
     moments, power = impulse_moments(a_p, b_p, controller, prefilter)
     np.testing.assert_allclose(direction, moments, atol=1e-10)
     assert beta == pytest.approx(power, abs=1e-10)
 
 
 def test_bias_terms_refuse_an_unstable_estimated_loop():
-    controller = cl.make_controller([5.0], [1.0, -0.09])
-    with pytest.raises(cl.CompensationFailure, match='estimated closed loop') as info:
-        cl.bias_terms(np.array([-0.8, 5.0]), np.array([1.0, -0.5]), controller)
+    controller = lti.make_controller([5.0], [1.0, -0.09])
+    with pytest.raises(batch.CompensationFailure, match='estimated closed loop') as info:
+        batch.bias_terms(np.array([-0.8, 5.0]), np.array([1.0, -0.5]), controller)
     assert info.value.flag == 'unstable_closed_loop'
 
 
 def test_negative_argument_of_eq58_is_refused():
     y, u = PAPER.simulate(500, 1)
-    ls = cl.prefiltered_ls(y, u[:, 0], np.array([1.0, -0.5]))
-    with pytest.raises(cl.CompensationFailure) as info:
-        cl.compensated_estimate(ls, np.array([1e3, 1e3]), 1.0)
+    ls = batch.prefiltered_ls(y, u[:, 0], np.array([1.0, -0.5]))
+    with pytest.raises(batch.CompensationFailure) as info:
+        batch.compensated_estimate(ls, np.array([1e3, 1e3]), 1.0)
     assert info.value.flag == 'negative_variance_argument'
 
 
@@ -221,7 +177,7 @@ def test_negative_argument_of_eq58_is_refused():
 def test_prefiltered_ls_solves_the_normal_equations():
     y, u = PAPER.simulate(300, 2)
     prefilter = np.array([1.0, -0.5])
-    ls = cl.prefiltered_ls(y, u[:, 0], prefilter)
+    ls = batch.prefiltered_ls(y, u[:, 0], prefilter)
     y_f = signal.lfilter([1.0], prefilter, y)
     u_f = signal.lfilter([1.0], prefilter, u[:, 0])
     phi = np.column_stack((y_f[:-1], u_f[:-1]))
@@ -234,9 +190,9 @@ def test_prefiltered_ls_solves_the_normal_equations():
 
 def test_algorithm1_converges_and_bias_compensation_saves_iterations():
     y, u = PAPER.simulate(4096, 11)
-    bc = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7, **CONTROLLER)
-    plain = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7, bias_compensation=False,
-                                **CONTROLLER)
+    bc = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7, **CONTROLLER)
+    plain = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7,
+                                   bias_compensation=False, **CONTROLLER)
     assert bc.converged and plain.converged and bc.failure is None
     assert bc.iterations < plain.iterations
     assert bc.iterations == len(bc.history)
@@ -249,9 +205,9 @@ def test_algorithm1_converges_and_bias_compensation_saves_iterations():
 
 def test_algorithm1_first_iteration_failure_is_raised():
     y, u = PAPER.simulate(1000, 3)
-    with pytest.raises(cl.CompensationFailure) as info:
-        cl.closed_loop_bcls(y, u, order=1, controller_numerator=[50.0],
-                            controller_denominator=[1.0, -0.09])
+    with pytest.raises(batch.CompensationFailure) as info:
+        batch.closed_loop_bcls(y, u, order=1, controller_numerator=[50.0],
+                               controller_denominator=[1.0, -0.09])
     assert info.value.flag == 'unstable_closed_loop'
 
 
@@ -261,9 +217,9 @@ def test_algorithm1_follows_remark3_for_an_unstable_plant():
                            controller_denominator=[1.0, -0.09], noise_variance=0.25)
     settings = loop.estimator_settings()
     y, u = loop.simulate(4096, 0)
-    result = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, tolerance=1e-6,
-                                 controller_numerator=settings['controller_numerator'],
-                                 controller_denominator=settings['controller_denominator'])
+    result = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, tolerance=1e-6,
+                                    controller_numerator=settings['controller_numerator'],
+                                    controller_denominator=settings['controller_denominator'])
     assert result.converged
     # 40 runs gave std 0.003 (pole) and 0.005 (b); 5 std as bounds for one run
     assert abs(result.theta[0] + 1.2) < 0.02 and abs(result.theta[1] - 0.5) < 0.03
@@ -282,24 +238,24 @@ def run_and_check_against_batch(y, u, est, controller):
         if est.redesigns != redesigns:
             length = min(k + 1, est.window)
             window_start = k + 1 - length
-            batch = cl.closed_loop_bcls(
+            offline = batch.closed_loop_bcls(
                 y[window_start:k + 1], u[window_start:k + 1], order=est.order,
                 prefilter_initial=before, max_iterations=est.max_iterations,
                 tolerance=est.tolerance, **controller)
-            np.testing.assert_allclose(est.theta, batch.theta, atol=1e-10)
-            np.testing.assert_allclose(est.theta_uncompensated, batch.theta_ls, atol=1e-10)
-            assert est.noise[0] == pytest.approx(batch.sigma2, abs=1e-10)
-            assert est.last_iterations == batch.iterations
-            prefilter, direction, beta = batch.prefilter, batch.direction, batch.beta
+            np.testing.assert_allclose(est.theta, offline.theta, atol=1e-10)
+            np.testing.assert_allclose(est.theta_uncompensated, offline.theta_ls, atol=1e-10)
+            assert est.noise[0] == pytest.approx(offline.sigma2, abs=1e-10)
+            assert est.last_iterations == offline.iterations
+            prefilter, direction, beta = offline.prefilter, offline.direction, offline.beta
             checks += 1
         elif window_start is not None and k % 97 == 0:
             # between redesigns: eqs. (56)-(59) on the LS over samples s..k with frozen c, beta
-            ls = cl.prefiltered_ls(y[window_start:k + 1], u[window_start:k + 1], prefilter)
-            theta, sigma2 = cl.compensated_estimate(ls, direction, beta)
-            np.testing.assert_allclose(est.theta, cl.plant_from_regression(theta, prefilter),
+            ls = batch.prefiltered_ls(y[window_start:k + 1], u[window_start:k + 1], prefilter)
+            theta, sigma2 = batch.compensated_estimate(ls, direction, beta)
+            np.testing.assert_allclose(est.theta, batch.plant_from_regression(theta, prefilter),
                                        atol=1e-9)
             np.testing.assert_allclose(est.theta_uncompensated,
-                                       cl.plant_from_regression(ls.theta, prefilter),
+                                       batch.plant_from_regression(ls.theta, prefilter),
                                        atol=1e-9)
             assert est.noise[0] == pytest.approx(sigma2, abs=1e-9)
             checks += 1
@@ -415,7 +371,7 @@ def test_lyapunov_failure_is_flagged_and_held(monkeypatch):
     def broken(*_):
         raise np.linalg.LinAlgError('singular Kronecker system')
 
-    monkeypatch.setattr(cl, 'solve_stein', broken)
+    monkeypatch.setattr(batch, 'solve_stein', broken)
     trajectory = est.run(y[300:], u[300:])
     assert_no_nan(trajectory)
     assert est.flags == {'lyapunov_failed': 1} and est.holding
@@ -425,8 +381,8 @@ def test_lyapunov_failure_is_flagged_and_held(monkeypatch):
 
 def test_unstable_redesigned_prefilter_stops_the_iteration(monkeypatch):
     y, u = PAPER.simulate(400, 8)
-    monkeypatch.setattr(cl, 'stable_reflection', lambda a_p: np.array([1.0, -1.0]))
-    result = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, **CONTROLLER)
+    monkeypatch.setattr(batch, 'stable_reflection', lambda a_p: np.array([1.0, -1.0]))
+    result = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, **CONTROLLER)
     assert result.failure == 'unstable_prefilter' and result.iterations == 1
     np.testing.assert_array_equal(result.next_prefilter, [1.0, -0.5])
     est = make(window=400, redesign_period=200, prefilter_initial=0.5)
@@ -491,7 +447,7 @@ def test_scenario_is_the_paper_loop():
     assert PAPER.controller_numerator == [0.0, 0.2289]
     assert PAPER.controller_denominator == [1.0, -0.09004]
     assert PAPER.controller_sign == 'negative'
-    # closed-loop poles 0.553 and 0.337 (PAPER_NOTES.md)
+    # closed-loop poles: the roots of d_cl (eq. 8) of the example (60), 0.553 and 0.337
     np.testing.assert_allclose(sorted(np.roots(PAPER.characteristic).real), [0.337, 0.553],
                                atol=1e-3)
 
@@ -533,10 +489,10 @@ def test_scenario_positive_sign_and_zero_reference():
 # ------------------------------------------- regression: drifting first redesign
 def test_is_contracting_compares_the_last_step_with_the_first():
     steps = [np.array([0.0, 0.0]), np.array([0.1, 0.0]), np.array([0.15, 0.0])]
-    assert cl.is_contracting(steps)
+    assert batch.is_contracting(steps)
     drifting = [np.array([0.0, 0.0]), np.array([0.05, 0.0]), np.array([0.2, 0.0])]
-    assert not cl.is_contracting(drifting)
-    assert cl.is_contracting(drifting[:2]) and cl.is_contracting(drifting[:1])
+    assert not batch.is_contracting(drifting)
+    assert batch.is_contracting(drifting[:2]) and batch.is_contracting(drifting[:1])
 
 
 def config_estimator(**overrides):
@@ -579,15 +535,15 @@ def test_seed_1082_drifting_first_redesign_is_dropped_and_flagged():
     assert not est.valid and est.redesigns == 0 and not first.valid.any()
     # the prefilter and the running LS stay as they were: the LS with f = q - 0.7
     np.testing.assert_array_equal(est.prefilter, [1.0, -0.7])
-    ls = cl.prefiltered_ls(y[:1000], u[:1000], np.array([1.0, -0.7]))
-    np.testing.assert_allclose(est.theta, cl.plant_from_regression(ls.theta, est.prefilter),
+    ls = batch.prefiltered_ls(y[:1000], u[:1000], np.array([1.0, -0.7]))
+    np.testing.assert_allclose(est.theta, batch.plant_from_regression(ls.theta, est.prefilter),
                                atol=1e-9)
     # the next redesign starts again from f = q - 0.7, on 2000 samples
     rest = est.run(y[1000:2000], u[1000:2000])
-    batch = cl.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
-                                max_iterations=est.max_iterations, **CONTROLLER)
-    assert est.valid and batch.converged
-    np.testing.assert_allclose(est.theta, batch.theta, atol=1e-10)
+    offline = batch.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
+                                     max_iterations=est.max_iterations, **CONTROLLER)
+    assert est.valid and offline.converged
+    np.testing.assert_allclose(est.theta, offline.theta, atol=1e-10)
     rest = est.run(y[2000:], u[2000:])
     assert_no_nan(first)
     assert_no_nan(rest)

@@ -58,7 +58,7 @@ def test_72_ls_mean_and_the_one_step_compensation(seventy_two):
     # strictly between, with 3 standard errors of room on both sides
     assert ls_mean + 3 * ls_se < one - 3 * one_se
     assert one + 3 * one_se < converged - 3 * converged_se
-    # PAPER_NOTES.md: 0.582 for one step (the paper prints 0.6751; see the report)
+    # reference implementation: 0.582 for one step (the paper prints 0.6751; see the report)
     assert abs(one - 0.582) < 3 * one_se + 0.005
 
 
@@ -74,7 +74,7 @@ def test_73_iteration_counts_and_final_estimates(seventy_three):
         (seventy_three.iterations_plain - seventy_three.iterations_bc).astype(float))
     assert saving - 3 * saving_se > 0
     assert seventy_three.not_converged_bc == seventy_three.not_converged_plain == 0
-    # Final std is ~0.04 (pole) and ~0.064 (b): s.e. 0.0033 / 0.0052; PAPER_NOTES' means are
+    # Final std is ~0.04 (pole) and ~0.064 (b): s.e. 0.0033 / 0.0052; the reference means are
     # 0.012 / 0.011 from the truth, so 0.03 leaves > 3 s.e. beyond that.
     mean = seventy_three.bc.mean(axis=0)
     assert abs(mean[0] - 0.8) < 0.03 and abs(mean[1] - 0.5) < 0.03

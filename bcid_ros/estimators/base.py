@@ -65,6 +65,11 @@ def check_range(name: str, value: Any, low: float, high: float,
     return value
 
 
+def check_forgetting_factor(value: Any) -> float:
+    """Return the forgetting factor lambda as a float in (0, 1], or raise ValueError."""
+    return check_range('forgetting_factor', value, 0.0, 1.0, low_open=True)
+
+
 @dataclasses.dataclass(frozen=True)
 class EstimatorState:
     """

@@ -26,7 +26,8 @@ from typing import Callable
 import numpy as np
 from scipy import signal
 
-from bcid_ros.estimators import cl_bcls as cl
+from bcid_ros.estimators import cl_bcls_batch as batch
+from bcid_ros.estimators.lti import Controller
 from bcid_ros.reproduction.common import markdown_table, mean_and_stderr, pyplot
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
 
@@ -41,13 +42,14 @@ PREFILTER_73 = 0.7
 TOLERANCE_73 = 1e-3
 MAX_ITERATIONS_73 = 200
 PLUG_IN_STEPS = (1, 2, 3, 5, 50)
-#: The paper's figures and the reference values of PAPER_NOTES.md (own implementation, 200 runs).
+#: The paper's figures.
 PAPER = {
     'ls_72': 0.5442, 'bc_72': 0.6751,
     'iterations_bc': 10.15, 'iterations_plain': 15.88,
     'cpu_bc': 32.5828, 'cpu_plain': 42.7188,
 }
-NOTES = {
+#: Reference values of an independent implementation of the paper's procedures, 200 runs.
+REFERENCE = {
     'mean_71': (0.7993, 0.5004), 'ls_72': 0.5443,
     'plug_in': {1: 0.582, 2: 0.614, 3: 0.641, 5: 0.683, 50: 0.786},
     'iterations_bc': 9.98, 'iterations_plain': 15.82,
@@ -102,21 +104,21 @@ def study_71(runs: int, seed: int = SEED_71, samples: int = SAMPLES,
     loop = IkedaClosedLoop(reference_amplitude=0.0)
     controller = loop.controller
     truth = loop.truth().parameters
-    f_bc = cl.prefilter_polynomial(PREFILTER_72, 1)
-    f_opt = cl.prefilter_polynomial(TRUE_POLE, 1)
+    f_bc = batch.prefilter_polynomial(PREFILTER_72, 1)
+    f_opt = batch.prefilter_polynomial(TRUE_POLE, 1)
     # true P12, P22 and h for f = 0.5                           (33), (36), (43), (44)
-    direction, beta = cl.bias_terms(truth, f_bc, controller)
+    direction, beta = batch.bias_terms(truth, f_bc, controller)
     bc, optimal, sigma2 = np.empty((runs, 2)), np.empty((runs, 2)), np.empty(runs)
     information = np.zeros((2, 2))
     regression = np.zeros((2, 2))
     for run in progress(range(runs), runs, '7.1'):
         y, u = loop.simulate(samples, seed + run)
         u = u[:, 0]
-        ls = cl.prefiltered_ls(y, u, f_bc)
-        theta, sigma2[run] = cl.compensated_estimate(ls, direction, beta)
-        bc[run] = _pole_b(cl.plant_from_regression(theta, f_bc))
-        ls_opt = cl.prefiltered_ls(y, u, f_opt)
-        optimal[run] = _pole_b(cl.plant_from_regression(ls_opt.theta, f_opt))
+        ls = batch.prefiltered_ls(y, u, f_bc)
+        theta, sigma2[run] = batch.compensated_estimate(ls, direction, beta)
+        bc[run] = _pole_b(batch.plant_from_regression(theta, f_bc))
+        ls_opt = batch.prefiltered_ls(y, u, f_opt)
+        optimal[run] = _pole_b(batch.plant_from_regression(ls_opt.theta, f_opt))
         regression += ls_opt.information
         # psi_b = 1/(q - a) u, psi_a = b/(q - a)^2 u
         psi_b = signal.lfilter([0.0, 1.0], [1.0, -TRUE_POLE], u)
@@ -139,7 +141,7 @@ class Study72:
     failures: dict[int, int]
 
 
-def plug_in_sequence(ls: cl.PrefilteredLs, prefilter: np.ndarray, controller: cl.Controller,
+def plug_in_sequence(ls: batch.PrefilteredLs, prefilter: np.ndarray, controller: Controller,
                      steps: int) -> list[np.ndarray]:
     """
     Return the plant estimates after 1..``steps`` plug-in compensations at fixed f.
@@ -149,15 +151,15 @@ def plug_in_sequence(ls: cl.PrefilteredLs, prefilter: np.ndarray, controller: cl
     step 1 is the compensation section 7.2 describes). A failed step ends
     the list early.
     """
-    estimate = cl.plant_from_regression(ls.theta, prefilter)
+    estimate = batch.plant_from_regression(ls.theta, prefilter)
     sequence = []
     for _ in range(steps):
         try:
-            direction, beta = cl.bias_terms(estimate, prefilter, controller)
-            theta, _ = cl.compensated_estimate(ls, direction, beta)
-        except cl.CompensationFailure:
+            direction, beta = batch.bias_terms(estimate, prefilter, controller)
+            theta, _ = batch.compensated_estimate(ls, direction, beta)
+        except batch.CompensationFailure:
             break
-        estimate = cl.plant_from_regression(theta, prefilter)
+        estimate = batch.plant_from_regression(theta, prefilter)
         sequence.append(estimate)
     return sequence
 
@@ -167,13 +169,13 @@ def study_72(runs: int, seed: int = SEED_72, samples: int = SAMPLES,
              progress: Callable = lambda it, total, what='': it) -> Study72:
     """Run section 7.2 on ``runs`` realisations (seeds ``seed + k``)."""
     loop = IkedaClosedLoop()
-    prefilter = cl.prefilter_polynomial(PREFILTER_72, 1)
+    prefilter = batch.prefilter_polynomial(PREFILTER_72, 1)
     ls_estimates = np.empty((runs, 2))
     plug_in = {j: np.full((runs, 2), np.nan) for j in steps}
     for run in progress(range(runs), runs, '7.2'):
         y, u = loop.simulate(samples, seed + run)
-        ls = cl.prefiltered_ls(y, u[:, 0], prefilter)
-        ls_estimates[run] = _pole_b(cl.plant_from_regression(ls.theta, prefilter))
+        ls = batch.prefiltered_ls(y, u[:, 0], prefilter)
+        ls_estimates[run] = _pole_b(batch.plant_from_regression(ls.theta, prefilter))
         sequence = plug_in_sequence(ls, prefilter, loop.controller, max(steps))
         for j in steps:
             if len(sequence) >= j:
@@ -215,7 +217,7 @@ def study_73(runs: int, seed: int = SEED_72, samples: int = SAMPLES,
         y, u = loop.simulate(samples, seed + run)
         for key in ('bc', 'plain'):
             start = time.process_time()
-            result = cl.closed_loop_bcls(y, u, bias_compensation=key == 'bc', **settings)
+            result = batch.closed_loop_bcls(y, u, bias_compensation=key == 'bc', **settings)
             cpu[key] += time.process_time() - start
             out[key][run] = _pole_b(result.theta)
             iterations[key][run] = result.iterations
@@ -311,8 +313,8 @@ def _report_71(study: Study71) -> list[str]:
         '## 7.1: compensation with the true P12, P22 and h (Figs. 1 and 2)\n',
         'r = 0. The paper: "each of the proposed estimate and the optimal estimate has '
         'almost zero bias", the proposed covariance slightly larger than the optimal one, '
-        f'which is almost the Cramér-Rao bound. PAPER_NOTES.md: mean (â, b̂) = '
-        f'{NOTES["mean_71"]} over 200 runs.\n',
+        f'which is almost the Cramér-Rao bound. Reference: mean (â, b̂) = '
+        f'{REFERENCE["mean_71"]} over 200 runs.\n',
         markdown_table(('estimate', 'â mean ± s.e.', 'b̂ mean ± s.e.', 'â std', 'b̂ std'),
                        rows), '',
         f'σ̂² of eq. (50) with the true terms: {_mean_se(study.sigma2)} (true 1).\n',
@@ -328,23 +330,23 @@ def _report_71(study: Study71) -> list[str]:
 
 
 def _report_72(study: Study72) -> list[str]:
-    rows = [('LS (eq. 17)', f'{PAPER["ls_72"]:.4f}', f'{NOTES["ls_72"]:.4f}',
+    rows = [('LS (eq. 17)', f'{PAPER["ls_72"]:.4f}', f'{REFERENCE["ls_72"]:.4f}',
              _mean_se(study.ls[:, 0]), _mean_se(study.ls[:, 1]), '0')]
     for j, values in study.plug_in.items():
         paper = f'{PAPER["bc_72"]:.4f} (one step, per the text)' if j == 1 else ''
         rows.append((f'BCLS, {j} plug-in step{"s" if j > 1 else ""}', paper,
-                     f'{NOTES["plug_in"][j]:.3f}', _mean_se(values[:, 0]),
+                     f'{REFERENCE["plug_in"][j]:.3f}', _mean_se(values[:, 0]),
                      _mean_se(values[:, 1]), str(study.failures[j])))
     return [
         '## 7.2: compensation with P12 and h from the estimate (Figs. 3 and 4)\n',
         'f = 0.5 (f(q) = q − 0.5), r random binary ±0.5 held 16 samples. Step j applies '
         'eqs. (56)-(59) to the same LS solution with P12, P22, h from the estimate of step '
         'j − 1; step 1 (P12, h from the LS estimate) is the procedure the text describes.\n',
-        markdown_table(('estimate', 'paper â', 'PAPER_NOTES â', 'â mean ± s.e.',
+        markdown_table(('estimate', 'paper â', 'reference â', 'â mean ± s.e.',
                         'b̂ mean ± s.e.', 'failed runs'), rows), '',
         '**Discrepancy, reported and not tuned:** one plug-in step gives â ≈ 0.58, not the '
         'paper\'s 0.6751. The paper\'s value lies between our 3 and 5 repeated steps, so it '
-        'does not match one clearly defined procedure (PAPER_NOTES.md). The LS mean, which '
+        'does not match one clearly defined procedure (docs/papers.md). The LS mean, which '
         'checks the simulator, reproduces.\n',
         '![7.2 and 7.3](reproduction_ikeda_72_73.png)\n',
     ]
@@ -358,7 +360,7 @@ def _report_73(study: Study73, runs: int) -> list[str]:
         its = getattr(study, f'iterations_{key}')
         cpu = getattr(study, f'cpu_{key}')
         rows.append((label, f'{PAPER["iterations_" + key]:.2f}',
-                     f'{NOTES["iterations_" + key]:.2f}', _mean_se(its.astype(float)),
+                     f'{REFERENCE["iterations_" + key]:.2f}', _mean_se(its.astype(float)),
                      f'{PAPER["cpu_" + key]:.1f}', f'{cpu * scale:.2f}',
                      str(getattr(study, f'not_converged_{key}'))))
     ratio_paper = PAPER['cpu_bc'] / PAPER['cpu_plain']
@@ -378,7 +380,7 @@ def _report_73(study: Study73, runs: int) -> list[str]:
         'Iterations count the LS solves. CPU time is `time.process_time` of the algorithm '
         f'alone (numpy/scipy on this machine), scaled to 1000 estimates from {runs}; the '
         'paper\'s machine and language are unknown, so compare the ratio.\n',
-        markdown_table(('method', 'paper iterations', 'PAPER_NOTES iterations',
+        markdown_table(('method', 'paper iterations', 'reference iterations',
                         'iterations mean ± s.e.', 'paper CPU s / 1000', 'CPU s / 1000',
                         'not converged'), rows), '',
         f'CPU time ratio proposed / without BC: paper {ratio_paper:.3f}, here {ratio:.3f}. '
@@ -390,8 +392,8 @@ def _report_73(study: Study73, runs: int) -> list[str]:
         'vectorised filtering the compensation is not cheap in comparison, and the saving '
         'in iterations does not pay for it at this N. The iteration counts are the '
         'machine-independent result.\n',
-        f'Final estimates (PAPER_NOTES.md, with BC: mean {NOTES["mean_73"]}, std '
-        f'{NOTES["std_73"]}):\n',
+        f'Final estimates (reference, with BC: mean {REFERENCE["mean_73"]}, std '
+        f'{REFERENCE["std_73"]}):\n',
         markdown_table(('method', 'â mean ± s.e.', 'b̂ mean ± s.e.', 'â std', 'b̂ std',
                         'cov(â, b̂)'), estimates), '',
     ]
@@ -416,7 +418,9 @@ def reproduce(runs: int | None, quick: bool, out_dir: Path, progress: Callable) 
         '(7.2 and 7.3 share the data). Plant 0.5/(q − 0.8), controller (60) '
         'u = 0.2289/(q − 0.09004) (r − y) (negative feedback: eq. (4) prints the sign '
         'flipped), σ_ν² = 1. Estimates are the pole â = −a1 and b̂; the truth is (0.8, 0.5). '
-        '"± s.e." is the Monte Carlo standard error of the mean.\n',
+        '"± s.e." is the Monte Carlo standard error of the mean. The reference values come '
+        'from an independent implementation of the same procedures (200 runs); '
+        'docs/papers.md lists the paper\'s misprints and limits.\n',
     ]
     text += _report_71(study71) + _report_72(study72) + _report_73(study73, runs)
     markdown = out_dir / 'reproduction_ikeda.md'

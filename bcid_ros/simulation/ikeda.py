@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators.base import parameter_names
-from bcid_ros.estimators.cl_bcls import is_stable, make_controller
+from bcid_ros.estimators.lti import closed_loop_polynomial, is_stable, make_controller
 from bcid_ros.simulation.base import SampleStream, Scenario, StreamingFilter, Truth
 
 #: b_p(q), a_p(q) of the example, descending powers of q.
@@ -114,7 +114,7 @@ class IkedaClosedLoop(Scenario):
         a_c = self.controller.denominator
         b_full = np.concatenate(([0.0], self.plant_numerator))
         # d_cl = a_p a_c + b_p b_c                                           (8)
-        self.characteristic = np.polyadd(np.polymul(a_p, a_c), np.polymul(b_full, b_c))
+        self.characteristic = closed_loop_polynomial(a_p, self.plant_numerator, self.controller)
         if not is_stable(self.characteristic):
             raise ValueError('the closed loop must be stable (assumption A4); its poles are '
                              f'{np.roots(self.characteristic).round(4).tolist()}')
