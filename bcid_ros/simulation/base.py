@@ -15,7 +15,6 @@ import dataclasses
 from typing import ClassVar
 
 import numpy as np
-from scipy import signal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +56,10 @@ class StreamingFilter:
         if x.size == 0:
             # lfilter returns a zero state for an empty block; keep ours
             return x.copy()
+        # scipy.signal costs ~1 s to import: load it when a filter first runs, so that
+        # `bcid` and the scenario registry start fast.
+        from scipy import signal
+
         out, self.state = signal.lfilter(self.b, self.a, x, zi=self.state)
         return out
 
