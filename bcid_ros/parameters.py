@@ -300,6 +300,17 @@ def spec_by_name(table: tuple[ParameterSpec, ...]) -> dict[str, ParameterSpec]:
     return {spec.name: spec for spec in table}
 
 
+def markdown_table(table: tuple[ParameterSpec, ...]) -> str:
+    """Return a parameter table as the Markdown table of docs/nodes.md."""
+    lines = ['| parameter | type | default | allowed | live | description |',
+             '|---|---|---|---|---|---|']
+    for spec in table:
+        default = 'estimator default' if spec.default is None else spec.default
+        lines.append(f'| `{spec.name}` | {spec.type} | {default} | {spec.allowed()} | '
+                     f'{"no" if spec.read_only else "yes"} | {spec.description} |')
+    return '\n'.join(lines)
+
+
 def _flatten(tree: dict[str, Any], prefix: str = '') -> dict[str, Any]:
     flat: dict[str, Any] = {}
     for key, value in tree.items():
@@ -523,4 +534,5 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
 __all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS', 'ParameterSpec',
            'SIMULATOR_PARAMETERS', 'TYPES', 'check_identifier_parameters', 'check_parameters',
            'check_simulator_parameters', 'estimator_from_parameters', 'estimator_options',
-           'estimator_settings', 'load_yaml_parameters', 'spec_by_name', 'unused_options']
+           'estimator_settings', 'load_yaml_parameters', 'markdown_table', 'spec_by_name',
+           'unused_options']
