@@ -18,7 +18,7 @@ rclpy = pytest.importorskip('rclpy')
 
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from bcid_ros.nodes.common import LATCHED_QOS  # noqa: E402
@@ -56,6 +56,9 @@ class Recorder:
         self.uncompensated = []
         self.noise = []
         self.labels = {}
+        self.valid = []
+        self.node.create_subscription(Bool, f'{prefix}/valid',
+                                      lambda message: self.valid.append(message.data), qos)
         for topic, store in (('parameters', self.parameters),
                              ('parameters_uncompensated', self.uncompensated),
                              ('noise_variance', self.noise)):
@@ -148,7 +151,10 @@ def test_frames_late_joiner_and_reset(ros_context, executor):
     # A late joiner gets the latest estimate at once (transient_local, depth 1).
     late = Recorder(ros_context, qos=LATCHED_QOS)
     executor.add_node(late.node)
-    assert spin_until(executor, lambda: late.parameters and late.noise, timeout=5)
+    assert spin_until(executor, lambda: late.parameters and late.noise and late.valid,
+                      timeout=5)
+    # ~/valid went false -> true once, before the first estimate, and is latched.
+    assert recorder.valid == [False, True] and late.valid == [True]
     assert len(late.parameters) == 1
     np.testing.assert_array_equal(late.parameters[0], identifier.estimator.theta)
     np.testing.assert_array_equal(late.noise[0], identifier.estimator.noise)
@@ -160,6 +166,7 @@ def test_frames_late_joiner_and_reset(ros_context, executor):
     assert spin_until(executor, future.done, timeout=5)
     assert future.result().success
     assert identifier.estimator.samples == 0 and not identifier.estimator.valid
+    assert spin_until(executor, lambda: late.valid[-1:] == [False], timeout=5)
 
 
 @pytest.mark.parametrize('input_type,output_type,sync', [
