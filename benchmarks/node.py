@@ -63,7 +63,7 @@ class Bench:
         self.node = rclpy.create_node('bcid_bench', context=self.context)
         self.samples = self.node.create_publisher(Float64MultiArray, interface.SAMPLES,
                                                   SAMPLES_QOS)
-        self._status_name = interface.IDENTIFIER_NODE + interface.IDENTIFIER_STATUS
+        self._status_name = interface.status_name(interface.IDENTIFIER_NODE)
         self.counters: dict[str, float] = {}
         self.arrived = threading.Event()
         self.node.create_subscription(DiagnosticArray, interface.DIAGNOSTICS,

@@ -83,6 +83,11 @@ def test_readers():
     with pytest.raises(ValueError, match='input JointState has 3 effort values; expected 4'):
         joints.read_input(message, 4, 'effort', [])
     assert float64.read_output is not None and array.read_output is None
+    settings = {'input_type': 'joint_state', 'num_inputs': 2, 'input_field': 'effort',
+                'input_joints': ['c', 'b'], 'output_type': 'joint_state',
+                'output_field': 'position', 'output_joint': 'b'}
+    assert interface.reader('input', settings)(message) == [3.0, 2.0]
+    assert interface.reader('output', settings)(message) == 8.0
 
 
 def test_builders_make_real_messages_the_readers_read_back():

@@ -118,7 +118,7 @@ class Monitor:
         self.level = 0
         self.update_us = ''
         self.last_estimate_time = 0.0
-        self._identifier_status = identifier + interface.IDENTIFIER_STATUS
+        self._identifier_status = interface.status_name(identifier)
         latched = (
             (interface.PARAMETERS, identifier, self.on_parameters),
             (interface.PARAMETERS_UNCOMPENSATED, identifier, self.on_uncompensated),

@@ -15,7 +15,7 @@ Run it as ``identifier_node --ros-args --params-file config/ding_miso.yaml``.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
@@ -88,7 +88,7 @@ class IdentifierNode(Node):
 
         self.reset_service = self.create_service(Trigger, interface.RESET, self.on_reset)
         self.diagnostics = DiagnosticsUpdater(
-            self, self.get_name() + interface.IDENTIFIER_STATUS, [
+            self, interface.status_name(self.get_name()), [
                 EstimatorTask(settings['estimator'], self.estimator, lambda: self.publish_period),
                 CounterTask(self.counters, lambda: self.feeder.excitation_lost),
                 SampleRateTask(self.feeder, lambda: self.get_clock().now().nanoseconds * 1e-9,
@@ -108,20 +108,12 @@ class IdentifierNode(Node):
             self.create_subscription(Float64MultiArray, interface.SAMPLES, self.on_samples,
                                      SAMPLES_QOS)
             return
-        inputs = interface.MESSAGE_TYPES[settings['input_type']]
-        outputs = interface.MESSAGE_TYPES[settings['output_type']]
-        count, joints = settings['num_inputs'], settings['input_joints']
-        field, joint = settings['output_field'], settings['output_joint']
-        readers = {
-            'input': lambda m: inputs.read_input(m, count, settings['input_field'], joints),
-            'output': lambda m: outputs.read_output(m, field, joint),
-        }
-        for side, kind, topic in (('input', settings['input_type'], interface.INPUT),
-                                  ('output', settings['output_type'], interface.OUTPUT)):
+        for side, topic in (('input', interface.INPUT), ('output', interface.OUTPUT)):
+            read = interface.reader(side, settings)
             self.create_subscription(
-                topic_class(kind), topic,
-                lambda message, info, side=side: self.on_separate(side, readers[side],
-                                                                  message, info),
+                topic_class(settings[f'{side}_type']), topic,
+                lambda message, info, side=side, read=read: self.on_separate(
+                    side, read, message, info),
                 SAMPLES_QOS)
 
     @property
@@ -167,7 +159,8 @@ class IdentifierNode(Node):
             self.feeder.gap()
         self._take(self.feeder.take_message(message))
 
-    def on_separate(self, side: str, read: Any, message: Any, info: dict) -> None:
+    def on_separate(self, side: str, read: Callable[[Any], Any], message: Any,
+                    info: dict) -> None:
         """Take one message of the ``input`` or ``output`` topic and feed what pairs."""
         self.messages += 1
         lost = self._lost(side, info)

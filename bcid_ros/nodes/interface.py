@@ -182,6 +182,29 @@ INPUT_TYPES = tuple(name for name, kind in MESSAGE_TYPES.items() if kind.read_in
 OUTPUT_TYPES = tuple(name for name, kind in MESSAGE_TYPES.items() if kind.read_output)
 
 
+def reader(side: str, settings: dict[str, Any]) -> Callable[[Any], Any]:
+    """
+    Return the function that reads u or y from a message of the configured type.
+
+    Parameters
+    ----------
+    side : str
+        ``'input'`` (the function returns ``[u1, ..., ur]``) or ``'output'`` (y).
+    settings : dict
+        The identifier parameters: ``input_type``, ``num_inputs``,
+        ``input_field`` and ``input_joints``, or ``output_type``,
+        ``output_field`` and ``output_joint``.
+
+    """
+    kind = MESSAGE_TYPES[settings[f'{side}_type']]
+    if side == 'input':
+        count, field = settings['num_inputs'], settings['input_field']
+        joints = list(settings['input_joints'])
+        return lambda message: kind.read_input(message, count, field, joints)
+    field, joint = settings['output_field'], settings['output_joint']
+    return lambda message: kind.read_output(message, field, joint)
+
+
 def check_input_width(input_type: str, num_inputs: int, parameter: str = 'input_type') -> None:
     """
     Check that ``input_type`` can carry ``num_inputs`` values.
@@ -201,8 +224,9 @@ def check_input_width(input_type: str, num_inputs: int, parameter: str = 'input_
 
 
 # ---------------------------------------------------------------- diagnostics
-#: ``DiagnosticStatus.name`` of the identifier: ``f'{node name}{IDENTIFIER_STATUS}'``.
-IDENTIFIER_STATUS = ': identifier'
+def status_name(node: str) -> str:
+    """Return the identifier's ``DiagnosticStatus.name`` for the node named ``node``."""
+    return f'{node}: identifier'
 
 
 class DiagnosticKey:
@@ -250,8 +274,8 @@ FAILING = ('estimator_errors', 'nonfinite_estimates')
 
 
 __all__ = ['BAD', 'BOOL', 'COUNTERS', 'DIAGNOSTICS', 'DROPPED', 'DiagnosticKey', 'FAILING',
-           'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'IDENTIFIER_NODE', 'IDENTIFIER_STATUS', 'INPUT',
+           'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'IDENTIFIER_NODE', 'INPUT',
            'INPUT_TYPES', 'JOINT_STATE', 'MESSAGE_TYPES', 'MessageType', 'NOISE_VARIANCE',
            'OUTPUT', 'OUTPUT_TYPES', 'PARAMETERS', 'PARAMETERS_UNCOMPENSATED', 'RESET',
            'SAMPLES', 'SIMULATOR_NODE', 'TRUE_NOISE_VARIANCE', 'TRUE_PARAMETERS', 'VALID',
-           'basename', 'check_input_width', 'resolve', 'stamp_ns']
+           'basename', 'check_input_width', 'reader', 'resolve', 'stamp_ns', 'status_name']
