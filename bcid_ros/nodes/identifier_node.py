@@ -24,7 +24,6 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, Float64MultiArray
 from std_srvs.srv import Trigger
 
-from bcid_ros.estimators import estimator_class
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
                                    SAMPLES_QOS, Throttle, usage)
@@ -32,7 +31,7 @@ from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, Estimat
                                         SampleRateTask)
 from bcid_ros.nodes.messages import as_doubles, estimate_message, topic_class, valid_message
 from bcid_ros.nodes.pairing import GAP, Paired, Pairing, SequenceTracker
-from bcid_ros.parameters import (check_identifier_parameters, estimator_settings,
+from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
                                  IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
 from bcid_ros.samples import FeedResult, names_label, SampleFeeder
 
@@ -64,7 +63,7 @@ class IdentifierNode(Node):
         for name in unused_options(settings):
             self.get_logger().warning(f'parameter {name!r} does not apply to estimator '
                                       f'{settings["estimator"]!r}; ignored')
-        self.estimator = estimator_class(settings['estimator'])(**estimator_settings(settings))
+        self.estimator = estimator_from_parameters(settings)  # as bcid replay builds it
         self.feeder = SampleFeeder(self.estimator, settings['excitation_window'],
                                    settings['publish_period'])
         self.counters = dict.fromkeys(interface.COUNTERS, 0)
