@@ -10,7 +10,7 @@ file builds the same estimator online and offline:
 >>> values = check_identifier_parameters(load_yaml_parameters('config/ding_miso.yaml'))
 >>> estimator = estimator_from_parameters(values)
 
-The estimator-specific options (SPEC section 5: ``iv_lag``, ... for
+The estimator-specific options (docs/nodes.md: ``iv_lag``, ... for
 ``bciv``; ``controller_numerator``, ... for ``cl_bcls``) default to
 ``None``, which means "the estimator class's own default": they are only
 passed to the constructor when set, and the constructor validates them.
@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from bcid_ros.estimators import estimator_class, ESTIMATORS, RecursiveEstimator
+from bcid_ros.nodes.interface import check_input_width, INPUT_TYPES, MESSAGE_TYPES, OUTPUT_TYPES
 
 #: Parameter types, named as the ROS parameter types they become.
 TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array')
@@ -154,12 +155,11 @@ def _p(name: str, type_: str, default: Any, description: str, **kwargs: Any) -> 
     return ParameterSpec(name, type_, default, description, **kwargs)
 
 
-#: The identifier node's parameters (SPEC section 5), in declaration order.
+#: The identifier node's parameters (docs/nodes.md), in declaration order.
 IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     # --- the estimator and the model structure
-    _p('estimator', 'string', 'bcrls', 'Estimator: rls (plain least squares), bcrls (Ding '
-       '2006, white output noise), bciv (Ikenoue 2008, errors-in-variables), cl_bcls '
-       '(Ikeda 2008, closed loop).', choices=tuple(ESTIMATORS)),
+    _p('estimator', 'string', 'bcrls', 'Estimator, by its registry name '
+       '(docs/estimators.md describes each).', choices=tuple(ESTIMATORS)),
     _p('order', 'integer', 2, 'Plant order n: number of a coefficients and of input lags.',
        low=1, high=64),
     _p('num_inputs', 'integer', 1, 'Number of inputs r.', low=1, high=64),
@@ -218,9 +218,9 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'gaps (an interval above 1.5 periods restarts the regressor). 0: the median of the '
        'first 20 intervals.', low=0.0, high=3600.0),
     _p('input_type', 'string', 'float64', 'Separate mode: type of the input topic.',
-       choices=('float64', 'float64_multi_array', 'joint_state')),
+       choices=INPUT_TYPES),
     _p('output_type', 'string', 'float64', 'Separate mode: type of the output topic.',
-       choices=('float64', 'joint_state')),
+       choices=OUTPUT_TYPES),
     _p('input_joints', 'string_array', [], 'JointState input: joint names of u1..ur, in order '
        '(empty: the first r entries).'),
     _p('input_field', 'string', 'effort', 'JointState input: the field holding u.',
@@ -235,7 +235,7 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'for this many samples (no excitation); 0 turns the check off.', low=0, high=1e9),
 )
 
-#: The simulator node's parameters (SPEC section 6), in declaration order.
+#: The simulator node's parameters (docs/nodes.md), in declaration order.
 SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('scenario', 'string', 'ding_miso', 'The papers\' scenarios, or custom (plant, noise and '
        'input given by the custom parameters below).',
@@ -246,14 +246,13 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        'data at any rate and frame size.', low=0, high=2 ** 63 - 1),
     _p('num_samples', 'integer', 0, 'Samples to publish before exiting; 0 runs forever.',
        low=0, high=1e12),
-    _p('frame_size', 'integer', 1, 'Samples per samples message (k > 1: SPEC section 3 '
-       'frames).', low=1, high=100000),
+    _p('frame_size', 'integer', 1, 'Samples per samples message (k > 1: frames, see '
+       'docs/nodes.md).', low=1, high=100000),
     _p('output_mode', 'string', 'combined', 'combined: samples topic; separate: input and '
        'output topics; both: all three.', choices=('combined', 'separate', 'both')),
     _p('input_type', 'string', 'float64_multi_array', 'Type of the input topic (float64 only '
-       'for one input).', choices=('float64', 'float64_multi_array', 'joint_state')),
-    _p('output_type', 'string', 'float64', 'Type of the output topic.',
-       choices=('float64', 'joint_state')),
+       'for one input).', choices=INPUT_TYPES),
+    _p('output_type', 'string', 'float64', 'Type of the output topic.', choices=OUTPUT_TYPES),
     _p('start_delay', 'double', 0.5, 'Seconds to wait after start-up before the first sample, '
        'so that subscribers can connect.', low=0.0, high=3600.0),
     _p('wait_for_subscribers', 'integer', 0, 'Before the first sample, wait until the samples '
@@ -299,6 +298,17 @@ IDENTIFIER_LIVE = tuple(p.name for p in IDENTIFIER_PARAMETERS if not p.read_only
 def spec_by_name(table: tuple[ParameterSpec, ...]) -> dict[str, ParameterSpec]:
     """Return ``{name: spec}`` of a parameter table."""
     return {spec.name: spec for spec in table}
+
+
+def markdown_table(table: tuple[ParameterSpec, ...]) -> str:
+    """Return a parameter table as the Markdown table of docs/nodes.md."""
+    lines = ['| parameter | type | default | allowed | live | description |',
+             '|---|---|---|---|---|---|']
+    for spec in table:
+        default = 'estimator default' if spec.default is None else spec.default
+        lines.append(f'| `{spec.name}` | {spec.type} | {default} | {spec.allowed()} | '
+                     f'{"no" if spec.read_only else "yes"} | {spec.description} |')
+    return '\n'.join(lines)
 
 
 def _flatten(tree: dict[str, Any], prefix: str = '') -> dict[str, Any]:
@@ -414,14 +424,14 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
     """
     checked = check_parameters(values, IDENTIFIER_PARAMETERS)
     if checked['input_mode'] == 'separate':
-        if checked['input_type'] == 'float64' and checked['num_inputs'] != 1:
-            raise ValueError("parameter 'input_type' must be float64_multi_array or "
-                             "joint_state when num_inputs > 1, got 'float64'")
+        check_input_width(checked['input_type'], checked['num_inputs'])
         if checked['sync'] == 'stamp':
+            stamped = [name for name, kind in MESSAGE_TYPES.items() if kind.stamped]
             for name in ('input_type', 'output_type'):
-                if checked[name] != 'joint_state':
-                    raise ValueError(f"parameter {name!r} must be 'joint_state' (a stamped "
-                                     f"type) with sync: stamp, got {checked[name]!r}")
+                if not MESSAGE_TYPES[checked[name]].stamped:
+                    raise ValueError(f'parameter {name!r} must be a stamped type (one of '
+                                     f'{", ".join(stamped)}) with sync: stamp, got '
+                                     f'{checked[name]!r}')
     if checked['input_joints'] and len(checked['input_joints']) != checked['num_inputs']:
         raise ValueError(f"parameter 'input_joints' must have num_inputs = "
                          f"{checked['num_inputs']} names (or none), got "
@@ -524,4 +534,5 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
 __all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS', 'ParameterSpec',
            'SIMULATOR_PARAMETERS', 'TYPES', 'check_identifier_parameters', 'check_parameters',
            'check_simulator_parameters', 'estimator_from_parameters', 'estimator_options',
-           'estimator_settings', 'load_yaml_parameters', 'spec_by_name', 'unused_options']
+           'estimator_settings', 'load_yaml_parameters', 'markdown_table', 'spec_by_name',
+           'unused_options']

@@ -1,5 +1,5 @@
 """
-The ``samples`` message format of SPEC sections 3 and 4 (pure Python, no ROS).
+The ``samples`` message format of docs/nodes.md (pure Python, no ROS).
 
 Everything here works on duck-typed messages: anything with ``data`` and
 ``layout.dim[i].label/size/stride`` (and ``layout.data_offset``) will do, so
@@ -13,6 +13,7 @@ both use it, so they give the same estimates on the same messages.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Iterable, Sequence
 
@@ -28,7 +29,7 @@ def sample_label(num_inputs: int) -> str:
 
 
 def names_label(names: Iterable[str]) -> str:
-    """Return the comma-separated label of the estimate topics (SPEC section 4)."""
+    """Return the comma-separated label of the estimate topics (docs/nodes.md)."""
     return ','.join(names)
 
 
@@ -45,7 +46,7 @@ def samples_layout(count: int, num_inputs: int) -> list[tuple[str, int, int]]:
     ----------
     count : int
         Samples in the message, k >= 1. One sample has a single dimension;
-        k > 1 is a SPEC section 3 frame with two.
+        k > 1 is a frame (docs/nodes.md) with two.
     num_inputs : int
         r.
 
@@ -167,6 +168,47 @@ def decode_samples(message: Any, num_inputs: int | None = None) -> np.ndarray:
     return data.reshape(1, length).copy()
 
 
+@dataclasses.dataclass(slots=True)
+class FeedResult:
+    """
+    What :class:`SampleFeeder` did with one message or block of rows.
+
+    The counts add up over a block, so that a caller feeding many messages
+    at once can sum them; the node counts and warns from them directly.
+
+    Attributes
+    ----------
+    used : int
+        Samples that went into the estimator.
+    nonfinite : int
+        Samples skipped for a NaN or Inf (each restarts the regressor).
+    unexcited : int
+        Samples used although the input had not changed for
+        ``excitation_window`` samples.
+    dropped : str
+        Why the whole message was dropped: ``'empty'``, ``'bad_layout'``
+        (wrong length or layout; restarts the regressor) or
+        ``'estimator_errors'`` (the estimator raised; restarts the
+        regressor); empty if it was not.
+    reason : str
+        The decoding error or the estimator's exception, for the log.
+    estimates : tuple of numpy.ndarray or None
+        ``(theta, theta_uncompensated, noise)`` when they are due for
+        publication (see :meth:`SampleFeeder.due_estimates`), else None.
+    withheld : bool
+        Whether a due estimate was not finite and so not returned.
+
+    """
+
+    used: int = 0
+    nonfinite: int = 0
+    unexcited: int = 0
+    dropped: str = ''
+    reason: str = ''
+    estimates: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    withheld: bool = False
+
+
 class SampleFeeder:
     """
     Feed samples to an estimator with the identifier node's bad-sample policy.
@@ -180,10 +222,11 @@ class SampleFeeder:
       input is counted in ``unexcited`` (the samples are still used; the
       estimators guard their covariance against wind-up).
 
-    :meth:`take_message`, :meth:`take_rows` and :meth:`due_estimates` are the
-    identifier's whole per-message rule (what is dropped, what restarts the
-    regressor, when estimates are published). identifier_node and
-    ``bcid replay`` both go through them, which is why they agree bit for bit.
+    :meth:`take_message` and :meth:`take_rows` are the identifier's whole
+    per-message rule (what is dropped, what restarts the regressor, when
+    estimates are published); they say what happened in a
+    :class:`FeedResult`. identifier_node and ``bcid replay`` both go through
+    them, which is why they agree bit for bit.
 
     Parameters
     ----------
@@ -203,13 +246,10 @@ class SampleFeeder:
         self.excitation_window = int(excitation_window)
         self.publish_period = int(publish_period)
         self.since_publish = 0
-        self.nonfinite_estimates = 0
-        #: What went wrong with the last message or rows that were refused.
-        self.problem = ''
+        #: Totals since construction (a reset keeps them).
         self.used = 0
         self.nonfinite = 0
         self.unexcited = 0
-        self.gaps = 0
         self.update_count = 0
         self.update_ns_total = 0
         self.update_ns_max = 0
@@ -217,9 +257,21 @@ class SampleFeeder:
         self._constant_run = 0
         self._restart_pending = False
 
-    def feed(self, rows: np.ndarray) -> int:
+    def feed(self, rows: np.ndarray, result: FeedResult | None = None) -> FeedResult:
         """
-        Feed rows ``[y, u1, ..., ur]`` (shape ``(k, 1 + r)``); return how many were used.
+        Feed rows ``[y, u1, ..., ur]`` (shape ``(k, 1 + r)``) to the estimator.
+
+        Parameters
+        ----------
+        rows : numpy.ndarray, shape ``(k, 1 + r)``
+            The samples, oldest first.
+        result : FeedResult, optional
+            Add the counts to this one (a fresh one by default).
+
+        Returns
+        -------
+        FeedResult
+            ``used``, ``nonfinite`` and ``unexcited`` counted; the rest untouched.
 
         Raises
         ------
@@ -227,12 +279,14 @@ class SampleFeeder:
             If a row does not have 1 + r values (nothing is fed then).
 
         """
+        if result is None:
+            result = FeedResult()
         estimator = self.estimator
         rows = np.asarray(rows, dtype=float)
         if rows.ndim != 2 or rows.shape[1] != 1 + estimator.num_inputs:
             raise ValueError(f'rows must have 1 + num_inputs = {1 + estimator.num_inputs} '
                              f'columns, got shape {rows.shape}')
-        used = 0
+        used = nonfinite = unexcited = 0
         clock = time.perf_counter_ns
         window = self.excitation_window
         # The checks of estimator.update, done once for the block: the shape
@@ -244,15 +298,15 @@ class SampleFeeder:
         update = estimator.update_trusted
         for k, y in enumerate(outputs):
             if not finite[k]:
-                self.nonfinite += 1
-                self.gap(count=False)
+                nonfinite += 1
+                self._restart_pending = True
                 continue
             if window:
                 u = input_lists[k]
                 if u == self._last_u:
                     self._constant_run += 1
                     if self._constant_run >= window:
-                        self.unexcited += 1
+                        unexcited += 1
                 else:
                     self._constant_run = 0
                     self._last_u = u
@@ -268,41 +322,58 @@ class SampleFeeder:
                 self.update_ns_max = elapsed
             used += 1
         self.used += used
-        return used
+        self.nonfinite += nonfinite
+        self.unexcited += unexcited
+        self.since_publish += used
+        result.used += used
+        result.nonfinite += nonfinite
+        result.unexcited += unexcited
+        return result
 
-    def take_message(self, message: Any) -> str | None:
+    def take_message(self, message: Any) -> FeedResult:
         """
-        Decode and feed one samples message; return what was wrong with it, or None.
+        Decode and feed one samples message; return what happened, with the due estimates.
 
         An empty message is dropped; a malformed one is dropped and restarts
         the regressor (a sample may be missing); see :meth:`take_rows` for the
-        rest. The reason is left in :attr:`problem`.
-
-        Returns
-        -------
-        str or None
-            ``'empty'``, ``'bad_layout'``, ``'estimator_errors'`` or None.
-
+        rest.
         """
         try:
             rows = decode_samples(message, self.estimator.num_inputs)
         except ValueError as error:
-            self.problem = str(error)
-            if self.problem.startswith('empty'):
-                return 'empty'
-            self.gap(count=False)
-            return 'bad_layout'
+            reason = str(error)
+            if reason.startswith('empty'):
+                return FeedResult(dropped='empty', reason=reason)
+            self.gap()
+            return FeedResult(dropped='bad_layout', reason=reason)
         return self.take_rows(rows)
 
-    def take_rows(self, rows: np.ndarray) -> str | None:
-        """Feed rows; return ``'estimator_errors'`` if the estimator raised, else None."""
+    def take_rows(self, rows: np.ndarray) -> FeedResult:
+        """
+        Feed the rows of one message; return what happened, with the due estimates.
+
+        If the estimator raises, the rest of the rows are dropped, the
+        regressor restarts and the result says ``'estimator_errors'``.
+        """
+        result = FeedResult()
         try:
-            self.since_publish += self.feed(rows)
+            self.feed(rows, result)
         except Exception as error:  # an estimator failure must not stop the stream
-            self.gap(count=False)
-            self.problem = repr(error)
-            return 'estimator_errors'
-        return None
+            self.gap()
+            result.dropped = 'estimator_errors'
+            result.reason = repr(error)
+            return result
+        self._add_estimates(result)
+        return result
+
+    def _add_estimates(self, result: FeedResult) -> None:
+        estimates = self.due_estimates()
+        if estimates is None and self._due():
+            result.withheld = True
+        result.estimates = estimates
+
+    def _due(self) -> bool:
+        return self.since_publish >= self.publish_period and bool(self.estimator.valid)
 
     def due_estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """
@@ -310,35 +381,24 @@ class SampleFeeder:
 
         It is time once ``publish_period`` samples were used since the last
         publication and the estimate is valid. A non-finite estimate is never
-        returned: it is counted in :attr:`nonfinite_estimates` instead.
+        returned (and the count since the last publication goes on).
         """
-        estimator = self.estimator
-        if self.since_publish < self.publish_period or not estimator.valid:
+        if not self._due():
             return None
+        estimator = self.estimator
         theta = estimator.theta
         uncompensated = estimator.theta_uncompensated
         if not (np.isfinite(theta).all() and np.isfinite(uncompensated).all()):
-            self.nonfinite_estimates += 1
             return None
         self.since_publish = 0
         return theta, uncompensated, estimator.noise
 
-    def gap(self, count: bool = True) -> None:
-        """
-        Note that samples are missing here: restart the regressor before the next update.
-
-        Parameters
-        ----------
-        count : bool
-            Count it in ``gaps`` (the caller counts the reason otherwise).
-
-        """
-        if count:
-            self.gaps += 1
+    def gap(self) -> None:
+        """Note that samples are missing here: restart the regressor before the next update."""
         self._restart_pending = True
 
     def reset(self) -> None:
-        """Reset the estimator and forget the input history (counters are kept)."""
+        """Reset the estimator and forget the input history (the totals are kept)."""
         self.estimator.reset()
         self.since_publish = 0
         self._last_u = None
@@ -361,5 +421,5 @@ class SampleFeeder:
         return bool(self.excitation_window) and self._constant_run >= self.excitation_window
 
 
-__all__ = ['FRAME_LABEL', 'SampleFeeder', 'decode_samples', 'estimate_layout', 'names_label',
-           'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']
+__all__ = ['FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'decode_samples', 'estimate_layout',
+           'names_label', 'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']

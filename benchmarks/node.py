@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from benchmarks.common import Result
+from bcid_ros.nodes.interface import DiagnosticKey
 
 SECTION = 'node throughput and latency'
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,19 +54,23 @@ class Bench:
         from diagnostic_msgs.msg import DiagnosticArray
         from std_msgs.msg import Float64MultiArray
 
+        from bcid_ros.nodes import interface
         from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS
 
         self.rclpy = rclpy
         self.context = rclpy.context.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('bcid_bench', context=self.context)
-        self.message_type = Float64MultiArray
-        self.samples = self.node.create_publisher(Float64MultiArray, 'samples', SAMPLES_QOS)
+        self.samples = self.node.create_publisher(Float64MultiArray, interface.SAMPLES,
+                                                  SAMPLES_QOS)
+        self._status_name = interface.status_name(interface.IDENTIFIER_NODE)
         self.counters: dict[str, float] = {}
         self.arrived = threading.Event()
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
-        self.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
-                                      lambda _: self.arrived.set(), LATCHED_QOS)
+        self.node.create_subscription(DiagnosticArray, interface.DIAGNOSTICS,
+                                      self._on_diagnostics, 10)
+        self.node.create_subscription(
+            Float64MultiArray, interface.resolve(interface.PARAMETERS, interface.IDENTIFIER_NODE),
+            lambda _: self.arrived.set(), LATCHED_QOS)
         self.node.create_subscription(Float64MultiArray, 'echo',
                                       lambda _: self.arrived.set(), SAMPLES_QOS)
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -81,7 +86,7 @@ class Bench:
 
     def _on_diagnostics(self, message) -> None:
         for status in message.status:
-            if status.name.endswith('bcid_identifier') or 'bcid_identifier' in status.name:
+            if status.name == self._status_name:
                 for pair in status.values:
                     try:
                         self.counters[pair.key] = float(pair.value)
@@ -98,16 +103,10 @@ class Bench:
         time.sleep(0.5)
 
     def message(self, rows: np.ndarray):
-        """Return a samples message of one sample or a frame (SPEC section 3)."""
-        from std_msgs.msg import MultiArrayDimension
+        """Return a samples message of one sample or a frame (docs/nodes.md)."""
+        from bcid_ros.nodes.messages import samples_message
 
-        from bcid_ros.samples import samples_data, samples_layout
-        message = self.message_type()
-        message.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride)
-                              for label, size, stride in samples_layout(len(rows),
-                                                                        rows.shape[1] - 1)]
-        message.data = samples_data(rows[:, 0], rows[:, 1:]).tolist()
-        return message
+        return samples_message(rows)
 
     def publish_at_rate(self, rows: np.ndarray, frame: int, rate: float,
                         seconds: float) -> int:
@@ -132,7 +131,7 @@ class Bench:
         """Wait until `samples used` stops changing (diagnostics are 1 Hz) and return it."""
         last, stable_since = None, time.monotonic()
         while time.monotonic() - stable_since < settle:
-            value = self.counters.get('samples used')
+            value = self.counters.get(DiagnosticKey.SAMPLES_USED)
             if value != last:
                 last, stable_since = value, time.monotonic()
             time.sleep(0.1)

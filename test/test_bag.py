@@ -290,8 +290,8 @@ def test_replay_json_is_the_spec_object(capsys):
     import json
 
     summary = json.loads(capsys.readouterr().out)
-    assert list(summary) == ['estimator', 'samples', 'parameters', 'uncompensated', 'noise',
-                             'truth', 'delta']
+    assert list(summary) == ['estimator', 'samples', 'valid', 'parameters', 'uncompensated',
+                             'noise', 'flags', 'truth', 'delta']
     assert summary['estimator'] == 'bcrls' and summary['samples'] == 10000
     names = ['a1', 'a2', 'b1_1', 'b1_2', 'b2_1', 'b2_2']
     assert list(summary['parameters']) == names == list(summary['uncompensated'])

@@ -31,7 +31,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile  # noqa: E402
 from rclpy.qos import ReliabilityPolicy  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -133,9 +133,11 @@ def test_play_into_identifier_equals_offline_replay(estimator, bag_name, message
     bag = head_of_bag(REPO / 'bags' / bag_name, tmp_path / 'bag', messages)
     config = REPO / 'config' / f'{bag_name}.yaml'
     offline = replay(bag, load_yaml_parameters(config), estimator=estimator)
-    received = []
+    received, valid = [], []
     graph.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
                                    lambda m: received.append(np.array(m.data)), LATCHED)
+    graph.node.create_subscription(Bool, '/bcid_identifier/valid',
+                                   lambda m: valid.append(m.data), LATCHED)
     env = ros_env(domain)
     node = subprocess.Popen(
         [str(BIN / 'identifier_node'), '--ros-args', '--params-file', str(config),
@@ -154,12 +156,16 @@ def test_play_into_identifier_equals_offline_replay(estimator, bag_name, message
                                                   atol=1e-12)
 
         graph.spin_until(final_seen, timeout=20)
+        graph.spin_until(lambda: valid, timeout=5)  # a busy topic may go first
     finally:
         stop(node)
     assert received, 'identifier_node published nothing: ' + node.stderr.read()[-2000:]
     # The contract is 1e-12; what we get (and README.md promises) is bit-identical.
     np.testing.assert_allclose(received[-1], offline.theta, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(received[-1], offline.theta)
+    # ~/valid at the end is the replay's valid (and so its JSON's).
+    assert offline.valid and valid[-1] is True and offline.summary()['valid'] is True
+    assert offline.summary()['flags'] == offline.flags
 
 
 def test_record_stops_on_sigint_and_keeps_everything_received(tmp_path, domain, graph):

@@ -7,7 +7,6 @@ same samples: the node must do no numerics of its own, so they are equal to
 1e-12.
 """
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ rclpy = pytest.importorskip('rclpy')
 
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from bcid_ros.nodes.common import LATCHED_QOS  # noqa: E402
@@ -57,6 +56,9 @@ class Recorder:
         self.uncompensated = []
         self.noise = []
         self.labels = {}
+        self.valid = []
+        self.node.create_subscription(Bool, f'{prefix}/valid',
+                                      lambda message: self.valid.append(message.data), qos)
         for topic, store in (('parameters', self.parameters),
                              ('parameters_uncompensated', self.uncompensated),
                              ('noise_variance', self.noise)):
@@ -99,32 +101,24 @@ def offline(scenario, samples, values=None):
     return estimator
 
 
-def needs(module):
-    """Skip unless the estimator module exists (bciv and cl_bcls land separately)."""
-    if importlib.util.find_spec(module) is None:
-        pytest.skip(f'{module} is not there yet')
-
-
 # Reduced sizes. The bounds on delta guard the configs (a wrong order or
 # estimator gives delta of the order of the LS bias: 7.5 % for Ding, see
-# PAPER_NOTES.md); the node's own correctness is the exact equality to the
+# docs/reproduction_ding.md); the node's own correctness is the exact equality to the
 # offline run, which is the strong check.
 SCENARIOS = [
-    ('ding_miso', 2000, 'bcid_ros.estimators.bcrls', 0.03),
-    ('ding_miso_nonstationary', 2000, 'bcid_ros.estimators.bcrls', 0.03),
-    ('ikenoue_colored', 6000, 'bcid_ros.estimators.bciv', 0.15),
-    ('ikenoue_white_input', 6000, 'bcid_ros.estimators.bciv', 0.15),
+    ('ding_miso', 2000, 0.03),
+    ('ding_miso_nonstationary', 2000, 0.03),
+    ('ikenoue_colored', 6000, 0.15),
+    ('ikenoue_white_input', 6000, 0.15),
     # cl_bcls: over six seeds at N = 3000 the offline delta was 0.02 to 0.24
     # (seed 0, the config's, is the 0.24), so 0.3 only guards the config.
-    ('ikeda_closed_loop', 3000, 'bcid_ros.estimators.cl_bcls', 0.3),
+    ('ikeda_closed_loop', 3000, 0.3),
 ]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('scenario,samples,module,bound', SCENARIOS,
-                         ids=[s[0] for s in SCENARIOS])
-def test_end_to_end_equals_offline(ros_context, executor, scenario, samples, module, bound):
-    needs(module)
+@pytest.mark.parametrize('scenario,samples,bound', SCENARIOS, ids=[s[0] for s in SCENARIOS])
+def test_end_to_end_equals_offline(ros_context, executor, scenario, samples, bound):
     # Frames of 10 at 3 kHz for the slower, longer bciv runs.
     frame, rate = (10, 3000.0) if scenario.startswith('ikenoue') else (1, 1000.0)
     identifier, _ = run_pair(executor, ros_context, scenario, samples,
@@ -157,7 +151,10 @@ def test_frames_late_joiner_and_reset(ros_context, executor):
     # A late joiner gets the latest estimate at once (transient_local, depth 1).
     late = Recorder(ros_context, qos=LATCHED_QOS)
     executor.add_node(late.node)
-    assert spin_until(executor, lambda: late.parameters and late.noise, timeout=5)
+    assert spin_until(executor, lambda: late.parameters and late.noise and late.valid,
+                      timeout=5)
+    # ~/valid went false -> true once, before the first estimate, and is latched.
+    assert recorder.valid == [False, True] and late.valid == [True]
     assert len(late.parameters) == 1
     np.testing.assert_array_equal(late.parameters[0], identifier.estimator.theta)
     np.testing.assert_array_equal(late.noise[0], identifier.estimator.noise)
@@ -169,6 +166,7 @@ def test_frames_late_joiner_and_reset(ros_context, executor):
     assert spin_until(executor, future.done, timeout=5)
     assert future.result().success
     assert identifier.estimator.samples == 0 and not identifier.estimator.valid
+    assert spin_until(executor, lambda: late.valid[-1:] == [False], timeout=5)
 
 
 @pytest.mark.parametrize('input_type,output_type,sync', [

@@ -80,7 +80,7 @@ class Sender:
 
 
 def frame_message(rows, layout=None):
-    """Return a samples message with the given rows and (default: SPEC) layout."""
+    """Return a samples message with the given rows and (default: docs/nodes.md) layout."""
     rows = np.asarray(rows, dtype=float)
     message = Float64MultiArray()
     if layout is None:
@@ -113,7 +113,7 @@ def test_bad_input_matrix_combined(ros_context, executor):
     def bad(message, gap=True):
         messages.append(message)
         if gap:
-            expected.gap(count=False)
+            expected.gap()
 
     good(rows[:50])
     nan_row = rows[50].copy()
@@ -158,7 +158,7 @@ def test_bad_input_matrix_combined(ros_context, executor):
                timeout=5)
     assert recorder.parameters and all(np.isfinite(p).all() for p in recorder.parameters)
     assert all(np.isfinite(p).all() for p in recorder.noise + recorder.uncompensated)
-    values = dict(identifier.status()[2])
+    values = identifier.diagnostics.status().as_dict()
     assert values['bad samples: NaN or Inf'] == 3
     assert values['bad messages: wrong length or layout'] == 4
     assert values['bad samples'] == 3 + 4 + 1
@@ -260,5 +260,6 @@ def test_demo_runs_two_processes_and_converges(tmp_path):
     assert (tmp_path / 'demo_ding_miso.png').stat().st_size > 10000
     final = [line for line in result.stdout.splitlines() if line.startswith('wall time')]
     delta = float(final[0].split('final delta ')[1].split(' %')[0])
-    # LS is biased by 7.5 % here (PAPER_NOTES.md); BCRLS at N = 2000 is well below 3 %.
+    # LS is biased by 7.5 % here (docs/reproduction_ding.md); BCRLS at N = 2000 is well
+    # below 3 %.
     assert delta < 3.0

@@ -42,7 +42,7 @@ def make_qos(*, reliable: bool = True, transient_local: bool = False, depth: int
                UNSPECIFIED, UNSPECIFIED, QosLiveliness.AUTOMATIC, UNSPECIFIED, False)
 
 
-#: The estimate and truth topics: reliable, transient_local, depth 1 (SPEC section 4).
+#: The estimate and truth topics: reliable, transient_local, depth 1 (docs/nodes.md).
 LATCHED = make_qos(reliable=True, transient_local=True, depth=1)
 
 

@@ -25,13 +25,13 @@ import zstandard
 from bcid_ros.bag.cdr import decode_float64_multi_array
 from bcid_ros.bag.qos import parse_offered, Qos
 from bcid_ros.errors import BcidError
+from bcid_ros.nodes.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
+                                      TRUE_PARAMETERS)
 from bcid_ros.samples import parse_names_label
 
 #: Failures of the MCAP and CDR layers that mean "this file is broken".
 READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError,
                IndexError, UnicodeDecodeError, TypeError)
-
-FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 
 
 @dataclasses.dataclass(frozen=True)
@@ -296,13 +296,13 @@ class BagReader:
 
         Returns None when the bag has no ``true_parameters`` topic.
         """
-        topic = self.find_topic('true_parameters')
+        topic = self.find_topic(basename(TRUE_PARAMETERS))
         if topic is None:
             return None
         names, values = _named_values(self.last_float64_multi_array(topic), topic)
         noise_names: tuple[str, ...] = ()
         noise = np.zeros(0)
-        noise_topic = self.find_topic('true_noise_variance')
+        noise_topic = self.find_topic(basename(TRUE_NOISE_VARIANCE))
         if noise_topic is not None:
             noise_names, noise = _named_values(self.last_float64_multi_array(noise_topic),
                                                noise_topic)

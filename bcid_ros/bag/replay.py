@@ -4,8 +4,7 @@ Offline replay: run the identifier's estimator over a bag's samples, no ROS grap
 The estimator is built from the same parameter file through
 :func:`bcid_ros.parameters.estimator_from_parameters`, and every message
 goes through the node's own per-message rule,
-:meth:`bcid_ros.samples.SampleFeeder.take_message` and
-:meth:`~bcid_ros.samples.SampleFeeder.due_estimates`, which also decide the
+:meth:`bcid_ros.samples.SampleFeeder.take_message`, which also decides the
 samples where estimates are published. So the replay's final estimate
 equals what ``identifier_node`` publishes for the same bag, to the last bit.
 """
@@ -22,20 +21,22 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.bag.qos import LATCHED
-from bcid_ros.bag.reader import BagReader, BagTruth, FLOAT64_MULTI_ARRAY
+from bcid_ros.bag.reader import BagReader, BagTruth
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.errors import BcidError
+from bcid_ros.nodes.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
+                                      PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
 from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
 from bcid_ros.samples import estimate_layout, SampleFeeder
 
 #: The topic the identifier reads (combined input mode).
-SAMPLES_TOPIC = '/samples'
+SAMPLES_TOPIC = resolve(SAMPLES, IDENTIFIER_NODE)
 
 #: The node's estimate topics (node name ``bcid_identifier``), as written by ``--output``.
 OUTPUT_TOPICS = {
-    'parameters': '/bcid_identifier/parameters',
-    'uncompensated': '/bcid_identifier/parameters_uncompensated',
-    'noise': '/bcid_identifier/noise_variance',
+    'parameters': resolve(PARAMETERS, IDENTIFIER_NODE),
+    'uncompensated': resolve(PARAMETERS_UNCOMPENSATED, IDENTIFIER_NODE),
+    'noise': resolve(NOISE_VARIANCE, IDENTIFIER_NODE),
 }
 
 
@@ -56,6 +57,7 @@ class ReplayResult:
     theta_uncompensated: np.ndarray
     noise: np.ndarray
     valid: bool
+    flags: dict[str, int]
     samples: int
     messages: int
     malformed: int
@@ -79,19 +81,23 @@ class ReplayResult:
 
     def summary(self) -> dict[str, Any]:
         """
-        Return the SPEC section 8 JSON object.
+        Return the ``bcid replay --json`` object (docs/bags.md).
 
-        Keys: ``estimator``, ``samples``, ``parameters``, ``uncompensated``,
-        ``noise`` and, when the bag carries the truth, ``truth``
+        Keys: ``estimator``, ``samples``, ``valid`` (whether the final
+        estimate is valid, as ``~/valid`` would say), ``parameters``,
+        ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
+        ``{name: count}``) and, when the bag carries the truth, ``truth``
         (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
         (the relative error ||theta_hat - theta|| / ||theta||, a fraction).
         """
         out: dict[str, Any] = {
             'estimator': self.estimator,
             'samples': self.samples,
+            'valid': self.valid,
             'parameters': _named(self.parameter_names, self.theta),
             'uncompensated': _named(self.parameter_names, self.theta_uncompensated),
             'noise': _named(self.noise_names, self.noise),
+            'flags': dict(self.flags),
         }
         if self.truth is not None:
             out['truth'] = self.truth.as_dict()
@@ -156,12 +162,12 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     for log_time, message in reader.float64_multi_arrays(topic):
         messages += 1
         # The node's own per-message rule (SampleFeeder), so that the estimates are equal.
-        problem = feeder.take_message(message)
-        if problem == 'estimator_errors':
+        result = feeder.take_message(message)
+        if result.dropped == 'estimator_errors':
             failures += 1
-        elif problem:
+        elif result.dropped:
             malformed += 1
-        estimates = None if problem else feeder.due_estimates()
+        estimates = result.estimates
         if estimates is not None:
             times.append(log_time)
             counts.append(feeder.used)
@@ -175,7 +181,8 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     return ReplayResult(
         estimator=values['estimator'], parameter_names=est.parameter_names,
         noise_names=tuple(est.noise_names), theta=est.theta,
-        theta_uncompensated=est.theta_uncompensated, noise=est.noise, valid=est.valid,
+        theta_uncompensated=est.theta_uncompensated, noise=est.noise, valid=bool(est.valid),
+        flags=dict(est.flags),
         samples=feeder.used, messages=messages, malformed=malformed, failures=failures,
         nonfinite=feeder.nonfinite, truth=truth, elapsed_s=elapsed,
         times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),

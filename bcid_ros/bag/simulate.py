@@ -1,7 +1,7 @@
 """
 ``bcid simulate``: write a scenario bag offline, in the simulator node's format.
 
-The bag holds what ``simulator_node`` publishes (SPEC section 6): one
+The bag holds what ``simulator_node`` publishes (docs/nodes.md): one
 ``/samples`` message ``[y, u1, ..., ur]`` per sampling instant, stamped
 ``k / rate`` seconds from t = 0, and the latched truth topics
 ``/bcid_simulator/true_parameters`` and ``/bcid_simulator/true_noise_variance``
@@ -14,14 +14,16 @@ from __future__ import annotations
 from pathlib import Path
 
 from bcid_ros.bag.qos import LATCHED, make_qos
-from bcid_ros.bag.writer import BagWriter, FLOAT64_MULTI_ARRAY, float64_multi_array
+from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.errors import BcidError
+from bcid_ros.nodes.interface import (FLOAT64_MULTI_ARRAY, resolve, SAMPLES, SIMULATOR_NODE,
+                                      TRUE_NOISE_VARIANCE, TRUE_PARAMETERS)
 from bcid_ros.samples import estimate_layout, samples_layout
 from bcid_ros.simulation import make_scenario
 
-SAMPLES_TOPIC = '/samples'
-TRUE_PARAMETERS_TOPIC = '/bcid_simulator/true_parameters'
-TRUE_NOISE_TOPIC = '/bcid_simulator/true_noise_variance'
+SAMPLES_TOPIC = resolve(SAMPLES, SIMULATOR_NODE)
+TRUE_PARAMETERS_TOPIC = resolve(TRUE_PARAMETERS, SIMULATOR_NODE)
+TRUE_NOISE_TOPIC = resolve(TRUE_NOISE_VARIANCE, SIMULATOR_NODE)
 
 #: QoS of the simulator's samples topic: reliable, volatile, keep_last 1000.
 SAMPLES_QOS = make_qos(reliable=True, transient_local=False, depth=1000)

@@ -6,7 +6,7 @@ MCAP storage plugin: rosbags writes ``metadata.yaml``, the ``ros2`` profile,
 ``ros2msg`` schemas, full type names and each channel's
 ``offered_qos_profiles``, and compresses the chunks with zstd. The one thing
 added here is the file name: rosbag2 names the first file of a bag
-``<bag>_0.mcap`` (SPEC section 7), rosbags ``<bag>.mcap``.
+``<bag>_0.mcap`` (docs/bags.md), rosbags ``<bag>.mcap``.
 
 Messages are serialised to CDR with the rosbags type store of ROS 2 Jazzy, so
 ``bcid simulate`` and ``bcid replay --output`` need no ROS installation.
@@ -26,11 +26,10 @@ from rosbags.typesys import get_typestore, Stores
 
 from bcid_ros.bag.qos import Qos
 from bcid_ros.errors import BcidError
+from bcid_ros.nodes.interface import FLOAT64_MULTI_ARRAY
 
 #: The message definitions of ROS 2 Jazzy (std_msgs, diagnostic_msgs, sensor_msgs, ...).
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
-FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 
 #: rosbag2 metadata version written (9: Jazzy's, offered_qos_profiles as a YAML list).
 METADATA_VERSION = 9
@@ -140,10 +139,6 @@ class BagWriter:
         self._types[topic] = msgtype
         self.counts[topic] = 0
 
-    def has_topic(self, topic: str) -> bool:
-        """Return whether ``topic`` has been added."""
-        return topic in self._connections
-
     def write(self, topic: str, time_ns: int, data: bytes | memoryview) -> None:
         """Write one CDR-serialised message received (or stamped) at ``time_ns``."""
         self._writer.write(self._connections[topic], int(time_ns), data)
@@ -176,5 +171,4 @@ class BagWriter:
             self.abort()
 
 
-__all__ = ['BagWriter', 'FLOAT64_MULTI_ARRAY', 'TYPESTORE', 'float64_multi_array',
-           'full_type_name']
+__all__ = ['BagWriter', 'TYPESTORE', 'float64_multi_array', 'full_type_name']

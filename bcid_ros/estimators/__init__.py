@@ -13,8 +13,8 @@ from typing import Any
 from bcid_ros.estimators.base import (EstimatorState, parameter_names, RecursiveEstimator,
                                       Trajectory)
 
-#: Registry name -> 'module:class'. Imported lazily so that one estimator's
-#: dependencies (scipy for cl_bcls) do not load for another.
+#: Registry name -> 'module:class'. A module is imported when its estimator is
+#: first asked for by name.
 ESTIMATORS = {
     'rls': 'bcid_ros.estimators.rls:Rls',
     'bcrls': 'bcid_ros.estimators.bcrls:Bcrls',

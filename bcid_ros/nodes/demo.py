@@ -24,6 +24,9 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.errors import BcidError
+from bcid_ros.nodes import interface
+from bcid_ros.nodes.interface import COUNTERS, DiagnosticKey as Key
+from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
 #: Per scenario: (samples, rate in Hz, frame size) that converge in well under a minute.
@@ -53,11 +56,6 @@ def executable(name: str) -> list[str]:
     module = {'identifier_node': 'bcid_ros.nodes.identifier_node',
               'simulator_node': 'bcid_ros.nodes.simulator_node'}[name]
     return [sys.executable, '-m', module]
-
-
-def relative_error(theta: np.ndarray, truth: np.ndarray) -> float:
-    """Return delta = ||theta - truth|| / ||truth||."""
-    return float(np.linalg.norm(theta - truth) / np.linalg.norm(truth))
 
 
 class Child:
@@ -120,21 +118,23 @@ class Monitor:
         self.level = 0
         self.update_us = ''
         self.last_estimate_time = 0.0
-        self._identifier_status = f'{identifier}: identifier'
+        self._identifier_status = interface.status_name(identifier)
+        latched = (
+            (interface.PARAMETERS, identifier, self.on_parameters),
+            (interface.PARAMETERS_UNCOMPENSATED, identifier, self.on_uncompensated),
+            (interface.NOISE_VARIANCE, identifier, self.on_noise),
+            (interface.TRUE_PARAMETERS, simulator, self.on_truth),
+            (interface.TRUE_NOISE_VARIANCE, simulator, self.on_true_noise))
         self.subscriptions = [
-            node.create_subscription(Float64MultiArray, f'/{identifier}/parameters',
-                                     self.on_parameters, LATCHED_QOS),
-            node.create_subscription(Float64MultiArray, f'/{identifier}/parameters_uncompensated',
-                                     self.on_uncompensated, LATCHED_QOS),
-            node.create_subscription(Float64MultiArray, f'/{identifier}/noise_variance',
-                                     self.on_noise, LATCHED_QOS),
-            node.create_subscription(Float64MultiArray, f'/{simulator}/true_parameters',
-                                     self.on_truth, LATCHED_QOS),
-            node.create_subscription(Float64MultiArray, f'/{simulator}/true_noise_variance',
-                                     self.on_true_noise, LATCHED_QOS),
-            node.create_subscription(Float64MultiArray, '/samples', self.on_samples,
-                                     SAMPLES_QOS),
-            node.create_subscription(DiagnosticArray, '/diagnostics', self.on_diagnostics, 10),
+            node.create_subscription(Float64MultiArray, interface.resolve(topic, owner),
+                                     callback, LATCHED_QOS)
+            for topic, owner, callback in latched]
+        self.subscriptions += [
+            node.create_subscription(Float64MultiArray,
+                                     interface.resolve(interface.SAMPLES, identifier),
+                                     self.on_samples, SAMPLES_QOS),
+            node.create_subscription(DiagnosticArray, interface.DIAGNOSTICS,
+                                     self.on_diagnostics, 10),
         ]
 
     def on_samples(self, message: Any) -> None:
@@ -179,14 +179,14 @@ class Monitor:
                     if isinstance(status.level, bytes) else int(status.level)
                 self.diagnostics = {kv.key: kv.value for kv in status.values}
                 self.diagnostics['message'] = status.message
-                if self.diagnostics.get('updates in the last period', '0') != '0':
-                    self.update_us = self.diagnostics.get('update time mean (µs)', '')
+                if self.diagnostics.get(Key.UPDATES, '0') != '0':
+                    self.update_us = self.diagnostics.get(Key.UPDATE_MEAN_US, '')
 
     def delta(self, theta: np.ndarray | None) -> float:
         """Return delta of an estimate against the truth (NaN if either is missing)."""
         if theta is None or self.truth is None or theta.shape != self.truth.shape:
             return float('nan')
-        return relative_error(theta, self.truth)
+        return float(relative_error(theta, self.truth))
 
 
 def live_line(monitor: Monitor, total: int, elapsed: float) -> str:
@@ -284,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
     node = rclpy.create_node('bcid_demo', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    monitor = Monitor(node, 'bcid_identifier', 'bcid_simulator')
+    monitor = Monitor(node, interface.IDENTIFIER_NODE, interface.SIMULATOR_NODE)
     children: list[Child] = []
     previous_handler = signal.signal(signal.SIGTERM, _interrupt)
     try:
@@ -321,9 +321,8 @@ def run(args: argparse.Namespace) -> int:
             if code == 0 and finished_at is None:
                 finished_at = now
             if finished_at is not None:
-                used = int(monitor.diagnostics.get('samples used', '0') or 0)
-                lost = int(monitor.diagnostics.get('lost in transport (messages, by sequence '
-                                                   'number)', '0') or 0)
+                used = int(monitor.diagnostics.get(Key.SAMPLES_USED, '0') or 0)
+                lost = int(monitor.diagnostics.get(COUNTERS['lost'], '0') or 0)
                 settled = used + lost * frame >= samples and \
                     now - monitor.last_estimate_time > 0.3
                 if settled or now - finished_at > SETTLE_TIMEOUT:
@@ -348,8 +347,8 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(summary(monitor))
     diag = monitor.diagnostics
-    print(f'identifier: {diag.get("samples used", "?")} samples used, '
-          f'{diag.get("samples dropped", "?")} dropped, {diag.get("bad samples", "?")} bad; '
+    print(f'identifier: {diag.get(Key.SAMPLES_USED, "?")} samples used, '
+          f'{diag.get(Key.SAMPLES_DROPPED, "?")} dropped, {diag.get(Key.BAD_SAMPLES, "?")} bad; '
           f'update time mean {_one_decimal(monitor.update_us)} µs (while running)')
     png = out_dir / f'demo_{args.scenario}.png'
     plot(monitor, args.scenario, png)

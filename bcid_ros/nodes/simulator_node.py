@@ -1,5 +1,5 @@
 """
-The simulator node: a scenario's samples at a fixed rate (SPEC sections 3 and 6).
+The simulator node: a scenario's samples at a fixed rate (docs/nodes.md).
 
 The samples come from :mod:`bcid_ros.simulation`, the code the paper
 reproductions use. The node draws them in blocks from one stream whose
@@ -19,14 +19,14 @@ from typing import Any
 import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray
 
+from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import declare_table, LATCHED_QOS, run_node, SAMPLES_QOS, usage
-from bcid_ros.nodes.identifier_node import as_doubles, estimate_message
+from bcid_ros.nodes.messages import estimate_message, SamplesLayouts, topic_class
 from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
                                  SIMULATOR_PARAMETERS)
-from bcid_ros.samples import samples_data, samples_layout
+from bcid_ros.samples import samples_data
 from bcid_ros.simulation import make_scenario
 
 #: Longest timer period (s); ticks publish whatever is due.
@@ -57,7 +57,7 @@ class SimulatorNode(Node):
 
     """
 
-    def __init__(self, node_name: str = 'bcid_simulator', **kwargs: Any) -> None:
+    def __init__(self, node_name: str = interface.SIMULATOR_NODE, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         settings = check_simulator_parameters(declare_table(self, SIMULATOR_PARAMETERS))
         self.settings = settings
@@ -68,9 +68,8 @@ class SimulatorNode(Node):
             self.scenario = make_scenario(settings['scenario'])
         self.num_inputs = self.scenario.num_inputs
         mode = settings['output_mode']
-        if mode != 'combined' and settings['input_type'] == 'float64' and self.num_inputs != 1:
-            raise ValueError(f"parameter 'input_type' must be float64_multi_array or "
-                             f"joint_state for {self.num_inputs} inputs, got 'float64'")
+        if mode != 'combined':
+            interface.check_input_width(settings['input_type'], self.num_inputs)
         self.rate = settings['rate_hz']
         self.frame_size = settings['frame_size']
         self.num_samples = settings['num_samples']
@@ -84,31 +83,29 @@ class SimulatorNode(Node):
         truth = self.scenario.truth()
         self.truth = truth
         self.true_parameters_publisher = self.create_publisher(
-            Float64MultiArray, '~/true_parameters', LATCHED_QOS)
+            Float64MultiArray, interface.TRUE_PARAMETERS, LATCHED_QOS)
         self.true_noise_publisher = self.create_publisher(
-            Float64MultiArray, '~/true_noise_variance', LATCHED_QOS)
-        message = estimate_message(truth.parameter_names)
-        message.data = np.asarray(truth.parameters, dtype=float).tolist()
-        self.true_parameters_publisher.publish(message)
-        message = estimate_message(truth.noise_names)
-        message.data = np.asarray(truth.noise, dtype=float).tolist()
-        self.true_noise_publisher.publish(message)
+            Float64MultiArray, interface.TRUE_NOISE_VARIANCE, LATCHED_QOS)
+        self.true_parameters_publisher.publish(
+            estimate_message(truth.parameter_names, truth.parameters))
+        self.true_noise_publisher.publish(estimate_message(truth.noise_names, truth.noise))
 
         self.samples_publisher = None
         self.input_publisher = None
         self.output_publisher = None
         if mode in ('combined', 'both'):
             self.samples_publisher = self.create_publisher(
-                Float64MultiArray, 'samples', SAMPLES_QOS)
+                Float64MultiArray, interface.SAMPLES, SAMPLES_QOS)
         if mode in ('separate', 'both'):
-            self.input_type = {'float64': Float64, 'float64_multi_array': Float64MultiArray,
-                               'joint_state': JointState}[settings['input_type']]
-            self.output_type = {'float64': Float64, 'joint_state': JointState}[
-                settings['output_type']]
-            self.input_publisher = self.create_publisher(self.input_type, 'input', SAMPLES_QOS)
-            self.output_publisher = self.create_publisher(self.output_type, 'output',
+            self._input = (interface.MESSAGE_TYPES[settings['input_type']].build,
+                           topic_class(settings['input_type']))
+            self._output = (interface.MESSAGE_TYPES[settings['output_type']].build,
+                            topic_class(settings['output_type']))
+            self.input_publisher = self.create_publisher(self._input[1], interface.INPUT,
+                                                         SAMPLES_QOS)
+            self.output_publisher = self.create_publisher(self._output[1], interface.OUTPUT,
                                                           SAMPLES_QOS)
-        self._layouts: dict[int, list[MultiArrayDimension]] = {}
+        self._layouts = SamplesLayouts(self.num_inputs)
         self._input_names = [f'u{i}' for i in range(1, self.num_inputs + 1)]
 
         frame_period = self.frame_size / self.rate
@@ -144,10 +141,8 @@ class SimulatorNode(Node):
         if self.num_samples:
             due = min(due, self.num_samples)
         count = due - self.sent
-        if self.num_samples and due == self.num_samples:
-            pass  # the last (possibly partial) frame
-        else:
-            count -= count % self.frame_size
+        if not (self.num_samples and due == self.num_samples):
+            count -= count % self.frame_size  # whole frames, but for the last one
         if count > 0:
             y, u = self.stream.take(count)
             for start in range(0, count, self.frame_size):
@@ -166,43 +161,20 @@ class SimulatorNode(Node):
         self.done = True
 
     # ---------------------------------------------------------- messages
-    def _layout(self, count: int) -> list[MultiArrayDimension]:
-        layout = self._layouts.get(count)
-        if layout is None:
-            layout = [MultiArrayDimension(label=label, size=size, stride=stride)
-                      for label, size, stride in samples_layout(count, self.num_inputs)]
-            self._layouts[count] = layout
-        return layout
-
     def _publish(self, y: np.ndarray, u: np.ndarray, first_index: int) -> None:
         if self.samples_publisher is not None:
-            message = Float64MultiArray()
-            message.layout.dim = self._layout(y.shape[0])
-            message.data = as_doubles(samples_data(y, u))
-            self.samples_publisher.publish(message)
+            self.samples_publisher.publish(
+                self._layouts.message(samples_data(y, u), y.shape[0]))
         if self.input_publisher is None:
             return
+        (build_input, input_class), (build_output, output_class) = self._input, self._output
         period_ns = 1e9 / self.rate
         for row in range(y.shape[0]):
             stamp = self._stamp0_ns + int(round((first_index + row) * period_ns))
-            self.input_publisher.publish(self._input_message(u[row], stamp))
-            self.output_publisher.publish(self._output_message(float(y[row]), stamp))
-
-    def _input_message(self, u: np.ndarray, stamp: int) -> Any:
-        if self.input_type is Float64:
-            return Float64(data=float(u[0]))
-        if self.input_type is Float64MultiArray:
-            return Float64MultiArray(data=u.tolist())
-        message = JointState(name=self._input_names, effort=u.tolist())
-        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-        return message
-
-    def _output_message(self, y: float, stamp: int) -> Any:
-        if self.output_type is Float64:
-            return Float64(data=y)
-        message = JointState(name=['y'], position=[y])
-        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-        return message
+            self.input_publisher.publish(build_input(input_class, u[row], self._input_names,
+                                                     'effort', stamp))
+            self.output_publisher.publish(build_output(output_class, [y[row]], ['y'],
+                                                       'position', stamp))
 
 
 def main(argv: list[str] | None = None) -> int:

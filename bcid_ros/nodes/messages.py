@@ -1,0 +1,86 @@
+"""
+The rclpy side of the nodes' messages: classes by type name, and building messages.
+
+The names and the message type table are in :mod:`bcid_ros.nodes.interface`
+(free of ROS); this module turns them into rclpy message classes and builds
+the messages both nodes publish.
+"""
+
+from __future__ import annotations
+
+import array
+import importlib
+from typing import Any, Sequence
+
+import numpy as np
+from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
+
+from bcid_ros.nodes.interface import MESSAGE_TYPES
+from bcid_ros.samples import estimate_layout, samples_layout
+
+
+def message_class(ros_type: str) -> type:
+    """Return the rclpy class of a full type name such as ``'std_msgs/msg/Float64'``."""
+    package, kind, name = ros_type.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+
+
+def topic_class(type_name: str) -> type:
+    """Return the rclpy class of an ``input_type``/``output_type`` value."""
+    return message_class(MESSAGE_TYPES[type_name].ros_type)
+
+
+def as_doubles(values: np.ndarray) -> array.array:
+    """Return a float64 array as array('d'), which the message setter takes without a check."""
+    result = array.array('d')
+    result.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return result
+
+
+def _dimensions(layout: Sequence[tuple[str, int, int]]) -> list[MultiArrayDimension]:
+    return [MultiArrayDimension(label=label, size=size, stride=stride)
+            for label, size, stride in layout]
+
+
+def estimate_message(names: Sequence[str], values: Any = None) -> Float64MultiArray:
+    """Return an estimate message whose layout carries the names (docs/nodes.md, Topics)."""
+    message = Float64MultiArray()
+    message.layout.dim = _dimensions([estimate_layout(names)])
+    if values is not None:
+        message.data = as_doubles(values)
+    return message
+
+
+def samples_message(rows: np.ndarray) -> Float64MultiArray:
+    """Return a samples message of rows ``[y, u1, ..., ur]``: one sample, or a frame."""
+    message = Float64MultiArray()
+    message.layout.dim = _dimensions(samples_layout(rows.shape[0], rows.shape[1] - 1))
+    message.data = as_doubles(rows.reshape(-1))
+    return message
+
+
+def valid_message(valid: bool) -> Bool:
+    """Return the ``~/valid`` message."""
+    return Bool(data=bool(valid))
+
+
+class SamplesLayouts:
+    """The ``layout.dim`` of samples messages, built once per sample count."""
+
+    def __init__(self, num_inputs: int) -> None:
+        self.num_inputs = num_inputs
+        self._layouts: dict[int, list[MultiArrayDimension]] = {}
+
+    def message(self, data: np.ndarray, count: int) -> Float64MultiArray:
+        """Return a samples message of ``count`` samples with the row-major ``data``."""
+        layout = self._layouts.get(count)
+        if layout is None:
+            layout = self._layouts[count] = _dimensions(samples_layout(count, self.num_inputs))
+        message = Float64MultiArray()
+        message.layout.dim = layout
+        message.data = as_doubles(data)
+        return message
+
+
+__all__ = ['SamplesLayouts', 'as_doubles', 'estimate_message', 'message_class',
+           'samples_message', 'topic_class', 'valid_message']
