@@ -24,7 +24,8 @@ from bcid_ros.control.loop import AdaptiveController, EVENTS, Outcome, REFUSALS
 from bcid_ros.control.parameters import CONTROLLER_PARAMETERS
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
                                    SAMPLES_QOS, Throttle, usage)
-from bcid_ros.nodes.diagnostics import DiagnosticsTimer, OK, WARN
+from bcid_ros.nodes import interface
+from bcid_ros.nodes.diagnostics import DiagnosticsUpdater, OK, Status, WARN
 from bcid_ros.parameters import spec_by_name
 from bcid_ros.samples import parse_names_label
 
@@ -72,7 +73,7 @@ class AdaptiveControllerNode(Node):
 
     """
 
-    def __init__(self, node_name: str = 'bcid_controller', **kwargs: Any) -> None:
+    def __init__(self, node_name: str = interface.CONTROLLER_NODE, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         self.loop = AdaptiveController(declare_table(self, CONTROLLER_PARAMETERS))
         settings = self.loop.settings
@@ -88,27 +89,29 @@ class AdaptiveControllerNode(Node):
         self._identifier_publishers = 0
 
         prefix = settings['identifier'].rstrip('/')
-        self.parameters_topic = f'{prefix}/parameters'
+        self.parameters_topic = f'{prefix}/{interface.basename(interface.PARAMETERS)}'
         try:
-            self.input_publisher = self.create_publisher(Float64, 'input', SAMPLES_QOS)
+            self.input_publisher = self.create_publisher(Float64, interface.INPUT, SAMPLES_QOS)
             self.controller_publisher = self.create_publisher(
-                Float64MultiArray, '~/controller', LATCHED_QOS)
+                Float64MultiArray, interface.CONTROLLER, LATCHED_QOS)
             self.output_subscription = self.create_subscription(
-                Float64, 'output', self.on_output, SAMPLES_QOS)
+                Float64, interface.OUTPUT, self.on_output, SAMPLES_QOS)
             self.reference_subscription = self.create_subscription(
-                Float64, 'reference', self.on_reference, SAMPLES_QOS)
+                Float64, interface.REFERENCE, self.on_reference, SAMPLES_QOS)
             self.parameters_subscription = self.create_subscription(
                 Float64MultiArray, self.parameters_topic, self.on_parameters, LATCHED_QOS)
             self.std_subscription = self.create_subscription(
-                Float64MultiArray, f'{prefix}/parameter_std', self.on_std, LATCHED_QOS)
+                Float64MultiArray, f'{prefix}/{interface.basename(interface.PARAMETER_STD)}',
+                self.on_std, LATCHED_QOS)
             self.valid_subscription = self.create_subscription(
-                Bool, f'{prefix}/valid', self.on_valid, LATCHED_QOS)
+                Bool, f'{prefix}/{interface.basename(interface.VALID)}', self.on_valid,
+                LATCHED_QOS)
         except Exception as error:  # rclpy's InvalidTopicNameException
             raise ValueError(f'parameter \'identifier\' must be a valid topic prefix, got '
                              f'{settings["identifier"]!r}: {error}') from None
         self.redesign_timer = self.create_timer(settings['redesign_period'], self.on_redesign)
-        self.diagnostics = DiagnosticsTimer(self, f'{self.get_name()}: controller',
-                                            self.status, hardware_id=self.get_name())
+        self.diagnostics = DiagnosticsUpdater(self, f'{self.get_name()}: controller',
+                                              [self.diagnose], hardware_id=self.get_name())
         self.publish_controller()
         self.get_logger().info(
             f'pole placement for {",".join(self.loop.structure.names)} (from {prefix}) with '
@@ -177,8 +180,8 @@ class AdaptiveControllerNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     # -------------------------------------------------------- the diagnostics
-    def status(self) -> tuple[int, str, list[tuple[str, object]]]:
-        """Return the /diagnostics status: level, message and key-value pairs."""
+    def diagnose(self, status: Status) -> None:
+        """Add the controller's level, message and counters to the /diagnostics status."""
         loop = self.loop
         now = self.get_clock().now()
         elapsed = (now - self._last_time).nanoseconds * 1e-9
@@ -211,7 +214,9 @@ class AdaptiveControllerNode(Node):
         ]
         values += [(REFUSALS[key], loop.counters[key]) for key in REFUSALS]
         values += [(EVENTS[key], loop.counters[key]) for key in EVENTS]
-        return level, message, values
+        status.merge_summary(level, message)
+        for key, value in values:
+            status.add(key, value)
 
 
 def main(argv: list[str] | None = None) -> int:

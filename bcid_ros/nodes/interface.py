@@ -19,18 +19,25 @@ from typing import Any, Callable, Sequence
 #: Default node names.
 IDENTIFIER_NODE = 'bcid_identifier'
 SIMULATOR_NODE = 'bcid_simulator'
+CONTROLLER_NODE = 'bcid_controller'
 
 #: Inputs of the identifier (relative names, so that a namespace moves them).
 SAMPLES = 'samples'
 INPUT = 'input'
 OUTPUT = 'output'
+#: The adaptive controller's setpoint input (relative).
+REFERENCE = 'reference'
 
 #: The identifier's estimates, the validity flag and the reset service (private names).
 PARAMETERS = '~/parameters'
 PARAMETERS_UNCOMPENSATED = '~/parameters_uncompensated'
 NOISE_VARIANCE = '~/noise_variance'
 VALID = '~/valid'
+PARAMETER_STD = '~/parameter_std'
 RESET = '~/reset'
+
+#: The adaptive controller's feedback C(q) in the loop (private, latched).
+CONTROLLER = '~/controller'
 
 #: The simulator's truth (private names).
 TRUE_PARAMETERS = '~/true_parameters'
