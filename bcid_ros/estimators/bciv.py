@@ -11,8 +11,8 @@ noise case (the reasons, and the paper's limits, are in ``docs/bciv.md`` and
   alternation of eqs. (75) and (53) has a unit eigenvalue; the estimate is
   K alternations started from the IV-type estimate theta_IV,N, never
   warm-started from the previous BCIV estimate;
-* white input noise (eqs. 65-67): the alternation contracts to a unique
-  fixed point, which is found warm-started at every sample;
+* white input noise (eqs. 65-67): there is no such direction; the estimate
+  is a fixed point of the alternation, found warm-started at every sample;
 * ``bciv_update='printed'``: the paper's Steps 0-5 as printed, one
   alternation per sample warm-started from the previous estimate.
 
@@ -511,8 +511,8 @@ class BcivSolver:
             f(\sigma) = \frac{c_0^Tb + \sigma\, b^TK_1b}{b^TE^TXE\,b}, \quad
             c_0 = E^TX(\bar R\hat\theta_{IV} - \bar r), \ K_1 = E^TX\bar R\,GE.
 
-        The plain alternation contracts only slowly (about 0.75 per step in
-        section 5.2), so the root is found by the secant method from ``start``
+        The plain alternation converges slowly, if at all (``docs/bciv.md``),
+        so the root is found by the secant method from ``start``
         (the previous :math:`N\hat\sigma_d^2`, or 0, whose first step is one
         alternation from theta_IV). The estimate is
         :math:`\hat\theta_{IV} + f(\sigma_k)\,GE\,b(\sigma_k)`. If the scalar
@@ -631,19 +631,21 @@ class Bciv(RecursiveEstimator):
 
     The data are the noisy output z_t (the published ``y``) and the noisy
     input w_t (``u``), SISO. With the IV-type vector (54), delayed by l - 1
-    samples as in eqs. (68)-(70), every sample updates the moments and then
-    computes the estimate from them:
+    samples as in eqs. (68)-(70), every sample updates the moments (Step 2,
+    unnormalised: :math:`\bar R = N\hat R_{\eta p}`, :math:`\bar r = N\hat r_{\eta z}`)
+    and then computes the estimate from them with :class:`BcivSolver`:
 
     .. math::
 
-        \bar S_N &= \lambda \bar S_{N-1} + \eta_N [p_N^T,\ -z_N]
-            && \text{(Step 2, eqs. 39-40, unnormalised)} \\
-        \hat\theta_{IV,N} &= (\bar S_p^T W \bar S_p + \rho^{-1}\lambda^{2N} I)^{-1}
-            \bar S_p^T W \bar s && \text{(38), = Step 1 with } M_0 = \rho I \\
-        \hat{\tilde\gamma}_{k+1} &= (\tilde Q_k^T X \tilde Q_k)^{-1} \tilde Q_k^T X
-            (\hat R_{\eta p}\theta_k - \hat r_{\eta z}) && \text{(75)} \\
-        \theta_{k+1} &= \hat\theta_{IV,N} + (\hat R_{\eta p}^T W \hat R_{\eta p})^{-1}
-            \hat R_{\eta p}^T W \tilde Q_k \hat{\tilde\gamma}_{k+1} && \text{(53)}
+        [\bar R_N,\ -\bar r_N] &= \lambda [\bar R_{N-1},\ -\bar r_{N-1}]
+            + \eta_N [p_N^T,\ -z_N] && \text{Step 2} \\
+        \hat\theta_{IV,N} &= (\bar R^T W \bar R + \rho^{-1}\lambda^{2N} I)^{-1}
+            \bar R^T W \bar r && \text{Step 1, eq. (38), } M_0 = \rho I \\
+        \tilde\gamma_{k+1} &= (\tilde Q_k^T X \tilde Q_k)^{-1} \tilde Q_k^T X
+            (\bar R\theta_k - \bar r) && \text{Step 3, eq. (75)} \\
+        \theta_{k+1} &= \hat\theta_{IV,N} + (\bar R^T W \bar R
+            + \rho^{-1}\lambda^{2N} I)^{-1} \bar R^T W \tilde Q_k \tilde\gamma_{k+1}
+            && \text{Step 4, eq. (53)}
 
     with :math:`\tilde Q_k = \tilde Q(b_k)` of eq. (61) (colored, noise vector
     (64): r_dd(0..n+l-1)) or eq. (66) (white, (67): sigma_d^2). The estimate at
@@ -651,24 +653,23 @@ class Bciv(RecursiveEstimator):
 
     * colored, ``converged``: K = ``bciv_iterations`` alternations from
       :math:`\theta_0 = \hat\theta_{IV,N}`, stopping early below ``tolerance``;
-    * white, ``converged``: the unique fixed point, warm-started from the
-      previous estimate (the secant method on the equivalent scalar equation
-      in sigma_d^2, at most K steps; see :class:`BcivSolver`);
+    * white, ``converged``: a fixed point of the alternation, warm-started from
+      the previous estimate (the secant method on the equivalent scalar
+      equation in sigma_d^2, at most K steps; see :class:`BcivSolver`);
     * ``printed``: one alternation from the previous estimate (Steps 3-4 as
       printed).
 
-    :math:`\hat\theta_{IV,N}` equals the rank-2 recursion of Step 1 in exact
-    arithmetic (:math:`M_N^{-1} = \lambda^2 M_{N-1}^{-1} + \Psi_N\Lambda_N^{-1}\Psi_N^T`
-    sums to :math:`\bar S_p^TW\bar S_p + \rho^{-1}\lambda^{2N}I`); solving the
-    4x4 system is as cheap and does not accumulate the rounding of an
-    indefinite rank-2 update. For T < L = ``idle_samples`` the estimate is
-    :math:`\hat\theta_{IV,T}` (initial value selection of section 4).
+    :math:`\hat\theta_{IV,N}` is that of the rank-2 recursion of Step 1 (it
+    sums to the matrix above; ``docs/bciv.md``). For T < L = ``idle_samples``
+    the estimate is :math:`\hat\theta_{IV,T}` (initial value selection of
+    section 4).
 
     **Forgetting factor** (an extension): with exponential weights
     :math:`\lambda^{N-t}` the weighted moments normalised by
     :math:`\tau_N = \sum\lambda^{N-t}` have the same limits (71)-(72) on
     stationary data, so the same equations hold with
-    :math:`\hat R = \bar S/\tau`; the noise estimates are :math:`N\tilde\gamma/\tau`.
+    :math:`\hat R_{\eta p} = \bar R/\tau_N`; the noise estimates are
+    :math:`N\tilde\gamma/\tau_N`.
 
     **Safeguards** (counted in :attr:`flags`; the estimate stays finite):
 
