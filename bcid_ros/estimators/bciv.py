@@ -50,8 +50,6 @@ CHECK_PERIOD = 4
 RING_SAMPLES = 512
 INPUT_NOISE = ('colored', 'white')
 UPDATES = ('converged', 'printed')
-#: The ways :meth:`BcivSolver.estimate` computes theta from the moments.
-MODES = ('idle', 'steps', 'fixed_point', 'printed')
 
 #: Solver outcomes (the flag counted when the estimate falls back to theta_IV).
 OK = ''
