@@ -1,4 +1,8 @@
-"""Unit tests of the BCIV estimator (Ikenoue et al. 2008) and its batch reference."""
+"""
+Unit tests of the BCIV estimator (Ikenoue et al. 2008) and its batch reference.
+
+The solver against the paper's equations written out: test_bciv_speed_equivalence.py.
+"""
 
 import numpy as np
 import pytest
@@ -16,38 +20,6 @@ def section(name, samples, seed=11, **settings):
     plant = make_scenario(name, **settings)
     z, w = plant.simulate(samples, seed)
     return z, w[:, 0], plant.truth()
-
-
-def q_tilde(b, order, lag, white, feedthrough=False):
-    """Build Q~ of eq. (61) (colored) or eq. (66) (white) entry by entry."""
-    m = order + 2 * lag
-    lags = range(0 if feedthrough else 1, order + 1)
-    if white:
-        q = np.zeros((m, 1))
-        for k, value in zip(lags, b):
-            q[lag - 1 + k, 0] = value
-        return q
-    q = np.zeros((m, order + lag + (1 if feedthrough else 0)))
-    # (Q~ gamma)_i = sum_k b_k r_dd(|l - 1 - i + k|)  (PAPER_NOTES, 0-based i, lag k)
-    for i in range(m):
-        for k, value in zip(lags, b):
-            q[i, abs(lag - 1 - i + k)] += value
-    return q
-
-
-def straightforward(saug, order, lag, white, iterations, rho=1e6, feedthrough=False):
-    """Eqs. (38), (75), (53) transcribed with dense matrices (W = X = I)."""
-    p = saug.shape[1] - 1
-    s_p, s = saug[:, :p], -saug[:, p]
-    phi = s_p.T @ s_p + np.eye(p) / rho
-    theta_iv = np.linalg.solve(phi, s_p.T @ s)
-    theta = theta_iv.copy()
-    gamma = None
-    for _ in range(iterations):
-        q = q_tilde(theta[order:], order, lag, white, feedthrough)
-        gamma = np.linalg.solve(q.T @ q, q.T @ (s_p @ theta - s))
-        theta = theta_iv + np.linalg.solve(phi, s_p.T @ q @ gamma)
-    return theta, gamma, theta_iv
 
 
 # ---------------------------------------------------------------- validation
@@ -101,38 +73,6 @@ def test_names_and_repr():
     assert repr(colored) == ("Bciv(order=2, iv_lag=5, input_noise='colored', "
                              "bciv_update='converged', bciv_iterations=20, idle_samples=100, "
                              'forgetting_factor=1.0)')
-
-
-# ------------------------------------------------------ the shared solver
-@pytest.mark.parametrize('white, lag, feedthrough', [
-    (False, 5, False), (False, 3, False), (True, 4, False), (False, 6, True), (True, 3, True)])
-def test_fast_alternation_equals_the_equations_written_out(white, lag, feedthrough):
-    z, w, _ = section('ikenoue_white_input' if white else 'ikenoue_colored', 3000)
-    solver = BcivSolver(order=2, iv_lag=lag, feedthrough=feedthrough,
-                        input_noise='white' if white else 'colored')
-    eta, pz = solver.data_windows(z, w)
-    saug = eta.T @ pz
-    expected, gamma, theta_iv = straightforward(saug, 2, lag, white, 7, feedthrough=feedthrough)
-    solver.prepare(saug, 1e-6)
-    theta, fast_gamma, done, _, status = solver.alternate(solver.theta_iv, 7, 0.0)
-    assert status == '' and done == 7
-    np.testing.assert_allclose(solver.theta_iv, theta_iv, rtol=0, atol=1e-11)
-    np.testing.assert_allclose(theta, expected, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(fast_gamma, gamma, rtol=1e-9, atol=0)
-
-
-def test_white_fixed_point_is_a_fixed_point_of_the_alternation():
-    z, w, _ = section('ikenoue_white_input', 4000)
-    batch = bciv_batch(z, w, order=2, **WHITE)
-    assert batch.status == ('',)
-    solver = BcivSolver(order=2, iv_lag=4, feedthrough=False, input_noise='white')
-    eta, pz = solver.data_windows(z, w)
-    saug = eta.T @ pz
-    # 300 plain alternations (rate ~0.75) from theta_IV reach the same point.
-    plain, _, _ = straightforward(saug, 2, 4, True, 300)
-    np.testing.assert_allclose(batch.theta[0], plain, rtol=0, atol=1e-9)
-    one_more, _, _ = straightforward(saug, 2, 4, True, 1)
-    assert np.abs(one_more - batch.theta[0]).max() > 1e-4  # it did have to iterate
 
 
 # -------------------------------------------------- recursive == batch
@@ -215,7 +155,7 @@ def test_fallback_on_zero_b_and_recovery(settings):
         batch = bciv_batch(z, w, order=2, idle_samples=20, **settings)
         np.testing.assert_allclose(est.theta, batch.theta[0], rtol=0, atol=1e-8)
     # a is identified whatever the path; the printed recursion's b can drift along the
-    # neutral direction (the gain of B, PAPER_NOTES), so only a is checked against the truth.
+    # neutral direction (the gain of B, docs/bciv.md), so only a is checked against the truth.
     assert np.abs(est.theta[:2] - truth.parameters[:2]).max() < 0.25
 
 

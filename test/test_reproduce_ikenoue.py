@@ -40,7 +40,7 @@ def test_colored_ls_reproduces_the_papers_bias(colored):
 
 
 def test_colored_iv_type_is_biased_in_b_and_bciv_removes_it(colored):
-    # PAPER_NOTES: theta_IV (l = 5) has a biased b = [1.019, 0.454] (std 0.018, 0.034).
+    # theta_IV (l = 5) has a biased b: 1.010, 0.469 for 1.0, 0.5 (docs/reproduction_ikenoue.md).
     iv_mean, iv_se = mean_and_stderr(colored.final('IV-type (l=5)'))
     bc_mean, bc_se = mean_and_stderr(colored.final('BCIV (l=5)'))
     assert iv_mean[3] + 3 * iv_se[3] < colored.truth[3]

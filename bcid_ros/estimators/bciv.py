@@ -3,28 +3,31 @@ BCIV: bias-compensated IV-type estimation for errors-in-variables models.
 
 Ikenoue, Kanae, Yang and Wada (2008), "Bias-compensation based method for
 errors-in-variables model identification", eqs. (37)-(75) and the recursive
-algorithm of section 4, read with the corrections of PAPER_NOTES.md:
+algorithm of section 4. What "the estimate at sample N" means differs by
+noise case (the reasons, and the paper's limits, are in ``docs/bciv.md`` and
+``docs/papers.md``):
 
-* colored input noise: the alternation of eqs. (75) and (53) has a unit
-  eigenvalue (the gain of B is not fixed by eq. (72)), so the estimate at
-  sample N is defined as K alternations started from the IV-type estimate
-  theta_IV,N, never warm-started from the previous BCIV estimate;
-* white input noise (eqs. 65-67): the alternation contracts to a unique
-  fixed point, which is found warm-started at every sample;
+* colored input noise: eq. (72) does not fix the gain of B, so the
+  alternation of eqs. (75) and (53) has a unit eigenvalue; the estimate is
+  K alternations started from the IV-type estimate theta_IV,N, never
+  warm-started from the previous BCIV estimate;
+* white input noise (eqs. 65-67): there is no such direction; the estimate
+  is a fixed point of the alternation, found warm-started at every sample;
 * ``bciv_update='printed'``: the paper's Steps 0-5 as printed, one
   alternation per sample warm-started from the previous estimate.
 
 The recursive estimator :class:`Bciv` and the batch reference
 :func:`bciv_batch` share one solver, :class:`BcivSolver`, which takes the
-IV moments and returns the estimate; they differ only in how the moments
-are accumulated.
+moments of Step 2 and returns the estimate; they differ only in how the
+moments are accumulated.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 from scipy.linalg.blas import dger
@@ -54,8 +57,7 @@ SINGULAR = 'noise_system_singular'
 RUNAWAY = 'compensation_runaway'
 
 
-@dataclasses.dataclass(frozen=True)
-class BcivResult:
+class BcivResult(NamedTuple):
     """
     One BCIV estimate from given moments.
 
@@ -64,7 +66,7 @@ class BcivResult:
     theta : numpy.ndarray, shape ``(p,)``
         theta_BCIV (theta_IV if ``status`` is not empty).
     gamma : numpy.ndarray, shape ``(q,)``
-        The noise covariances of eq. (75), normalised by the sample count.
+        N gamma~ of eq. (75), unnormalised: divide by the (weighted) sample count.
     theta_iv : numpy.ndarray, shape ``(p,)``
         The IV-type estimate of eq. (38).
     iterations : int
@@ -130,423 +132,447 @@ def noise_count(order: int, iv_lag: int, feedthrough: bool, input_noise: str) ->
 
 class BcivSolver:
     r"""
-    The BCIV estimate of eqs. (38), (53), (75) from the IV moments: shared by both forms.
+    Steps 1, 3 and 4 of the recursive BCIV algorithm, computed from the moments of Step 2.
 
-    The moments are kept unnormalised as one array
-    :math:`\bar S = \sum_t \lambda^{N-t}\,\eta_t\,[p_t^T,\ -z_t]`, shape
-    ``(m, p + 1)``, so that :math:`\bar S [\theta; 1] = N(\hat R_{\eta p}\theta -
-    \hat r_{\eta z})`. The noise vector then comes out as :math:`N\tilde\gamma`;
-    the factor N cancels in eq. (53).
+    The moments are kept unnormalised, as sums over the samples (weighted by
+    :math:`\lambda^{N-t}` with a forgetting factor):
 
-    **The structure of Q~.** Eq. (61) is linear in b:
-    :math:`\tilde Q(b) = \sum_j b_j E_j` with constant 0/1 matrices
-    :math:`E_j` (``(m, q)``), :math:`(E_j)_{i,c} = 1` iff
-    :math:`|l - 1 - i + k_j| = c` (colored; :math:`k_j` the lag of
-    :math:`b_j`) or :math:`i = l - 1 + k_j` (white, eq. 66). Hence
-    :math:`\tilde Q^TX\tilde Q = \sum_{jk} b_j b_k E_j^TXE_k` with the constant
-    :math:`E_j^TXE_k`, and one alternation is a quadratic form in
-    :math:`x = [\theta; 1]`: with the per-sample tensor built by :meth:`prepare`,
-    two small matrix products give :math:`\tilde Q^TX\tilde Q`,
-    :math:`\tilde Q^TX\bar S x` and :math:`G\tilde Q` at once,
-    :math:`G = (\bar S_p^TW\bar S_p + \rho^{-1}\lambda^{2N} I)^{-1}\bar S_p^TW`.
+    .. math::
 
-    **Cost.** At n = 2, l = 5 every array is tiny, so the cost is the number
-    of numpy/LAPACK calls, not arithmetic: one alternation is four calls
-    (two products, an in-place Cholesky solve, one product) with positional
-    arguments, and :meth:`prepare` is two products, one Cholesky solve and one
-    scatter. The moments :attr:`moments` live in a Fortran-ordered buffer
-    that :class:`Bciv` updates in place with BLAS ``dger``.
+        \bar R = N\hat R_{\eta p} = \sum_t \eta_t p_t^T, \qquad
+        \bar r = N\hat r_{\eta z} = \sum_t \eta_t z_t, \qquad
+        \text{moments} = [\bar R,\ -\bar r] \quad (m \times (p + 1)),
+
+    so that :math:`\text{moments}\,[\theta; 1] = N(\hat R_{\eta p}\theta - \hat r_{\eta z})`.
+    From them, per sample:
+
+    .. math::
+
+        M_N^{-1} &= \bar R^T W \bar R + \rho^{-1}\lambda^{2N} I, \quad
+        G = M_N \bar R^T W, \quad
+        \hat\theta_{IV} = G\,\bar r && \text{Step 1, eq. (38)} \\
+        \tilde\gamma_{k+1} &= (\tilde Q_k^T X \tilde Q_k)^{-1} \tilde Q_k^T X
+            (\bar R\theta_k - \bar r) && \text{Step 3, eq. (75)} \\
+        \theta_{k+1} &= \hat\theta_{IV} + G\,\tilde Q_k\,\tilde\gamma_{k+1}
+            && \text{Step 4, eq. (53)}
+
+    with :math:`\tilde Q_k = \tilde Q(b_k)` of eq. (61) (colored input noise,
+    :math:`\tilde\gamma = [r_{dd}(0) \ldots r_{dd}(n+l-1)]`, eq. 64) or eq. (66)
+    (white, :math:`\tilde\gamma = \sigma_d^2`, eq. 67). The factor N cancels
+    in eq. (53); :math:`\tilde\gamma` comes out as :math:`N\tilde\gamma`.
+    :math:`M_N` is that of Step 1 with :math:`M_0 = \rho I` (it sums the
+    rank-2 updates of Step 1 exactly), and :math:`N^2 M_N\hat R^T_{\eta p}W`
+    of Step 4 is :math:`G`.
+
+    :math:`\tilde Q(b) = \sum_j b_j E_j` is linear in b, with constant 0/1
+    matrices :math:`E_j` (:math:`m \times q`, see :attr:`q_basis`). So the
+    three quantities one alternation needs, :math:`\tilde Q^TX\tilde Q`,
+    :math:`\tilde Q^TX(\bar R\theta - \bar r)` and :math:`G\tilde Q`, are all
+    bilinear in :math:`[b; 1]` and :math:`[\theta; 1]`; :meth:`estimate`
+    evaluates them as one bilinear form (see :meth:`_alternate`).
 
     Parameters
     ----------
     order : int
         n.
     iv_lag : int
-        l of eq. (54).
+        l of eq. (54); m = n + 2l.
     feedthrough : bool
         Whether b_0 (lag 0) is estimated.
     input_noise : str
         ``'colored'`` or ``'white'``.
     iv_weight, noise_weight : numpy.ndarray or None
-        W and X, ``(m, m)`` symmetric positive definite; None means identity.
+        W of eq. (38) and X of eq. (75), ``(m, m)`` symmetric positive
+        definite; None means the identity.
 
     """
 
     def __init__(self, *, order: int, iv_lag: int, feedthrough: bool, input_noise: str,
                  iv_weight: np.ndarray | None = None,
                  noise_weight: np.ndarray | None = None) -> None:
-        n, lag = order, iv_lag
-        self.order, self.iv_lag, self.input_noise = n, lag, input_noise
-        first = 0 if feedthrough else 1
-        self.lags = tuple(range(first, n + 1))
-        nb = len(self.lags)
-        self.num_parameters = p = n + nb
-        self.m = m = n + 2 * lag
-        self.q = q = noise_count(n, lag, feedthrough, input_noise)
-        self.b_index = np.arange(n, p)
-        self.w = None if iv_weight is None else _weight('iv_weight', iv_weight, m)
-        self.x = None if noise_weight is None else _weight('noise_weight', noise_weight, m)
-        # E_j, stacked as columns: e_all[:, j q + c] = (E_j)[:, c]
-        e_all = np.zeros((m, nb * q))
+        self.order, self.iv_lag, self.input_noise = order, iv_lag, input_noise
+        #: The lags k of b_k: 1..n, or 0..n with feedthrough.
+        self.lags = tuple(range(0 if feedthrough else 1, order + 1))
+        self.num_parameters = p = order + len(self.lags)
+        self.m = m = order + 2 * iv_lag
+        self.q = noise_count(order, iv_lag, feedthrough, input_noise)
+        self.iv_weight = None if iv_weight is None else _weight('iv_weight', iv_weight, m)
+        self.noise_weight = (None if noise_weight is None
+                             else _weight('noise_weight', noise_weight, m))
+        #: The E_j of Q~(b) = sum_j b_j E_j side by side, (m, nb q):
+        #: ``q_basis[:, j q + c]`` is column c of E_j.
+        self.q_basis = self._q_basis()
+        #: E_j' X stacked, (nb q, m).
+        self._basis_x = self.q_basis.T if self.noise_weight is None else \
+            self.q_basis.T @ self.noise_weight
+
+        # Step 1 in fixed buffers. W [R | -r | E] is Fortran-ordered so that its
+        # first p + 1 columns (the moments themselves when W = I) are contiguous
+        # and Bciv updates them in place with BLAS dger.
+        nbq = self.q_basis.shape[1]
+        self._weighted = np.zeros((p + 1 + nbq, m)).T
+        self._weighted[:, p + 1:] = self.q_basis if self.iv_weight is None else \
+            self.iv_weight @ self.q_basis
+        #: [R | -r], shape (m, p + 1), Fortran order.
+        self.moments = (self._weighted[:, :p + 1] if self.iv_weight is None
+                        else np.zeros((p + 1, m)).T)
+        # One buffer holds what each sample computes, in this order:
+        # * the rows of R'W [R | -r | E] ((p + 1 + nb q, p)), whose transpose is
+        #   [M_N^-1 | -R'W r | R'W E]; the solve of Step 1 turns the columns after
+        #   M_N^-1 into [-theta_IV | G E];
+        # * E_j' X [R | -r] stacked ((nb q, p + 1)).
+        # Everything after M_N^-1 goes into the tensor of the alternation by one scatter.
+        rows = p + 1 + nbq
+        self._sample_numbers = np.zeros(rows * p + nbq * (p + 1))
+        self._normal = self._sample_numbers[:rows * p].reshape(rows, p)
+        #: M_N^-1 = R'WR + rho^-1 lambda^2N I of Step 1 (Fortran-ordered view).
+        self.m_inverse = self._normal[:p].T
+        self._m_inverse_diagonal = self._sample_numbers[:p * p:p + 1]
+        self._iv_solution = self._normal[p:].T
+        self._noise_moments = self._sample_numbers[rows * p:].reshape(nbq, p + 1)
+        self._forms, self._form_slots = self._bilinear_form()
+        # The alternation's work buffers: x = [theta; 1], the sum over [b; 1] of
+        # C, and the value of the form with its views Hbar, hbar, Dbar.
+        self._x = np.ones(p + 1)
+        self._over_b = np.zeros(self._forms.shape[1])
+        self._form_value = np.zeros(self._forms.shape[1] // (p + 1))
+        self._noise_matrix, self._noise_rhs, self._bias_map = self._form_views(self._form_value)
+        if input_noise == 'white':
+            self._white_forms, self._white_system = self._white_buffers()
+
+    def _q_basis(self) -> np.ndarray:
+        """Return the E_j of eq. (61) (colored) or eq. (66) (white) side by side."""
+        m, q, lag = self.m, self.q, self.iv_lag
+        basis = np.zeros((m, len(self.lags) * q))
         for j, k in enumerate(self.lags):
-            for i in range(m):
-                if input_noise == 'white':
-                    if i == lag - 1 + k:
-                        e_all[i, j * q] = 1.0
-                else:
-                    e_all[i, j * q + abs(lag - 1 - i + k)] = 1.0
-        self.e_all = e_all
-        x_weight = np.eye(m) if self.x is None else self.x
-        #: E_all' X, shape (nb q, m)
-        self.etx = e_all.T @ x_weight
-        # T_jk = E_j' X E_k, shape (nb, nb, q, q)
-        etxe = (self.etx @ e_all).reshape(nb, q, nb, q).transpose(0, 2, 1, 3)
-        self.t = np.ascontiguousarray(etxe)
-        self._t_white = self.t[:, :, 0, 0].tolist()
+            for i in range(m):  # row i of eta (0-based) meets b_k through r_dd(|l - 1 - i + k|)
+                if self.input_noise == 'colored':
+                    basis[i, j * q + abs(lag - 1 - i + k)] = 1.0
+                elif i == lag - 1 + k:  # white: Q~ = b~ = [0_l; b; 0_l], eq. (66)
+                    basis[i, j * q] = 1.0
+        return basis
 
-        # ---- The moments and the products of eq. (38), in fixed buffers.
-        # big = [S_p | -s | W E_all] in Fortran order, so that the moments block
-        # is contiguous and BLAS dger updates it in place (W = I: the moments
-        # themselves live in big).
-        big = np.zeros((p + 1 + nb * q, m)).T
-        big[:, p + 1:] = e_all if self.w is None else self.w @ e_all
-        self._big = big
-        self.moments = big[:, :p + 1] if self.w is None else np.zeros((p + 1, m)).T
-        # One buffer holds [Phi' ; Phi^-1 [-S'W s | S'W E_all]]' (rows of the
-        # transposed products) and E_all' X S, so that one scatter moves every
-        # per-sample number into the tensor below.
-        rows = p + 1 + nb * q
-        self._buffer = np.zeros(rows * p + nb * q * (p + 1))
-        self._products = self._buffer[:rows * p].reshape(rows, p)  # [S_p'W big]'
-        self.phi = self._products[:p].T  # Phi, Fortran order (kept: dposv copies it)
-        self._phi_diagonal = self._buffer[:p * p:p + 1]
-        self._solved = self._products[p:].T  # (p, 1 + nb q), Fortran order
-        self._ge = self._solved[:, 1:]  # G E_all
-        self._etxs = self._buffer[rows * p:].reshape(nb * q, p + 1)  # E_all' X S
-        self.theta_iv = np.zeros(p)
-        self._scattered = True
+    def q_tilde(self, b: np.ndarray) -> np.ndarray:
+        """Return Q~(b) of eq. (61) or eq. (66), shape ``(m, q)``."""
+        basis = self.q_basis.reshape(self.m, len(self.lags), self.q)
+        return np.einsum('ijc,j->ic', basis, b)
 
-        # ---- The quadratic-form tensor of one alternation.
-        # C[s, t, :] over x = [theta; 1]; only b and the trailing 1 can be the
-        # first factor, so s runs over xb = x[n:] = [b; 1]. The last axis holds
-        # Ha ((q+1)^2: Q~'XQ~ bordered by a unit corner), ra (q+1: Q~'X S x,
-        # then -1) and Da (p (q+1): G Q~, then -theta_IV), so that
-        # Ha^-1 ra = [gamma; -1] and Da [gamma; -1] = theta_IV + G Q~ gamma.
-        qa = q + 1
-        ha_end, ra_end = qa * qa, qa * qa + qa
-        width = ra_end + p * qa
-        c = np.zeros((nb + 1, p + 1, width))
-        for j in range(nb):
-            for k in range(nb):
-                c[j, n + k, :ha_end].reshape(qa, qa)[:q, :q] = self.t[j, k]
-        c[nb, p, ha_end - 1] = 1.0
-        c[nb, p, ra_end - 1] = -1.0
-        self._c = c.reshape(nb + 1, (p + 1) * width)
-        # Where the per-sample numbers of the buffer go in C (one scatter):
-        # solved[i, 0] = -theta_IV[i] -> C[nb, p, Da(i, q)];
-        # solved[i, 1 + j q + c] = (G E_j)[i, c] -> C[j, p, Da(i, c)];
-        # (E_all' X S)[j q + c, t] -> C[j, t, ra(c)].
-        index = np.zeros((nb + 1, p + 1, width), dtype=np.intp)
-        index.reshape(-1)[:] = np.arange(index.size)
-        target = [index[nb, p, ra_end + i * qa + q] for i in range(p)]
-        target += [index[j, p, ra_end + i * qa + col]
-                   for j in range(nb) for col in range(q) for i in range(p)]
-        target += [index[j, t, ha_end + col]
-                   for j in range(nb) for col in range(q) for t in range(p + 1)]
-        self._scatter = np.array(target, dtype=np.intp)
-        self._c_flat = c.reshape(-1)
-        # Work buffers of the alternation; x = [theta; 1], whose head is rewritten.
-        self._w1 = np.empty((p + 1) * width)
-        self._w1_2d = self._w1.reshape(p + 1, width)
-        self._out = np.empty(width)
-        self._ha = self._out[:ha_end].reshape(qa, qa).T  # symmetric: the F-order view
-        self._ra = self._out[ha_end:ra_end]
-        self._ha_diagonal = self._out[:ha_end - 1:qa + 1]  # the first q
-        self._check_cache: dict[int, tuple[bool, ...]] = {}
-        self._da = self._out[ra_end:].reshape(p, qa)
-        x = np.ones(p + 1)
-        self._loop = (self._c, self._w1, self._w1_2d, self._out, self._ha, self._ra,
-                      self._da, x, x[n:], x[:p])
-
-    # ----------------------------------------------------------- per sample
-    def prepare(self, saug: np.ndarray, regularisation: float) -> np.ndarray:
+    # ------------------------------------------------------------ the estimate
+    def estimate(self, moments: np.ndarray, regularisation: float, *, mode: str,
+                 iterations: int, tolerance: float, start: np.ndarray | None = None,
+                 start_noise: float = 0.0) -> BcivResult:
         r"""
-        Compute theta_IV of eq. (38) and the tensors of the alternation from the moments.
-
-        .. math::
-
-            \Phi = \bar S_p^T W \bar S_p + \rho^{-1}\lambda^{2N} I, \quad
-            G = \Phi^{-1}\bar S_p^T W, \quad \hat\theta_{IV} = -G\,\bar S_{:,p}
-
-        One product gives :math:`[\Phi \mid -\bar S_p^TW\bar s \mid \bar S_p^TWE]`,
-        one Cholesky solve :math:`[-\hat\theta_{IV} \mid GE]`, one product
-        :math:`E^TX\bar S`, and one scatter puts them into the tensor of
-        :meth:`alternate`.
+        Return the BCIV estimate for the given moments: Step 1, then Steps 3-4 by ``mode``.
 
         Parameters
         ----------
-        saug : numpy.ndarray, shape ``(m, p + 1)``
-            The unnormalised moments :math:`[\sum\eta p^T,\ -\sum\eta z]`;
-            :attr:`moments` itself (no copy) or any array (copied into it).
+        moments : numpy.ndarray, shape ``(m, p + 1)``
+            :math:`[\bar R, -\bar r]`; :attr:`moments` itself (no copy) or
+            any array (copied into it).
         regularisation : float
-            :math:`\rho^{-1}\lambda^{2N}`, the M_0 = rho I term of Step 0.
-
-        Returns
-        -------
-        numpy.ndarray, shape ``(p,)``
-            theta_IV (a new array).
-
-        """
-        p = self.num_parameters
-        moments = self.moments
-        if saug is not moments:
-            moments[...] = saug
-        big = self._big
-        if self.w is not None:
-            big[:, :p + 1] = self.w.dot(moments)
-        # [Phi | -S'W s | S'W E_all]' = [W S_p | -W s | W E_all]' S_p
-        big.T.dot(moments[:, :p], self._products)
-        # Phi = S'WS + rho^-1 lambda^2N I   (M_N^-1 of Step 1)
-        self._phi_diagonal += regularisation
-        # [-theta_IV | G E_all] = Phi^-1 [-S'W s | S'W E_all], G = Phi^-1 S'W      (38)
-        info = dposv(self.phi, self._solved, 0, 0, 1)[2]
-        if info != 0:
-            self._fallback_solve(regularisation)
-        # E_all' X [S_p | -s]
-        self.etx.dot(moments, self._etxs)
-        self._scattered = False  # the tensor of :meth:`alternate` is filled on demand
-        self.theta_iv = theta_iv = -self._solved[:, 0]
-        return theta_iv
-
-    def _fallback_solve(self, regularisation: float) -> None:
-        """Redo the solve of :meth:`prepare` with LU after the Cholesky factorisation failed."""
-        p = self.num_parameters
-        products = self._big.T.dot(self.moments[:, :p]).T
-        products[:, :p] += regularisation * np.eye(p)
-        solved, _ = _general_solve(products[:, :p], products[:, p:])
-        self._solved[...] = solved
-
-    def alternate(self, start: np.ndarray, iterations: int,
-                  tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-        r"""
-        Make up to ``iterations`` alternations of eqs. (75) and (53) from ``start``.
-
-        .. math::
-
-            \tilde\gamma_{k+1} &= (\tilde Q_k^TX\tilde Q_k)^{-1}\tilde Q_k^TX
-                (\hat R_{\eta p}\theta_k - \hat r_{\eta z}) && \text{(75)} \\
-            \theta_{k+1} &= \hat\theta_{IV} + (\hat R^T_{\eta p} W \hat R_{\eta p})^{-1}
-                \hat R^T_{\eta p} W \tilde Q_k \tilde\gamma_{k+1} && \text{(53)}
-
-        with :math:`\tilde Q_k = \tilde Q(b_k)`. One alternation is four calls:
-        two products for the quadratic form, one in-place Cholesky solve and one
-        product. Checks the step every :data:`CHECK_PERIOD` steps and after the
-        last, and stops once it is below ``tolerance`` (2-norm). Call
-        :meth:`prepare` first.
-
-        Returns
-        -------
-        theta, gamma, iterations, converged, status
-            ``gamma`` is the unnormalised :math:`N\tilde\gamma` of the last
-            step; ``status`` is ``''`` or :data:`SINGULAR`/:data:`RUNAWAY`.
-
-        """
-        q = self.q
-        c, w1, w1_2d, out, ha, ra, da, x, xb, head = self._loop
-        if not self._scattered:
-            # the per-sample numbers of prepare() into the tensor
-            self._c_flat[self._scatter] = self._buffer[self.num_parameters ** 2:]
-            self._scattered = True
-        # bound methods, positional arguments: at these sizes the call overhead
-        # is the cost, and keywords add a third to it
-        quadratic, contract, update = xb.dot, x.dot, da.dot
-        head[...] = start
-        converged = False
-        done = 0
-        checks = self._check_cache.get(iterations) or self._checks(iterations)
-        for check in checks:
-            done += 1
-            # [vec Ha, ra, vec Da] = sum_st x_s x_t C[s, t, :]
-            quadratic(c, w1)
-            contract(w1_2d, out)
-            # [gamma; -1] = Ha^-1 ra, in place      (75)
-            if dposv(ha, ra, 0, 1, 1)[2] != 0:
-                return head.copy(), ra[:q].copy(), done, False, SINGULAR
-            if not check:
-                # theta = theta_IV + G Q~ gamma = Da [gamma; -1]      (53)
-                update(ra, head)
-                continue
-            previous = head.tolist()
-            update(ra, head)
-            change = math.dist(head.tolist(), previous)
-            if not math.isfinite(change):
-                return head.copy(), ra[:q].copy(), done, False, RUNAWAY
-            if change <= tolerance:
-                converged = True
-                break
-        if done == 0:
-            return head.copy(), np.zeros(q), 0, False, OK
-        # Cholesky factor diagonal of Q~'XQ~: cond ~ (max/min)^2
-        diagonal = self._ha_diagonal.tolist()
-        if not min(diagonal) * math.sqrt(CONDITION_MAX) > max(diagonal):
-            return head.copy(), ra[:q].copy(), done, converged, SINGULAR
-        return head.copy(), ra[:q].copy(), done, converged, OK
-
-    def _checks(self, iterations: int) -> tuple[bool, ...]:
-        """Return, per alternation, whether to check the step (every CHECK_PERIOD and the last)."""
-        checks = self._check_cache.get(iterations)
-        if checks is None:
-            checks = tuple((k + 1) % CHECK_PERIOD == 0 or k + 1 == iterations
-                           for k in range(iterations))
-            self._check_cache[iterations] = checks
-        return checks
-
-    def fixed_point(self, start: float, max_iterations: int,
-                    tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-        r"""
-        Solve the fixed point of eqs. (75)/(53) with white input noise (eqs. 65-67).
-
-        With :math:`\tilde Q = \tilde b` (eq. 66) one alternation is the map
-        :math:`T(\theta) = \hat\theta_{IV} + \sigma(\theta)\, G E b`, with
-        :math:`\sigma(\theta) = b^T E^TX(\bar S x)/(b^T E^TXE b)` the
-        unnormalised :math:`N\sigma_d^2` of eq. (75) and :math:`b` the b-part of
-        :math:`\theta`. It contracts to a unique fixed point (PAPER_NOTES.md),
-        but slowly (0.75 per step in section 5.2). At a fixed point
-        :math:`\theta = \hat\theta_{IV} + \sigma\, G E b`, so for a given
-        :math:`\sigma` the b-part solves the n x n system
-
-        .. math::
-
-            (I - \sigma [GE]_b)\, b(\sigma) = \hat b_{IV}, \qquad
-            f(\sigma) = \frac{b^T(c_0 + \sigma K_1 b)}{b^T E^TXE\, b}, \quad
-            c_0 = E^TX(\bar S_p\hat\theta_{IV} - \bar s), \ K_1 = E^TX\bar S_p G E
-
-        and the fixed point is the root of the scalar equation
-        :math:`\sigma = f(\sigma)`. It is found by the secant method from
-        ``start`` (the previous :math:`N\hat\sigma_d^2`, or 0, which makes the
-        first step exactly one alternation from :math:`\hat\theta_{IV}`).
-        The estimate returned is :math:`T(\theta(\sigma_k))`. If the scalar
-        system breaks down, the plain alternation is iterated instead.
-        Call :meth:`prepare` first.
-
-        Parameters
-        ----------
-        start : float
-            Initial :math:`\sigma` (unnormalised).
-        max_iterations : int
-            Cap on secant steps.
-        tolerance : float
-            Stop when the implied change of theta is below this (2-norm).
-
-        Returns
-        -------
-        theta, gamma, iterations, converged, status
-            As :meth:`alternate`.
-
-        """
-        p, bi = self.num_parameters, self.b_index
-        ge, etxs, theta_iv = self._ge, self._etxs, self.theta_iv
-        etx_sp = etxs[:, :p]
-        # c0 = E'X (S_p theta_IV - s); K1 = E'X S_p G E     (per sample, n x n)
-        c0 = (etx_sp.dot(theta_iv) + etxs[:, p]).tolist()
-        k1 = etx_sp.dot(ge).tolist()
-        ge_b = ge[bi].tolist()
-        beta = theta_iv[bi].tolist()
-        t_mat = self._t_white
-        scale = math.sqrt(ge.dot(theta_iv[bi]).dot(ge.dot(theta_iv[bi])))
-        tol = tolerance / scale if scale > 0.0 else math.inf
-        f = _white_map(ge_b, beta, k1, c0, t_mat)
-        s0 = float(start)
-        f0, b = f(s0)
-        done = 1
-        if f0 is None:
-            return self._plain_white(max_iterations, tolerance)
-        s1, phi0 = f0, s0 - f0
-        f1, b1 = f0, b
-        converged = abs(phi0) <= tol
-        while not converged and done < max_iterations:
-            f1, b1 = f(s1)
-            done += 1
-            if f1 is None or not math.isfinite(f1):
-                return self._plain_white(max_iterations, tolerance)
-            phi1 = s1 - f1
-            if abs(phi1) <= tol:
-                converged = True
-                break
-            slope = phi1 - phi0
-            # secant step on phi(sigma) = sigma - f(sigma)
-            s_next = f1 if slope == 0.0 else s1 - phi1 * (s1 - s0) / slope
-            s0, phi0, s1 = s1, phi1, s_next
-        # theta = T(theta(sigma)) = theta_IV + f(sigma) G E b(sigma)      (53)
-        theta = theta_iv + ge.dot(b1) * f1
-        return theta, np.array([f1]), done, converged, OK
-
-    def _plain_white(self, max_iterations: int,
-                     tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-        """Iterate the plain alternation from theta_IV (the fallback of :meth:`fixed_point`)."""
-        return self.alternate(self.theta_iv, max(max_iterations, 200), tolerance)
-
-    def solve(self, saug: np.ndarray, regularisation: float, *, mode: str,
-              iterations: int, tolerance: float, start: np.ndarray | None = None,
-              start_noise: float = 0.0) -> BcivResult:
-        """
-        Return the BCIV estimate for the moments ``saug`` (the whole per-sample step).
-
-        Parameters
-        ----------
-        saug : numpy.ndarray, shape ``(m, p + 1)``
-            Moments, see :meth:`prepare`.
-        regularisation : float
-            rho^-1 lambda^2N.
+            :math:`\rho^{-1}\lambda^{2N}`, the :math:`M_0 = \rho I` term of Step 1.
         mode : str
-            ``'steps'``: ``iterations`` alternations from theta_IV (the
-            colored definition); ``'fixed_point'``: the white fixed point,
-            warm-started from ``start_noise``, at most ``iterations`` secant
-            steps; ``'printed'``: ``iterations`` alternations from ``start``
-            (theta_IV if None); ``'idle'``: theta_IV only.
+            ``'idle'``: theta_IV only; ``'steps'``: ``iterations``
+            alternations from theta_IV (colored); ``'fixed_point'``: the
+            white fixed point by at most ``iterations`` secant steps from
+            ``start_noise``; ``'printed'``: ``iterations`` alternations from
+            ``start`` (theta_IV if None).
         iterations : int
-            K, or the iteration cap.
+            K, or the cap on secant steps.
         tolerance : float
-            Stop when a step is below this (2-norm).
+            Stop once a step changes theta by less than this (2-norm).
         start : numpy.ndarray or None
             theta to start ``'printed'`` from.
         start_noise : float
-            Unnormalised N sigma_d^2 to start ``'fixed_point'`` from; 0 makes
-            its first step one alternation from theta_IV.
+            N sigma_d^2 to start ``'fixed_point'`` from; 0 makes its first
+            step one alternation from theta_IV.
 
         Returns
         -------
         BcivResult
-            ``gamma`` is unnormalised (N gamma~); divide by the weighted count.
+            theta_IV instead of theta, and a zero gamma, if ``status`` is not
+            empty (Q~'XQ~ singular or ill-conditioned, or a runaway: theta
+            farther than :data:`COMPENSATION_MAX` relative from theta_IV).
 
         """
-        return BcivResult(*self.step(saug, regularisation, mode, iterations, tolerance, start,
-                                     start_noise))
-
-    def step(self, saug: np.ndarray, regularisation: float, mode: str, iterations: int,
-             tolerance: float, start: np.ndarray | None,
-             start_noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool, str]:
-        """Do :meth:`solve` and return the fields of :class:`BcivResult` as a tuple."""
-        theta_iv = self.prepare(saug, regularisation)
-        iv_list = theta_iv.tolist()
+        theta_iv = self._iv_estimate(moments, regularisation)
         iv_norm2 = float(theta_iv.dot(theta_iv))
         if mode == 'idle' or not math.isfinite(iv_norm2):
-            # (non-finite theta_IV: the caller resets the moments)
-            return theta_iv, np.zeros(self.q), theta_iv, 0, True, OK
+            # (a non-finite theta_IV: the caller resets the moments)
+            return BcivResult(theta_iv, np.zeros(self.q), theta_iv, 0, True, OK)
         if mode == 'fixed_point':
-            theta, gamma, done, converged, status = self.fixed_point(start_noise, iterations,
-                                                                     tolerance)
+            theta, gamma, done, converged, status = self._white_fixed_point(
+                theta_iv, start_noise, iterations, tolerance)
         else:
             first = theta_iv if start is None or mode == 'steps' else start
-            theta, gamma, done, converged, status = self.alternate(first, iterations,
-                                                                   tolerance)
+            theta, gamma, done, converged, status = self._alternate(
+                theta_iv, first, iterations, tolerance)
         if status == OK:
-            gap = math.dist(theta.tolist(), iv_list)
+            gap = math.dist(theta.tolist(), theta_iv.tolist())
             if not gap * gap <= COMPENSATION_MAX ** 2 * (1.0 + iv_norm2):
                 status = RUNAWAY
         if status != OK:
-            return theta_iv, np.zeros(self.q), theta_iv, done, False, status
-        return theta, gamma, theta_iv, done, converged, OK
+            return BcivResult(theta_iv, np.zeros(self.q), theta_iv, done, False, status)
+        return BcivResult(theta, gamma, theta_iv, done, converged, OK)
+
+    def _iv_estimate(self, moments: np.ndarray, regularisation: float) -> np.ndarray:
+        r"""
+        Step 1, eq. (38): return theta_IV, and keep G E for Steps 3-4.
+
+        One product gives :math:`[M_N^{-1} \mid -\bar R^TW\bar r \mid \bar R^TWE]`
+        (before the :math:`\rho^{-1}\lambda^{2N}I` term), one Cholesky solve
+        :math:`[-\hat\theta_{IV} \mid GE]`, in place.
+        """
+        p = self.num_parameters
+        if moments is not self.moments:
+            self.moments[...] = moments
+        if self.iv_weight is not None:
+            self._weighted[:, :p + 1] = self.iv_weight.dot(self.moments)
+        # rows of R'W [R | -r | E]  (positional out: keywords cost a third of the work)
+        self._weighted.T.dot(self.moments[:, :p], self._normal)
+        # M_N^-1 = R'WR + rho^-1 lambda^2N I
+        self._m_inverse_diagonal += regularisation
+        # [-theta_IV | G E] = M_N [-R'W r | R'W E]      (38)
+        if dposv(self.m_inverse, self._iv_solution, 0, 0, 1)[2] != 0:
+            self._iv_solve_by_lu(regularisation)
+        return -self._iv_solution[:, 0]
+
+    def _iv_solve_by_lu(self, regularisation: float) -> None:
+        """Redo the solve of Step 1 with LU after the Cholesky factorisation failed (rounding)."""
+        p = self.num_parameters
+        normal = self._weighted.T.dot(self.moments[:, :p]).T
+        normal[:, :p] += regularisation * np.eye(p)
+        _, _, solution, info = dgesv(normal[:, :p], normal[:, p:])
+        if info != 0 or not np.isfinite(solution).all():
+            solution = 0.0
+        self._iv_solution[...] = solution
+
+    # ------------------------------------------------- Steps 3-4, the alternation
+    def _bilinear_form(self) -> tuple[np.ndarray, np.ndarray]:
+        r"""
+        Return the tensor C of :meth:`_alternate` (constant entries set) and its per-sample slots.
+
+        C has shape ``(nb + 1, p + 1, width)``, returned as ``(nb + 1, (p + 1) width)``:
+        the first axis runs over :math:`[b; 1]`, the second over
+        :math:`[\theta; 1]`, the last over :math:`[\bar H, \bar h, \bar D]` of
+        :meth:`_form_views`:
+
+        .. math::
+
+            C[j, n+k, \bar H_{:q,:q}] = E_j^TXE_k, \quad
+            C[j, t, \bar h_{:q}] = (E_j^TX[\bar R, -\bar r])_{:, t}, \quad
+            C[j, p, \bar D_{:, :q}] = GE_j, \quad
+            C[nb, p, \bar D_{:, q}] = -\hat\theta_{IV},
+
+        and the border :math:`C[nb, p, \bar H_{q,q}] = 1`,
+        :math:`C[nb, p, \bar h_q] = -1`. The slots are the flat indices in C
+        of the per-sample numbers, in the order they lie in the sample buffer
+        (after :math:`M_N^{-1}`): :math:`-\hat\theta_{IV}`, the rows
+        :math:`(GE_j)^T`, then :math:`E_j^TX[\bar R, -\bar r]`.
+        """
+        n, p, q, nb = self.order, self.num_parameters, self.q, len(self.lags)
+        forms = np.zeros((nb + 1, p + 1, (q + 1) * (q + 2 + p)))
+        noise_matrix, noise_rhs, _ = self._form_views(forms)
+        gram = (self._basis_x @ self.q_basis).reshape(nb, q, nb, q)  # E_j' X E_k
+        for j in range(nb):
+            for k in range(nb):
+                noise_matrix[j, n + k, :q, :q] = gram[j, :, k, :]
+        noise_matrix[nb, p, q, q] = 1.0
+        noise_rhs[nb, p, q] = -1.0
+        # the same views of an array of flat indices tell where each number goes
+        _, rhs_slots, bias_slots = self._form_views(np.arange(forms.size).reshape(forms.shape))
+        slots = (bias_slots[nb, p, :, q],                      # -theta_IV[i]
+                 bias_slots[:nb, p, :, :q].transpose(0, 2, 1),  # (G E_j)[i, c] at [j, c, i]
+                 rhs_slots[:nb, :, :q].transpose(0, 2, 1))      # (E_j' X [R | -r])[c, t]
+        return (forms.reshape(nb + 1, -1),
+                np.concatenate([slot.reshape(-1) for slot in slots]))
+
+    def _form_views(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        r"""
+        Split the last axis of C (or of its value) into :math:`\bar H, \bar h, \bar D` (views).
+
+        .. math::
+
+            \bar H = \begin{bmatrix} \tilde Q^TX\tilde Q & 0 \\ 0 & 1 \end{bmatrix},
+            \quad \bar h = \begin{bmatrix} \tilde Q^TX(\bar R\theta - \bar r) \\ -1
+            \end{bmatrix}, \quad
+            \bar D = [\,G\tilde Q \mid -\hat\theta_{IV}\,],
+
+        so that :math:`\bar H^{-1}\bar h = [\tilde\gamma; -1]` (eq. 75) and
+        :math:`\bar D\,[\tilde\gamma; -1] = \hat\theta_{IV} + G\tilde Q\tilde\gamma`
+        (eq. 53). :math:`\bar H` is viewed Fortran-ordered (it is symmetric)
+        for an in-place Cholesky solve; :math:`\bar D` is ``(p, q + 1)``.
+        """
+        size = self.q + 1
+        lead = values.shape[:-1]
+        matrix_end = size * size
+        rhs_end = matrix_end + size
+        return (values[..., :matrix_end].reshape(*lead, size, size).swapaxes(-1, -2),
+                values[..., matrix_end:rhs_end],
+                values[..., rhs_end:].reshape(*lead, self.num_parameters, size))
+
+    def _alternate(self, theta_iv: np.ndarray, start: np.ndarray, iterations: int,
+                   tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+        r"""
+        Make up to ``iterations`` alternations of Steps 3 and 4 from theta = ``start``.
+
+        One alternation evaluates the bilinear form
+        :math:`\sum_{s,t} [b; 1]_s\,[\theta; 1]_t\,C[s, t, :] = [\bar H, \bar h, \bar D]`
+        (:meth:`_bilinear_form`) by two products, solves eq. (75) in place by
+        Cholesky and takes eq. (53) as one product: four numpy/LAPACK calls,
+        which at these sizes cost more than the arithmetic. The step is
+        checked every :data:`CHECK_PERIOD` alternations and after the last;
+        the loop stops once it is below ``tolerance``.
+
+        Returns
+        -------
+        theta, gamma, iterations, converged, status
+            ``gamma`` is :math:`N\tilde\gamma` of the last step; ``status`` is
+            ``''`` or :data:`SINGULAR`/:data:`RUNAWAY`.
+
+        """
+        n, p, q = self.order, self.num_parameters, self.q
+        forms = self._forms
+        # this sample's -theta_IV, G E_j and E_j' X [R | -r] into C
+        self._basis_x.dot(self.moments, self._noise_moments)
+        forms.reshape(-1)[self._form_slots] = self._sample_numbers[p * p:]
+        over_b, values = self._over_b, self._form_value
+        noise_matrix, noise_rhs = self._noise_matrix, self._noise_rhs
+        x = self._x
+        theta, b_one = x[:p], x[n:]
+        theta[...] = start
+        # bound methods, positional arguments: at these sizes call overhead is the cost
+        sum_over_b, sum_over_theta = b_one.dot, x.dot
+        over_b_2d, step_4 = over_b.reshape(p + 1, -1), self._bias_map.dot
+        converged, done = False, 0
+        for check in _check_schedule(iterations):
+            done += 1
+            # [Hbar, hbar, Dbar] at b = theta[n:]
+            sum_over_b(forms, over_b)
+            sum_over_theta(over_b_2d, values)
+            # Step 3, eq. (75): hbar <- Hbar^-1 hbar = [gamma; -1]
+            if dposv(noise_matrix, noise_rhs, 0, 1, 1)[2] != 0:
+                return theta.copy(), noise_rhs[:q].copy(), done, False, SINGULAR
+            if not check:
+                # Step 4, eq. (53): theta = theta_IV + G Q~ gamma = Dbar [gamma; -1]
+                step_4(noise_rhs, theta)
+                continue
+            previous = theta.tolist()
+            step_4(noise_rhs, theta)
+            change = math.dist(theta.tolist(), previous)
+            if not math.isfinite(change):
+                return theta.copy(), noise_rhs[:q].copy(), done, False, RUNAWAY
+            if change <= tolerance:
+                converged = True
+                break
+        if done == 0:
+            return theta.copy(), np.zeros(q), 0, False, OK
+        # noise_matrix holds the Cholesky factor of Q~'XQ~: cond >= (max/min diagonal)^2
+        diagonal = noise_matrix.diagonal()[:q].tolist()
+        if not min(diagonal) * math.sqrt(CONDITION_MAX) > max(diagonal):
+            return theta.copy(), noise_rhs[:q].copy(), done, converged, SINGULAR
+        return theta.copy(), noise_rhs[:q].copy(), done, converged, OK
+
+    # ------------------------------------------------ white input noise
+    def _white_buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        r"""
+        Return the buffers of f(sigma) of :meth:`_white_fixed_point`, bordered for u = [b; 1].
+
+        The forms, ``(3, nb + 1, nb + 1)``: :math:`E^TXE` (constant),
+        :math:`K_1`, and :math:`c_0` in the last row (both set per sample), so
+        that :math:`u^T F_0 u = b^TE^TXEb`, :math:`u^T F_1 u = b^TK_1b` and
+        :math:`u^T F_2 u = c_0^Tb`. The system, ``(2, nb + 1, nb + 1)``: the
+        identity and :math:`[GE]_b` (set per sample) with a zero border, so that
+        :math:`(I - \sigma [GE]_b)\,b = \hat b_{IV}` bordered by :math:`1 = 1`
+        has the solution u.
+        """
+        nb = len(self.lags)
+        forms = np.zeros((3, nb + 1, nb + 1))
+        forms[0, :nb, :nb] = self._basis_x @ self.q_basis
+        system = np.zeros((2, nb + 1, nb + 1))
+        system[0] = np.eye(nb + 1)
+        return forms, system
+
+    def _white_fixed_point(self, theta_iv: np.ndarray, start: float, max_steps: int,
+                           tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+        r"""
+        Return the fixed point of Steps 3-4 with white input noise (eqs. 65-67).
+
+        With :math:`\tilde Q = \tilde b` (eq. 66) and :math:`\sigma = N\sigma_d^2`,
+        a fixed point satisfies :math:`\theta = \hat\theta_{IV} + \sigma\,GEb`
+        (eq. 53), so for a given :math:`\sigma` its b-part solves an n x n
+        system, and eq. (75) becomes a scalar equation :math:`\sigma = f(\sigma)`:
+
+        .. math::
+
+            (I - \sigma [GE]_b)\, b(\sigma) = \hat b_{IV}, \qquad
+            f(\sigma) = \frac{c_0^Tb + \sigma\, b^TK_1b}{b^TE^TXE\,b}, \quad
+            c_0 = E^TX(\bar R\hat\theta_{IV} - \bar r), \ K_1 = E^TX\bar R\,GE.
+
+        The plain alternation converges slowly, if at all (``docs/bciv.md``),
+        so the root is found by the secant method from ``start``
+        (the previous :math:`N\hat\sigma_d^2`, or 0, whose first step is one
+        alternation from theta_IV). The estimate is
+        :math:`\hat\theta_{IV} + f(\sigma_k)\,GE\,b(\sigma_k)`. If the scalar
+        equation breaks down, the plain alternation is iterated instead.
+        """
+        n, p = self.order, self.num_parameters
+        nb = p - n
+        gain = self._iv_solution[:, 1:]  # G E, (p, nb)
+        self._basis_x.dot(self.moments, self._noise_moments)  # E'X [R | -r]
+        forms = self._white_forms
+        forms[1, :nb, :nb] = self._noise_moments[:, :p].dot(gain)  # K_1
+        x = self._x  # [theta_IV; 1]
+        x[:p] = theta_iv
+        forms[2, nb, :nb] = self._noise_moments.dot(x)  # c_0
+        # bordered by a unit row, one solve gives u = [b(sigma); 1]:
+        # [[I - sigma [GE]_b, 0], [0, 1]] u = [b_IV; 1]
+        identity, gain_b = self._white_system
+        gain_b[:nb, :nb] = gain[n:]
+        b_iv = x[n:].copy()
+        # a change of sigma moves theta by |G E b| times it, and b starts at b_IV
+        direction = gain.dot(theta_iv[n:])
+        scale = math.sqrt(direction.dot(direction))
+        tolerance_sigma = tolerance / scale if scale > 0.0 else math.inf
+
+        def f(sigma: float) -> tuple[float | None, np.ndarray | None]:
+            """Return the value of f and [b; 1] at sigma, or None if either is undefined."""
+            _, _, u, info = dgesv(identity - sigma * gain_b, b_iv)
+            if info != 0:
+                return None, None
+            denominator, curvature, linear = forms.dot(u).dot(u).tolist()
+            if not denominator > 0.0:
+                return None, None
+            return (linear + sigma * curvature) / denominator, u
+
+        # secant steps on phi(sigma) = sigma - f(sigma)
+        s_0 = float(start)
+        f_1, u = f(s_0)
+        done = 1
+        if f_1 is None:
+            return self._plain_white(theta_iv, max_steps, tolerance)
+        s_1, phi_0 = f_1, s_0 - f_1
+        converged = abs(phi_0) <= tolerance_sigma
+        while not converged and done < max_steps:
+            f_1, u = f(s_1)
+            done += 1
+            if f_1 is None or not math.isfinite(f_1):
+                return self._plain_white(theta_iv, max_steps, tolerance)
+            phi_1 = s_1 - f_1
+            if abs(phi_1) <= tolerance_sigma:
+                converged = True
+                break
+            slope = phi_1 - phi_0
+            s_next = f_1 if slope == 0.0 else s_1 - phi_1 * (s_1 - s_0) / slope
+            s_0, phi_0, s_1 = s_1, phi_1, s_next
+        # Step 4, eq. (53): theta = theta_IV + sigma G E b
+        theta = theta_iv + gain.dot(u[:nb]) * f_1
+        return theta, np.array([f_1]), done, converged, OK
+
+    def _plain_white(self, theta_iv: np.ndarray, max_steps: int,
+                     tolerance: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+        """Iterate the plain alternation from theta_IV (the fallback of the secant method)."""
+        return self._alternate(theta_iv, theta_iv, max(max_steps, 200), tolerance)
 
     # ------------------------------------------------------------- windows
     def window_indices(self) -> tuple[np.ndarray, np.ndarray]:
@@ -580,6 +606,12 @@ class BcivSolver:
         return eta, np.stack(columns, axis=1)
 
 
+@functools.lru_cache(maxsize=None)
+def _check_schedule(iterations: int) -> tuple[bool, ...]:
+    """Return, per alternation, whether to check its step (every CHECK_PERIOD-th and the last)."""
+    return tuple((k + 1) % CHECK_PERIOD == 0 or k + 1 == iterations for k in range(iterations))
+
+
 def _weight(name: str, value: Any, m: int) -> np.ndarray:
     """Return a checked (m, m) symmetric positive definite weighting matrix."""
     matrix = np.array(value, dtype=float)
@@ -591,33 +623,27 @@ def _weight(name: str, value: Any, m: int) -> np.ndarray:
     return matrix
 
 
-def _general_solve(matrix: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
-    """Solve with LU when the Cholesky factorisation failed (rounding near singular)."""
-    _, _, solved, info = dgesv(matrix, rhs)
-    if info != 0 or not np.isfinite(solved).all():
-        return np.zeros_like(rhs), info
-    return solved, info
-
-
 class Bciv(RecursiveEstimator):
     r"""
     Recursive BCIV-type estimator for errors-in-variables models (Ikenoue et al. 2008).
 
     The data are the noisy output z_t (the published ``y``) and the noisy
     input w_t (``u``), SISO. With the IV-type vector (54), delayed by l - 1
-    samples as in eqs. (68)-(70), every sample updates the moments and then
-    computes the estimate from them:
+    samples as in eqs. (68)-(70), every sample updates the moments (Step 2,
+    unnormalised: :math:`\bar R = N\hat R_{\eta p}`, :math:`\bar r = N\hat r_{\eta z}`)
+    and then computes the estimate from them with :class:`BcivSolver`:
 
     .. math::
 
-        \bar S_N &= \lambda \bar S_{N-1} + \eta_N [p_N^T,\ -z_N]
-            && \text{(Step 2, eqs. 39-40, unnormalised)} \\
-        \hat\theta_{IV,N} &= (\bar S_p^T W \bar S_p + \rho^{-1}\lambda^{2N} I)^{-1}
-            \bar S_p^T W \bar s && \text{(38), = Step 1 with } M_0 = \rho I \\
-        \hat{\tilde\gamma}_{k+1} &= (\tilde Q_k^T X \tilde Q_k)^{-1} \tilde Q_k^T X
-            (\hat R_{\eta p}\theta_k - \hat r_{\eta z}) && \text{(75)} \\
-        \theta_{k+1} &= \hat\theta_{IV,N} + (\hat R_{\eta p}^T W \hat R_{\eta p})^{-1}
-            \hat R_{\eta p}^T W \tilde Q_k \hat{\tilde\gamma}_{k+1} && \text{(53)}
+        [\bar R_N,\ -\bar r_N] &= \lambda [\bar R_{N-1},\ -\bar r_{N-1}]
+            + \eta_N [p_N^T,\ -z_N] && \text{Step 2} \\
+        \hat\theta_{IV,N} &= (\bar R^T W \bar R + \rho^{-1}\lambda^{2N} I)^{-1}
+            \bar R^T W \bar r && \text{Step 1, eq. (38), } M_0 = \rho I \\
+        \tilde\gamma_{k+1} &= (\tilde Q_k^T X \tilde Q_k)^{-1} \tilde Q_k^T X
+            (\bar R\theta_k - \bar r) && \text{Step 3, eq. (75)} \\
+        \theta_{k+1} &= \hat\theta_{IV,N} + (\bar R^T W \bar R
+            + \rho^{-1}\lambda^{2N} I)^{-1} \bar R^T W \tilde Q_k \tilde\gamma_{k+1}
+            && \text{Step 4, eq. (53)}
 
     with :math:`\tilde Q_k = \tilde Q(b_k)` of eq. (61) (colored, noise vector
     (64): r_dd(0..n+l-1)) or eq. (66) (white, (67): sigma_d^2). The estimate at
@@ -625,24 +651,23 @@ class Bciv(RecursiveEstimator):
 
     * colored, ``converged``: K = ``bciv_iterations`` alternations from
       :math:`\theta_0 = \hat\theta_{IV,N}`, stopping early below ``tolerance``;
-    * white, ``converged``: the unique fixed point, warm-started from the
-      previous estimate (the secant method on the equivalent scalar equation
-      in sigma_d^2, at most K steps; see :meth:`BcivSolver.fixed_point`);
+    * white, ``converged``: a fixed point of the alternation, warm-started from
+      the previous estimate (the secant method on the equivalent scalar
+      equation in sigma_d^2, at most K steps; see :class:`BcivSolver`);
     * ``printed``: one alternation from the previous estimate (Steps 3-4 as
       printed).
 
-    :math:`\hat\theta_{IV,N}` equals the rank-2 recursion of Step 1 in exact
-    arithmetic (:math:`M_N^{-1} = \lambda^2 M_{N-1}^{-1} + \Psi_N\Lambda_N^{-1}\Psi_N^T`
-    sums to :math:`\bar S_p^TW\bar S_p + \rho^{-1}\lambda^{2N}I`); solving the
-    4x4 system is as cheap and does not accumulate the rounding of an
-    indefinite rank-2 update. For T < L = ``idle_samples`` the estimate is
-    :math:`\hat\theta_{IV,T}` (initial value selection of section 4).
+    :math:`\hat\theta_{IV,N}` is that of the rank-2 recursion of Step 1 (it
+    sums to the matrix above; ``docs/bciv.md``). For T < L = ``idle_samples``
+    the estimate is :math:`\hat\theta_{IV,T}` (initial value selection of
+    section 4).
 
     **Forgetting factor** (an extension): with exponential weights
     :math:`\lambda^{N-t}` the weighted moments normalised by
     :math:`\tau_N = \sum\lambda^{N-t}` have the same limits (71)-(72) on
     stationary data, so the same equations hold with
-    :math:`\hat R = \bar S/\tau`; the noise estimates are :math:`N\tilde\gamma/\tau`.
+    :math:`\hat R_{\eta p} = \bar R/\tau_N`; the noise estimates are
+    :math:`N\tilde\gamma/\tau_N`.
 
     **Safeguards** (counted in :attr:`flags`; the estimate stays finite):
 
@@ -687,7 +712,7 @@ class Bciv(RecursiveEstimator):
     """
 
     name = 'bciv'
-    #: Extra constructor keywords that are ROS parameters (SPEC section 5).
+    #: Extra constructor keywords that are ROS parameters (docs/nodes.md).
     options: tuple[str, ...] = ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
                                 'bciv_update', 'allow_underdetermined')
 
@@ -754,9 +779,9 @@ class Bciv(RecursiveEstimator):
         sample = ring[start:start + 2 * m][self._gather]
         lam = self._forgetting_factor
         if lam != 1.0:
-            self._saug *= lam
-        # S = lambda S + eta [p', -z]      (Step 2, unnormalised, in place)
-        dger(1.0, sample[:m], sample[m:], 1, 1, self._saug, 1, 1, 1)
+            self._moments *= lam
+        # [R | -r] = lambda [R | -r] + eta [p', -z]      (Step 2, unnormalised, in place)
+        dger(1.0, sample[:m], sample[m:], 1, 1, self._moments, 1, 1, 1)
         # tau = lambda tau + 1 ; decay = lambda^2N
         self._tau = lam * self._tau + 1.0
         self._decay *= lam * lam
@@ -767,12 +792,13 @@ class Bciv(RecursiveEstimator):
         """Compute theta_IV,N and theta_BCIV,N from the moments."""
         regularisation = self._decay / self.initial_covariance
         mode = 'idle' if self._updates < self.idle_samples else self._mode
-        theta, gamma, theta_iv, done, converged, status = self._solver.step(
-            self._saug, regularisation, mode, self._iterations, self.tolerance,
-            self._theta_bciv, self._gamma[0] * self._tau)
+        theta, gamma, theta_iv, done, converged, status = self._solver.estimate(
+            self._moments, regularisation, mode=mode, iterations=self._iterations,
+            tolerance=self.tolerance, start=self._theta_bciv,
+            start_noise=self._gamma[0] * self._tau)
         if not math.isfinite(theta_iv.dot(theta_iv)):
             self._flag('moments_reset')
-            self._saug[...] = 0.0
+            self._moments[...] = 0.0
             self._tau, self._decay, self._updates = 0.0, 1.0, 0
             return
         self._theta_iv = theta_iv
@@ -805,9 +831,8 @@ class Bciv(RecursiveEstimator):
         """Return tr M_N of Step 1, M_N = (S'WS + rho^-1 lambda^2N I)^-1 (a health indicator)."""
         if self._updates == 0:
             return self.initial_covariance * self.num_parameters
-        phi = self._solver.phi
         try:
-            return float(np.trace(np.linalg.inv(phi)))
+            return float(np.trace(np.linalg.inv(self._solver.m_inverse)))
         except np.linalg.LinAlgError:
             return float('inf')
 
@@ -837,9 +862,9 @@ class Bciv(RecursiveEstimator):
         self._ring[:] = 0.0
         self._start = 2 * RING_SAMPLES
         self._filled = 0
-        #: The moments S live in the solver's buffer, updated in place.
-        self._saug = self._solver.moments
-        self._saug[...] = 0.0
+        #: The moments [R | -r] of Step 2 live in the solver's buffer, updated in place.
+        self._moments = self._solver.moments
+        self._moments[...] = 0.0
         self._tau = 0.0
         self._decay = 1.0
         self._updates = 0
@@ -853,7 +878,7 @@ class Bciv(RecursiveEstimator):
         self._filled = 0
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        arrays = {'moments': self._saug, 'history': self._history,
+        arrays = {'moments': self._moments, 'history': self._history,
                   'theta_iv': self._theta_iv, 'theta_bciv': self._theta_bciv,
                   'gamma': self._gamma}
         scalars = {'filled': self._filled, 'tau': self._tau, 'decay': self._decay,
@@ -862,7 +887,7 @@ class Bciv(RecursiveEstimator):
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
-        self._saug[...] = arrays['moments']
+        self._moments[...] = arrays['moments']
         self._history[...] = arrays['history']
         self._theta_iv = arrays['theta_iv']
         self._theta_bciv = arrays['theta_bciv']
@@ -873,8 +898,9 @@ class Bciv(RecursiveEstimator):
         self._updates = int(scalars['updates'])
         self._iterations_used = int(scalars['iterations_used'])
         self._forgetting_factor = float(scalars['forgetting_factor'])
-        if self._updates > 0:
-            self._solver.prepare(self._saug, self._decay / self.initial_covariance)
+        if self._updates > 0:  # M_N^-1 for covariance_trace
+            self._solver.estimate(self._moments, self._decay / self.initial_covariance,
+                                  mode='idle', iterations=0, tolerance=self.tolerance)
 
     def __repr__(self) -> str:
         return (f'Bciv(order={self.order}, iv_lag={self.iv_lag}, '
@@ -936,7 +962,7 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
 
     For each checkpoint t the moments of the first t samples are summed at
     once, :math:`\bar S = \sum \lambda^{N-i}\eta_i[p_i^T, -z_i]`, and
-    :meth:`BcivSolver.solve` gives the estimate: K alternations from
+    :meth:`BcivSolver.estimate` gives the estimate: K alternations from
     theta_IV (colored) or the fixed point from theta_IV (white). This is what
     :class:`Bciv` with ``bciv_update='converged'`` computes recursively.
 
@@ -980,83 +1006,13 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
     for t in checkpoints:
         updates = max(t - solver.m + 1, 0)
         weights = lam ** np.arange(updates - 1, -1, -1, dtype=float)
-        saug = eta[:updates].T @ (pz[:updates] * weights[:, None])
+        moments = eta[:updates].T @ (pz[:updates] * weights[:, None])
         tau = float(weights.sum())
         row_mode = mode if updates >= max(idle_samples, 1) else 'idle'
-        result = solver.solve(saug, lam ** (2 * updates) / initial_covariance, mode=row_mode,
-                              iterations=bciv_iterations, tolerance=tolerance)
+        result = solver.estimate(moments, lam ** (2 * updates) / initial_covariance,
+                                 mode=row_mode, iterations=bciv_iterations, tolerance=tolerance)
         gamma = result.gamma / tau if tau > 0 else result.gamma
         rows.append((result.theta, result.theta_iv, gamma, result.iterations, result.status))
     return BcivBatch(np.array(checkpoints), np.array([r[0] for r in rows]),
                      np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
                      np.array([r[3] for r in rows]), tuple(r[4] for r in rows))
-
-
-def _small_solve(matrix: list[list[float]], rhs: list[float]) -> list[float] | None:
-    """Solve a small dense system in pure Python (Gauss, partial pivoting); None if singular."""
-    size = len(rhs)
-    a = [row[:] + [rhs[i]] for i, row in enumerate(matrix)]
-    for col in range(size):
-        pivot = max(range(col, size), key=lambda r: abs(a[r][col]))
-        if not abs(a[pivot][col]) > 1e-300:
-            return None
-        a[col], a[pivot] = a[pivot], a[col]
-        head = a[col]
-        for r in range(col + 1, size):
-            factor = a[r][col] / head[col]
-            if factor != 0.0:
-                row = a[r]
-                for k in range(col, size + 1):
-                    row[k] -= factor * head[k]
-    out = [0.0] * size
-    for r in range(size - 1, -1, -1):
-        row = a[r]
-        out[r] = (row[size] - sum(row[k] * out[k] for k in range(r + 1, size))) / row[r]
-    return out
-
-
-def _white_map(ge_b: list, beta: list, k1: list, c0: list, t_mat: list):
-    """
-    Return f(sigma) -> (f, b) of :meth:`BcivSolver.fixed_point`, in plain floats.
-
-    For n = 2 (and 1) the n x n algebra is written out: a few dozen float
-    operations cost less than one numpy call.
-    """
-    if len(beta) == 2:
-        (g00, g01), (g10, g11) = ge_b
-        beta0, beta1 = beta
-        (k00, k01), (k10, k11) = k1
-        c00, c01 = c0
-        (t00, t01), (t10, t11) = t_mat
-
-        def f2(sigma):
-            # (I - sigma [GE]_b) b = b_IV, by Cramer's rule
-            a00, a01, a10, a11 = 1.0 - sigma * g00, -sigma * g01, -sigma * g10, 1.0 - sigma * g11
-            det = a00 * a11 - a01 * a10
-            if det == 0.0:
-                return None, None
-            b0 = (a11 * beta0 - a01 * beta1) / det
-            b1 = (a00 * beta1 - a10 * beta0) / det
-            # den = b' E'XE b ; num = b' (c0 + sigma K1 b)
-            den = b0 * (t00 * b0 + t01 * b1) + b1 * (t10 * b0 + t11 * b1)
-            if not den > 0.0:
-                return None, None
-            num = (b0 * (c00 + sigma * (k00 * b0 + k01 * b1))
-                   + b1 * (c01 + sigma * (k10 * b0 + k11 * b1)))
-            return num / den, [b0, b1]
-        return f2
-    span = range(len(beta))
-
-    def f(sigma):
-        # (I - sigma [GE]_b) b = b_IV
-        b = _small_solve([[(1.0 if i == j else 0.0) - sigma * ge_b[i][j] for j in span]
-                          for i in span], beta)
-        if b is None:
-            return None, None
-        # den = b' E'XE b ; num = b' (c0 + sigma K1 b)
-        den = sum(b[i] * sum(t_mat[i][j] * b[j] for j in span) for i in span)
-        if not den > 0.0:
-            return None, None
-        num = sum(b[i] * (c0[i] + sigma * sum(k1[i][j] * b[j] for j in span)) for i in span)
-        return num / den, b
-    return f

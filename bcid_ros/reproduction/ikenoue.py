@@ -3,7 +3,7 @@ Reproduce Tables 1 and 2 and Figs. 1 and 2 of Ikenoue, Kanae, Yang and Wada (200
 
 Section 5.1 (colored input and output noise) compares LS, the IV-type
 estimate of eq. (38) and BCIV for l = 3, 4, 5 (K alternations from theta_IV,
-see PAPER_NOTES.md) and the printed one-step recursion for l = 5. Section 5.2
+see docs/bciv.md) and the printed one-step recursion for l = 5. Section 5.2
 (white input noise, colored output noise) compares LS, IV-type and BCIV for
 l = 4. BCIV and IV-type at the checkpoints of the RMSE curves come from the
 batch form (:func:`~bcid_ros.estimators.bciv.bciv_batch`, the same solver
@@ -267,7 +267,7 @@ def _limits_text(limits: dict[str, np.ndarray], truth: np.ndarray) -> list[str]:
         '## Limits of the colored case, measured\n',
         f'Section 5.1, l = 5, N = {SAMPLES}, M = {runs} (other seeds than above). The rows '
         '`K=…` are exactly K alternations of eqs. (75)/(53) from θ_IV,N (tolerance 0). '
-        'Eq. (72) does not fix the gain of B (PAPER_NOTES.md), so the alternation has a unit '
+        'Eq. (72) does not fix the gain of B (docs/bciv.md), so the alternation has a unit '
         'eigenvalue and the estimate is defined by its start (θ_IV,N) and K. The largest '
         f'change of any parameter in any run between K = {ks[-1]} and K = '
         + ', '.join(f'{k}: {move:.1e}' for k, move in zip(ks[:-1], moves))
@@ -330,7 +330,7 @@ def reproduce(runs: int | None, quick: bool, out_dir: Path, progress: Callable) 
         '* **LS**: eq. (22) on the ARX regressor.',
         '* **IV-type**: eq. (38) with the IV vector (54), delayed as in eqs. (68)–(70).',
         f'* **BCIV**, colored input noise (5.1): K = {ITERATIONS} alternations of eqs. (75) '
-        'and (53) started from θ_IV,N at each N (PAPER_NOTES.md: the alternation has a '
+        'and (53) started from θ_IV,N at each N (docs/bciv.md: the alternation has a '
         'unit eigenvalue, so warm starts drift). White input noise (5.2): the unique fixed '
         'point of the same alternation (eqs. 65–67).',
         '* **BCIV printed**: the paper\'s Steps 0–5 as printed, one alternation per sample '
@@ -356,7 +356,7 @@ def reproduce(runs: int | None, quick: bool, out_dir: Path, progress: Callable) 
         _noise_table(first, 'BCIV (l=5)'), '',
         '## Section 5.2: white input noise, colored output noise (Table 2, Fig. 2)\n',
         'The output noise uses the reading e_t = e_{t−1} − 0.4 e_{t−2} + ω_t − 0.87 ω_{t−1} '
-        '+ 0.57 ω_{t−2} (PAPER_NOTES.md). Zheng\'s algorithm is not implemented; its row is '
+        '+ 0.57 ω_{t−2} (docs/papers.md). Zheng\'s algorithm is not implemented; its row is '
         'the paper\'s.\n',
         _comparison_table(second, labels2), '',
         f'![RMSE vs t, section 5.2]({figure2.name})\n',

@@ -15,7 +15,7 @@ sample ``(y, u) = (z_t, w_t)``.
   input noise with sigma_d^2 = 0.1 and colored output noise
   e_t = e_{t-1} - 0.4 e_{t-2} + w_e,t - 0.87 w_e,t-1 + 0.57 w_e,t-2 (var
   0.2264), the reading of the garbled printed formula that gives the stated
-  10 dB (PAPER_NOTES.md).
+  10 dB (docs/papers.md).
 """
 
 from __future__ import annotations
