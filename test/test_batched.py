@@ -279,3 +279,11 @@ def test_bad_shapes_and_names_are_refused_and_change_nothing():
         BatchedBcrls(2, order=2).set_plant_state(0, make_estimator('rls', order=2).get_state())
     with pytest.raises(ValueError, match="state array 'theta_ls' does not match"):
         batched.set_plant_state(0, make_estimator('rls', order=3).get_state())
+
+
+def test_state_bytes_count_each_plant_array_once():
+    # rls: theta (p), P (p x p), history ((n + 1)(1 + r)), and six per-plant scalars
+    p, history = 4, 3 * 2
+    assert BatchedRls(7, order=2).nbytes == 7 * 8 * (p + p * p + history + 6)
+    # bcrls adds theta_c, Lambda theta_c and sigma2
+    assert BatchedBcrls(7, order=2).nbytes == 7 * 8 * (p + p * p + history + 6 + 2 * p + 1)

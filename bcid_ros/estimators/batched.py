@@ -270,6 +270,14 @@ class BatchedRls:
         """Return tau_k(t), shape ``(K,)`` (a copy)."""
         return self._tau.copy()
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the per-plant state arrays (all plants), for sizing."""
+        arrays = [value for value in vars(self).values()
+                  if isinstance(value, np.ndarray) and value.base is None
+                  and value.shape[:1] == (self.num_plants,)]
+        return sum(array.nbytes for array in arrays + list(self.flags.values()))
+
     def plant_flags(self, plant: int) -> dict[str, int]:
         """Return the flags counted for one plant (only those that occurred)."""
         return {key: int(counts[plant]) for key, counts in self.flags.items()
