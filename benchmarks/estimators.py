@@ -9,21 +9,26 @@ the naive way re-solves the batch problem over all data so far at every sample
 
 Many plants: the batched rls and bcrls update all K plants of the `joints` scenario
 (n = 2, r = 1) in one call; the figure is the median time of one call divided by K,
-against the single-plant update of the same structure timed in the same run.
+against the single-plant update of the same structure timed in the same run. The
+JointState demultiplexer (names matched to joints, both fields taken out) is timed per
+message on messages shaped as rclpy delivers them, the joints listed in reverse order.
 """
 
 from __future__ import annotations
 
+import array
 import importlib.util
 import time
+import types
 
 import numpy as np
 
-from benchmarks.common import best_of, per_sample_us, Result, summary
+from benchmarks.common import best_of, per_sample_us, Result, summary, time_each
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.batched import make_batched_estimator
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
+from bcid_ros.joints import JointStateDemux
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
                                  load_yaml_parameters)
 from bcid_ros.resources import config_file
@@ -180,7 +185,23 @@ def _batched(quick: bool) -> list[Result]:
                 per_plant <= BATCHED_TARGET_US if at_target else None,
                 note=f'{med:.0f} µs per call (p99 {p99:.0f}); {single[name] / per_plant:.1f}× '
                 f'faster than one plant; state {estimator.nbytes / plants:.0f} B per plant'))
+        med = float(np.median(best_of(lambda: demux_us(plants, 300 if quick else 2000))))
+        rows.append(Result(SECTION, f'JointState demux, K = {plants}: per joint', med / plants,
+                           'µs', note=f'{med:.0f} µs per message'))
     return rows
+
+
+def demux_us(plants: int, messages: int) -> np.ndarray:
+    """Time JointStateDemux.take on messages of ``plants`` joints, in µs per message."""
+    names = [f'joint_{k}' for k in range(1, plants + 1)]
+    values = np.arange(plants, dtype=float)
+    demux = JointStateDemux(names)
+    # a fresh message every time, as a subscription delivers them
+    message_list = [types.SimpleNamespace(
+        name=list(reversed(names)), position=array.array('d', values),
+        velocity=array.array('d', values + t), effort=array.array('d', values - t))
+        for t in range(messages)]
+    return time_each([lambda m=m: demux.take(m) for m in message_list])
 
 
 def _other_estimators(floor_med: float, quick: bool) -> list[Result]:
