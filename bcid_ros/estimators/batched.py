@@ -13,7 +13,14 @@ the single-plant sample policy of the identifier (``SampleFeeder``) applied
 per plant: a plant whose sample is missing or not finite restarts its own
 regressor and is counted, and the other plants are not touched. Each plant's
 estimate therefore equals that of a single-plant estimator fed the same
-samples, up to rounding (the reductions are summed in another order).
+samples, to 1e-12 (bit for bit where einsum and BLAS sum the dot products in the
+same order).
+
+Every step works on the plants ``rows`` whose regressor is filled: it computes
+their new state into local arrays and writes it back at the end. A per-plant
+condition found on the way (s <= 0 today) narrows ``rows`` before anything is
+written, which is where a per-plant gate on the prediction error or a
+per-plant rollback would go.
 """
 
 from __future__ import annotations
@@ -407,8 +414,8 @@ class BatchedRls:
         # e = y(t) - phi'(t) theta(t-1)
         theta = self._theta_ls[rows]
         e = y - _rowdot(phi, theta)
-        # theta(t) = theta(t-1) + g e / s
-        theta += g * (e / s)[:, None]
+        # theta(t) = theta(t-1) + g e / s   (a new array: nothing is written before the end)
+        theta = theta + g * (e / s)[:, None]
         # P(t) = P(t-1) - h h', h = g / sqrt(s)
         h = g * (1.0 / np.sqrt(s))[:, None]
         p_new = p_old - h[:, :, None] * h[:, None, :]
@@ -571,7 +578,7 @@ class BatchedBcrls(BatchedRls):
             sigma2 = loss / (tau * denominator)
         else:
             self._flag('sigma2_denominator', rows, ~accepted)
-            sigma2 = self._sigma2[rows]
+            sigma2 = self._sigma2[rows].copy()
             sigma2[accepted] = loss[accepted] / (tau[accepted] * denominator[accepted])
         self._sigma2[rows] = sigma2
         # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46)
