@@ -80,8 +80,8 @@ def assert_plants_equal(batched, singles):
                                                             rel=TOLERANCE, nan_ok=True)
 
 
-def run_batched(name, y, u, present, singles_at=(), **settings):
-    """Run the batched estimator over all samples; check against singles at some t."""
+def run_batched(name, y, u, present, **settings):
+    """Run the batched estimator over all samples, checking what update returns."""
     batched = make_batched_estimator(name, y.shape[1], **settings)
     for t in range(y.shape[0]):
         valid = batched.update(y[t], u[t], present[t])
