@@ -6,19 +6,29 @@ Each per-sample figure is the best of three repeats (by median), floor and peer 
 The floor is a bare textbook numpy RLS update of the same size written inline here;
 the naive way re-solves the batch problem over all data so far at every sample
 (timed at N = 1000); the peer is padasip's FilterRLS of the same size.
+
+Many plants: the batched rls and bcrls update all K plants of the `joints` scenario
+(n = 2, r = 1) in one call; the figure is the median time of one call divided by K,
+against the single-plant update of the same structure timed in the same run. The
+JointState demultiplexer (names matched to joints, both fields taken out) is timed per
+message on messages shaped as rclpy delivers them, the joints listed in reverse order.
 """
 
 from __future__ import annotations
 
+import array
 import importlib.util
 import time
+import types
 
 import numpy as np
 
-from benchmarks.common import best_of, per_sample_us, Result, summary
+from benchmarks.common import best_of, per_sample_us, Result, summary, time_each
 from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.batched import make_batched_estimator
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
+from bcid_ros.joints import JointStateDemux
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
                                  load_yaml_parameters)
 from bcid_ros.resources import config_file
@@ -26,6 +36,10 @@ from bcid_ros.simulation import make_scenario
 
 SECTION = 'estimator cost'
 NAIVE_N = 1000
+#: Plant counts of the batched update, and the one the target is held at.
+BATCHED_PLANTS = (10, 100, 1000)
+BATCHED_TARGET_PLANTS = 100
+BATCHED_TARGET_US = 2.0
 
 
 def floor_rls_us(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -126,7 +140,68 @@ def run(quick: bool = False) -> list[Result]:
             rows.append(Result(SECTION, f'{name} / padasip', costs[name] / peer_med, '×',
                                '≤ 1', costs[name] <= peer_med))
     rows.extend(_other_estimators(floor_med, quick))
+    rows.extend(_batched(quick))
     return rows
+
+
+def per_step_us(update, y: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Return the time of ``update(y[t], u[t])`` (rows of all plants) for every t, in µs."""
+    clock = time.perf_counter_ns
+    times = np.empty(y.shape[0])
+    for t in range(y.shape[0]):
+        y_t, u_t = y[t], u[t]
+        start = clock()
+        update(y_t, u_t)
+        times[t] = clock() - start
+    return times / 1000.0
+
+
+def _batched(quick: bool) -> list[Result]:
+    """Time the batched rls and bcrls per plant-sample at several K against the single plant."""
+    rows = []
+    largest = make_scenario('joints', num_joints=max(BATCHED_PLANTS), seed=1)
+    y, u = largest.simulate(1000 if quick else 5000, 2)
+    single = {}
+    for name in ('rls', 'bcrls'):
+        med, p99 = summary(best_of(lambda: per_sample_us(
+            make_estimator(name, order=2).update, y[:, 0], u[:, :1])))
+        single[name] = med
+        rows.append(Result(SECTION, f'{name} update, one plant (n = 2, r = 1), median', med,
+                           'µs', note=f'p99 {p99:.1f} µs'))
+    for plants in BATCHED_PLANTS:
+        steps = (300 if quick else 3000) if plants <= 100 else (200 if quick else 1000)
+        for name in ('rls', 'bcrls'):
+            estimator = make_batched_estimator(name, plants, order=2)
+
+            def fresh_run():
+                estimator.reset()
+                return per_step_us(estimator.update, y[:steps, :plants], u[:steps, :plants])
+            med, p99 = summary(best_of(fresh_run))
+            per_plant = med / plants
+            at_target = plants == BATCHED_TARGET_PLANTS
+            rows.append(Result(
+                SECTION, f'batched {name}, K = {plants}: per plant-sample', per_plant, 'µs',
+                f'≤ {BATCHED_TARGET_US:g} µs' if at_target else '',
+                per_plant <= BATCHED_TARGET_US if at_target else None,
+                note=f'{med:.0f} µs per call (p99 {p99:.0f}); {single[name] / per_plant:.1f}× '
+                f'faster than one plant; state {estimator.nbytes / plants:.0f} B per plant'))
+        med = float(np.median(best_of(lambda: demux_us(plants, 300 if quick else 2000))))
+        rows.append(Result(SECTION, f'JointState demux, K = {plants}: per joint', med / plants,
+                           'µs', note=f'{med:.0f} µs per message'))
+    return rows
+
+
+def demux_us(plants: int, messages: int) -> np.ndarray:
+    """Time JointStateDemux.take on messages of ``plants`` joints, in µs per message."""
+    names = [f'joint_{k}' for k in range(1, plants + 1)]
+    values = np.arange(plants, dtype=float)
+    demux = JointStateDemux(names)
+    # a fresh message every time, as a subscription delivers them
+    message_list = [types.SimpleNamespace(
+        name=list(reversed(names)), position=array.array('d', values),
+        velocity=array.array('d', values + t), effort=array.array('d', values - t))
+        for t in range(messages)]
+    return time_each([lambda m=m: demux.take(m) for m in message_list])
 
 
 def _other_estimators(floor_med: float, quick: bool) -> list[Result]:

@@ -20,6 +20,7 @@ SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
     'ikenoue_white_input': ('bcid_ros.simulation.ikenoue:IkenoueEiv', {'section': '5.2'}),
     'ikeda_closed_loop': ('bcid_ros.simulation.ikeda:IkedaClosedLoop', {}),
     'custom': ('bcid_ros.simulation.custom:CustomScenario', {}),
+    'joints': ('bcid_ros.simulation.joints:JointsScenario', {}),
 }
 
 

@@ -1,0 +1,289 @@
+"""Batched RLS/BCRLS: each plant equals its single-plant estimator run on the same samples."""
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.batched import BatchedBcrls, BatchedRls, make_batched_estimator
+
+# Each plant's figures against its single-plant run: the contract is 1e-12. Where einsum
+# and the single plant's BLAS sum a dot product in the same order they agree bit for bit
+# (so on the machines measured); another order would start them ~1e-9 apart, amplified
+# by the ill-conditioned start P(0) = 1e6 I, and this test would say so.
+TOLERANCE = 1e-12
+
+# Stable second-order plants (a1, a2, b1, b2), one per row: different poles and gains.
+PLANTS = np.array([[-0.84, 0.16, 0.12, 0.324],
+                   [-1.5, 0.7, 1.0, 0.5],
+                   [0.3, 0.2, -0.4, 0.9],
+                   [-0.2, -0.35, 2.0, -1.0],
+                   [-1.2, 0.45, 0.05, 0.02]])
+
+
+def plant_data(samples, seed, num_inputs=1, noise=0.3):
+    """Return y ``(N, K)`` and u ``(N, K, r)`` of the PLANTS, each with its own data."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((samples, len(PLANTS), num_inputs))
+    y = np.empty((samples, len(PLANTS)))
+    for k, (a1, a2, b1, b2) in enumerate(PLANTS):
+        y[:, k] = noise * (k + 1) * rng.standard_normal(samples)
+        for i in range(num_inputs):
+            y[:, k] += signal.lfilter([0.0, b1, b2 * (i + 1)], [1.0, a1, a2], u[:, k, i])
+    return y, u
+
+
+def spoil(y, u, seed, rate=0.02):
+    """Return copies with NaN in y or u, and a presence mask, at random per plant."""
+    rng = np.random.default_rng(seed)
+    y, u = y.copy(), u.copy()
+    y[rng.random(y.shape) < rate] = np.nan
+    u[rng.random(u.shape) < rate] = np.inf
+    present = rng.random(y.shape) >= rate
+    return y, u, present
+
+
+def single_runs(name, y, u, present, **settings):
+    """Run one single-plant estimator per plant with the identifier's per-sample policy."""
+    singles = [make_estimator(name, **settings) for _ in range(y.shape[1])]
+    for t in range(y.shape[0]):
+        for k, single in enumerate(singles):
+            if present[t, k] and np.isfinite(y[t, k]) and np.isfinite(u[t, k]).all():
+                single.update(y[t, k], u[t, k])
+            else:
+                # SampleFeeder: a missing or non-finite sample restarts the regressor
+                single.restart_regressor()
+    return singles
+
+
+def assert_plants_equal(batched, singles):
+    """Assert that every plant's full state equals its single-plant estimator's."""
+    for k, single in enumerate(singles):
+        mine, theirs = batched.plant_state(k), single.get_state()
+        assert mine.arrays.keys() == theirs.arrays.keys()
+        for key, value in theirs.arrays.items():
+            np.testing.assert_allclose(mine.arrays[key], value, rtol=TOLERANCE,
+                                       atol=TOLERANCE, err_msg=f'plant {k} {key}')
+        for key, value in theirs.scalars.items():
+            if isinstance(value, float):
+                assert mine.scalars[key] == pytest.approx(value, rel=TOLERANCE, abs=TOLERANCE,
+                                                          nan_ok=True)
+            else:
+                assert mine.scalars[key] == value, (k, key)
+        np.testing.assert_allclose(batched.theta[k], single.theta, rtol=TOLERANCE,
+                                   atol=TOLERANCE)
+        np.testing.assert_allclose(batched.noise[k], single.noise, rtol=TOLERANCE,
+                                   atol=TOLERANCE)
+        assert batched.valid[k] == single.valid
+        assert batched.samples[k] == single.samples
+        assert batched.covariance_trace[k] == pytest.approx(single.covariance_trace,
+                                                            rel=TOLERANCE, nan_ok=True)
+
+
+def run_batched(name, y, u, present, **settings):
+    """Run the batched estimator over all samples, checking what update returns."""
+    batched = make_batched_estimator(name, y.shape[1], **settings)
+    for t in range(y.shape[0]):
+        valid = batched.update(y[t], u[t], present[t])
+        np.testing.assert_array_equal(valid, batched.valid)
+    return batched
+
+
+CASES = [
+    ('rls', {'order': 2}),
+    ('bcrls', {'order': 2}),
+    ('rls', {'order': 2, 'forgetting_factor': 0.97}),
+    ('bcrls', {'order': 2, 'forgetting_factor': 0.98, 'initial_covariance': 100.0}),
+    ('bcrls', {'order': 3, 'num_inputs': 2, 'feedthrough': True}),
+    ('rls', {'order': 1, 'num_inputs': 2}),
+]
+
+
+@pytest.mark.parametrize('name, settings', CASES)
+def test_each_plant_equals_its_single_plant_run_with_missing_and_nan_samples(name, settings):
+    y, u = plant_data(1500, 3, settings.get('num_inputs', 1))
+    y, u, present = spoil(y, u, 4)
+    batched = run_batched(name, y, u, present, **settings)
+    singles = single_runs(name, y, u, present, **settings)
+    assert_plants_equal(batched, singles)
+    # per-plant counters: exactly the injected faults
+    finite = np.isfinite(y) & np.isfinite(u).all(axis=2)
+    np.testing.assert_array_equal(batched.missing, (~present).sum(axis=0))
+    np.testing.assert_array_equal(batched.nonfinite, (present & ~finite).sum(axis=0))
+    np.testing.assert_array_equal(batched.used, (present & finite).sum(axis=0))
+    assert batched.valid.all()
+
+
+def test_equal_after_every_sample_through_the_start_and_gaps():
+    y, u = plant_data(60, 5)
+    y, u, present = spoil(y, u, 6, rate=0.08)
+    batched = BatchedBcrls(len(PLANTS), order=2)
+    singles = [make_estimator('bcrls', order=2) for _ in PLANTS]
+    for t in range(y.shape[0]):
+        batched.update(y[t], u[t, :, 0], present[t])
+        for k, single in enumerate(singles):
+            if present[t, k] and np.isfinite(y[t, k]) and np.isfinite(u[t, k]).all():
+                single.update(y[t, k], u[t, k])
+            else:
+                single.restart_regressor()
+        assert_plants_equal(batched, singles)
+
+
+def test_forgetting_without_excitation_limits_windup_per_plant():
+    # plant 0 loses excitation (constant input, no noise); the others keep theirs
+    y, u = plant_data(1200, 8, noise=0.0)
+    u[300:, 0, 0] = 1.0
+    y[300:, 0] = 2.0
+    present = np.ones(y.shape, dtype=bool)
+    batched = run_batched('rls', y, u, present, order=2, forgetting_factor=0.9)
+    singles = single_runs('rls', y, u, present, order=2, forgetting_factor=0.9)
+    assert_plants_equal(batched, singles)
+    assert batched.plant_flags(0)['windup_limited'] > 0
+    assert all('windup_limited' not in batched.plant_flags(k) for k in range(1, len(PLANTS)))
+
+
+def test_a_bad_sample_on_one_plant_leaves_the_others_as_they_were():
+    y, u = plant_data(400, 9)
+    present = np.ones(y.shape, dtype=bool)
+    clean = run_batched('bcrls', y, u, present, order=2)
+    spoilt_y, spoilt_present = y.copy(), present.copy()
+    spoilt_y[100, 2] = np.nan
+    spoilt_present[200, 2] = False
+    spoilt = run_batched('bcrls', spoilt_y, u, spoilt_present, order=2)
+    others = [0, 1, 3, 4]
+    np.testing.assert_allclose(spoilt.theta[others], clean.theta[others], rtol=0,
+                               atol=TOLERANCE)
+    np.testing.assert_array_equal(spoilt.samples[others], clean.samples[others])
+    assert spoilt.samples[2] == clean.samples[2] - 2 * (2 + 1)
+    assert not np.allclose(spoilt.theta[2], clean.theta[2], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(spoilt.nonfinite, [0, 0, 1, 0, 0])
+    np.testing.assert_array_equal(spoilt.missing, [0, 0, 1, 0, 0])
+
+
+def test_safeguards_fire_per_plant_as_in_the_single_plant_estimator():
+    y, u = plant_data(300, 10)
+    present = np.ones(y.shape, dtype=bool)
+    batched = BatchedBcrls(len(PLANTS), order=2)
+    singles = [make_estimator('bcrls', order=2) for _ in PLANTS]
+    for t in range(50):
+        batched.update(y[t], u[t], present[t])
+        for k, single in enumerate(singles):
+            single.update(y[t, k], u[t, k])
+    states = [single.get_state() for single in singles]
+    # plant 1: P negative definite, so s <= 0 (repair, no update)
+    states[1].arrays['p'][:] = -np.eye(4)
+    # plant 2: P not finite (repair to p0 I)
+    states[2].arrays['p'][0, 0] = np.nan
+    # plant 3: a compensation that makes the denominator of (51) negative
+    states[3].arrays['theta_c'][:2] = -1e3 * np.sign(states[3].arrays['theta_ls'][:2])
+    # plant 4: indefinite but s > 0, found by the health check at 1000 updates
+    states[4].arrays['p'][:] = np.diag([1.0, 1.0, 1.0, -1e-3])
+    states[4].scalars['updates'] = 999
+    for k, (single, state) in enumerate(zip(singles, states)):
+        single.set_state(state)
+        batched.set_plant_state(k, state)
+    assert_plants_equal(batched, singles)
+    for t in range(50, 300):
+        batched.update(y[t], u[t], present[t])
+        for k, single in enumerate(singles):
+            single.update(y[t, k], u[t, k])
+    assert_plants_equal(batched, singles)
+    for k, single in enumerate(singles):
+        assert batched.plant_flags(k) == single.flags
+    assert batched.plant_flags(0) == {}
+    assert batched.plant_flags(1)['covariance_repaired'] >= 1
+    assert batched.plant_flags(2)['covariance_repaired'] >= 1
+    assert batched.plant_flags(3)['sigma2_denominator'] >= 1
+    assert batched.plant_flags(4)['covariance_repaired'] >= 1
+
+
+def test_compensation_reset_per_plant():
+    y, u = plant_data(100, 12)
+    batched = BatchedBcrls(len(PLANTS), order=2)
+    single = make_estimator('bcrls', order=2)
+    for t in range(40):
+        batched.update(y[t], u[t])
+        single.update(y[t, 0], u[t, 0])
+    state = single.get_state()
+    # a huge sigma2 with a consistent denominator runs theta_c away
+    state.arrays['theta_c'][:2] = 1e9 * np.sign(state.arrays['theta_ls'][:2])
+    state.scalars['sigma2'] = 1e30
+    state.arrays['p'][:] *= 1e20
+    single.set_state(state)
+    batched.set_plant_state(0, state)
+    for t in range(40, 100):
+        batched.update(y[t], u[t])
+        single.update(y[t, 0], u[t, 0])
+    assert single.flags.get('compensation_reset', 0) >= 1
+    assert batched.plant_flags(0) == single.flags
+    np.testing.assert_allclose(batched.theta[0], single.theta, rtol=TOLERANCE, atol=TOLERANCE)
+
+
+def test_plant_state_round_trip_through_a_single_plant_estimator():
+    y, u = plant_data(500, 13)
+    batched = BatchedBcrls(len(PLANTS), order=2)
+    for t in range(200):
+        batched.update(y[t], u[t])
+    batched.restart_regressor(3)
+    batched.update(y[200], u[200])
+    singles = []
+    for k in range(len(PLANTS)):
+        single = make_estimator('bcrls', order=2)
+        single.set_state(batched.plant_state(k))
+        singles.append(single)
+    moved = BatchedBcrls(len(PLANTS), order=2)
+    for k, single in enumerate(singles):
+        moved.set_plant_state(k, single.get_state())
+    for t in range(201, 500):
+        batched.update(y[t], u[t])
+        moved.update(y[t], u[t])
+        for k, single in enumerate(singles):
+            single.update(y[t, k], u[t, k])
+    assert_plants_equal(batched, singles)
+    assert_plants_equal(moved, singles)
+
+
+def test_reset_and_restart_touch_only_the_plants_named():
+    y, u = plant_data(100, 14)
+    batched = BatchedRls(len(PLANTS), order=2)
+    for t in range(100):
+        batched.update(y[t], u[t])
+    before = batched.theta
+    batched.reset([1, 3])
+    np.testing.assert_array_equal(batched.theta[[1, 3]], 0.0)
+    np.testing.assert_array_equal(batched.theta[[0, 2, 4]], before[[0, 2, 4]])
+    np.testing.assert_array_equal(batched.valid, [True, False, True, False, True])
+    np.testing.assert_array_equal(batched.covariance[1], 1e6 * np.eye(4))
+    batched.restart_regressor(0)
+    samples = batched.samples
+    batched.update(y[0], u[0])
+    np.testing.assert_array_equal(batched.samples - samples, [0, 0, 1, 0, 1])
+
+
+def test_bad_shapes_and_names_are_refused_and_change_nothing():
+    batched = BatchedRls(3, order=2)
+    with pytest.raises(ValueError, match=r'y must have shape \(3,\), got \(2,\)'):
+        batched.update([1.0, 2.0], [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match=r'u must have shape \(3, 1\), got \(3, 2\)'):
+        batched.update([1.0, 2.0, 3.0], np.ones((3, 2)))
+    with pytest.raises(ValueError, match=r'present must have shape \(3,\)'):
+        batched.update([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [True])
+    assert batched.used.tolist() == [0, 0, 0]
+    with pytest.raises(ValueError, match='num_plants must be an integer >= 1, got 0'):
+        BatchedRls(0, order=2)
+    with pytest.raises(ValueError, match='forgetting_factor must be in'):
+        BatchedBcrls(2, order=2, forgetting_factor=1.5)
+    with pytest.raises(ValueError, match="one of rls, bcrls for many plants; got 'bciv'"):
+        make_batched_estimator('bciv', 2, order=2)
+    with pytest.raises(ValueError, match="state is from estimator 'rls', not 'bcrls'"):
+        BatchedBcrls(2, order=2).set_plant_state(0, make_estimator('rls', order=2).get_state())
+    with pytest.raises(ValueError, match="state array 'theta_ls' does not match"):
+        batched.set_plant_state(0, make_estimator('rls', order=3).get_state())
+
+
+def test_state_bytes_count_each_plant_array_once():
+    # rls: theta (p), P (p x p), history ((n + 1)(1 + r)), and six per-plant scalars
+    p, history = 4, 3 * 2
+    assert BatchedRls(7, order=2).nbytes == 7 * 8 * (p + p * p + history + 6)
+    # bcrls adds theta_c, Lambda theta_c and sigma2
+    assert BatchedBcrls(7, order=2).nbytes == 7 * 8 * (p + p * p + history + 6 + 2 * p + 1)
