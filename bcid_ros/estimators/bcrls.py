@@ -12,9 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.linalg.blas import dgemv
-
-from bcid_ros.estimators.rls import ls_batch, Rls
+from bcid_ros.estimators.rls import _load_blas, ls_batch, Rls
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
 #: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which
@@ -99,7 +97,7 @@ class Bcrls(Rls):
         else:
             self._flag('sigma2_denominator')
         # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46), one BLAS call
-        compensated = dgemv(self._tau * self._sigma2, self._p.T, previous, beta=1.0,
+        compensated = self._dgemv(self._tau * self._sigma2, self._p.T, previous, beta=1.0,
                             y=theta_ls, trans=1)
         size = compensated.dot(compensated)
         if not size <= COMPENSATION_MAX ** 2 and not (
@@ -119,6 +117,11 @@ class Bcrls(Rls):
 
     def _noise(self) -> np.ndarray:
         return np.array([self._sigma2])
+
+    def __init__(self, **settings: Any) -> None:
+        # scipy's BLAS loads with the first estimator, not with the module
+        self._dgemv = _load_blas()['dgemv']
+        super().__init__(**settings)
 
     def _reset(self) -> None:
         super()._reset()

@@ -13,13 +13,103 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy.linalg.blas import daxpy, dger
 
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.regressor import ArxRegressor
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
 HEALTH_CHECK_PERIOD = 1000
+
+#: BLAS level-1/2 kernels, loaded from scipy on first use (see :func:`rls_step`).
+_BLAS: dict[str, Any] = {}
+
+
+def _load_blas() -> dict[str, Any]:
+    """Import the scipy BLAS wrappers only when an RLS step is first made."""
+    if not _BLAS:
+        from scipy.linalg.blas import daxpy, dgemv, dger
+        _BLAS.update(daxpy=daxpy, dgemv=dgemv, dger=dger)
+    return _BLAS
+
+
+def rls_innovation(theta: np.ndarray, p: np.ndarray, phi: np.ndarray, y: float,
+                   lam: float) -> tuple[float, np.ndarray, float]:
+    r"""
+    Return the a-priori quantities of one RLS step, eqs. (47)-(48).
+
+    Parameters
+    ----------
+    theta : numpy.ndarray, shape ``(p,)``
+        :math:`\hat\theta(t-1)`.
+    p : numpy.ndarray, shape ``(p, p)``
+        :math:`P(t-1)`, symmetric positive definite.
+    phi : numpy.ndarray, shape ``(p,)``
+        :math:`\varphi(t)`.
+    y : float
+        :math:`y(t)`.
+    lam : float
+        Forgetting factor :math:`\lambda`.
+
+    Returns
+    -------
+    e : float
+        :math:`e(t) = y(t) - \varphi^T(t)\hat\theta(t-1)`.
+    g : numpy.ndarray, shape ``(p,)``
+        :math:`g = P(t-1)\varphi(t)`.
+    s : float
+        :math:`s(t) = \lambda + \varphi^T(t) P(t-1)\varphi(t)`; not finite or
+        :math:`\le 0` means the step must not be made.
+
+    """
+    # ndarray.dot: half the call overhead of @ at this size
+    g = p.dot(phi)
+    return y - phi.dot(theta), g, lam + phi.dot(g)
+
+
+def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
+             e: float) -> np.ndarray:
+    r"""
+    Make the RLS step (47)-(49) in place, without the division by :math:`\lambda`.
+
+    :math:`\hat\theta \leftarrow \hat\theta + g e/s` and
+    :math:`P \leftarrow P - h h^T` with :math:`h = g/\sqrt{s}`, which is
+    symmetric to the last bit. ``g``, ``s`` and ``e`` come from
+    :func:`rls_innovation` and ``s`` must be finite and positive.
+
+    Returns
+    -------
+    numpy.ndarray, shape ``(p, p)``
+        The downdated P (the memory of ``p``, updated in place when ``p``
+        is C-contiguous).
+
+    """
+    blas = _BLAS or _load_blas()
+    # theta(t) = theta(t-1) + g e / s   (BLAS axpy, in place)
+    blas['daxpy'](g, theta, a=e / s)
+    h = g * (1.0 / math.sqrt(s))
+    # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view)
+    return blas['dger'](-1.0, h, h, a=p.T, overwrite_a=True).T
+
+
+def repair_covariance(p: np.ndarray, fallback: np.ndarray,
+                      weights: np.ndarray | None = None) -> np.ndarray:
+    """
+    Return the nearest symmetric positive definite matrix to ``p``.
+
+    The symmetric part is diagonally scaled by ``weights`` (the inverse
+    signal scales, so that the eigenvalue floor is relative in normalised
+    units), its eigenvalues are clipped at 1e-12 of the largest (at least
+    1e-12) and the scaling is undone. A non-finite ``p`` is replaced by
+    ``fallback`` (a copy).
+    """
+    sym = 0.5 * (p + p.T)
+    if not np.isfinite(sym).all():
+        return fallback.copy()
+    w = np.ones(p.shape[0]) if weights is None else weights
+    values, vectors = np.linalg.eigh(sym * np.outer(w, w))
+    floor = max(values.max(), 1.0) * 1e-12
+    vectors = vectors / w[:, None]
+    return (vectors * np.maximum(values, floor)) @ vectors.T
 
 
 class Rls(RecursiveEstimator):
@@ -85,22 +175,11 @@ class Rls(RecursiveEstimator):
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
         lam = self._forgetting_factor
-        theta = self._theta_ls
-        # g = P(t-1) phi(t)   (ndarray.dot: half the call overhead of @ at this size)
-        g = self._p.dot(phi)
-        # s = lambda + phi' P(t-1) phi
-        s = lam + phi.dot(g)
+        e, g, s = rls_innovation(self._theta_ls, self._p, phi, y, lam)
         if not s > 0.0:
             self._repair_covariance()
             return False
-        # e = y(t) - phi'(t) theta(t-1)
-        e = y - phi.dot(theta)
-        # theta(t) = theta(t-1) + g e / s   (BLAS axpy, in place)
-        daxpy(g, theta, a=e / s)
-        # P(t) = P(t-1) - h h', h = g / sqrt(s): symmetric to the last bit
-        h = g * (1.0 / math.sqrt(s))
-        # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view)
-        self._p = dger(-1.0, h, h, a=self._p.T, overwrite_a=True).T
+        self._p = rls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
@@ -127,13 +206,8 @@ class Rls(RecursiveEstimator):
     def _repair_covariance(self) -> None:
         """Rebuild P as the nearest symmetric positive definite matrix."""
         self._flag('covariance_repaired')
-        sym = 0.5 * (self._p + self._p.T)
-        if not np.isfinite(sym).all():
-            self._p = self.initial_covariance * np.eye(self.num_parameters)
-            return
-        values, vectors = np.linalg.eigh(sym)
-        floor = max(values.max(), 1.0) * 1e-12
-        self._p = (vectors * np.maximum(values, floor)) @ vectors.T
+        self._p = repair_covariance(
+            self._p, self.initial_covariance * np.eye(self.num_parameters))
 
     # --------------------------------------------------------- the accessors
     @property
