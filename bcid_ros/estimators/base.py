@@ -38,6 +38,11 @@ IMPLAUSIBLE_ERROR = 1e6
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
 HUGE_SCREEN = 2.0 ** -450
+#: The generic transaction copies a state of at most this many numbers before
+#: every sample, and a larger one every CHECKPOINT_PERIOD samples.
+EXACT_CHECKPOINT_SIZE = 4096
+#: See EXACT_CHECKPOINT_SIZE.
+CHECKPOINT_PERIOD = 64
 #: The change score of the gate: +1 per refused sample, times CHANGE_DECAY per
 #: tested sample; three refusals in a row (1 + 0.8 + 0.64 = 2.44) reach it.
 CHANGE_SCORE = 2.4
@@ -199,6 +204,9 @@ class RecursiveEstimator(abc.ABC):
         self._change_score = 0.0
         self._screen = np.full(self.num_inputs, HUGE_SCREEN)
         self._quiet_left = 0
+        self._checkpoint: tuple[dict[str, np.ndarray], dict[str, Any]] | None = None
+        self._since_checkpoint = 0
+        self._checkpoint_period = 1
         self.flags: dict[str, int] = {}
 
     # ----------------------------------------------------------------- API
@@ -308,6 +316,7 @@ class RecursiveEstimator(abc.ABC):
         self.flags = {}
         self._change_score = 0.0
         self._quiet_left = 0
+        self._checkpoint = None
         self._reset()
 
     def restart_regressor(self) -> None:
@@ -345,6 +354,7 @@ class RecursiveEstimator(abc.ABC):
         scalars = dict(state.scalars)
         self.flags = dict(scalars.pop('flags', {}))
         self._change_score = float(scalars.pop('change_score', 0.0))
+        self._checkpoint = None
         self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
 
     @property
@@ -421,22 +431,33 @@ class RecursiveEstimator(abc.ABC):
     # ------------------------------------------------ the generic safeguards
     def _guarded_update(self, y: float, u: np.ndarray) -> None:
         """
-        Do one step as a transaction: snapshot, step, check, undo if unsound.
+        Do one step as a transaction: step, check, and go back if the state is unsound.
 
-        This generic form copies the state before every step; estimators
-        that can tell before committing whether a step is sound override it
-        with a cheaper one (:class:`~bcid_ros.estimators.rls.Rls`). An undone
-        step is counted as ``update_undone`` and the regressor restarts, so
-        the suspect sample does not enter the next regressors either.
+        This generic form keeps a checkpoint of the state, renewed before
+        every sample when the state holds at most ``EXACT_CHECKPOINT_SIZE``
+        numbers and every ``CHECKPOINT_PERIOD`` samples otherwise (a copy of
+        a long data window per sample would cost more than the step), and
+        checks after every step that the estimates and noise statistics are
+        finite. An unsound step takes the state back to the checkpoint
+        (before the sample, or at most that many samples before it), is
+        counted as ``update_undone`` and restarts the regressor, so the suspect
+        sample does not enter the next regressors either. Estimators that can
+        tell before committing whether a step is sound override this with an
+        exact and cheaper form (:class:`~bcid_ros.estimators.rls.Rls`).
         """
-        arrays, scalars = self._state_items()
-        saved = ({key: np.array(value, copy=True) for key, value in arrays.items()},
-                 dict(scalars))
-        with np.errstate(all='ignore'):
-            self._update(y, u)
-            sound = self._is_sound()
-        if not sound:
-            self._load_state(*saved)
+        if self._checkpoint is None or self._since_checkpoint >= self._checkpoint_period:
+            arrays, scalars = self._state_items()
+            self._checkpoint = ({key: np.array(value, copy=True)
+                                 for key, value in arrays.items()}, dict(scalars))
+            self._since_checkpoint = 0
+            size = sum(value.size for value in self._checkpoint[0].values())
+            self._checkpoint_period = 1 if size <= EXACT_CHECKPOINT_SIZE else CHECKPOINT_PERIOD
+        self._since_checkpoint += 1
+        self._update(y, u)
+        if not self._is_sound():
+            arrays, scalars = self._checkpoint
+            self._load_state({key: value.copy() for key, value in arrays.items()},
+                             dict(scalars))
             self._undo('update_undone')
 
     def _is_sound(self) -> bool:

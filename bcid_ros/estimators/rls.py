@@ -24,7 +24,7 @@ HEALTH_CHECK_PERIOD = 1000
 #: cancels about 8 digits of P. Normalised data start near p0 |phi|^2 ~ 1e6.
 CAREFUL_GAIN = 1e8
 #: The gate tests samples once tau >= GATE_WARMUP * p (J / tau is then a variance).
-GATE_WARMUP = 5
+GATE_WARMUP = 10
 #: A detected plant change cuts the weighted memory tau to this many times p.
 CHANGE_MEMORY = 4
 #: Validity is re-evaluated every this many updates (its cost is amortised).
@@ -181,7 +181,8 @@ class Rls(RecursiveEstimator):
       or with :math:`s(t)/\lambda >` ``CAREFUL_GAIN`` that leaves
       :math:`SPS` numerically indefinite or conditioned beyond 1e13, is
       undone (``update_undone``) and the regressor restarts; three in a row
-      are kept with a repaired P (a real change of the signal level);
+      mean the signal level is far from that of the first samples: the
+      estimator starts afresh with new scales (``rescaled``);
     * gate: :math:`z^2 = e^2 / [(J/\tau)(1 + \varphi^T P \varphi)]`, the
       squared prediction error over its variance, goes to the base class's
       gate (``outlier_rejected``, ``plant_change``) once
@@ -223,7 +224,7 @@ class Rls(RecursiveEstimator):
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
         phi = self._regressor.push(y, u)
-        if self._scales_pending:
+        if self._scales_pending and self._regressor.ready:
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step()
@@ -250,8 +251,14 @@ class Rls(RecursiveEstimator):
         tau = self._tau
         if tau >= self._gate_from:
             z2 = e * e / ((self._loss / tau + self._variance_floor) * (s + 1.0 - lam))
-            if (not z2 <= self._gate_limit2 or self._change_score) and not self._gate(z2):
-                return False
+            if not z2 <= self._gate_limit2 or self._change_score:
+                if not self._gate(z2):
+                    return False
+                if self._tau != tau:
+                    # a plant change cut the memory (P grew): redo the a-priori part
+                    g = self._p.dot(phi)
+                    s = lam + float(phi.dot(g))
+                    tau = self._tau
         # the commit, inlined (see _commit)
         self._p = rls_step(self._theta_ls, self._p, g, s, e)
         self._loss = lam * (self._loss + e * e / s)
@@ -290,21 +297,34 @@ class Rls(RecursiveEstimator):
             z2 = e * e / ((self._loss / self._tau + self._variance_floor) * (s + 1.0 - lam))
             if not self._gate(z2):
                 return False
+            g = self._p.dot(phi)
+            s = lam + float(phi.dot(g))
         saved = (self._theta_ls.copy(), self._p.copy(), self._loss, self._tau, self._updates)
         self._commit(e, g, s)
         if self._sound_covariance() and np.isfinite(self._theta_ls).all():
             self._undone_in_row = 0
             return True
-        self._undone_in_row += 1
-        if self._undone_in_row >= 3 and np.isfinite(self._theta_ls).all():
-            # the signal level really changed: keep the step, repair P
-            self._undone_in_row = 0
-            self._repair_covariance()
-            return True
         self._theta_ls[:] = saved[0]
         self._p, self._loss, self._tau, self._updates = saved[1:]
+        self._undone_in_row += 1
+        if self._undone_in_row >= 3:
+            # three in a row: the signal level is far from the scales of the first
+            # samples; what was learnt at that level is numerically worthless
+            self._restart_learning()
+            return False
         self._undo('update_undone')
         return False
+
+    def _restart_learning(self) -> None:
+        """Start afresh with scales chosen from the samples now in the regressor."""
+        self._flag('rescaled')
+        regressor = self._regressor
+        history, filled, position = regressor.history.copy(), regressor.filled, \
+            regressor.position
+        self._reset()
+        regressor.history[:] = history
+        regressor.filled, regressor.position = filled, position
+        self._choose_scales()
 
     def _sound_covariance(self) -> bool:
         """Whether the normalised P is positive definite with a condition within 1e13."""
@@ -348,7 +368,7 @@ class Rls(RecursiveEstimator):
         return np.diag(self.initial_covariance / self._component_scale ** 2)
 
     def _choose_scales(self) -> None:
-        """Give each channel still without a scale the one of its first non-zero data."""
+        """Give each channel still without a scale the one of the data in the regressor."""
         peaks = np.abs(self._regressor.history).max(axis=0)
         scales = self._signal_scale
         for channel in np.flatnonzero((scales == 0.0) & (peaks > 0.0)):
