@@ -384,7 +384,7 @@ class RecursiveEstimator(abc.ABC):
 
     @property
     def outlier_threshold(self) -> float:
-        """Gate of the normalised prediction error, >= 0 (0 = off); may be changed while running."""
+        """Gate of the normalised prediction error, >= 0 (0 = off); may change while running."""
         return self._outlier_threshold
 
     @outlier_threshold.setter

@@ -9,7 +9,6 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
