@@ -7,7 +7,7 @@ from scipy import signal
 from bcid_ros.estimators import estimator_class, make_estimator, parameter_names
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
-from bcid_ros.estimators.rls import ls_batch
+from bcid_ros.estimators.rls import ls_batch, repair_covariance, rls_innovation, rls_step
 from bcid_ros.simulation import make_scenario
 
 
@@ -302,3 +302,27 @@ def test_update_trusted_equals_update(name):
         trusted.update_trusted(float(y[t]), u[t])
     np.testing.assert_array_equal(checked.theta, trusted.theta)
     np.testing.assert_array_equal(checked.noise, trusted.noise)
+
+
+def test_the_rls_step_functions_are_the_textbook_step():
+    rng = np.random.default_rng(8)
+    a = rng.standard_normal((6, 6))
+    p = a @ a.T + np.eye(6)
+    theta, phi, y, lam = rng.standard_normal(6), rng.standard_normal(6), 0.7, 0.98
+    e, g, s = rls_innovation(theta, p, phi, y, lam)
+    assert e == pytest.approx(y - phi @ theta) and s == pytest.approx(lam + phi @ p @ phi)
+    gain = p @ phi / s
+    expected_theta, expected_p = theta + gain * e, p - np.outer(gain, phi @ p)
+    new_p = rls_step(theta, p.copy(), g, s, e)
+    np.testing.assert_allclose(theta, expected_theta, rtol=1e-12)
+    np.testing.assert_allclose(new_p, expected_p, rtol=1e-10, atol=1e-12)
+    assert np.array_equal(new_p, new_p.T)
+
+
+def test_repair_covariance_returns_a_positive_definite_matrix():
+    broken = np.diag([1e6, 1.0, -1e-3])
+    repaired = repair_covariance(broken, np.eye(3))
+    assert np.linalg.eigvalsh(repaired).min() > 0
+    np.testing.assert_allclose(np.diag(repaired)[:2], [1e6, 1.0])
+    fallback = 5.0 * np.eye(3)
+    np.testing.assert_array_equal(repair_covariance(np.full((3, 3), np.nan), fallback), fallback)

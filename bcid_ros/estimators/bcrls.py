@@ -87,6 +87,11 @@ class Bcrls(Rls):
     noise_names = ('sigma2',)
     options: tuple[str, ...] = ()
 
+    def __init__(self, **settings: Any) -> None:
+        # scipy's BLAS loads with the first estimator, not with the module
+        self._dgemv = load_blas()['dgemv']
+        super().__init__(**settings)
+
     def _after_ls_step(self) -> None:
         """Apply eqs. (51) and (46) after the LS step."""
         theta_ls = self._theta_ls
@@ -121,11 +126,6 @@ class Bcrls(Rls):
 
     def _noise(self) -> np.ndarray:
         return np.array([self._sigma2])
-
-    def __init__(self, **settings: Any) -> None:
-        # scipy's BLAS loads with the first estimator, not with the module
-        self._dgemv = load_blas()['dgemv']
-        super().__init__(**settings)
 
     def _find_problems(self) -> list[str]:
         """Add the conditioning and the size of the compensation to the RLS reasons."""
