@@ -155,9 +155,13 @@ class RecursiveEstimator(abc.ABC):
     Base class of the per-sample estimators.
 
     Subclasses implement :meth:`_update` (one step given ``y`` and a float
-    array ``u`` of shape ``(r,)``), :meth:`_initial_state` and the
-    ``_theta``/``_theta_uncompensated``/``_noise`` accessors. The base class
-    owns the input checks, the sample counters and the snapshot plumbing.
+    array ``u`` of shape ``(r,)``), :meth:`_reset`, the state hooks and the
+    ``_theta``/``_theta_uncompensated``/``_noise`` accessors; they may
+    override :meth:`_guarded_update` (the transaction), call :meth:`_gate`
+    with their normalised prediction error, and report
+    :meth:`_validity_reasons`. The base class owns the input checks, the
+    generic transaction, the gate's change detection and the snapshot
+    plumbing.
 
     Parameters
     ----------
@@ -257,7 +261,9 @@ class RecursiveEstimator(abc.ABC):
 
         For callers that check whole blocks of samples at once (the node's
         frames): ``y`` must be a finite float and ``u`` a finite float64 array
-        of shape ``(r,)``. The result is the same as :meth:`update`'s.
+        of shape ``(r,)``. The result is the same as :meth:`update`'s: the
+        size screen for values beyond 2^450 still runs (see
+        :meth:`_quiet_update`), the NaN/Inf check does not.
         """
         if not abs(y) * HUGE_SCREEN + float(abs(u).dot(self._screen)) < 1.0:
             self._quiet_left = self.order + 2
