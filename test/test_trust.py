@@ -71,7 +71,7 @@ def test_one_huge_sample_is_undone_and_the_estimate_recovers(name, spread):
     trajectory = est.run(y[1500:], u[1500:])
     assert np.isfinite(trajectory.theta).all() and np.isfinite(trajectory.noise).all()
     # Losing the spike and the n samples after it moves the estimate by ~1e-4; the
-    # spread (one standard deviation over 8 realisations) is ~5e-3.
+    # spread (one standard deviation over 8 realisations) is 1e-3 to 6e-3 per parameter.
     assert (np.abs(est.theta - clean.theta) <= spread[name]).all()
     assert sum(est.flags.get(k, 0) for k in ('outlier_rejected', 'update_undone')) >= 1
     assert est.valid
@@ -162,7 +162,7 @@ def test_a_spike_of_any_size_does_not_move_the_gated_estimate(name, channel, siz
     est = clean_run(name, y, u, outlier_threshold=5.0)
     assert np.isfinite(est.theta).all()
     # The gate drops the spike and its regressor (n + 1 samples): ~1e-4 against a
-    # spread of ~5e-3 (one standard deviation over 8 realisations).
+    # spread of 1e-3 to 6e-3 per parameter (one standard deviation over 8 realisations).
     assert (np.abs(est.theta - clean.theta) <= spread[name]).all()
     assert sum(est.flags.get(k, 0) for k in ('outlier_rejected', 'update_undone')) >= 1
 
