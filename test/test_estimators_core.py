@@ -7,7 +7,7 @@ from scipy import signal
 from bcid_ros.estimators import estimator_class, make_estimator, parameter_names
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
-from bcid_ros.estimators.rls import ls_batch
+from bcid_ros.estimators.rls import ls_batch, repair_covariance, rls_innovation, rls_step
 from bcid_ros.simulation import make_scenario
 
 
@@ -87,7 +87,12 @@ def test_rls_recovers_a_noise_free_arx_plant_with_feedthrough():
     y = signal.lfilter([0.5, 0.2], [1.0, -0.7], u)
     est = make_estimator('rls', order=1, num_inputs=1, feedthrough=True)
     est.run(y, u)
-    np.testing.assert_allclose(est.theta, [-0.7, 0.5, 0.2], atol=1e-8)
+    # The prior P(0) = p0 S^-2 (S: power-of-two signal scales, here 2 and 4) pulls theta
+    # towards 0 by about |theta| s^2 / (p0 N) = 0.7 * 16 / (1e6 * 40) ~ 3e-7.
+    np.testing.assert_allclose(est.theta, [-0.7, 0.5, 0.2], atol=1e-6)
+    theta, _, _, _ = ls_batch(y, u, order=1, feedthrough=True,
+                              initial_covariance=est.initial_covariance_diagonal)
+    np.testing.assert_allclose(est.theta, theta, atol=1e-12)
     assert est.parameter_names == ('a1', 'b1_0', 'b1_1')
 
 
@@ -97,14 +102,16 @@ def test_rls_equals_batch_least_squares(samples, lam):
     y, u, _ = ding_data(samples)
     est = make_estimator('rls', order=2, num_inputs=2, forgetting_factor=lam)
     est.run(y, u)
-    theta, p, loss, tau = ls_batch(y, u, order=2, num_inputs=2, initial_covariance=1e6,
+    theta, p, loss, tau = ls_batch(y, u, order=2, num_inputs=2,
+                                   initial_covariance=est.initial_covariance_diagonal,
                                    forgetting_factor=lam)
     np.testing.assert_allclose(est.theta, theta, rtol=0, atol=1e-9)
     np.testing.assert_allclose(est.covariance, p, rtol=1e-6, atol=1e-12)
     assert est.weighted_count == pytest.approx(tau, rel=1e-12)
     # J of eq. (50) is the minimum of the regularised cost, which adds
     # lambda^N' theta' P0^-1 theta to the residual sum of squares.
-    regularisation = lam ** (samples - 2) * float(theta @ theta) / 1e6
+    regularisation = lam ** (samples - 2) * float(
+        theta @ (theta / est.initial_covariance_diagonal))
     assert est.loss == pytest.approx(loss + regularisation, rel=1e-9)
 
 
@@ -129,7 +136,8 @@ def test_bcrls_without_forgetting_is_the_paper_recursion():
     est.run(y, u)
     phi = ArxRegressor(2, 2, False).regressors(y, u)
     lam = np.diag([1.0, 1.0, 0, 0, 0, 0])
-    theta_ls, theta_c, p, loss = np.zeros(6), np.zeros(6), 1e6 * np.eye(6), 0.0
+    p = np.diag(est.initial_covariance_diagonal)
+    theta_ls, theta_c, loss = np.zeros(6), np.zeros(6), 0.0
     for t, (row, target) in enumerate(zip(phi, y[2:]), start=1):
         gain = p @ row / (1 + row @ p @ row)
         loss += (target - row @ theta_ls) ** 2 / (1 + row @ p @ row)
@@ -172,8 +180,10 @@ def test_no_excitation_does_not_wind_up(name):
     est.run(y, u)
     est.run(np.zeros(20000), np.zeros((20000, 2)))
     assert np.isfinite(est.theta).all() and np.isfinite(est.noise).all()
-    # The trace bound is p0 * p (plus one step of 1/lambda).
-    assert est.covariance_trace <= 1e6 * 6 / 0.9
+    # The bound on the normalised trace tr(S P S) is p0 * p (plus one step of 1/lambda);
+    # S^2 = p0 / diag P(0).
+    normalised = np.diag(est.covariance) * (1e6 / est.initial_covariance_diagonal)
+    assert normalised.sum() <= 1e6 * 6 / 0.9
     assert est.flags.get('windup_limited', 0) > 0
 
 
@@ -292,3 +302,27 @@ def test_update_trusted_equals_update(name):
         trusted.update_trusted(float(y[t]), u[t])
     np.testing.assert_array_equal(checked.theta, trusted.theta)
     np.testing.assert_array_equal(checked.noise, trusted.noise)
+
+
+def test_the_rls_step_functions_are_the_textbook_step():
+    rng = np.random.default_rng(8)
+    a = rng.standard_normal((6, 6))
+    p = a @ a.T + np.eye(6)
+    theta, phi, y, lam = rng.standard_normal(6), rng.standard_normal(6), 0.7, 0.98
+    e, g, s = rls_innovation(theta, p, phi, y, lam)
+    assert e == pytest.approx(y - phi @ theta) and s == pytest.approx(lam + phi @ p @ phi)
+    gain = p @ phi / s
+    expected_theta, expected_p = theta + gain * e, p - np.outer(gain, phi @ p)
+    new_p = rls_step(theta, p.copy(), g, s, e)
+    np.testing.assert_allclose(theta, expected_theta, rtol=1e-12)
+    np.testing.assert_allclose(new_p, expected_p, rtol=1e-10, atol=1e-12)
+    assert np.array_equal(new_p, new_p.T)
+
+
+def test_repair_covariance_returns_a_positive_definite_matrix():
+    broken = np.diag([1e6, 1.0, -1e-3])
+    repaired = repair_covariance(broken, np.eye(3))
+    assert np.linalg.eigvalsh(repaired).min() > 0
+    np.testing.assert_allclose(np.diag(repaired)[:2], [1e6, 1.0])
+    fallback = 5.0 * np.eye(3)
+    np.testing.assert_array_equal(repair_covariance(np.full((3, 3), np.nan), fallback), fallback)

@@ -21,7 +21,7 @@ def nonstationary():
 
 @pytest.mark.slow
 def test_stationary_bcrls_removes_the_ls_bias(stationary):
-    # PAPER_NOTES: over 20 runs, mean delta(3000) is 0.8 % (BCRLS) and 7.6 % (LS); the
+    # docs/papers.md: over 20 runs, mean delta(3000) is 0.8 % (BCRLS) and 7.6 % (LS); the
     # run-to-run std is about 0.6 % and 0.9 %, so the standard error over 30 runs is
     # ~0.11 % and ~0.16 %: the bounds 1.2 % and [6 %, 9 %] sit > 3 s.e. from those means.
     bc_mean, bc_se = mean_and_stderr(stationary.delta_bcrls[:, -1])

@@ -7,8 +7,19 @@ the very same ``update`` over an array with :meth:`RecursiveEstimator.run`,
 so there is one code path for the node, the replay, the reproductions and
 the benchmarks.
 
-Parameter names follow SPEC section 4: ``a1,...,an`` then, for each input
-``i`` and lag ``k``, ``b{i}_{k}`` (lag 0 only with direct feedthrough).
+Parameter names follow the node's topics (docs/nodes.md): ``a1,...,an`` then,
+for each input ``i`` and lag ``k``, ``b{i}_{k}`` (lag 0 only with direct
+feedthrough).
+
+The base class also owns three generic safeguards that every estimator
+inherits (docs/estimators.md, "Estimates you can trust"):
+
+* the update is a transaction: a step that would leave the state non-finite
+  is undone, counted (flag ``update_undone``) and the regressor restarts;
+* the outlier gate of :meth:`RecursiveEstimator._gate`, with its detection
+  of a real plant change;
+* :attr:`RecursiveEstimator.valid` is readiness *and* no reason to distrust
+  the estimate (:attr:`RecursiveEstimator.validity_reasons`).
 """
 
 from __future__ import annotations
@@ -20,10 +31,41 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+#: Normalised prediction error beyond which a sample is refused even with the
+#: gate off (``outlier_threshold`` = 0): no Gaussian noise produces it, and
+#: taking it would move the estimate by a million standard deviations.
+IMPLAUSIBLE_ERROR = 1e6
+#: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
+#: whose products in an update could overflow: see _quiet_update.
+HUGE_SCREEN = 2.0 ** -450
+#: The generic transaction copies a state of at most this many numbers before
+#: every sample, and a larger one every CHECKPOINT_PERIOD samples.
+EXACT_CHECKPOINT_SIZE = 4096
+#: See EXACT_CHECKPOINT_SIZE.
+CHECKPOINT_PERIOD = 64
+#: The change score of the gate: +1 per refused sample, times CHANGE_DECAY per
+#: tested sample; three refusals in a row (1 + 0.8 + 0.64 = 2.44) reach it.
+CHANGE_SCORE = 2.4
+#: See CHANGE_SCORE.
+CHANGE_DECAY = 0.8
+
+
+def power_of_two_at_least(value: float) -> float:
+    """
+    Return the smallest power of two >= ``value`` > 0 (1.0 for 0 or non-finite).
+
+    Scaling by it is exact in binary floating point, so signals divided by
+    such scales keep every bit.
+    """
+    if not 0.0 < value < math.inf:
+        return 1.0
+    mantissa, exponent = math.frexp(value)
+    return math.ldexp(1.0, exponent - 1 if mantissa == 0.5 else exponent)
+
 
 def parameter_names(order: int, num_inputs: int, feedthrough: bool) -> tuple[str, ...]:
     """
-    Return the SPEC section 4 names of the ARX parameter vector.
+    Return the names of the ARX parameter vector (those of the node's topics).
 
     Parameters
     ----------
@@ -118,9 +160,13 @@ class RecursiveEstimator(abc.ABC):
     Base class of the per-sample estimators.
 
     Subclasses implement :meth:`_update` (one step given ``y`` and a float
-    array ``u`` of shape ``(r,)``), :meth:`_initial_state` and the
-    ``_theta``/``_theta_uncompensated``/``_noise`` accessors. The base class
-    owns the input checks, the sample counters and the snapshot plumbing.
+    array ``u`` of shape ``(r,)``), :meth:`_reset`, the state hooks and the
+    ``_theta``/``_theta_uncompensated``/``_noise`` accessors; they may
+    override :meth:`_guarded_update` (the transaction), call :meth:`_gate`
+    with their normalised prediction error, and report
+    :meth:`_validity_reasons`. The base class owns the input checks, the
+    generic transaction, the gate's change detection and the snapshot
+    plumbing.
 
     Parameters
     ----------
@@ -131,9 +177,13 @@ class RecursiveEstimator(abc.ABC):
     feedthrough : bool
         Estimate the lag-0 input coefficients ``b{i}_0``.
     initial_covariance : float
-        p0 of P(0) = p0 I, > 0.
+        p0 of P(0) = p0 I, > 0 (estimators that normalise their signals read
+        it in normalised units: see their docstrings).
     forgetting_factor : float
         lambda in (0, 1]; 1 means no forgetting.
+    outlier_threshold : float
+        Gate of the normalised one-step prediction error, >= 0; 0 turns the
+        gate off (estimators that implement it: see :meth:`_gate`).
 
     Raises
     ------
@@ -148,7 +198,8 @@ class RecursiveEstimator(abc.ABC):
     noise_names: tuple[str, ...] = ()
 
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
-                 initial_covariance: float = 1e6, forgetting_factor: float = 1.0) -> None:
+                 initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
+                 outlier_threshold: float = 0.0) -> None:
         self.order = check_int('order', order, 1)
         self.num_inputs = check_int('num_inputs', num_inputs, 1)
         self.feedthrough = bool(feedthrough)
@@ -158,6 +209,13 @@ class RecursiveEstimator(abc.ABC):
             'forgetting_factor', forgetting_factor, 0.0, 1.0, low_open=True)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
+        self.outlier_threshold = outlier_threshold
+        self._change_score = 0.0
+        self._screen = np.full(self.num_inputs, HUGE_SCREEN)
+        self._quiet_left = 0
+        self._checkpoint: tuple[dict[str, np.ndarray], dict[str, Any]] | None = None
+        self._since_checkpoint = 0
+        self._checkpoint_period = 1
         self.flags: dict[str, int] = {}
 
     # ----------------------------------------------------------------- API
@@ -190,12 +248,16 @@ class RecursiveEstimator(abc.ABC):
         if u.shape[0] != self.num_inputs:
             raise ValueError(f'u must have {self.num_inputs} elements, got {u.shape[0]}')
         y = float(y)
-        # One dot product screens for NaN/Inf; an overflow of huge finite values
-        # falls through to the exact element-wise check.
-        if not math.isfinite(y + u.dot(u)):
+        # One dot product screens for NaN, Inf and sizes whose products could
+        # overflow: |u| 2^-450 cannot overflow for any finite u and carries NaN/Inf.
+        if not abs(y) * HUGE_SCREEN + float(abs(u).dot(self._screen)) < 1.0:
             if not (math.isfinite(y) and np.isfinite(u).all()):
                 raise ValueError('sample contains NaN or Inf')
-        self._update(y, u)
+            self._quiet_left = self.order + 2
+        if self._quiet_left:
+            self._quiet_update(y, u)
+        else:
+            self._guarded_update(y, u)
         return self.valid
 
     def update_trusted(self, y: float, u: np.ndarray) -> None:
@@ -204,9 +266,29 @@ class RecursiveEstimator(abc.ABC):
 
         For callers that check whole blocks of samples at once (the node's
         frames): ``y`` must be a finite float and ``u`` a finite float64 array
-        of shape ``(r,)``. The result is the same as :meth:`update`'s.
+        of shape ``(r,)``. The result is the same as :meth:`update`'s: the
+        size screen for values beyond 2^450 still runs (see
+        :meth:`_quiet_update`), the NaN/Inf check does not.
         """
-        self._update(y, u)
+        if not abs(y) * HUGE_SCREEN + float(abs(u).dot(self._screen)) < 1.0:
+            self._quiet_left = self.order + 2
+        if self._quiet_left:
+            self._quiet_update(y, u)
+        else:
+            self._guarded_update(y, u)
+
+    def _quiet_update(self, y: float, u: np.ndarray) -> None:
+        """
+        Update with floating-point warnings off, while a huge sample is in the regressor.
+
+        A value beyond 2^450 (about 3e135) makes phi' P phi overflow to Inf,
+        which the transaction refuses; numpy would also warn about it. The
+        warnings are silenced for the order + 2 samples whose regressors can
+        hold that value (errstate costs microseconds, so only for those).
+        """
+        self._quiet_left -= 1
+        with np.errstate(all='ignore'):
+            self._guarded_update(y, u)
 
     def run(self, y: Any, u: Any) -> Trajectory:
         """
@@ -243,6 +325,9 @@ class RecursiveEstimator(abc.ABC):
     def reset(self) -> None:
         """Return to the state right after construction."""
         self.flags = {}
+        self._change_score = 0.0
+        self._quiet_left = 0
+        self._checkpoint = None
         self._reset()
 
     def restart_regressor(self) -> None:
@@ -257,7 +342,7 @@ class RecursiveEstimator(abc.ABC):
     def get_state(self) -> EstimatorState:
         """Return a frozen snapshot of the full state (copies)."""
         arrays, scalars = self._state_items()
-        scalars = dict(scalars, flags=dict(self.flags))
+        scalars = dict(scalars, flags=dict(self.flags), change_score=self._change_score)
         return EstimatorState(self.name, {k: np.array(v, copy=True) for k, v in arrays.items()},
                               scalars)
 
@@ -279,6 +364,8 @@ class RecursiveEstimator(abc.ABC):
                 raise ValueError(f'state array {key!r} does not match this configuration')
         scalars = dict(state.scalars)
         self.flags = dict(scalars.pop('flags', {}))
+        self._change_score = float(scalars.pop('change_score', 0.0))
+        self._checkpoint = None
         self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
 
     @property
@@ -307,9 +394,36 @@ class RecursiveEstimator(abc.ABC):
                                               low_open=True)
 
     @property
-    @abc.abstractmethod
+    def outlier_threshold(self) -> float:
+        """Gate of the normalised prediction error, >= 0 (0 = off); may change while running."""
+        return self._outlier_threshold
+
+    @outlier_threshold.setter
+    def outlier_threshold(self, value: float) -> None:
+        self._outlier_threshold = check_range('outlier_threshold', value, 0.0,
+                                              IMPLAUSIBLE_ERROR)
+        # squared limit of the normalised prediction error (see _gate)
+        self._gate_limit2 = (self._outlier_threshold or IMPLAUSIBLE_ERROR) ** 2
+
+    @property
     def valid(self) -> bool:
+        """
+        Whether the estimate can be trusted: :attr:`ready` and no :attr:`validity_reasons`.
+
+        A controller may act on the estimate while this is true; when it turns
+        false, :attr:`validity_reasons` says why.
+        """
+        return self.ready and not self._validity_reasons()
+
+    @property
+    def ready(self) -> bool:
         """Whether the regressor is filled and the estimator is past its idle phase."""
+        return self.samples >= self.num_parameters
+
+    @property
+    def validity_reasons(self) -> tuple[str, ...]:
+        """Return why the estimate is not trustworthy now (empty when it is, or not ready)."""
+        return tuple(self._validity_reasons())
 
     @property
     @abc.abstractmethod
@@ -324,6 +438,86 @@ class RecursiveEstimator(abc.ABC):
     def _flag(self, key: str) -> None:
         """Count one occurrence of a reported condition (see :attr:`flags`)."""
         self.flags[key] = self.flags.get(key, 0) + 1
+
+    # ------------------------------------------------ the generic safeguards
+    def _guarded_update(self, y: float, u: np.ndarray) -> None:
+        """
+        Do one step as a transaction: step, check, and go back if the state is unsound.
+
+        This generic form keeps a checkpoint of the state, renewed before
+        every sample when the state holds at most ``EXACT_CHECKPOINT_SIZE``
+        numbers and every ``CHECKPOINT_PERIOD`` samples otherwise (a copy of
+        a long data window per sample would cost more than the step), and
+        checks after every step that the estimates and noise statistics are
+        finite. An unsound step takes the state back to the checkpoint
+        (before the sample, or at most that many samples before it), is
+        counted as ``update_undone`` and restarts the regressor, so the suspect
+        sample does not enter the next regressors either. Estimators that can
+        tell before committing whether a step is sound override this with an
+        exact and cheaper form (:class:`~bcid_ros.estimators.rls.Rls`).
+        """
+        if self._checkpoint is None or self._since_checkpoint >= self._checkpoint_period:
+            arrays, scalars = self._state_items()
+            self._checkpoint = ({key: np.array(value, copy=True)
+                                 for key, value in arrays.items()}, dict(scalars))
+            self._since_checkpoint = 0
+            size = sum(value.size for value in self._checkpoint[0].values())
+            self._checkpoint_period = 1 if size <= EXACT_CHECKPOINT_SIZE else CHECKPOINT_PERIOD
+        self._since_checkpoint += 1
+        self._update(y, u)
+        if not self._is_sound():
+            arrays, scalars = self._checkpoint
+            self._load_state({key: value.copy() for key, value in arrays.items()},
+                             dict(scalars))
+            self._undo('update_undone')
+
+    def _is_sound(self) -> bool:
+        """Whether the estimates and noise statistics are all finite."""
+        return bool(np.isfinite(self._theta()).all()
+                    and np.isfinite(self._theta_uncompensated()).all()
+                    and np.isfinite(self._noise()).all())
+
+    def _undo(self, flag: str) -> None:
+        """Count a refused step and restart the regressor."""
+        self._flag(flag)
+        self._restart_regressor()
+
+    def _gate(self, z2: float) -> bool:
+        r"""
+        Return whether a sample with squared normalised prediction error ``z2`` is used.
+
+        With the one-step prediction error :math:`e(t)` and its variance
+        :math:`\hat\sigma_e^2(1 + \varphi^T P\varphi)` the estimator computes
+        :math:`z^2 = e^2 / [\hat\sigma_e^2(1 + \varphi^T P\varphi)]`. A sample
+        with :math:`z` above ``outlier_threshold`` (or above
+        ``IMPLAUSIBLE_ERROR`` with the gate off) is refused (flag
+        ``outlier_rejected``) and the regressor restarts. Refusals raise a
+        change score that decays by ``CHANGE_DECAY`` per tested sample; when
+        it reaches ``CHANGE_SCORE`` (three refusals in a row) the errors are
+        taken as a real change of the plant: the sample is used after
+        :meth:`_accept_change` (flag ``plant_change``).
+        """
+        if z2 <= self._gate_limit2:
+            if self._change_score:
+                score = self._change_score * CHANGE_DECAY
+                self._change_score = score if score > 1e-3 else 0.0
+            return True
+        score = self._change_score * CHANGE_DECAY + 1.0
+        if score >= CHANGE_SCORE:
+            self._change_score = 0.0
+            self._flag('plant_change')
+            self._accept_change()
+            return True
+        self._change_score = score
+        self._undo('outlier_rejected')
+        return False
+
+    def _accept_change(self) -> None:
+        """Prepare for a real plant change detected by :meth:`_gate`; nothing here."""
+
+    def _validity_reasons(self) -> list[str] | tuple[str, ...]:
+        """Return the current reasons not to trust the estimate; none here."""
+        return ()
 
     def __repr__(self) -> str:
         return (f'{type(self).__name__}(order={self.order}, num_inputs={self.num_inputs}, '

@@ -3,8 +3,8 @@ BCRLS: bias-compensated recursive least squares for MISO output-error systems.
 
 Ding, Chen and Qiu (2006), "Bias compensation based recursive least-squares
 identification algorithm for MISO systems", eqs. (46)-(55), with the matrix
-Lambda that the printed eqs. (26)/(46) drop (see PAPER_NOTES.md) and an exact
-extension to exponential forgetting.
+Lambda that the printed eqs. (26)/(46) drop (docs/papers.md) and an exact
+extension to exponential forgetting (derived in docs/estimators.md).
 """
 
 from __future__ import annotations
@@ -12,9 +12,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.linalg.blas import dgemv
 
-from bcid_ros.estimators.rls import ls_batch, Rls
+from bcid_ros.estimators.rls import load_blas, ls_batch, Rls
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
 #: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which
@@ -23,14 +22,23 @@ DENOMINATOR_MIN = 0.1
 #: A compensated estimate farther than this (relative) from theta_LS is
 #: treated as a diverging compensation and restarted from theta_LS.
 COMPENSATION_MAX = 1e6
+#: The compensation (46) iterates theta_c <- theta_LS + M theta_c with
+#: M = tau sigma2 P Lambda, whose spectral radius is tau sigma2 lambda_max(P_aa).
+#: Above this the fixed point amplifies the LS error by 1 / (1 - rho) > 5: an
+#: over-specified order drives it to 1 (docs/estimators.md).
+CONTRACTION_MAX = 0.8
+#: A compensation larger than this times |theta_LS| (normalised units) has
+#: run away from the LS estimate.
+RUNAWAY = 1.0
 
 
 class Bcrls(Rls):
     r"""
     Bias-compensated RLS for the output-error model y = sum_i B_i/alpha u_i + v.
 
-    The LS part is :class:`~bcid_ros.estimators.rls.Rls`, eqs. (47)-(50); the
-    compensation adds, with :math:`\Lambda = \mathrm{diag}(I_n, 0)`:
+    The LS part is :class:`~bcid_ros.estimators.rls.Rls`, eqs. (47)-(50),
+    with its units, transaction and gate; the compensation adds, with
+    :math:`\Lambda = \mathrm{diag}(I_n, 0)`:
 
     .. math::
 
@@ -40,30 +48,9 @@ class Bcrls(Rls):
             + \tau(t)\,\hat\sigma^2(t)\,P(t)\Lambda\hat\theta_c(t-1) && \text{(46)}
 
     With :math:`\lambda = 1`, :math:`\tau(t) = t` and these are the paper's
-    (46) and (51) (with the :math:`\Lambda` that (46) misprints away).
-
-    **Forgetting factor.** With weights :math:`\lambda^{t-i}` the LS estimate
-    solves :math:`R_\lambda(t)\hat\theta_{LS} = \sum_i \lambda^{t-i}\varphi(i)y(i)`,
-    :math:`R_\lambda(t) = \sum_i \lambda^{t-i}\varphi(i)\varphi^T(i) = P^{-1}(t)`.
-    Repeating eqs. (21)-(24) with these weights, and using
-    :math:`E[\varphi(i)\psi^T(i)] = -\sigma^2\Lambda` at every i (v is white and
-    independent of u), gives
-
-    .. math::
-
-        R_\lambda(t)(\hat\theta_{LS}(t) - \theta) \approx
-            -\sigma^2 \Big(\sum_{i=1}^t \lambda^{t-i}\Big) \Lambda\theta
-            = -\sigma^2 \tau(t)\Lambda\theta,
-        \qquad \tau(t) = \lambda\tau(t-1) + 1,
-
-    so t becomes :math:`\tau(t)` in (46). Likewise the weighted normal
-    equations give :math:`\sum_i \lambda^{t-i}\varepsilon_{LS}(i)\varphi(i) = 0`,
-    the weighted analogue of (28), and eqs. (29)-(39) go through term by term
-    with :math:`J_\lambda(t) = \sum_i \lambda^{t-i}\varepsilon_{LS}^2(i)` and
-    :math:`\tau(t)` in place of t. Its recursion, the weighted (45)/(50), is
-    :math:`J_\lambda(t) = \lambda J_\lambda(t-1) + \lambda e^2(t)/s(t)` with
-    :math:`s(t) = \lambda + \varphi^T P(t-1)\varphi`, because the a-posteriori
-    residual is :math:`e(t)\lambda/s(t)`.
+    (46) and (51) (with the :math:`\Lambda` that (46) misprints away); with
+    :math:`\lambda < 1`, t becomes the weighted count :math:`\tau(t)` and J the
+    weighted loss (docs/estimators.md derives it from eqs. (21)-(39)).
 
     **Safeguards** (each counted in :attr:`flags`, never turned into NaN):
 
@@ -73,11 +60,25 @@ class Bcrls(Rls):
       ran away (relative size above ``COMPENSATION_MAX``); it restarts from
       :math:`\hat\theta_{LS}(t)`.
 
+    **Validity** adds to :class:`~bcid_ros.estimators.rls.Rls`'s (the
+    stability is that of :math:`\hat\theta_c`): (46) is the iteration
+    :math:`\theta_c \leftarrow \hat\theta_{LS} + M\theta_c`,
+    :math:`M = \tau\hat\sigma^2 P\Lambda`, whose fixed point solves
+    :math:`(I - M)\theta_c = \hat\theta_{LS}`. The spectral radius of M is
+    :math:`\rho = \tau\hat\sigma^2\lambda_{max}(P_{aa})`
+    (:math:`P_{aa}` the a-block of P). The estimate is not valid when
+    :math:`\rho >` ``CONTRACTION_MAX`` (ill-conditioned compensation: an
+    over-parameterised A makes :math:`R - \sigma^2\Lambda` singular and
+    :math:`\rho \to 1`), when the normalised compensation
+    :math:`|S(\hat\theta_c - \hat\theta_{LS})|` exceeds ``RUNAWAY``
+    :math:`|S\hat\theta_{LS}|`, or when a ``compensation_reset`` happened
+    since the last check.
+
     The noise estimate is published as ``sigma2``.
 
     Parameters
     ----------
-    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
 
     """
@@ -85,6 +86,11 @@ class Bcrls(Rls):
     name = 'bcrls'
     noise_names = ('sigma2',)
     options: tuple[str, ...] = ()
+
+    def __init__(self, **settings: Any) -> None:
+        # scipy's BLAS loads with the first estimator, not with the module
+        self._dgemv = load_blas()['dgemv']
+        super().__init__(**settings)
 
     def _after_ls_step(self) -> None:
         """Apply eqs. (51) and (46) after the LS step."""
@@ -99,8 +105,9 @@ class Bcrls(Rls):
         else:
             self._flag('sigma2_denominator')
         # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46), one BLAS call
-        compensated = dgemv(self._tau * self._sigma2, self._p.T, previous, beta=1.0,
-                            y=theta_ls, trans=1)
+        # positional: dgemv(alpha, a, x, beta, y, offx, incx, offy, incy, trans)
+        compensated = self._dgemv(self._tau * self._sigma2, self._p.T, previous, 1.0,
+                                  theta_ls, 0, 1, 0, 1, 1)
         size = compensated.dot(compensated)
         if not size <= COMPENSATION_MAX ** 2 and not (
                 size <= COMPENSATION_MAX ** 2 * (1.0 + theta_ls.dot(theta_ls))):
@@ -120,8 +127,29 @@ class Bcrls(Rls):
     def _noise(self) -> np.ndarray:
         return np.array([self._sigma2])
 
+    def _find_problems(self) -> list[str]:
+        """Add the conditioning and the size of the compensation to the RLS reasons."""
+        reasons = super()._find_problems()
+        n = self.order
+        contraction = self._tau * self._sigma2 * float(np.linalg.eigvalsh(self._p[:n, :n])[-1])
+        if not contraction <= CONTRACTION_MAX:
+            reasons.append(f'ill-conditioned compensation (contraction {contraction:.3g} '
+                           f'> {CONTRACTION_MAX})')
+        scale = self._component_scale
+        shift = np.linalg.norm(scale * (self._theta_c - self._theta_ls))
+        size = np.linalg.norm(scale * self._theta_ls)
+        if not shift <= RUNAWAY * size:
+            reasons.append(f'compensation runs away from LS ({shift / size:.3g} x |theta_LS|)'
+                           if size > 0 else 'compensation runs away from LS')
+        resets = self.flags.get('compensation_reset', 0)
+        if resets > self._resets_checked:
+            reasons.append('compensation reset')
+        self._resets_checked = resets
+        return reasons
+
     def _reset(self) -> None:
         super()._reset()
+        self._resets_checked = 0
         # the diagonal of Lambda = diag(I_n, 0)
         self._lambda_diagonal = np.zeros(self.num_parameters)
         self._lambda_diagonal[:self.order] = 1.0
@@ -131,13 +159,15 @@ class Bcrls(Rls):
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._state_items()
-        return {**arrays, 'theta_c': self._theta_c}, {**scalars, 'sigma2': self._sigma2}
+        return {**arrays, 'theta_c': self._theta_c}, {
+            **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
         self._theta_c = arrays['theta_c']
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
+        self._resets_checked = int(scalars['resets_checked'])
 
 
 def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,

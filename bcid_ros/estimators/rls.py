@@ -13,18 +13,134 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy.linalg.blas import daxpy, dger
 
-from bcid_ros.estimators.base import RecursiveEstimator
+from bcid_ros.estimators.base import power_of_two_at_least, RecursiveEstimator
 from bcid_ros.estimators.regressor import ArxRegressor
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
 HEALTH_CHECK_PERIOD = 1000
+#: A step with s(t) / lambda above this (the sample carries 1e8 times the
+#: information of the memory) is checked before it is kept: its downdate
+#: cancels about 8 digits of P. Normalised data start near p0 |phi|^2 ~ 1e6.
+CAREFUL_GAIN = 1e8
+#: The gate tests samples once tau >= GATE_WARMUP * p (J / tau is then a variance).
+GATE_WARMUP = 10
+#: A detected plant change cuts the weighted memory tau to this many times p.
+CHANGE_MEMORY = 4
+#: Validity is re-evaluated every this many updates (its cost is amortised).
+VALIDITY_PERIOD = 100
+#: A model pole beyond this radius makes the model unstable.
+UNSTABLE_RADIUS = 1.01
+#: Output power growing by more than this between two validity checks means
+#: the data are not bounded (an unstable estimate may then be right).
+GROWTH = 4.0
+#: Floor of the prediction error standard deviation, relative to the y scale,
+#: so that noise-free data do not divide by zero in the gate.
+VARIANCE_FLOOR = 2.0 ** -40
+
+#: BLAS level-1/2 kernels, loaded from scipy on first use (see :func:`load_blas`).
+_BLAS: dict[str, Any] = {}
+
+
+def load_blas() -> dict[str, Any]:
+    """
+    Return scipy's ``daxpy``, ``dgemv`` and ``dger``, importing scipy on the first call.
+
+    The estimators call it when they are built, so that importing a module
+    of this package does not import scipy. The kernels are called with
+    positional arguments: f2py parses keywords at a cost comparable to the
+    kernel at p = 6.
+    """
+    if not _BLAS:
+        from scipy.linalg.blas import daxpy, dgemv, dger
+        _BLAS.update(daxpy=daxpy, dgemv=dgemv, dger=dger)
+    return _BLAS
+
+
+def rls_innovation(theta: np.ndarray, p: np.ndarray, phi: np.ndarray, y: float,
+                   lam: float) -> tuple[float, np.ndarray, float]:
+    r"""
+    Return the a-priori quantities of one RLS step, eqs. (47)-(48).
+
+    Parameters
+    ----------
+    theta : numpy.ndarray, shape ``(p,)``
+        :math:`\hat\theta(t-1)`.
+    p : numpy.ndarray, shape ``(p, p)``
+        :math:`P(t-1)`, symmetric positive definite.
+    phi : numpy.ndarray, shape ``(p,)``
+        :math:`\varphi(t)`.
+    y : float
+        :math:`y(t)`.
+    lam : float
+        Forgetting factor :math:`\lambda`.
+
+    Returns
+    -------
+    e : float
+        :math:`e(t) = y(t) - \varphi^T(t)\hat\theta(t-1)`.
+    g : numpy.ndarray, shape ``(p,)``
+        :math:`g = P(t-1)\varphi(t)`.
+    s : float
+        :math:`s(t) = \lambda + \varphi^T(t) P(t-1)\varphi(t)`; not finite or
+        :math:`\le 0` means the step must not be made.
+
+    """
+    # ndarray.dot: half the call overhead of @ at this size
+    g = p.dot(phi)
+    return y - phi.dot(theta), g, lam + phi.dot(g)
+
+
+def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
+             e: float) -> np.ndarray:
+    r"""
+    Make the RLS step (47)-(49) in place, without the division by :math:`\lambda`.
+
+    :math:`\hat\theta \leftarrow \hat\theta + g e/s` and
+    :math:`P \leftarrow P - h h^T` with :math:`h = g/\sqrt{s}`, which is
+    symmetric to the last bit. ``g``, ``s`` and ``e`` come from
+    :func:`rls_innovation` and ``s`` must be finite and positive.
+
+    Returns
+    -------
+    numpy.ndarray, shape ``(p, p)``
+        The downdated P (the memory of ``p``, updated in place when ``p``
+        is C-contiguous).
+
+    """
+    blas = _BLAS or load_blas()
+    # theta(t) = theta(t-1) + g e / s   (BLAS axpy in place: daxpy(x, y, n, a))
+    blas['daxpy'](g, theta, g.shape[0], e / s)
+    h = g * (1.0 / math.sqrt(s))
+    # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view):
+    # dger(alpha, x, y, incx, incy, a, overwrite_x, overwrite_y, overwrite_a)
+    return blas['dger'](-1.0, h, h, 1, 1, p.T, 0, 0, 1).T
+
+
+def repair_covariance(p: np.ndarray, fallback: np.ndarray,
+                      weights: np.ndarray | None = None) -> np.ndarray:
+    """
+    Return the nearest symmetric positive definite matrix to ``p``.
+
+    The symmetric part is diagonally scaled by ``weights`` (the inverse
+    signal scales, so that the eigenvalue floor is relative in normalised
+    units), its eigenvalues are clipped at 1e-12 of the largest (at least
+    1e-12) and the scaling is undone. A non-finite ``p`` is replaced by
+    ``fallback`` (a copy).
+    """
+    sym = 0.5 * (p + p.T)
+    if not np.isfinite(sym).all():
+        return fallback.copy()
+    w = np.ones(p.shape[0]) if weights is None else weights
+    values, vectors = np.linalg.eigh(sym * np.outer(w, w))
+    floor = max(values.max(), 1.0) * 1e-12
+    vectors = vectors / w[:, None]
+    return (vectors * np.maximum(values, floor)) @ vectors.T
 
 
 class Rls(RecursiveEstimator):
     r"""
-    Recursive least squares with forgetting, anti-windup and a guarded covariance.
+    Recursive least squares with forgetting, guarded, gated and unit-free.
 
     For the ARX regressor :math:`\varphi(t)` of Ding et al. (2006), eqs. (53)-(55):
 
@@ -43,21 +159,49 @@ class Rls(RecursiveEstimator):
     :math:`\tau(t) = t`. :math:`\tau` is the weighted sample count and
     :math:`J/\tau` the published residual variance.
 
-    Numerical safeguards:
+    **Units.** :math:`P(0) = p_0 S^{-2}`, where :math:`S = \mathrm{diag}(s_k)`
+    holds the scale of the signal in :math:`\varphi_k`: per channel (y and
+    each :math:`u_i`) the smallest power of two at or above the largest
+    magnitude of the first samples (those in the regressor at the first
+    update; a channel that is still all zero gets its scale when it first
+    is not). This is RLS on the normalised signals :math:`\varphi_k/s_k` with
+    :math:`P(0) = p_0 I`, mapped back, and bit-for-bit so because the scales
+    are powers of two: the estimates do not depend on the units of y and u,
+    and ``initial_covariance`` is the prior variance of the parameters of
+    signals of unit size.
 
-    * the downdate is written as :math:`P - h h^T` with :math:`h = P\varphi/\sqrt{s}`,
-      which is symmetric to the last bit;
-    * anti-windup: the division by :math:`\lambda` is skipped while
-      :math:`\mathrm{tr}\,P` exceeds its initial value :math:`p_0 p`, so P stays
-      bounded when the input stops exciting the plant (flag ``windup_limited``);
-    * every ``HEALTH_CHECK_PERIOD`` updates, and whenever :math:`s \le 0`, P is
-      checked by a Cholesky factorisation and, if it has lost definiteness,
-      rebuilt from its symmetric part with eigenvalues clipped (flag
-      ``covariance_repaired``).
+    **Safeguards** (docs/estimators.md), each counted in :attr:`flags`:
+
+    * the downdate is written as :math:`P - h h^T` with
+      :math:`h = P\varphi/\sqrt{s}`, symmetric to the last bit;
+    * anti-windup: the division by :math:`\lambda` is skipped while the
+      normalised trace :math:`\mathrm{tr}(SPS)` exceeds :math:`p_0 p`
+      (``windup_limited``);
+    * transaction: a step with a non-finite :math:`s(t)` or :math:`e^2(t)`,
+      or with :math:`s(t)/\lambda >` ``CAREFUL_GAIN`` that leaves
+      :math:`SPS` numerically indefinite or conditioned beyond 1e13, is
+      undone (``update_undone``) and the regressor restarts; three in a row
+      mean the signal level is far from that of the first samples: the
+      estimator starts afresh with new scales (``rescaled``);
+    * gate: :math:`z^2 = e^2 / [(J/\tau)(1 + \varphi^T P \varphi)]`, the
+      squared prediction error over its variance, goes to the base class's
+      gate (``outlier_rejected``, ``plant_change``) once
+      :math:`\tau \ge` ``GATE_WARMUP`` p. A detected plant change cuts the
+      memory to ``CHANGE_MEMORY`` p samples: :math:`P \leftarrow P/\kappa`,
+      :math:`J \leftarrow \kappa J`, :math:`\tau \leftarrow \kappa\tau`, one
+      extra forgetting step that keeps :math:`J/\tau` and :math:`\tau P`;
+    * every ``HEALTH_CHECK_PERIOD`` updates, and whenever :math:`s \le 0`,
+      P is checked by a Cholesky factorisation and, if it has lost
+      definiteness, rebuilt (``covariance_repaired``).
+
+    **Validity**, re-evaluated every ``VALIDITY_PERIOD`` updates: the model
+    :math:`A(q)` of the published estimate is unstable (a pole beyond
+    ``UNSTABLE_RADIUS``) while the output power over the memory did not
+    grow by ``GROWTH`` since the last check (bounded data).
 
     Parameters
     ----------
-    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
 
     """
@@ -71,13 +215,24 @@ class Rls(RecursiveEstimator):
         super().__init__(**settings)
         self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough)
         self._trace_limit = self.initial_covariance * self.num_parameters
+        # the signal channel (0 = y, i = u_i) of each component of phi
+        lags = self.order + (1 if self.feedthrough else 0)
+        self._channel = np.array([0] * self.order + [
+            i for i in range(1, self.num_inputs + 1) for _ in range(lags)], dtype=np.intp)
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
         phi = self._regressor.push(y, u)
+        if self._scales_pending and self._regressor.ready:
+            self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step()
+            if self._updates >= self._next_check:
+                self._check_validity()
+
+    #: _ls_step checks before it commits: the cheap form of the transaction.
+    _guarded_update = _update
 
     def _after_ls_step(self) -> None:
         """Extend the LS step (the bias compensation of subclasses); nothing here."""
@@ -85,22 +240,41 @@ class Rls(RecursiveEstimator):
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
         lam = self._forgetting_factor
-        theta = self._theta_ls
-        # g = P(t-1) phi(t)   (ndarray.dot: half the call overhead of @ at this size)
         g = self._p.dot(phi)
-        # s = lambda + phi' P(t-1) phi
-        s = lam + phi.dot(g)
+        s = lam + float(phi.dot(g))
+        e = y - float(phi.dot(self._theta_ls))
+        if not (s < CAREFUL_GAIN * lam and e * e < math.inf):
+            return self._careful_step(phi, e, g, s)
         if not s > 0.0:
             self._repair_covariance()
             return False
-        # e = y(t) - phi'(t) theta(t-1)
-        e = y - phi.dot(theta)
-        # theta(t) = theta(t-1) + g e / s   (BLAS axpy, in place)
-        daxpy(g, theta, a=e / s)
-        # P(t) = P(t-1) - h h', h = g / sqrt(s): symmetric to the last bit
-        h = g * (1.0 / math.sqrt(s))
-        # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view)
-        self._p = dger(-1.0, h, h, a=self._p.T, overwrite_a=True).T
+        tau = self._tau
+        if tau >= self._gate_from:
+            z2 = e * e / ((self._loss / tau + self._variance_floor) * (s + 1.0 - lam))
+            if not z2 <= self._gate_limit2 or self._change_score:
+                if not self._gate(z2):
+                    return False
+                if self._tau != tau:
+                    # a plant change cut the memory (P grew): redo the a-priori part
+                    g = self._p.dot(phi)
+                    s = lam + float(phi.dot(g))
+                    tau = self._tau
+        # the commit, inlined (see _commit)
+        self._p = rls_step(self._theta_ls, self._p, g, s, e)
+        self._loss = lam * (self._loss + e * e / s)
+        self._tau = lam * tau + 1.0
+        if lam < 1.0:
+            self._forget()
+        self._updates += 1
+        if self._updates % HEALTH_CHECK_PERIOD == 0:
+            self._check_covariance()
+        self._undone_in_row = 0
+        return True
+
+    def _commit(self, e: float, g: np.ndarray, s: float) -> None:
+        """Make the step (47)-(50) with the a-priori quantities of :func:`rls_innovation`."""
+        lam = self._forgetting_factor
+        self._p = rls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
@@ -109,14 +283,73 @@ class Rls(RecursiveEstimator):
         self._updates += 1
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
-        return True
+
+    def _careful_step(self, phi: np.ndarray, e: float, g: np.ndarray, s: float) -> bool:
+        """Make a step that may break P (huge s) as a transaction; return whether it was kept."""
+        lam = self._forgetting_factor
+        if s <= 0.0:
+            self._repair_covariance()
+            return False
+        if not (s < math.inf and e * e < math.inf):
+            self._undo('update_undone')
+            return False
+        if self._tau >= self._gate_from:
+            z2 = e * e / ((self._loss / self._tau + self._variance_floor) * (s + 1.0 - lam))
+            if not self._gate(z2):
+                return False
+            g = self._p.dot(phi)
+            s = lam + float(phi.dot(g))
+        saved = (self._theta_ls.copy(), self._p.copy(), self._loss, self._tau, self._updates)
+        self._commit(e, g, s)
+        if self._sound_covariance() and np.isfinite(self._theta_ls).all():
+            self._undone_in_row = 0
+            return True
+        self._theta_ls[:] = saved[0]
+        self._p, self._loss, self._tau, self._updates = saved[1:]
+        self._undone_in_row += 1
+        if self._undone_in_row >= 3:
+            # three in a row: the signal level is far from the scales of the first
+            # samples; what was learnt at that level is numerically worthless
+            self._restart_learning()
+            return False
+        self._undo('update_undone')
+        return False
+
+    def _restart_learning(self) -> None:
+        """Start afresh with scales chosen from the samples now in the regressor."""
+        self._flag('rescaled')
+        regressor = self._regressor
+        history, filled, position = regressor.history.copy(), regressor.filled, \
+            regressor.position
+        self._reset()
+        regressor.history[:] = history
+        regressor.filled, regressor.position = filled, position
+        self._choose_scales()
+
+    def _sound_covariance(self) -> bool:
+        """Whether the normalised P is positive definite with a condition within 1e13."""
+        scaled = self._p * self._scale_outer
+        try:
+            factor = np.linalg.cholesky(scaled)
+        except np.linalg.LinAlgError:
+            return False
+        pivots = np.diagonal(factor) ** 2
+        return bool(pivots.min() > 1e-13 * scaled.diagonal().max())
 
     def _forget(self) -> None:
         """Apply P(t) <- P(t) / lambda unless that would wind P up past its start."""
-        if np.trace(self._p) < self._trace_limit:
+        if self._p.diagonal().dot(self._trace_weights) < self._trace_limit:
             self._p *= 1.0 / self._forgetting_factor
         else:
             self._flag('windup_limited')
+
+    def _accept_change(self) -> None:
+        """Cut the memory to CHANGE_MEMORY p samples: one extra forgetting step."""
+        keep = CHANGE_MEMORY * self.num_parameters / self._tau if self._tau > 0 else 1.0
+        if keep < 1.0:
+            self._p *= 1.0 / keep
+            self._loss *= keep
+            self._tau *= keep
 
     def _check_covariance(self) -> None:
         try:
@@ -127,24 +360,90 @@ class Rls(RecursiveEstimator):
     def _repair_covariance(self) -> None:
         """Rebuild P as the nearest symmetric positive definite matrix."""
         self._flag('covariance_repaired')
-        sym = 0.5 * (self._p + self._p.T)
-        if not np.isfinite(sym).all():
-            self._p = self.initial_covariance * np.eye(self.num_parameters)
-            return
-        values, vectors = np.linalg.eigh(sym)
-        floor = max(values.max(), 1.0) * 1e-12
-        self._p = (vectors * np.maximum(values, floor)) @ vectors.T
+        self._p = repair_covariance(self._p, self._initial_p(), self._component_scale)
+
+    # ------------------------------------------------------------ the units
+    def _initial_p(self) -> np.ndarray:
+        """Return P(0) = p0 S^-2 for the current scales."""
+        return np.diag(self.initial_covariance / self._component_scale ** 2)
+
+    def _choose_scales(self) -> None:
+        """Give each channel still without a scale the one of the data in the regressor."""
+        peaks = np.abs(self._regressor.history).max(axis=0)
+        scales = self._signal_scale
+        for channel in np.flatnonzero((scales == 0.0) & (peaks > 0.0)):
+            scale = power_of_two_at_least(float(peaks[channel]))
+            scales[channel] = scale
+            # exact: the components of this channel were zero in every update so far,
+            # so their rows and columns of P are still p0 (times 1 / lambda^k) on the diagonal
+            for k in np.flatnonzero(self._channel == channel):
+                self._p[k, k] *= 1.0 / (scale * scale)
+        self._set_scale_dependents()
+
+    def _set_scale_dependents(self) -> None:
+        scales = self._signal_scale
+        self._scales_pending = bool((scales == 0.0).any())
+        component = scales[self._channel]
+        self._component_scale = np.where(component > 0.0, component, 1.0)
+        self._trace_weights = self._component_scale ** 2
+        self._scale_outer = np.outer(self._component_scale, self._component_scale)
+        y_scale = scales[0] if scales[0] > 0.0 else 1.0
+        self._variance_floor = (VARIANCE_FLOOR * y_scale) ** 2
+
+    # --------------------------------------------------------- the validity
+    def _check_validity(self) -> None:
+        self._next_check = self._updates + VALIDITY_PERIOD
+        with np.errstate(all='ignore'):
+            self._reasons = tuple(self._find_problems())
+
+    def _find_problems(self) -> list[str]:
+        """Return the reasons not to trust the estimate now (see the class docstring)."""
+        reasons = []
+        power = self._output_power()
+        bounded = not power > GROWTH * self._last_power
+        self._last_power = power
+        radius = spectral_radius(self._theta()[:self.order])
+        if not radius <= UNSTABLE_RADIUS and bounded:
+            reasons.append(f'unstable model (pole radius {radius:.3g}) on bounded data')
+        return reasons
+
+    def _output_power(self) -> float:
+        """Return the weighted mean square of y over the memory, from P^-1."""
+        n = self.order
+        try:
+            information = np.linalg.inv(self._p)
+        except np.linalg.LinAlgError:
+            return math.inf
+        return float(np.trace(information[:n, :n])) / (n * max(self._tau, 1.0))
+
+    def _validity_reasons(self) -> tuple[str, ...]:
+        return self._reasons
 
     # --------------------------------------------------------- the accessors
     @property
-    def valid(self) -> bool:
+    def ready(self) -> bool:
         """Whether phi(t) is filled and at least p updates have been made."""
         return self._updates >= self.num_parameters
+
+    @property
+    def valid(self) -> bool:
+        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
+        return self._updates >= self.num_parameters and not self._reasons
 
     @property
     def samples(self) -> int:
         """Count the estimator updates (samples with a filled regressor)."""
         return self._updates
+
+    @property
+    def signal_scale(self) -> np.ndarray:
+        """Return the scales of y, u_1 ... u_r (0 while a channel has only seen zeros)."""
+        return self._signal_scale.copy()
+
+    @property
+    def initial_covariance_diagonal(self) -> np.ndarray:
+        """Return the diagonal of P(0) = p0 S^-2 in the user's units."""
+        return self.initial_covariance / self._component_scale ** 2
 
     @property
     def covariance(self) -> np.ndarray:
@@ -184,33 +483,60 @@ class Rls(RecursiveEstimator):
         self._loss = 0.0
         self._tau = 0.0
         self._updates = 0
+        self._signal_scale = np.zeros(1 + self.num_inputs)
+        self._set_scale_dependents()
+        self._gate_from = GATE_WARMUP * p
+        self._undone_in_row = 0
+        self._next_check = p
+        self._last_power = math.inf
+        self._reasons: tuple[str, ...] = ()
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays = {'theta_ls': self._theta_ls, 'p': self._p,
-                  'history': self._regressor.history}
+                  'history': self._regressor.history, 'signal_scale': self._signal_scale}
         scalars = {'loss': self._loss, 'tau': self._tau, 'updates': self._updates,
                    'filled': self._regressor.filled,
                    'position': self._regressor.position,
-                   'forgetting_factor': self._forgetting_factor}
+                   'forgetting_factor': self._forgetting_factor,
+                   'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
+                   'last_power': self._last_power, 'reasons': self._reasons}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
         self._p = arrays['p']
         self._regressor.history[:] = arrays['history']
+        self._signal_scale = arrays['signal_scale']
+        self._set_scale_dependents()
         self._regressor.filled = int(scalars['filled'])
         self._regressor.position = int(scalars['position'])
         self._loss = float(scalars['loss'])
         self._tau = float(scalars['tau'])
         self._updates = int(scalars['updates'])
         self._forgetting_factor = float(scalars['forgetting_factor'])
+        self._undone_in_row = int(scalars['undone_in_row'])
+        self._next_check = int(scalars['next_check'])
+        self._last_power = float(scalars['last_power'])
+        self._reasons = tuple(scalars['reasons'])
+
+
+def spectral_radius(a: np.ndarray) -> float:
+    """Return the largest pole magnitude of A(q) = 1 + a_1 q^-1 + ... + a_n q^-n."""
+    if a.shape[0] == 1:
+        return abs(float(a[0]))
+    companion = np.zeros((a.shape[0], a.shape[0]))
+    companion[0] = -a
+    companion[1:, :-1] = np.eye(a.shape[0] - 1)
+    if not np.isfinite(companion).all():
+        return math.inf
+    return float(np.abs(np.linalg.eigvals(companion)).max())
 
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
-             feedthrough: bool = False, initial_covariance: float | None = None,
+             feedthrough: bool = False, initial_covariance: Any = None,
              forgetting_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray, float, float]:
     r"""
     Solve the (weighted, regularised) least-squares problem that :class:`Rls` solves recursively.
@@ -220,8 +546,11 @@ def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
         \hat\theta_{LS}(N) = \Big[\lambda^{N'} P_0^{-1} + \sum_i \lambda^{N'-i}\varphi(i)
             \varphi^T(i)\Big]^{-1} \sum_i \lambda^{N'-i}\varphi(i) y(i)
 
-    over the N' = N - n updates that have a filled regressor. With
-    ``initial_covariance=None`` the :math:`P_0^{-1}` term is dropped (plain LS).
+    over the N' = N - n updates that have a filled regressor, with
+    :math:`P_0 = \mathrm{diag}(` ``initial_covariance`` :math:`)` (a scalar
+    or the p diagonal entries, e.g. :attr:`Rls.initial_covariance_diagonal`).
+    With ``initial_covariance=None`` the :math:`P_0^{-1}` term is dropped
+    (plain LS).
 
     Parameters
     ----------
@@ -251,8 +580,8 @@ def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
     weights = forgetting_factor ** np.arange(phi.shape[0] - 1, -1, -1, dtype=float)
     information = (phi * weights[:, None]).T @ phi
     if initial_covariance is not None:
-        information += forgetting_factor ** phi.shape[0] / initial_covariance * np.eye(
-            phi.shape[1])
+        prior = np.broadcast_to(np.asarray(initial_covariance, dtype=float), (phi.shape[1],))
+        information += np.diag(forgetting_factor ** phi.shape[0] / prior)
     theta = np.linalg.solve(information, (phi * weights[:, None]).T @ target)
     residual = target - phi @ theta
     return theta, np.linalg.inv(information), float(weights @ residual ** 2), float(

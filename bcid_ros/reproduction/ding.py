@@ -189,8 +189,9 @@ def reproduce(runs: int | None, quick: bool, out_dir: Path, progress: Callable) 
         'The paper\'s tables come from one realisation, so its numbers scatter around our '
         'means by about the run-to-run spread (std = s.e. × √M).\n',
         'BCRLS uses Λ in the compensation term (the printed eq. (46) drops it; see '
-        'PAPER_NOTES.md), p0 = 1e6, θ(0) = 0. The last column is the batch BCLS fixed point '
-        'of eqs. (24)/(39) on the same data, which BCRLS tracks.\n',
+        '`docs/papers.md`), p0 = 1e6 (in normalised units, see `docs/estimators.md`), '
+        'θ(0) = 0. The last column is the batch BCLS fixed point of eqs. (24)/(39) on the '
+        'same data, which BCRLS tracks.\n',
         f'![δ vs t]({figure.name})\n',
     ]
     for study in studies:
