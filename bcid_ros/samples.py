@@ -373,14 +373,15 @@ class SampleFeeder:
         result.estimates = estimates
 
     def _due(self) -> bool:
-        return self.since_publish >= self.publish_period and bool(self.estimator.valid)
+        return self.since_publish >= self.publish_period and bool(self.estimator.ready)
 
     def due_estimates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """
         Return ``(theta, theta_uncompensated, noise)`` if it is time to publish them.
 
         It is time once ``publish_period`` samples were used since the last
-        publication and the estimate is valid. A non-finite estimate is never
+        publication and the estimator is ready (``~/valid`` says whether to trust
+        it). A non-finite estimate is never
         returned (and the count since the last publication goes on).
         """
         if not self._due():

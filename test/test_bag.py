@@ -279,8 +279,8 @@ def test_replay_equals_the_estimator_run_on_the_samples(estimator):
     np.testing.assert_array_equal(result.theta, direct.final)
     np.testing.assert_array_equal(result.theta_uncompensated, direct.theta_uncompensated[-1])
     # One published row per sample once valid (publish_period 1), the last one the final.
-    assert result.theta_trajectory.shape[0] == int(direct.valid.sum())
-    np.testing.assert_array_equal(result.theta_trajectory, direct.theta[direct.valid])
+    assert result.theta_trajectory.shape[0] == int(direct.ready.sum())
+    np.testing.assert_array_equal(result.theta_trajectory, direct.theta[direct.ready])
 
 
 def test_replay_json_is_the_spec_object(capsys):

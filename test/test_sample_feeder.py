@@ -28,9 +28,11 @@ class RecordingEstimator:
         self.noise = np.array([0.1])
 
     @property
-    def valid(self):
+    def ready(self):
         """Whether enough updates were made."""
         return sum(1 for entry in self.log if entry != 'restart') >= self.valid_after
+
+    valid = ready
 
     def update_trusted(self, y, u):
         """Record an update (or raise on the chosen y)."""

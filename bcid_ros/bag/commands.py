@@ -34,7 +34,9 @@ def replay(args: argparse.Namespace) -> int:
         print(f'skipped: {result.malformed} malformed messages, {result.nonfinite} samples '
               'with NaN/Inf')
     if not result.valid:
-        print('the estimator never became valid (too few samples)')
+        print(f'the final estimate is not valid: {", ".join(result.validity_reasons)}'
+              if result.validity_reasons else
+              'the estimator never became ready (too few samples)')
     truth = result.truth.as_dict()['parameters'] if result.truth is not None else {}
     width = max(len(n) for n in result.parameter_names)
     print(f'{"":{width}}  {"estimate":>12}  {"uncompensated":>13}' + ('  {:>10}'.format('true')

@@ -57,6 +57,7 @@ class ReplayResult:
     theta_uncompensated: np.ndarray
     noise: np.ndarray
     valid: bool
+    validity_reasons: tuple[str, ...]
     flags: dict[str, int]
     samples: int
     messages: int
@@ -182,7 +183,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         estimator=values['estimator'], parameter_names=est.parameter_names,
         noise_names=tuple(est.noise_names), theta=est.theta,
         theta_uncompensated=est.theta_uncompensated, noise=est.noise, valid=bool(est.valid),
-        flags=dict(est.flags),
+        validity_reasons=tuple(est.validity_reasons), flags=dict(est.flags),
         samples=feeder.used, messages=messages, malformed=malformed, failures=failures,
         nonfinite=feeder.nonfinite, truth=truth, elapsed_s=elapsed,
         times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),

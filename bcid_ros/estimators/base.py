@@ -138,8 +138,10 @@ class Trajectory:
     """
     Estimates after every sample of a batch run, shape ``(N, ...)``.
 
-    Rows where ``valid`` is False hold whatever the estimator held then (its
-    initial values before it first updates); use ``valid`` to mask them.
+    Rows where ``ready`` is False hold whatever the estimator held then (its
+    initial values before it first updates); use ``ready`` to mask them, as the
+    node does before it publishes. ``valid`` is the node's ``~/valid``: ready
+    and no reason to distrust the estimate.
     """
 
     theta: np.ndarray
@@ -148,6 +150,7 @@ class Trajectory:
     valid: np.ndarray
     parameter_names: tuple[str, ...]
     noise_names: tuple[str, ...]
+    ready: np.ndarray
 
     @property
     def final(self) -> np.ndarray:
@@ -314,13 +317,15 @@ class RecursiveEstimator(abc.ABC):
         theta_unc = np.empty((count, self.num_parameters))
         noise = np.empty((count, len(self.noise_names)))
         valid = np.empty(count, dtype=bool)
+        ready = np.empty(count, dtype=bool)
         for t in range(count):
             valid[t] = self.update(y[t], u[t])
+            ready[t] = self.ready
             theta[t] = self._theta()
             theta_unc[t] = self._theta_uncompensated()
             noise[t] = self._noise()
         return Trajectory(theta, theta_unc, noise, valid, self.parameter_names,
-                          self.noise_names)
+                          self.noise_names, ready)
 
     def reset(self) -> None:
         """Return to the state right after construction."""

@@ -817,7 +817,7 @@ class Bciv(RecursiveEstimator):
 
     # --------------------------------------------------------- the accessors
     @property
-    def valid(self) -> bool:
+    def ready(self) -> bool:
         """Whether eta is filled, L updates are done and at least p updates were made."""
         return self._updates >= max(self.idle_samples, self.num_parameters)
 

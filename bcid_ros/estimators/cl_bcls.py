@@ -322,7 +322,7 @@ class ClosedLoopBcls(RecursiveEstimator):
 
     # --------------------------------------------------------- the accessors
     @property
-    def valid(self) -> bool:
+    def ready(self) -> bool:
         """Whether a compensation (redesign) has succeeded since the last reset."""
         return self._direction is not None
 
