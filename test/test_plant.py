@@ -27,8 +27,8 @@ def run(plant, commands):
 
 
 def test_zero_order_hold_timing_operating_point_and_noise_match_a_filter():
-    scenario = CustomScenario(plant_denominator=[1.0, -1.2, 0.5], plant_numerator=[0.0, 0.4,
-                                                                                  0.3],
+    scenario = CustomScenario(plant_denominator=[1.0, -1.2, 0.5],
+                              plant_numerator=[0.0, 0.4, 0.3],
                               noise_numerator=[1.0, 0.5], noise_denominator=[1.0, -0.3],
                               noise_variance=0.04, input_delay=2, input_offset=1.5,
                               output_offset=-3.0)
@@ -46,8 +46,8 @@ def test_zero_order_hold_timing_operating_point_and_noise_match_a_filter():
 
 
 def test_equation_error_feedthrough_and_two_inputs():
-    scenario = CustomScenario(plant_denominator=[1.0, -0.5], plant_numerator=[0.2, 1.0,
-                                                                              0.0, -0.7],
+    scenario = CustomScenario(plant_denominator=[1.0, -0.5],
+                              plant_numerator=[0.2, 1.0, 0.0, -0.7],
                               noise_variance=0.01, equation_error=True, input_delay=[0, 1])
     commands = np.random.default_rng(2).standard_normal((200, 2))
     ys, us = run(HeldInputPlant(scenario, np.random.default_rng(3)), commands)

@@ -490,6 +490,5 @@ def place_poles(plant: Plant, poles: Sequence[float], *, integral: bool = False,
 
 __all__ = ['CONTROLLER_LABELS', 'Controller', 'DEFAULT_MAX_CONDITION', 'DesignRefused',
            'ModelStructure', 'Plant', 'check_estimate', 'closed_loop_polynomial',
-           'closed_loop_poles', 'controller_degree', 'controller_from_message', 'parse_names', 'place_poles', 'pole_distance',
-           'required_pole_count',
-           'sylvester_matrix']
+           'closed_loop_poles', 'controller_degree', 'controller_from_message', 'parse_names',
+           'place_poles', 'pole_distance', 'required_pole_count', 'sylvester_matrix']

@@ -195,7 +195,6 @@ class SimulatorNode(Node):
             self.output_publisher.publish(build_output(output_class, [y[row]], ['y'],
                                                        'position', stamp))
 
-
     # ------------------------------------------------------------ plant mode
     def _start_plant_mode(self, settings: dict[str, Any]) -> None:
         """Set up ``mode: plant``: the custom plant, a held input, one sample per tick."""
@@ -253,8 +252,8 @@ class SimulatorNode(Node):
 
     def _truth_text(self) -> str:
         truth = self.plant.truth()
-        return ', '.join(f'{n}={v:.6g}' for n, v in zip(truth.parameter_names,
-                                                          truth.parameters))
+        pairs = zip(truth.parameter_names, truth.parameters)
+        return ', '.join(f'{n}={v:.6g}' for n, v in pairs)
 
     def _publish_truth(self) -> None:
         truth = self.plant.truth()
@@ -275,6 +274,9 @@ class SimulatorNode(Node):
             return
         self.plant_counters['commands'] += 1
         self._fresh_command = True
+        if self.settings['lockstep'] and self._waiting_since is not None:
+            # the sample was due and waited for this command: no need to wait for the timer
+            self.plant_tick()
 
     def check_input_publishers(self) -> None:
         """Report publishers of the input topic with another type (they never connect)."""
@@ -305,6 +307,10 @@ class SimulatorNode(Node):
             if not self._plant_ready():
                 return
             self._start = time.monotonic()
+        # at most rate_hz: a sample waits for its time (the timer may tick early after a
+        # sample that a command triggered)
+        if self.sent and time.monotonic() < self._start + self.sent / self.rate - 0.5 / self.rate:
+            return
         if self.sent and not self._fresh_command:
             # the command computed from the last output has not arrived yet
             if self.settings['lockstep']:
