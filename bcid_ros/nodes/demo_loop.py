@@ -209,11 +209,27 @@ def plot(record: LoopRecord, reference: np.ndarray, title: str, path: Path) -> N
     from bcid_ros.reproduction.common import pyplot
 
     plt = pyplot()
-    fig, axes = plt.subplots(4, 1, figsize=(9, 11), sharex=True)
+    fig = plt.figure(figsize=(9, 12))
+    grid = fig.add_gridspec(4, 2)
     t = np.arange(len(record.y))
-    axes[0].plot(t, record.y, linewidth=0.5, label='y')
-    axes[0].plot(t, reference[:t.size], linewidth=0.8, label="r'")
-    axes[0].set_ylabel('output')
+    y, reference = np.asarray(record.y), reference[:t.size]
+    # y and r' are readable over a few reference periods: around the change and at the end
+    windows = [('at the end', max(0, t.size - 200), t.size)]
+    if record.change_at and record.change_at < t.size:
+        windows.insert(0, ('at the plant change', max(0, record.change_at - 60),
+                           min(t.size, record.change_at + 140)))
+    else:
+        windows.insert(0, ('at the start', 0, min(t.size, 200)))
+    for column, (name, start, stop) in enumerate(windows):
+        axis = fig.add_subplot(grid[0, column])
+        axis.step(t[start:stop], y[start:stop], where='post', linewidth=0.8, label='y')
+        axis.step(t[start:stop], reference[start:stop], where='post', linewidth=0.8,
+                  label="r'")
+        axis.set_title(f"y and r' {name}", fontsize='small')
+        axis.grid(True, alpha=0.3)
+        axis.legend(fontsize='small')
+    axes = [fig.add_subplot(grid[row, :]) for row in (1, 2, 3)]
+    axes.insert(0, None)
     axes[1].plot(t, record.u, linewidth=0.5, color='tab:green', label='u')
     axes[1].set_ylabel('input')
     names = record.structure.names
@@ -221,7 +237,8 @@ def plot(record: LoopRecord, reference: np.ndarray, title: str, path: Path) -> N
         samples = np.array([s for s, _, _ in record.estimates])
         values = np.array([v for _, v, _ in record.estimates])
         for k, name in enumerate(names):
-            line, = axes[2].plot(samples, values[:, k], label=f'{name} estimate')
+            line, = axes[2].plot(samples, values[:, k], '.-', markersize=2,
+                                 label=f'{name} estimate')
             truth = [record.truth_at(s)[k] if record.truth_at(s) is not None else np.nan
                      for s in t[::max(1, t.size // 2000)]]
             axes[2].plot(t[::max(1, t.size // 2000)], truth, '--', color=line.get_color(),
@@ -243,14 +260,14 @@ def plot(record: LoopRecord, reference: np.ndarray, title: str, path: Path) -> N
     axes[3].set_xlabel('samples')
     axes[3].set_title('achieved (true plant, controller in the loop; dotted: |p| of complex '
                       'poles) against the target (dashed)', fontsize='small')
-    for axis in axes:
+    for axis in axes[1:]:
         if record.change_at and record.change_at < len(record.y):
             axis.axvline(record.change_at, color='black', linewidth=0.8, alpha=0.5)
         axis.grid(True, alpha=0.3)
         handles, _ = axis.get_legend_handles_labels()
         if handles:
             axis.legend(fontsize='small', ncol=4, loc='upper right')
-    axes[0].set_title(title)
+    fig.suptitle(title)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
