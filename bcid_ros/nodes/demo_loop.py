@@ -120,8 +120,10 @@ class LoopRecord:
 
     def converged_at(self, start: int, stop: int) -> int | None:
         """
-        Return the first sample in [start, stop) from which the achieved poles stay
-        within :data:`POLE_TOLERANCE` of the target until ``stop`` (None if never).
+        Return when the loop converged in the phase [start, stop).
+
+        That is the first sample from which the achieved poles stay within
+        :data:`POLE_TOLERANCE` of the target until ``stop`` (None if never).
         """
         marks = [m for m in self.events() if start <= m < stop]
         if not marks or marks[0] != start:
