@@ -80,3 +80,28 @@ def test_loop_record_finds_when_the_poles_converged():
     assert record.converged_at(100, 200) == 130
     assert record.pole_error(120) > 0.05 and record.pole_error(199) < 1e-9
     np.testing.assert_array_equal(record.truth_at(99), BEFORE)
+
+
+def test_the_config_file_holds_the_three_nodes():
+    from pathlib import Path
+
+    from bcid_ros.cli import build_parser
+    from bcid_ros.control.parameters import check_controller_parameters
+    from bcid_ros.parameters import (check_simulator_parameters, estimator_from_parameters,
+                                     load_yaml_parameters)
+
+    path = Path(__file__).resolve().parent.parent / 'config' / 'adaptive_loop.yaml'
+    simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))
+    assert simulator['mode'] == 'plant' and simulator['change_after_samples'] > 0
+    assert simulator['plant_denominator_after'] == [1.0, -0.9]
+    identifier = load_yaml_parameters(path, 'bcid_identifier')
+    assert identifier['controller_topic'] == '/bcid_controller/controller'
+    estimator = estimator_from_parameters(identifier)
+    controller = check_controller_parameters(load_yaml_parameters(path, 'bcid_controller'))
+    # the identifier starts from the controller's fallback, so its first ~/controller
+    # message is an identical republish
+    np.testing.assert_allclose(estimator.controller.denominator,
+                               controller['fallback_denominator'])
+    args = build_parser().parse_args(['demo', '--scenario', 'adaptive_loop',
+                                      '--estimator', 'rls'])
+    assert (args.scenario, args.estimator) == ('adaptive_loop', 'rls')
