@@ -66,7 +66,8 @@ class LoopRecord:
     # ---------------------------------------------------------------- input
     def add_truth(self, values: np.ndarray) -> None:
         """Take the truth: the first at sample 0, the republished one at the change."""
-        index = 0 if not self.truths else max(self.change_at, len(self.y))
+        # the plant changes at change_at exactly; the message may arrive a few samples later
+        index = 0 if not self.truths else (self.change_at or len(self.y))
         self.truths.append((index, np.asarray(values, dtype=float)))
 
     def add_estimate(self, values: np.ndarray) -> None:
