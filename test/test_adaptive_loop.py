@@ -105,3 +105,17 @@ def test_the_config_file_holds_the_three_nodes():
     args = build_parser().parse_args(['demo', '--scenario', 'adaptive_loop',
                                       '--estimator', 'rls'])
     assert (args.scenario, args.estimator) == ('adaptive_loop', 'rls')
+
+
+def test_cl_bcls_set_controller_contract():
+    # the interface the identifier's controller_topic relies on
+    estimator = factory('cl_bcls')(Controller.from_coefficients([0.2289], [1.0, -0.09004]))
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        estimator.update(rng.standard_normal(), np.array([rng.standard_normal()]))
+    with pytest.raises(ValueError, match='controller_numerator'):
+        estimator.set_controller([1.0, 2.0, 3.0], [1.0, -0.5])
+    assert estimator.samples == 100  # unchanged by a refused controller
+    estimator.set_controller([0.16], [1.0, -0.2])
+    np.testing.assert_allclose(estimator.controller.denominator, [1.0, -0.2])
+    assert estimator.samples == 0 and not estimator.valid
