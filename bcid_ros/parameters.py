@@ -233,6 +233,12 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'changed while running.', low=1, high=1000000, read_only=False),
     _p('excitation_window', 'integer', 200, 'Warn (and count) when the input has not changed '
        'for this many samples (no excitation); 0 turns the check off.', low=0, high=1e9),
+    # --- the adaptive loop
+    _p('controller_topic', 'string', '', 'cl_bcls only: take the controller in the loop from '
+       'this topic (Float64MultiArray, latched; numerator then denominator in descending '
+       'powers of q, as the adaptive controller\'s ~/controller) and restart the compensation '
+       'at every change. Empty: the controller is fixed by controller_numerator/'
+       'controller_denominator.'),
 )
 
 #: The simulator node's parameters (docs/nodes.md), in declaration order.
@@ -283,7 +289,30 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        'colouring filter.'),
     _p('input_noise_variance', 'double', 0.0, 'custom: variance of white measurement noise '
        'added to the published inputs (errors in variables).', low=0.0, high=1e12),
+    _p('input_delay', 'double_array', [0.0], 'custom: dead time d_i of each input in samples '
+       '(integers >= 0; one number for all inputs or one per input).', low=0.0, high=1e6),
+    _p('input_offset', 'double_array', [0.0], 'custom: operating point u0_i of each input '
+       '(one number or one per input): y = y0 + B/A (u - u0) + v.'),
+    _p('output_offset', 'double', 0.0, 'custom: operating point y0 of the output.'),
+    # --- plant mode: the plant in a loop (docs/adaptive_loop.md)
+    _p('mode', 'string', 'open_loop', 'open_loop: the scenario draws its own inputs. plant '
+       '(custom only): the input is read from the input topic and held (zero-order hold, 0 '
+       'until the first command); samples [y, u] and output are published at rate_hz.',
+       choices=('open_loop', 'plant')),
+    _p('change_after_samples', 'integer', 0, 'plant mode: after this many samples the plant '
+       'becomes plant_denominator_after / plant_numerator_after and the truth topics are '
+       'published again; 0: no change.', low=0, high=1e12),
+    _p('plant_denominator_after', 'double_array', [], 'plant mode: A(z) after the change, as '
+       '[1, a1, ..., an] (empty: unchanged).'),
+    _p('plant_numerator_after', 'double_array', [], 'plant mode: B_i(z) after the change, '
+       'concatenated as plant_numerator (empty: unchanged).'),
+    _p('lockstep', 'bool', False, 'plant mode: before each sample, wait (up to 1 s) for the '
+       'command computed from the previous output, so that a slow controller never misses '
+       'a sample (a simulation in step with the controller, not real time).'),
 )
+
+#: Custom-plant settings beyond CUSTOM_SETTINGS: dead time and operating point.
+OPERATING_POINT_SETTINGS = ('input_delay', 'input_offset', 'output_offset')
 
 #: The custom scenario's parameter names (passed to CustomScenario).
 CUSTOM_SETTINGS = ('plant_denominator', 'plant_numerator', 'noise_numerator',
@@ -531,7 +560,8 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
     return check_parameters(values, SIMULATOR_PARAMETERS)
 
 
-__all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS', 'ParameterSpec',
+__all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS',
+           'OPERATING_POINT_SETTINGS', 'ParameterSpec',
            'SIMULATOR_PARAMETERS', 'TYPES', 'check_identifier_parameters', 'check_parameters',
            'check_simulator_parameters', 'estimator_from_parameters', 'estimator_options',
            'estimator_settings', 'load_yaml_parameters', 'markdown_table', 'spec_by_name',

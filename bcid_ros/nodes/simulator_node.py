@@ -8,6 +8,11 @@ data at every rate and frame size. Pacing follows the wall clock: each
 timer tick publishes the samples that are due, so the average rate is
 exact even when ticks are late.
 
+With ``mode: plant`` the node is a plant in a loop instead: it holds the
+latest command received on ``input`` (zero-order hold) and publishes one
+sample per tick; :mod:`bcid_ros.simulation.plant` does the stepping
+(docs/adaptive_loop.md).
+
 Run it as ``simulator_node --ros-args --params-file config/ding_miso.yaml``.
 """
 
@@ -19,15 +24,17 @@ from typing import Any
 import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64, Float64MultiArray
 
 from bcid_ros.nodes import interface
-from bcid_ros.nodes.common import declare_table, LATCHED_QOS, run_node, SAMPLES_QOS, usage
+from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, run_node, SAMPLES_QOS,
+                                   Throttle, usage)
 from bcid_ros.nodes.messages import estimate_message, SamplesLayouts, topic_class
 from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
-                                 SIMULATOR_PARAMETERS)
+                                 OPERATING_POINT_SETTINGS, SIMULATOR_PARAMETERS)
 from bcid_ros.samples import samples_data
 from bcid_ros.simulation import make_scenario
+from bcid_ros.simulation.plant import HeldInputPlant, plant_pair
 
 #: Longest timer period (s); ticks publish whatever is due.
 MAX_TICK = 0.01
@@ -37,6 +44,10 @@ MIN_TICK = 0.001
 MAX_BURST = 0.05
 #: Seconds to wait for the subscribers to acknowledge the last messages.
 FLUSH_TIMEOUT = 5.0
+#: Plant mode with lockstep: longest wait (s) for the command of the last output.
+LOCKSTEP_TIMEOUT = 1.0
+#: Plant mode: seconds between two checks of the input topic's publishers' types.
+GRAPH_CHECK_PERIOD = 1.0
 
 
 class SimulatorNode(Node):
@@ -61,9 +72,17 @@ class SimulatorNode(Node):
         super().__init__(node_name, **kwargs)
         settings = check_simulator_parameters(declare_table(self, SIMULATOR_PARAMETERS))
         self.settings = settings
+        self.plant: HeldInputPlant | None = None
+        if settings['mode'] == 'plant':
+            self._start_plant_mode(settings)
+            return
+        if settings['change_after_samples']:
+            raise ValueError("parameter 'change_after_samples' needs mode: plant (the plant "
+                             f"change is simulated in plant mode only), got "
+                             f"{settings['change_after_samples']} with mode: open_loop")
         if settings['scenario'] == 'custom':
-            self.scenario = make_scenario('custom',
-                                          **{k: settings[k] for k in CUSTOM_SETTINGS})
+            self.scenario = make_scenario(
+                'custom', **{k: settings[k] for k in CUSTOM_SETTINGS + OPERATING_POINT_SETTINGS})
         else:
             self.scenario = make_scenario(settings['scenario'])
         self.num_inputs = self.scenario.num_inputs
@@ -175,6 +194,156 @@ class SimulatorNode(Node):
                                                      'effort', stamp))
             self.output_publisher.publish(build_output(output_class, [y[row]], ['y'],
                                                        'position', stamp))
+
+    # ------------------------------------------------------------ plant mode
+    def _start_plant_mode(self, settings: dict[str, Any]) -> None:
+        """Set up ``mode: plant``: the custom plant, a held input, one sample per tick."""
+        if settings['scenario'] != 'custom':
+            raise ValueError("parameter 'mode' plant needs scenario: custom (the plant is "
+                             f"given by the custom parameters), got {settings['scenario']!r}")
+        if settings['frame_size'] != 1:
+            raise ValueError("parameter 'frame_size' must be 1 in mode: plant (one sample "
+                             f"per tick, each answered by a command), got "
+                             f"{settings['frame_size']}")
+        before, after = plant_pair(settings, CUSTOM_SETTINGS + OPERATING_POINT_SETTINGS)
+        self.scenario = before
+        self.num_inputs = before.num_inputs
+        self.plant = HeldInputPlant(before, np.random.default_rng(settings['seed']),
+                                    after=after, change_after=settings['change_after_samples'])
+        self.rate = settings['rate_hz']
+        self.frame_size = 1
+        self.num_samples = settings['num_samples']
+        self.sent = 0
+        self.done = False
+        self._created = time.monotonic()
+        self._start = None
+        self._throttle = Throttle(self.get_logger())
+        #: Plant-mode counters (logged; the summary line at the end).
+        self.plant_counters = {'commands': 0, 'refused commands': 0, 'late commands': 0,
+                               'lockstep timeouts': 0, 'wrong-type input publishers': 0}
+        self._fresh_command = False
+        self._waiting_since: float | None = None
+        self._wrong_publishers: set[bytes] = set()
+
+        self.true_parameters_publisher = self.create_publisher(
+            Float64MultiArray, interface.TRUE_PARAMETERS, LATCHED_QOS)
+        self.true_noise_publisher = self.create_publisher(
+            Float64MultiArray, interface.TRUE_NOISE_VARIANCE, LATCHED_QOS)
+        self._publish_truth()
+        self.samples_publisher = self.create_publisher(Float64MultiArray, interface.SAMPLES,
+                                                       SAMPLES_QOS)
+        self.output_publisher = self.create_publisher(Float64, interface.OUTPUT, SAMPLES_QOS)
+        self.input_publisher = None
+        self._layouts = SamplesLayouts(self.num_inputs)
+        # Float64 for one input, Float64MultiArray for several (docs/adaptive_loop.md)
+        self.input_class = Float64 if self.num_inputs == 1 else Float64MultiArray
+        self.input_subscription = self.create_subscription(
+            self.input_class, interface.INPUT, self.on_input, SAMPLES_QOS)
+        self.input_topic = self.input_subscription.topic_name
+        self.graph_timer = self.create_timer(GRAPH_CHECK_PERIOD, self.check_input_publishers)
+        self.timer = self.create_timer(max(1.0 / self.rate, MIN_TICK), self.plant_tick)
+        total = 'forever' if not self.num_samples else f'{self.num_samples} samples'
+        change = (f'; the plant changes after {settings["change_after_samples"]} samples'
+                  if self.plant.change_after else '')
+        self.get_logger().info(
+            f'mode plant (custom), seed {settings["seed"]}: {total} at {self.rate:g} Hz, '
+            f'input held from {self.input_topic} ({self.input_class.__name__}); true '
+            f'{self._truth_text()}{change}')
+
+    def _truth_text(self) -> str:
+        truth = self.plant.truth()
+        pairs = zip(truth.parameter_names, truth.parameters)
+        return ', '.join(f'{n}={v:.6g}' for n, v in pairs)
+
+    def _publish_truth(self) -> None:
+        truth = self.plant.truth()
+        self.truth = truth
+        self.true_parameters_publisher.publish(
+            estimate_message(truth.parameter_names, truth.parameters))
+        self.true_noise_publisher.publish(estimate_message(truth.noise_names, truth.noise))
+
+    def on_input(self, message: Any) -> None:
+        """Hold a command (u_1..u_r) from the next sample on; refuse a malformed one."""
+        values = [message.data] if self.num_inputs == 1 else list(message.data)
+        try:
+            self.plant.hold(values)
+        except ValueError as error:
+            self.plant_counters['refused commands'] += 1
+            self._throttle.warn('refused_command', f'input command refused ({error}); '
+                                f'holding {self.plant.held.tolist()}')
+            return
+        self.plant_counters['commands'] += 1
+        self._fresh_command = True
+        if self.settings['lockstep'] and self._waiting_since is not None:
+            # the sample was due and waited for this command: no need to wait for the timer
+            self.plant_tick()
+
+    def check_input_publishers(self) -> None:
+        """Report publishers of the input topic with another type (they never connect)."""
+        expected = f'std_msgs/msg/{self.input_class.__name__}'
+        for info in self.get_publishers_info_by_topic(self.input_topic):
+            gid = bytes(info.endpoint_gid)
+            if info.topic_type == expected or gid in self._wrong_publishers:
+                continue
+            self._wrong_publishers.add(gid)
+            self.plant_counters['wrong-type input publishers'] += 1
+            self.get_logger().error(
+                f'{info.node_namespace.rstrip("/")}/{info.node_name} publishes '
+                f'{info.topic_type} on {self.input_topic}; this plant has r = '
+                f'{self.num_inputs} input(s) and takes {expected} only: its commands are '
+                f'not received')
+
+    def _plant_ready(self) -> bool:
+        if not self._ready():
+            return False
+        wanted = self.settings['wait_for_subscribers']
+        return not wanted or self.output_publisher.get_subscription_count() >= 1
+
+    def plant_tick(self) -> None:
+        """Publish the next sample with the held input (one sample per tick)."""
+        if self.done:
+            return
+        if self._start is None:
+            if not self._plant_ready():
+                return
+            self._start = time.monotonic()
+        # at most rate_hz: a sample waits for its time (the timer may tick early after a
+        # sample that a command triggered)
+        if self.sent and time.monotonic() < self._start + self.sent / self.rate - 0.5 / self.rate:
+            return
+        if self.sent and not self._fresh_command:
+            # the command computed from the last output has not arrived yet
+            if self.settings['lockstep']:
+                now = time.monotonic()
+                if self._waiting_since is None:
+                    self._waiting_since = now
+                if now - self._waiting_since < LOCKSTEP_TIMEOUT:
+                    return
+                self.plant_counters['lockstep timeouts'] += 1
+                self._throttle.warn('lockstep_timeout', f'lockstep: no command '
+                                    f'{LOCKSTEP_TIMEOUT:g} s after the last output (is a '
+                                    f'controller running?); the held input is applied')
+            if self.plant.commands:
+                self.plant_counters['late commands'] += 1
+                self._throttle.warn('late_command', 'no command since the last output: the '
+                                    'held input is applied again (a slow controller; see '
+                                    'lockstep)')
+        self._waiting_since = None
+        self._fresh_command = False
+        changed = self.plant.changed
+        y, u = self.plant.step()
+        if self.plant.changed and not changed:
+            self._publish_truth()
+            self.get_logger().info(f'plant changed after {self.sent} samples: true '
+                                   f'{self._truth_text()}')
+        self.samples_publisher.publish(
+            self._layouts.message(samples_data(np.array([y]), u[None, :]), 1))
+        self.output_publisher.publish(Float64(data=float(y)))
+        self.sent += 1
+        if self.num_samples and self.sent >= self.num_samples:
+            counts = ', '.join(f'{k} {v}' for k, v in self.plant_counters.items())
+            self.get_logger().info(f'plant mode: {counts}')
+            self.finish()
 
 
 def main(argv: list[str] | None = None) -> int:
