@@ -180,3 +180,18 @@ def test_simulator_parameters_of_the_joints_scenario():
         check_simulator_parameters({'scenario': 'joints', 'num_joints': 1, 'joints': ['1']})
     with pytest.raises(ValueError, match=r"'frame_size' must be 1 with scenario joints"):
         check_simulator_parameters({'scenario': 'joints', 'frame_size': 10})
+
+
+def test_the_joints_config_builds_what_it_says():
+    from pathlib import Path
+
+    from bcid_ros.parameters import load_yaml_parameters
+
+    path = Path(__file__).resolve().parent.parent / 'config' / 'joints.yaml'
+    simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))
+    feeder = joint_feeder_from_parameters(
+        check_identifier_parameters(load_yaml_parameters(path)))
+    scenario = make_scenario('joints', num_joints=simulator['num_joints'])
+    assert feeder.joints == scenario.joint_names and len(feeder.joints) == 12
+    assert (feeder.demux.input_field, feeder.demux.output_field) == ('effort', 'velocity')
+    assert feeder.estimator.name == 'bcrls' and feeder.publish_period == 10
