@@ -261,7 +261,7 @@ class JointFeeder:
 
     # -------------------------------------------------------------- control
     def gap(self) -> None:
-        """Samples of every joint are missing here (e.g. messages lost): restart all regressors."""
+        """Restart every joint's regressor: samples of all joints are missing (messages lost)."""
         self.estimator.restart_regressor()
 
     def reset(self) -> JointFeedResult:

@@ -470,7 +470,7 @@ def joints_case(bench: JointsBench, joints: int, rate: float, seconds: float,
                            for joint in scenario.joint_names])
     delta_node = np.linalg.norm(node_theta - truth, axis=1) / scale
     delta_single = np.linalg.norm(offline.theta - truth, axis=1) / scale
-    within = bool(np.all(delta_node <= delta_single + 1e-9))
+    complete = bool(np.all(delta_node <= delta_single + 1e-9)) and len(estimates) == joints
     cores = cpu / elapsed
     loss = sent - received
     return [
@@ -482,9 +482,8 @@ def joints_case(bench: JointsBench, joints: int, rate: float, seconds: float,
                note=f'{cpu / max(received, 1) * 1e6:.0f} µs per message, '
                f'{cpu / max(received * joints, 1) * 1e6:.2f} µs per joint sample; start-up '
                f'(to the subscription) {startup:.1f} s'),
-        Result(SECTION, f'{label}: joints with δ within the single-plant δ', int(within and
-               len(estimates) == joints) * joints, f'of {joints}', f'all {joints}',
-               within and len(estimates) == joints,
+        Result(SECTION, f'{label}: joints with δ within the single-plant δ',
+               joints if complete else 0, f'of {joints}', f'all {joints}', complete,
                note=f'δ median {np.nanmedian(delta_node):.3g}, max {np.nanmax(delta_node):.3g} '
                f'after {samples:,} samples; largest |δ node − δ single| '
                f'{np.nanmax(np.abs(delta_node - delta_single)):.2g}; estimates of '

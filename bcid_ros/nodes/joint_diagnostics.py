@@ -17,7 +17,6 @@ from one period to the next and only rewrites their text.
 
 from __future__ import annotations
 
-import math
 from typing import Any, Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -48,7 +47,6 @@ class JointKey:
     DUPLICATE = 'listed twice in a message'
     UNEXCITED = COUNTERS['unexcited']
     WITHHELD = COUNTERS['nonfinite_estimates']
-    COVARIANCE_TRACE = Key.COVARIANCE_TRACE
     #: Node status: joints configured, joints valid, joint samples missing (all joints).
     JOINTS = 'joints'
     JOINTS_VALID = 'joints valid'
@@ -145,9 +143,10 @@ class JointStatuses:
     excitation or raised an estimator flag in the last period (each named in
     the message); OK "filling the regressor (k samples)" while not valid,
     else OK "ok". Values: ``valid``, ``samples used``, ``samples since
-    reset``, the per-joint counters of :class:`JointKey`, ``covariance
-    trace``, ``noise <name>`` (``n/a`` while not valid) and ``flag <name>``
-    for each flag the joint has raised.
+    reset`` and ``noise <name>`` (``n/a`` while not valid) always; the
+    per-joint counters of :class:`JointKey` and ``flag <name>`` only once
+    they are not zero. Every key-value pair costs about as much to publish
+    as a joint's estimate, so a joint without trouble has four.
 
     Parameters
     ----------
@@ -163,8 +162,6 @@ class JointStatuses:
         self._last = feeder.counters()
         self._last_flags = {key: counts.copy() for key, counts in feeder.estimator.flags.items()}
         self._keys = ([Key.VALID, JointKey.SAMPLES_USED, JointKey.SAMPLES_SINCE_RESET]
-                      + [key for _, key, _ in _JOINT_COUNTERS]
-                      + [JointKey.COVARIANCE_TRACE]
                       + [Key.NOISE + name for name in feeder.estimator.noise_names])
         self._statuses = [DiagnosticStatus(name=joint_status_name(node, joint), hardware_id=node)
                           for joint in feeder.joints]
@@ -181,29 +178,26 @@ class JointStatuses:
         new_flags = {key: counts != self._last_flags.get(key, 0) for key, counts in flags.items()}
         self._last_flags = {key: counts.copy() for key, counts in flags.items()}
         valid = feeder.valid
-        columns = [np.where(valid, 'true', 'false'), estimator.used.astype(str),
-                   estimator.samples.astype(str)]
-        columns += [counters[name].astype(str) for name, _, _ in _JOINT_COUNTERS]
-        trace = estimator.covariance_trace
-        columns.append([format_value(float(v)) if math.isfinite(v) else 'n/a' for v in trace])
+        columns = [np.where(valid, 'true', 'false').tolist(), estimator.used.astype(str).tolist(),
+                   estimator.samples.astype(str).tolist()]
         noise = estimator.noise
         for i in range(noise.shape[1]):
-            columns.append([format_value(float(v)) if ok and math.isfinite(v) else 'n/a'
-                            for v, ok in zip(noise[:, i], valid)])
-        rows = [list(row) for row in zip(*columns)]
-        flagged = np.zeros(len(valid), dtype=bool)
-        for counts in flags.values():
-            flagged |= counts > 0
+            shown = valid & np.isfinite(noise[:, i])
+            columns.append(np.where(shown, np.char.mod('%.6g', noise[:, i]), 'n/a').tolist())
+        rows = [list(zip(self._keys, row)) for row in zip(*columns)]
+        # the rare extras: counters and flags that are not zero
+        for k in np.flatnonzero(np.any([counts > 0 for counts in counters.values()]
+                                       + [counts > 0 for counts in flags.values()], axis=0)):
+            rows[k] += [(key, str(int(counters[name][k]))) for name, key, _ in _JOINT_COUNTERS
+                        if counters[name][k]]
+            rows[k] += [(Key.FLAG + key, str(int(counts[k])))
+                        for key, counts in sorted(flags.items()) if counts[k]]
         troubled = np.zeros(len(valid), dtype=bool)
         for changed in list(new.values()) + list(new_flags.values()):
             troubled |= changed
         samples = estimator.samples
         result = []
-        for k, values in enumerate(rows):
-            pairs = list(zip(self._keys, values))
-            if flagged[k]:
-                pairs += [(Key.FLAG + key, str(int(counts[k])))
-                          for key, counts in sorted(flags.items()) if counts[k]]
+        for k, pairs in enumerate(rows):
             level, message = OK, 'ok'
             if troubled[k]:
                 level, message = self._problem(k, new, new_flags)
