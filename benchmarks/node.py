@@ -502,6 +502,33 @@ def joints_baseline_rss(bench: JointsBench, directory: Path) -> float:
         stop(node)
 
 
+def joints_diagnostics_cost(count: int, repeats: int = 10) -> Result:
+    """Time one 1 Hz /diagnostics message of ``count`` joints: compose and serialise."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.serialization import serialize_message
+
+    from bcid_ros.estimators.batched import make_batched_estimator
+    from bcid_ros.joint_feeder import JointFeeder
+    from bcid_ros.nodes.joint_diagnostics import JointStatuses
+    from bcid_ros.simulation import make_scenario
+
+    scenario = make_scenario('joints', num_joints=count, seed=11)
+    messages, _, _ = joint_state_messages(scenario, 50, 12)
+    feeder = JointFeeder(scenario.joint_names, make_batched_estimator('bcrls', count, order=2))
+    for message in messages:
+        feeder.take(message)
+    statuses = JointStatuses('bcid_identifier', feeder)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        serialize_message(DiagnosticArray(status=[DiagnosticStatus(), *statuses.messages()]))
+        times.append(time.perf_counter() - start)
+    best = min(times)
+    return Result(SECTION, f'{count:,} joints: one /diagnostics message (statuses composed '
+                  'and serialised)', best * 1e3, 'ms',
+                  note=f'{best * 100:.1f} % of a core at 1 Hz; best of {repeats}')
+
+
 def joints(quick: bool = False) -> list[Result]:
     """Measure the joint_state cases: loss, node CPU, δ per joint, memory per joint."""
     import tempfile
@@ -523,6 +550,7 @@ def joints(quick: bool = False) -> list[Result]:
                     'with one joint, divided by the joints added'))
     finally:
         bench.close()
+    results.append(joints_diagnostics_cost(JOINT_CASES[-1][0]))
     return results
 
 
