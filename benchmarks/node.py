@@ -411,8 +411,8 @@ def joints_identifier(joints: list[str], directory: Path) -> subprocess.Popen:
     return start([binary, '--ros-args', '--params-file', str(path)])
 
 
-def joint_state_messages(scenario, samples: int, seed: int) -> tuple[list, np.ndarray,
-                                                                      np.ndarray]:
+def joint_state_messages(scenario, samples: int,
+                         seed: int) -> tuple[list, np.ndarray, np.ndarray]:
     """Return one JointState per sample of the joints scenario, and its (y, u)."""
     from sensor_msgs.msg import JointState
 

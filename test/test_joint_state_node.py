@@ -296,3 +296,28 @@ def test_simulator_joints_feed_the_identifier(executor, ros_context):
         # <= 0.2 leave delta of a few per cent; a wrong field or joint gives about 1
         delta = np.linalg.norm(batched.theta[k] - truths[joint]) / np.linalg.norm(truths[joint])
         assert delta < 0.2, (joint, delta)
+
+
+def test_live_parameters_and_reset_apply_to_every_joint(executor, ros_context):
+    from std_srvs.srv import Trigger
+
+    node = identifier(executor, ros_context, publish_period=5)
+    messages, _, _ = joint_messages(40, seed=7)
+    for message in messages[:20]:
+        node.joint_state.on_joint_state(message, {})  # the callback, without transport
+    assert node.feeder.valid.all()
+    results = node.set_parameters([Parameter('publish_period', value=3),
+                                   Parameter('forgetting_factor', value=0.99)])
+    assert all(result.successful for result in results)
+    assert node.feeder.publish_period == 3
+    assert node.feeder.estimator.forgetting_factor == 0.99
+    refused = node.set_parameters([Parameter('forgetting_factor', value=1.5)])[0]
+    assert not refused.successful and node.feeder.estimator.forgetting_factor == 0.99
+    published = node.joint_state.estimates_published
+    for message in messages[20:23]:
+        node.joint_state.on_joint_state(message, {})
+    assert node.joint_state.estimates_published == published + len(JOINTS)
+    response = node.joint_state.on_reset(Trigger.Request(), Trigger.Response())
+    assert response.success and 'estimators of 5 joints reset' in response.message
+    assert not node.feeder.valid.any()
+    assert node.feeder.estimator.samples.sum() == 0
