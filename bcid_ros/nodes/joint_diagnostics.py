@@ -11,20 +11,21 @@ statuses; :class:`JointDiagnosticsUpdater` publishes all of them in one
 
 At a thousand joints the 1 Hz statuses are thousands of key-value pairs, so
 :class:`JointStatuses` computes every figure for all joints at once with
-numpy, keeps each joint's ``DiagnosticStatus`` and ``KeyValue`` messages
-from one period to the next and only rewrites their text.
+numpy, gives a joint without trouble four values, and the statuses are
+serialised straight to CDR (:mod:`bcid_ros.nodes.diagnostics_cdr`) instead
+of going through rclpy's message objects.
 """
 
 from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.node import Node
 
 from bcid_ros.nodes.diagnostics import (DiagnosticsUpdater, ERROR, format_value, OK, Status,
                                         Task, WARN)
+from bcid_ros.nodes.diagnostics_cdr import DiagnosticArrayEncoder, StatusTuple
 from bcid_ros.nodes.interface import COUNTERS, DiagnosticKey as Key
 
 #: Joints named in a summary message before "and N more".
@@ -163,9 +164,8 @@ class JointStatuses:
         self._last_flags = {key: counts.copy() for key, counts in feeder.estimator.flags.items()}
         self._keys = ([Key.VALID, JointKey.SAMPLES_USED, JointKey.SAMPLES_SINCE_RESET]
                       + [Key.NOISE + name for name in feeder.estimator.noise_names])
-        self._statuses = [DiagnosticStatus(name=joint_status_name(node, joint), hardware_id=node)
-                          for joint in feeder.joints]
-        self._values = [[KeyValue(key=key) for key in self._keys] for _ in feeder.joints]
+        self._node = node
+        self._names = [joint_status_name(node, joint) for joint in feeder.joints]
 
     def compose(self) -> list[tuple[int, str, list[tuple[str, str]]]]:
         """Return ``(level, message, [(key, text), ...])`` of every joint, for this period."""
@@ -217,18 +217,10 @@ class JointStatuses:
             return OK, 'ok'
         return WARN, 'in the last period: ' + ', '.join(problems)
 
-    def messages(self) -> list[DiagnosticStatus]:
-        """Return every joint's status message for this period (reused between periods)."""
-        fixed = len(self._keys)
-        for status, values, (level, message, pairs) in zip(self._statuses, self._values,
-                                                           self.compose()):
-            status.level = bytes([level])
-            status.message = message
-            for pair, (_, text) in zip(values, pairs):
-                pair.value = text
-            extra = [KeyValue(key=key, value=text) for key, text in pairs[fixed:]]
-            status.values = values + extra if extra else values
-        return self._statuses
+    def statuses(self) -> list[StatusTuple]:
+        """Return every joint's ``(level, name, message, hardware_id, values)`` for this period."""
+        return [(level, name, message, self._node, pairs)
+                for name, (level, message, pairs) in zip(self._names, self.compose())]
 
 
 class JointDiagnosticsUpdater(DiagnosticsUpdater):
@@ -236,25 +228,24 @@ class JointDiagnosticsUpdater(DiagnosticsUpdater):
     A :class:`~bcid_ros.nodes.diagnostics.DiagnosticsUpdater` that adds one status per joint.
 
     The node's status (composed of ``tasks``) comes first, then the joints'
-    statuses, all in one ``DiagnosticArray``.
+    statuses, all in one ``DiagnosticArray`` serialised by
+    :class:`~bcid_ros.nodes.diagnostics_cdr.DiagnosticArrayEncoder`.
     """
 
     def __init__(self, node: Node, name: str, tasks: Sequence[Task],
                  joints: JointStatuses, *, period: float = 1.0,
                  hardware_id: str = '') -> None:
         self.joints = joints
+        self._encoder = DiagnosticArrayEncoder()
         super().__init__(node, name, tasks, period=period, hardware_id=hardware_id)
 
     def publish(self) -> None:
-        """Compose the node's and the joints' statuses now and publish them."""
+        """Compose the node's and the joints' statuses now and publish them, serialised."""
         status = self.status()
-        message = DiagnosticStatus(level=bytes([status.level]), name=self.name,
-                                   message=status.message, hardware_id=self._hardware_id,
-                                   values=[KeyValue(key=key, value=format_value(value))
-                                           for key, value in status.values])
-        array = DiagnosticArray(status=[message, *self.joints.messages()])
-        array.header.stamp = self._node.get_clock().now().to_msg()
-        self.publisher.publish(array)
+        own = (status.level, self.name, status.message, self._hardware_id,
+               [(key, format_value(value)) for key, value in status.values])
+        stamp = self._node.get_clock().now().seconds_nanoseconds()
+        self.publisher.publish(self._encoder.encode(stamp, [own, *self.joints.statuses()]))
 
 
 __all__ = ['JointDiagnosticsUpdater', 'JointKey', 'JointStatuses', 'JointsTask',
