@@ -146,8 +146,7 @@ class JointStatuses:
     else OK "ok". Values: ``valid``, ``samples used``, ``samples since
     reset`` and ``noise <name>`` (``n/a`` while not valid) always; the
     per-joint counters of :class:`JointKey` and ``flag <name>`` only once
-    they are not zero. Every key-value pair costs about as much to publish
-    as a joint's estimate, so a joint without trouble has four.
+    they are not zero, so that a joint without trouble costs four pairs.
 
     Parameters
     ----------
