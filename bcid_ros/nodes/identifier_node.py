@@ -30,6 +30,7 @@ from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_ch
                                    SAMPLES_QOS, Throttle, usage)
 from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, EstimatorTask,
                                         SampleRateTask)
+from bcid_ros.nodes.joint_identifier import JointStateIdentifier
 from bcid_ros.nodes.messages import as_doubles, estimate_message, topic_class, valid_message
 from bcid_ros.nodes.pairing import GAP, Paired, Pairing, SequenceTracker
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
@@ -64,6 +65,9 @@ class IdentifierNode(Node):
         for name in unused_options(settings):
             self.get_logger().warning(f'parameter {name!r} does not apply to estimator '
                                       f'{settings["estimator"]!r}; ignored')
+        if settings['input_mode'] == 'joint_state':
+            self._start_joint_state(settings, specs)
+            return
         self.estimator = estimator_from_parameters(settings)  # as bcid replay builds it
         self.feeder = SampleFeeder(self.estimator, settings['excitation_window'],
                                    settings['publish_period'])
@@ -103,6 +107,24 @@ class IdentifierNode(Node):
             f'feedthrough={settings["feedthrough"]}; input_mode {settings["input_mode"]}'
             + (f' (sync {settings["sync"]})' if settings['input_mode'] == 'separate' else '')
             + f'; parameters {names_label(names)}')
+
+    def _start_joint_state(self, settings: dict[str, Any], specs: dict[str, Any]) -> None:
+        """Set up ``input_mode: joint_state``: one estimator per joint, all batched."""
+        self.joint_state = JointStateIdentifier(self, settings)
+        self.feeder = self.joint_state.feeder
+        self.estimator = self.feeder.estimator
+        self.counters = self.joint_state.counters
+        self._table_check = make_parameter_check(specs)
+        self.add_on_set_parameters_callback(self.check_parameters)
+        self.add_post_set_parameters_callback(self.on_parameters_set)
+        joints = self.feeder.joints
+        shown = ', '.join(joints[:5]) + (f' and {len(joints) - 5} more' if len(joints) > 5 else '')
+        self.get_logger().info(
+            f'{settings["estimator"]} with n={settings["order"]}, '
+            f'feedthrough={settings["feedthrough"]} for each of {len(joints)} joints ({shown}); '
+            f'input_mode joint_state, u = {settings["input_field"]}, '
+            f'y = {settings["output_field"]}; parameters '
+            f'{names_label(self.estimator.parameter_names)}')
 
     def _subscribe(self, settings: dict[str, Any]) -> None:
         if settings['input_mode'] == 'combined':

@@ -24,12 +24,15 @@ from typing import Any
 import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
 
+from bcid_ros.joint_feeder import JOINT_STATES, joint_topic
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, run_node, SAMPLES_QOS,
                                    Throttle, usage)
-from bcid_ros.nodes.messages import estimate_message, SamplesLayouts, topic_class
+from bcid_ros.nodes.joint_identifier import QUIET_PUBLISHER
+from bcid_ros.nodes.messages import as_doubles, estimate_message, SamplesLayouts, topic_class
 from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
                                  OPERATING_POINT_SETTINGS, SIMULATOR_PARAMETERS)
 from bcid_ros.samples import samples_data
@@ -83,11 +86,17 @@ class SimulatorNode(Node):
         if settings['scenario'] == 'custom':
             self.scenario = make_scenario(
                 'custom', **{k: settings[k] for k in CUSTOM_SETTINGS + OPERATING_POINT_SETTINGS})
+        elif settings['scenario'] == 'joints':
+            self.scenario = make_scenario('joints', num_joints=settings['num_joints'],
+                                          seed=settings['seed'])
         else:
             self.scenario = make_scenario(settings['scenario'])
         self.num_inputs = self.scenario.num_inputs
         mode = settings['output_mode']
-        if mode != 'combined':
+        self.joint_state_publisher = None
+        if settings['scenario'] == 'joints':
+            mode = 'joint_state'
+        elif mode != 'combined':
             interface.check_input_width(settings['input_type'], self.num_inputs)
         self.rate = settings['rate_hz']
         self.frame_size = settings['frame_size']
@@ -112,6 +121,8 @@ class SimulatorNode(Node):
         self.samples_publisher = None
         self.input_publisher = None
         self.output_publisher = None
+        if mode == 'joint_state':
+            self._start_joints(settings)
         if mode in ('combined', 'both'):
             self.samples_publisher = self.create_publisher(
                 Float64MultiArray, interface.SAMPLES, SAMPLES_QOS)
@@ -131,9 +142,38 @@ class SimulatorNode(Node):
         self.timer = self.create_timer(min(max(frame_period, MIN_TICK), MAX_TICK), self.tick)
         total = 'forever' if not self.num_samples else f'{self.num_samples} samples'
         true = ', '.join(f'{n}={v:.6g}' for n, v in zip(truth.parameter_names, truth.parameters))
+        if mode == 'joint_state':
+            true = f'of {len(self.joint_names)} joints on ~/<joint>/true_parameters'
         self.get_logger().info(
             f'scenario {settings["scenario"]}, seed {settings["seed"]}: {total} at '
             f'{self.rate:g} Hz, {self.frame_size} per message, output_mode {mode}; true {true}')
+
+    def _start_joints(self, settings: dict[str, Any]) -> None:
+        """Scenario joints: one JointState per sample; each joint's truth on its own topics."""
+        self.joint_names = list(settings['joints'] or self.scenario.joint_names)
+        self._joint_truth_publishers = []
+        for joint, truth in zip(self.joint_names, self.scenario.joint_truths().values()):
+            for topic, names, values in (
+                    (interface.TRUE_PARAMETERS, truth.parameter_names, truth.parameters),
+                    (interface.TRUE_NOISE_VARIANCE, truth.noise_names, truth.noise)):
+                publisher = self.create_publisher(Float64MultiArray, joint_topic(joint, topic),
+                                                  LATCHED_QOS, event_callbacks=QUIET_PUBLISHER)
+                publisher.publish(estimate_message(names, values))
+                self._joint_truth_publishers.append(publisher)
+        self.joint_state_publisher = self.create_publisher(JointState, JOINT_STATES,
+                                                           SAMPLES_QOS)
+        self._joint_state = JointState(name=self.joint_names)
+
+    def _publish_joint_states(self, y: np.ndarray, u: np.ndarray, first_index: int) -> None:
+        """Publish one JointState per sample: y as velocity, u as effort, position empty."""
+        message = self._joint_state
+        period_ns = 1e9 / self.rate
+        for row in range(y.shape[0]):
+            stamp = self._stamp0_ns + int(round((first_index + row) * period_ns))
+            message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 10 ** 9)
+            message.velocity = as_doubles(y[row])
+            message.effort = as_doubles(u[row])
+            self.joint_state_publisher.publish(message)
 
     # ------------------------------------------------------------- pacing
     def _ready(self) -> bool:
@@ -141,7 +181,8 @@ class SimulatorNode(Node):
             return False
         wanted = self.settings['wait_for_subscribers']
         if wanted:
-            publisher = self.samples_publisher or self.output_publisher
+            publisher = (self.samples_publisher or self.output_publisher
+                         or self.joint_state_publisher)
             if publisher.get_subscription_count() < wanted:
                 return False
         return True
@@ -173,7 +214,8 @@ class SimulatorNode(Node):
 
     def finish(self) -> None:
         """Wait until the subscribers have the last messages, then mark the node done."""
-        for publisher in (self.samples_publisher, self.input_publisher, self.output_publisher):
+        for publisher in (self.samples_publisher, self.input_publisher, self.output_publisher,
+                          self.joint_state_publisher):
             if publisher is not None:
                 publisher.wait_for_all_acked(Duration(seconds=FLUSH_TIMEOUT))
         self.get_logger().info(f'published all {self.sent} samples')
@@ -181,6 +223,8 @@ class SimulatorNode(Node):
 
     # ---------------------------------------------------------- messages
     def _publish(self, y: np.ndarray, u: np.ndarray, first_index: int) -> None:
+        if self.joint_state_publisher is not None:
+            self._publish_joint_states(y, u, first_index)
         if self.samples_publisher is not None:
             self.samples_publisher.publish(
                 self._layouts.message(samples_data(y, u), y.shape[0]))
