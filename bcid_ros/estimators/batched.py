@@ -325,7 +325,7 @@ class BatchedRls:
 
     @property
     def validity_reasons(self) -> tuple[tuple[str, ...], ...]:
-        """Return each plant's reasons not to trust its estimate (see :meth:`plant_validity_reasons`)."""
+        """Return the reasons not to trust each plant's estimate, one tuple per plant."""
         return tuple(self._reasons.get(plant, ()) for plant in range(self.num_plants))
 
     def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
@@ -704,7 +704,7 @@ class BatchedRls:
         return bool(pivots.min() > 1e-13 * scaled.diagonal().max())
 
     def _plant_gate(self, plant: int, z2: float) -> bool:
-        """Return whether plant k uses a sample with squared normalised error ``z2`` (base._gate)."""
+        """Return whether plant k uses a sample of squared normalised error ``z2`` (_gate)."""
         score = float(self._change_score[plant])
         if z2 <= self._gate_limit2:
             if score:
