@@ -330,7 +330,7 @@ class BatchedRls:
 
     def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
         """Return why plant k's estimate is not trustworthy now (empty when it is)."""
-        return self._reasons.get(int(self._indices(plant)), ())
+        return self._reasons.get(range(self.num_plants)[plant], ())
 
     @property
     def samples(self) -> np.ndarray:
@@ -392,6 +392,7 @@ class BatchedRls:
         :meth:`~bcid_ros.estimators.base.RecursiveEstimator.set_state` of a
         single-plant estimator of the same configuration accepts it.
         """
+        plant = range(self.num_plants)[plant]
         arrays, scalars = self._plant_items(plant)
         rows = self.order + 1
         pushes = self._calls - int(self._cleared_at[plant])
@@ -422,6 +423,7 @@ class BatchedRls:
         """
         if state.estimator != self.name:
             raise ValueError(f'state is from estimator {state.estimator!r}, not {self.name!r}')
+        plant = range(self.num_plants)[plant]
         arrays, _ = self._plant_items(plant)
         arrays['history'] = self._history[plant]
         for key, value in arrays.items():
@@ -759,7 +761,7 @@ class BatchedRls:
         new = (scales == 0.0) & (peaks > 0.0)
         if new.any():
             chosen = _powers_of_two_at_least(peaks)
-            with np.errstate(over='ignore'):
+            with np.errstate(all='ignore'):
                 factor = np.where(new, 1.0 / (chosen * chosen), 1.0)
             # exact: the components of a new channel were zero in every update so far,
             # so their rows and columns of P are still p0 (times 1 / lambda^k) on the diagonal
