@@ -281,6 +281,8 @@ def test_bad_shapes_and_names_are_refused_and_change_nothing():
         BatchedRls(0, order=2)
     with pytest.raises(ValueError, match='forgetting_factor must be in'):
         BatchedBcrls(2, order=2, forgetting_factor=1.5)
+    with pytest.raises(ValueError, match=r'outlier_threshold must be in \[0, 1e\+06\], got -1'):
+        BatchedRls(2, order=2, outlier_threshold=-1.0)
     with pytest.raises(ValueError, match="one of rls, bcrls for many plants; got 'bciv'"):
         make_batched_estimator('bciv', 2, order=2)
     with pytest.raises(ValueError, match="state is from estimator 'rls', not 'bcrls'"):
