@@ -15,8 +15,12 @@ single-plant sample policy of the identifier (``SampleFeeder``) applied per
 plant: a plant whose sample is missing or not finite restarts its own
 regressor and is counted, and the other plants are not touched. Each plant's
 estimate therefore equals that of a single-plant estimator fed the same
-samples, to 1e-12, and bit for bit: the dot products go to the same BLAS
-kernels as the single plant's, on rows laid out the same way.
+samples, to 1e-12. The dot products go to the same BLAS kernels as the
+single plant's, on rows laid out the same way, so the LS part agrees bit for
+bit. BCRLS's compensation (46) is one BLAS gemv with beta = 1 in the single
+plant, whose kernel rounds the final sum its own way when p is not a multiple
+of 4 (measured here): last-bit differences there, which the contraction of
+(46) keeps from growing.
 
 Every step computes the a-priori quantities of all plants ``rows`` whose
 regressor is filled, in one pass. The plants whose step is ordinary (a
