@@ -402,3 +402,21 @@ def test_an_over_specified_order_is_not_valid_on_those_plants_only():
         assert any(reason.startswith('ill-conditioned compensation')
                    for reason in batched.plant_validity_reasons(k))
     assert batched.validity_reasons[:3] == ((), (), ())
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_a_signal_far_above_its_first_samples_rescales_that_plant_only(name):
+    y, u = plant_data(1500, 20)
+    y[:3, 1] *= 1e-6  # plant 1's first samples set scales a million times too small
+    u[:3, 1] *= 1e-6
+    present = np.ones(y.shape, dtype=bool)
+    batched = run_batched(name, y, u, present, order=2)
+    assert_plants_equal(batched, single_runs(name, y, u, present, order=2))
+    # three undone steps in a row (the third one counts as the rescale)
+    assert batched.plant_flags(1) == {'update_undone': 2, 'rescaled': 1}
+    assert all('rescaled' not in batched.plant_flags(k) for k in (0, 2, 3, 4))
+    # the new scales are of the level of plant 1's ordinary samples (powers of two of
+    # stationary data: within 4x of the scales a run without the first samples takes)
+    reference = run_batched(name, y[3:], u[3:], present[3:], order=2)
+    ratio = batched.signal_scale[1] / reference.signal_scale[1]
+    assert ((ratio >= 0.25) & (ratio <= 4.0)).all()
