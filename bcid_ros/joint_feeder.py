@@ -12,7 +12,7 @@ which joints' estimates are due for publication and whose validity changed.
 The policy is the single-plant one, per joint: a joint whose sample is
 missing or not finite is counted and restarts its own regressor, and the
 other joints are not touched; each joint publishes every ``publish_period``
-of its own used samples once its estimate is valid, never a non-finite one.
+of its own used samples once its estimator is ready, never a non-finite one.
 The identifier node only turns the result into ROS messages.
 """
 
@@ -99,7 +99,7 @@ class JointFeedResult:
     valid_changed : numpy.ndarray of int
         Joints whose validity changed with this message.
     due : numpy.ndarray of int
-        Joints whose estimates are due for publication (valid and finite).
+        Joints whose estimates are due for publication (ready and finite).
     theta, noise : numpy.ndarray
         Their estimates, shapes ``(len(due), p)`` and ``(len(due), m)``.
     withheld : numpy.ndarray of int
@@ -244,7 +244,8 @@ class JointFeeder:
 
     def _add_estimates(self, result: JointFeedResult) -> None:
         """Put the due estimates into ``result`` and restart those joints' counts."""
-        due = (self.since_publish >= self.publish_period) & self._valid
+        # Published once ready, as the single-plant node does; ~/valid says whether to trust it.
+        due = (self.since_publish >= self.publish_period) & self.estimator.ready
         if not due.any():
             return
         rows = np.flatnonzero(due)

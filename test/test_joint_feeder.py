@@ -119,9 +119,11 @@ def message_samples(message, joints):
 def test_validity_changes_and_reset():
     feeder = JointFeeder(['a', 'b'], make_batched_estimator('rls', 2, order=1))
     changed = []
+    # a: y_t = 0.5 y_t-1 + u_t-1 exactly, a stable model (a ramp would fit a pole at 3: not valid)
+    y_a = [0.0, 1.0, -0.5, 0.75, -0.625, 0.6875]
     for t in range(6):
         names = ['a', 'b'] if t < 2 else ['a']
-        result = feeder.take(joint_state(names, [0.1 * t, 0.2 * t][:len(names)],
+        result = feeder.take(joint_state(names, [y_a[t], 0.2 * t][:len(names)],
                                          [(-1.0) ** t, 1.0 + t][:len(names)]))
         changed.append(result.valid_changed.tolist())
     # n = 1: p = 2 updates after the regressor is filled; b never gets its second update
