@@ -233,6 +233,12 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'changed while running.', low=1, high=1000000, read_only=False),
     _p('excitation_window', 'integer', 200, 'Warn (and count) when the input has not changed '
        'for this many samples (no excitation); 0 turns the check off.', low=0, high=1e9),
+    # --- keeping the state across restarts
+    _p('state_file', 'string', '', 'File that keeps the estimator state across restarts: '
+       'saved atomically every state_save_period and at shutdown, restored at start-up if it '
+       'matches the configuration. Empty: off.'),
+    _p('state_save_period', 'double', 10.0, 'Seconds between saves of state_file.',
+       low=0.0, high=86400.0, low_open=True),
 )
 
 #: The simulator node's parameters (docs/nodes.md), in declaration order.
