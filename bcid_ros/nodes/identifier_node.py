@@ -272,7 +272,6 @@ class IdentifierNode(Node):
         except persistence.StateRefused as error:
             self.get_logger().warning(f'{error}; starting fresh')
             return False
-        self._state_saved = self._state_signature()
         self.get_logger().info(
             f'state restored from {self._state_path}: {self.feeder.used} samples used, '
             f'{self.estimator.samples} since reset, valid {self.estimator.valid}')
@@ -306,6 +305,8 @@ class IdentifierNode(Node):
         """Publish a restored estimate at once (latched) and save every period."""
         if not self._state_path:
             return
+        if restored:
+            self._state_saved = self._state_signature()  # the file holds it already
         if restored and self.estimator.ready:
             theta, uncompensated = self.estimator.theta, self.estimator.theta_uncompensated
             if np.isfinite(theta).all() and np.isfinite(uncompensated).all():
@@ -324,30 +325,40 @@ class IdentifierNode(Node):
         A failure is logged once (and the recovery once); the node keeps
         running and tries again at the next period.
         """
+        error = self._write_state()
+        if error is None and self._state_failing:
+            self.get_logger().info(f'state file {self._state_path} written again')
+        elif error is not None and not self._state_failing:
+            self.get_logger().error(error)
+        self._state_failing = error is not None
+        return error is None
+
+    def _write_state(self) -> str | None:
+        """Write ``state_file``; return None, or the line that says why it failed."""
         signature = self._state_signature()
         try:
             persistence.save_state(self._state_path, self._state_fingerprint,
                                    self._state_sections())
         except (OSError, TypeError, ValueError) as error:
-            if not self._state_failing:
-                self.get_logger().error(
-                    f'cannot write state file {self._state_path}: {error}; the node keeps '
+            return (f'cannot write state file {self._state_path}: {error}; the node keeps '
                     f'running and tries again every {self.settings["state_save_period"]:g} s')
-            self._state_failing = True
-            return False
-        if self._state_failing:
-            self.get_logger().info(f'state file {self._state_path} written again')
-        self._state_failing = False
         self._state_saved = signature
-        return True
+        return None
 
     def destroy_node(self) -> None:
         """Save the state (with ``state_file`` set) before the node goes: nothing is lost."""
-        if getattr(self, '_state_path', ''):
-            if self.save_state():
-                self.get_logger().info(f'state saved to {self._state_path} at shutdown '
-                                       f'({self.feeder.used} samples used)')
+        if not getattr(self, '_state_path', ''):
+            super().destroy_node()
+            return
+        error = self._write_state()
+        # logged after the node is gone, when its /rosout publisher (whose context a
+        # signal has already shut down) no longer takes the line
         super().destroy_node()
+        if error is None:
+            self.get_logger().info(f'state saved to {self._state_path} at shutdown '
+                                   f'({self.feeder.used} samples used)')
+        elif not self._state_failing:
+            self.get_logger().error(error)
 
 
 def main(argv: list[str] | None = None) -> int:
