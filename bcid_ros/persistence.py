@@ -191,8 +191,9 @@ def load_state(path: str | os.PathLike, fingerprint: dict[str, Any]) -> dict[str
     Raises
     ------
     StateRefused
-        If the file is not a state file, is truncated or damaged, is of a
-        newer format version, or comes from another configuration. The
+        If the file cannot be read, is not a state file, is truncated or
+        damaged, is of a newer format version, or comes from another
+        configuration. The
         message is one line that says which and names the file.
 
     """
@@ -209,6 +210,8 @@ def load_state(path: str | os.PathLike, fingerprint: dict[str, Any]) -> dict[str
                 sections[section] = (arrays, dict(content['scalars']))
     except StateRefused as error:
         raise StateRefused(f'state file {path} {error}') from None
+    except OSError as error:  # a directory, no permission, an I/O error
+        raise StateRefused(f'state file {path} cannot be read ({error})') from None
     except Exception as error:  # zip, npy, JSON and key errors: a damaged file
         raise StateRefused(f'state file {path} is truncated or damaged '
                            f'({type(error).__name__}: {error})') from None

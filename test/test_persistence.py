@@ -207,8 +207,10 @@ def test_other_files_and_pickles_are_refused(tmp_path, saved):
         persistence.load_state(pickled, fingerprint)
 
 
-def test_missing_file_is_a_first_start(tmp_path):
+def test_missing_file_is_a_first_start_and_an_unreadable_one_is_refused(tmp_path):
     assert persistence.load_state(tmp_path / 'none.npz', {}) is None
+    with pytest.raises(persistence.StateRefused, match='cannot be read'):
+        persistence.load_state(tmp_path, {})   # a directory
 
 
 def test_failed_save_keeps_the_old_file_and_leaves_no_temporary(saved, monkeypatch):

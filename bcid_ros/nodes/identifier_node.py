@@ -252,7 +252,6 @@ class IdentifierNode(Node):
         self.get_logger().info(response.message)
         return response
 
-
     # ---------------------------------------------------------- state file
     def _restore_state(self, settings: dict[str, Any]) -> bool:
         """Restore the estimator and feeder from ``state_file`` if it fits; log one line."""
