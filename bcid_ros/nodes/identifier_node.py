@@ -8,7 +8,9 @@ adapter between rclpy and four ROS-free parts: the message table of
 :class:`bcid_ros.samples.SampleFeeder` feeds the samples with the same rule
 as the offline replay (so the node gives the same estimates as
 ``bcid replay`` on the same samples), and the tasks of
-:mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``.
+:mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``. With
+``state_file`` set, :mod:`bcid_ros.persistence` keeps the state across
+restarts.
 
 Run it as ``identifier_node --ros-args --params-file config/ding_miso.yaml``.
 """
