@@ -78,13 +78,13 @@ class Harness:
     def _on_valid(self, message):
         self.valid = message.data
 
-    def start(self, name, state_file, period=30.0, *extra):
+    def start(self, name, state_file, period=30.0):
         """Start an identifier_node process; wait until it subscribes to the samples."""
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain),
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
         log = open(self.tmp_path / f'{name}.log', 'w')
         args = ['--ros-args', '--params-file', str(CONFIG), '-p', f'state_file:={state_file}',
-                '-p', f'state_save_period:={period}'] + [a for p in extra for a in ('-p', p)]
+                '-p', f'state_save_period:={period}']
         process = subprocess.Popen(
             [sys.executable, '-m', 'bcid_ros.nodes.identifier_node'] + args,
             stdout=log, stderr=subprocess.STDOUT, env=env)
