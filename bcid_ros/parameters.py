@@ -200,8 +200,9 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f(q): one pole '
        '[p] for (q - p)^n, or its n + 1 coefficients in descending powers of q. Unset: the '
        'estimator default.'),
-    _p('window', 'integer', None, 'cl_bcls: samples in the compensation and redesign window. '
-       'Unset: the estimator default.', low=0, high=1e9),
+    _p('window', 'integer', None, 'cl_bcls: 0 (the estimator default) compensates over every '
+       'sample since the last controller change (recursive moments); > 0 over the last window '
+       'samples, for slowly varying plants. Unset: the estimator default.', low=0, high=1e9),
     _p('redesign_period', 'integer', None, 'cl_bcls: samples between compensations and '
        'prefilter redesigns. Unset: the estimator default.', low=1, high=1e9),
     _p('max_iterations', 'integer', None, 'cl_bcls: most prefilter redesign iterations per '

@@ -116,6 +116,8 @@ def test_cl_bcls_set_controller_contract():
     with pytest.raises(ValueError, match='controller_numerator'):
         estimator.set_controller([1.0, 2.0, 3.0], [1.0, -0.5])
     assert estimator.samples == 100  # unchanged by a refused controller
-    estimator.set_controller([0.16], [1.0, -0.2])
+    assert estimator.set_controller([0.16], [1.0, -0.2])
     np.testing.assert_allclose(estimator.controller.denominator, [1.0, -0.2])
-    assert estimator.samples == 0 and not estimator.valid
+    # the compensation restarts: nothing from before the change is compensated any more
+    assert not estimator.ready and not estimator.valid and estimator.controller_changes == 1
+    assert not estimator.set_controller([0.16], [1.0, -0.2])  # an identical republish

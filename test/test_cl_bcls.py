@@ -40,7 +40,7 @@ def make(**settings):
 @pytest.mark.parametrize('setting, value, message', [
     ('num_inputs', 2, r'num_inputs must be 1 for cl_bcls \(a SISO loop\), got 2'),
     ('feedthrough', True, r'feedthrough must be False for cl_bcls .*got True'),
-    ('forgetting_factor', 0.99, r'forgetting_factor must be 1 for cl_bcls .*got 0.99'),
+    ('forgetting_factor', 1.5, r'forgetting_factor must be in \(0, 1\], got 1.5'),
     ('forgetting_factor', 1.5, r'forgetting_factor must be in \(0, 1\], got 1.5'),
     ('order', 0, r'order must be an integer >= 1, got 0'),
     ('controller_sign', 'neg',
@@ -57,7 +57,9 @@ def make(**settings):
      r'prefilter_initial must have all roots of f\(q\) strictly inside the unit circle'),
     ('prefilter_initial', [1.0, 0.1, 0.2],
      r'prefilter_initial must be a pole \(one float\) or the n \+ 1 = 2 coefficients'),
-    ('window', 5, r'window must be an integer >= 21, got 5'),
+    ('window', 5, r'window must be 0 \(all data since the controller change\) or an integer '
+     r'>= 21, got 5'),
+    ('window', -1, r'window must be an integer >= 0, got -1'),
     ('redesign_period', 0, r'redesign_period must be an integer >= 1, got 0'),
     ('max_iterations', 0, r'max_iterations must be an integer >= 1, got 0'),
     ('tolerance', 0.0, r'tolerance must be in \(0, inf\], got 0.0'),
@@ -67,12 +69,19 @@ def test_constructor_validation_names_the_setting(setting, value, message):
         make(**{setting: value})
 
 
-def test_forgetting_factor_cannot_be_changed_while_running():
-    est = make()
+def test_forgetting_factor_must_be_1_with_a_window():
+    with pytest.raises(ValueError, match=r'forgetting_factor must be 1 for cl_bcls with a '
+                                         r'window .*got 0.99'):
+        make(window=4096, forgetting_factor=0.99)
+    est = make(window=4096)
     with pytest.raises(ValueError, match='forgetting_factor must be 1 for cl_bcls'):
         est.forgetting_factor = 0.95
     est.forgetting_factor = 1.0
     assert est.forgetting_factor == 1.0
+    # all data since the change: the moments are weighted by the forgetting factor
+    est = make(forgetting_factor=0.999)
+    est.forgetting_factor = 0.99
+    assert est.forgetting_factor == 0.99
 
 
 def test_registry_options_and_names():
@@ -311,9 +320,9 @@ def test_the_window_grows_up_to_its_cap_and_restart_empties_it():
     assert est.window_length == 200
 
 
-def test_default_settings_reach_the_truth_on_the_paper_loop():
+def test_window_settings_reach_the_truth_on_the_paper_loop():
     y, u = PAPER.simulate(6000, 21)
-    est = make()
+    est = make(window=4096)
     trajectory = est.run(y, u)
     # the first redesign waits for first_window = 2048 samples, then one every 1000; the
     # first one (from f = q) may use all 20 iterations

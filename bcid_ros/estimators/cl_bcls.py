@@ -2,13 +2,15 @@ r"""
 Online closed-loop bias-compensated least squares (Ikeda 2008), per sample.
 
 :class:`ClosedLoopBcls` runs a recursive prefiltered LS at every sample and
-compensates it with eqs. (56)-(59); every ``redesign_period`` samples it
-runs the batch Algorithm 1 (:func:`~bcid_ros.estimators.cl_bcls_batch.closed_loop_bcls`)
-on a window of raw samples to redesign the prefilter and refresh the bias
-terms. The model, the parametrisation of eq. (13) and the pieces of
-Algorithm 1 are in :mod:`bcid_ros.estimators.cl_bcls_batch`; the controller
-and its sign convention in :mod:`bcid_ros.estimators.lti`. docs/cl_bcls.md
-explains the settings, the safety rules and their reasons.
+compensates it with eqs. (56)-(59). With ``window`` 0 (the default) its
+statistics cover every sample since the last controller change, as recursive
+moments, and each redesign is one iteration of Algorithm 1 on them; with
+``window`` > 0 every ``redesign_period`` samples it runs the batch
+Algorithm 1 (:func:`~bcid_ros.estimators.cl_bcls_batch.closed_loop_bcls`)
+on a window of raw samples. The model, the parametrisation of eq. (13) and
+the pieces of Algorithm 1 are in :mod:`bcid_ros.estimators.cl_bcls_batch`;
+the controller and its sign convention in :mod:`bcid_ros.estimators.lti`.
+docs/cl_bcls.md explains the settings, the safety rules and their reasons.
 """
 
 from __future__ import annotations
@@ -20,75 +22,198 @@ import numpy as np
 
 from bcid_ros.estimators.base import (check_forgetting_factor, check_int, check_range,
                                       RecursiveEstimator)
-from bcid_ros.estimators.cl_bcls_batch import (algorithm1, CompensationFailure,
+from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, CompensationFailure,
                                                DEFAULT_TOLERANCE, is_contracting,
                                                plant_from_regression, prefilter_polynomial,
                                                regression_from_plant)
-from bcid_ros.estimators.lti import controller_canonical, make_controller
+from bcid_ros.estimators.lti import (closed_loop_polynomial, Controller, controller_canonical,
+                                     is_stable, make_controller, stable_reflection)
 
-#: Default cap on the redesign window (samples); the paper's N.
-DEFAULT_WINDOW = 4096
+#: Default ``window``: 0, every sample since the last controller change (recursive moments).
+DEFAULT_WINDOW = 0
 #: Default number of samples between two compensations + prefilter redesigns.
 DEFAULT_REDESIGN_PERIOD = 1000
-#: Default cap on the prefilter iterations of one redesign.
+#: With ``window`` 0 a redesign changes the prefilter only when the new f(q) differs from
+#: the one in use by more than this (2-norm of the coefficients; docs/cl_bcls.md).
+PREFILTER_STEP = 0.05
+#: Default cap on the iterations of one redesign.
 DEFAULT_MAX_ITERATIONS = 20
-#: Regression rows per parameter that the window must hold before a redesign.
+#: Regression rows per parameter that the data must hold before a redesign.
 ROWS_PER_PARAMETER = 10
-#: The first redesign waits for ``window // FIRST_WINDOW_DIVISOR`` samples (docs/cl_bcls.md,
-#: "Why not_contracting and first_window").
+#: With a window, the first redesign waits for ``window // FIRST_WINDOW_DIVISOR`` samples
+#: (docs/cl_bcls.md, "Why not_contracting and first_window").
 FIRST_WINDOW_DIVISOR = 2
+#: ``no_excitation`` below this ratio of the varying power of the reconstructed
+#: reference b_c(q) r = a_c(q) u + b_c(q) y to that of b_c(q) y (docs/cl_bcls.md, "Validity").
+MIN_EXCITATION_RATIO = 0.02
+#: ``runaway_compensation`` when the compensation moves a or b by more than this times
+#: the LS estimate's own size (max(1, |a_LS|) for a, |b_LS| for b).
+RUNAWAY_RATIO = 1.0
+#: ``ill_conditioned_compensation`` when sqrt(beta^2 - 4 alpha gamma) / beta of eq. (58)
+#: falls below this: sigma2 is then near the double root and infinitely sensitive.
+MIN_DISCRIMINANT_RATIO = 0.05
+#: ``ill_conditioned_information`` above this condition number of the information
+#: matrix scaled to unit diagonal (scale-free).
+MAX_CONDITION = 1e8
+
+
+class _ExcitationMeter:
+    r"""
+    Power of the reference reconstructed from y, u and the known controller.
+
+    With :math:`u = (b_c/a_c)(r - y)` (negative-feedback form),
+    :math:`w = a_c(q) u + b_c(q) y = b_c(q) r` exactly: the noise cancels.
+    The meter keeps the weighted sums of w, w^2, v = b_c(q) y and v^2 over
+    the samples since the last restart whose m lags are all present.
+    """
+
+    def __init__(self, controller: Controller) -> None:
+        # coefficients on [x[k], x[k-1], ..., x[k-m]] (q^-m times the polynomials)
+        self.a_c = controller.denominator.copy()
+        self.b_c = controller.feedback_numerator.copy()
+        size = self.a_c.size
+        self.y = np.zeros(size)
+        self.u = np.zeros(size)
+        self.lags = 0
+        self.sums = np.zeros(5)  # weight, sum w, sum w^2, sum v, sum v^2
+
+    def restart(self) -> None:
+        """Forget the lags (after a gap), keep the sums."""
+        self.y[:] = 0.0
+        self.u[:] = 0.0
+        self.lags = 0
+
+    def update(self, y: float, u: float, forgetting: float) -> None:
+        """Take one sample."""
+        self.y[1:] = self.y[:-1]
+        self.u[1:] = self.u[:-1]
+        self.y[0] = y
+        self.u[0] = u
+        if self.lags < self.a_c.size - 1:
+            self.lags += 1
+            return
+        v = self.b_c.dot(self.y)
+        # w = a_c(q) u + b_c(q) y = b_c(q) r
+        w = self.a_c.dot(self.u) + v
+        sums = self.sums
+        if forgetting != 1.0:
+            sums *= forgetting
+        sums += (1.0, w, w * w, v, v * v)
+
+    def ratio(self) -> float:
+        """Return var(w) / var(v) over the samples so far (0 if none, inf if v is constant)."""
+        weight, w1, w2, v1, v2 = self.sums
+        if weight <= 0.0:
+            return 0.0
+        var_w = max(w2 / weight - (w1 / weight) ** 2, 0.0)
+        var_v = max(v2 / weight - (v1 / weight) ** 2, 0.0)
+        if var_v <= 0.0:
+            return math.inf if var_w > 0.0 else 0.0
+        return var_w / var_v
+
+    def state(self) -> np.ndarray:
+        """Return the state as one flat array."""
+        return np.concatenate((self.y, self.u, self.sums, [self.lags]))
+
+    def load(self, flat: np.ndarray) -> None:
+        """Load a state made by :meth:`state` (same controller order)."""
+        size = self.a_c.size
+        self.y = np.array(flat[:size])
+        self.u = np.array(flat[size:2 * size])
+        self.sums = np.array(flat[2 * size:2 * size + 5])
+        self.lags = int(flat[-1])
+
+
+def scaled_condition(matrix: np.ndarray) -> float:
+    """Return the condition number of a symmetric matrix scaled to unit diagonal."""
+    diagonal = np.diag(matrix)
+    if not (diagonal > 0.0).all():
+        return math.inf
+    scale = 1.0 / np.sqrt(diagonal)
+    return float(np.linalg.cond(matrix * np.outer(scale, scale)))
 
 
 class ClosedLoopBcls(RecursiveEstimator):
     r"""
-    Online closed-loop BCLS: per-sample prefiltered RLS, windowed Algorithm 1.
+    Online closed-loop BCLS: recursive moments since the controller change, or a window.
 
     The estimator sees only the measured (y[k], u[k]), never the reference r.
     It assumes that u is exactly the output of the given LTI controller acting
-    on the same y (no saturation, no retuning), that the noise is white and
-    on y only (A3), that the true loop is stable (A4), that the plant is
-    strictly proper of order at most n (A2) and that r is independent of the
-    noise (A5).
+    on the same y (no saturation; a retuning is announced with
+    :meth:`set_controller`), that the noise is white and on y only (A3), that
+    the true loop is stable (A4), that the plant is strictly proper of order
+    at most n (A2) and that r is independent of the noise (A5).
 
-    **Per sample** k, with the prefilter f, :math:`c = C_{cl} P_{12} h^T`
-    (eq. 37) and :math:`\beta = 1 + h P_{22} h^T` (eq. 57) frozen at the last
-    redesign:
+    **Per sample** k the prefilter f in use gives
 
     .. math::
 
         y_f[k] &= \frac{q^n}{f(q)} y[k], \quad u_f[k] = \frac{q^n}{f(q)} u[k]
             && \text{(10)} \\
         \varphi[k] &= [y_f[k-1] \dots y_f[k-n], u_f[k-1] \dots u_f[k-n]]^T
-            && \text{(14)} \\
-        s &= 1 + \varphi^T P \varphi, \quad e = y[k] - \varphi^T\hat\theta_{LS} \\
-        \hat\theta_{LS} &\leftarrow \hat\theta_{LS} + P\varphi\, e / s, \quad
-        P \leftarrow P - P\varphi\varphi^T P / s, \quad
-        J \leftarrow J + e^2/s, \quad N \leftarrow N + 1 && \text{(17), recursively} \\
-        \gamma &= J / N, \quad \alpha = N c^T P c && \text{(53), (56)} \\
-        \hat\sigma_\nu^2 &= \frac{2\gamma}{\beta + \sqrt{\beta^2 - 4\alpha\gamma}}
-            && \text{(58)} \\
-        \hat\theta_{BC} &= \hat\theta_{LS} - N \hat\sigma_\nu^2 P c && \text{(59)} \\
-        \hat a_i &= f_i - \hat\theta_{BC,i}, \quad \hat b_i = \hat\theta_{BC,n+i}
-            && \text{(13)}
+            && \text{(14)}
 
-    **Every** ``redesign_period`` **samples**, once the window holds at least
-    ``10 * 2n + n`` samples (before the first successful redesign:
-    :attr:`first_window` = max(``window`` // 2, ``10 * 2n + n``)), Algorithm 1
-    runs on the last min(samples since reset or restart, ``window``) raw
-    samples, from the prefilter in use. On success the prefilter, c and beta
-    become those of its last iteration, and the running LS continues from that
-    iteration's solution (:math:`P = (\Phi^T\Phi)^{-1}`).
+    **All data since the change** (``window`` 0). The regression of eq. (13),
+    :math:`y[k] = \varphi^T [f - a \mid b] + \varepsilon`, is the same as
+    :math:`y_f[k] = \psi[k]^T [a \mid b] + \varepsilon[k]` with
+    :math:`\psi = [-y_f \text{ lags} \mid u_f \text{ lags}]`, whose parameter
+    does not depend on f. So rows filtered by different prefilters stack in
+    one LS. Each row of epoch e (filtered by :math:`f_e`) carries the noise
+    moments of Theorem 1, :math:`E\{\psi\varepsilon\} = D c_e \sigma_\nu^2`,
+    :math:`E\{\varepsilon^2\} = \beta_e \sigma_\nu^2`
+    (:math:`D = \mathrm{diag}(-I_n, I_n)`, eqs. 37, 57). With weights
+    :math:`w_k = \lambda^{N-k}` (the forgetting factor), the statistics are
 
-    **Published estimate.** After a successful redesign on the window starting
-    at sample s, ``theta`` at sample N is eqs. (56), (58), (59) with the
-    frozen f, c, beta applied to the LS solution (17) over samples s..N
-    prefiltered by f from rest at s; at the redesign sample it is Algorithm 1's
-    result on the window. ``theta_uncompensated`` is that LS solution. Before
-    the first successful redesign ``theta`` is the LS from
-    :math:`P(0) = p_0 I`, :math:`\hat\theta(0) = 0` with the initial
-    prefilter and :attr:`valid` is False. :meth:`restart_regressor` empties the
-    window and restarts the filters from rest; the running LS keeps its
-    statistics until the next redesign.
+    .. math::
+
+        M = \sum w_k \psi\psi^T, \quad P = M^{-1}, \quad
+        \hat\theta_{LS} = P \sum w_k \psi\, y_f, \quad
+        J = \sum w_k (y_f - \psi^T\hat\theta_{LS})^2, \\
+        C = \sum_e W_e D c_e, \quad B = \sum_e W_e \beta_e, \quad
+        W_e = \sum_{k \in e} w_k,
+
+    kept recursively (RLS for :math:`P, \hat\theta_{LS}, J`). Since
+    :math:`J \approx B\sigma_\nu^2 - \sigma_\nu^4 C^T P C`, eqs. (58), (59)
+    become
+
+    .. math::
+
+        \hat\sigma_\nu^2 = \frac{2J}{B + \sqrt{B^2 - 4 (C^T P C) J}}, \qquad
+        \hat\theta_{BC} = \hat\theta_{LS} - \hat\sigma_\nu^2 P C,
+
+    which with one epoch and :math:`\lambda = 1` is exactly eqs. (53),
+    (56)-(59) (:math:`B = N\beta`, :math:`C^TPC = N \alpha`). A **redesign**
+    is one iteration of Algorithm 1 on these statistics: the exact LS from the
+    moments, :math:`c_e, \beta_e` of every epoch from :math:`\hat\theta_{LS}`
+    (steps 3, 4), the compensation (step 5), and the next prefilter
+    :math:`f = \bar{\hat a}_{BC}` (steps 6, 7), which opens a new epoch for the
+    following rows unless it moved by less than ``tolerance``. Redesigns come
+    after ``10 * 2n + n`` rows, then each time the rows double, until they
+    are ``redesign_period`` rows apart; the filters keep their state across a
+    prefilter change.
+
+    **Window** (``window`` > 0). Every ``redesign_period`` samples, once the
+    window holds at least ``10 * 2n + n`` samples (before the first
+    successful redesign: :attr:`first_window` = max(``window`` // 2,
+    ``10 * 2n + n``)), Algorithm 1 runs on the last min(samples since the
+    last reset, restart or controller change, ``window``) raw samples, from
+    the prefilter in use. On success the prefilter, c and beta become those of
+    its last iteration, and the running LS continues from that iteration's
+    solution; between redesigns each sample applies eqs. (56), (58), (59)
+    with the frozen c, beta to the running LS (regression form, eq. 17).
+
+    **Controller changes.** :meth:`set_controller` installs a new controller
+    and restarts every statistic (moments, window, filters, excitation meter)
+    but keeps the prefilter: no sample from before the change enters the
+    statistics after it. Until the first redesign after a reset or change
+    ``theta`` is the LS from :math:`P(0) = p_0 I`, :math:`\hat\theta(0) = 0`
+    and :attr:`valid` is False.
+
+    **Validity.** :attr:`validity_reasons` lists why the estimate is not to
+    be trusted (empty: :attr:`valid`): ``not_compensated``, ``no_excitation``,
+    ``unstable_closed_loop``, ``runaway_compensation``, ``redesign_failed``,
+    ``ill_conditioned_compensation``, ``ill_conditioned_information``
+    (docs/cl_bcls.md, "Validity").
 
     **Safety.** No estimate is ever NaN. Each condition is counted in
     :attr:`flags`:
@@ -97,23 +222,25 @@ class ClosedLoopBcls(RecursiveEstimator):
       ``singular_information``, ``negative_variance_argument``: in the first
       iteration of a redesign, the redesign is dropped (prefilter and running
       LS unchanged; compensated estimate and sigma2 held, :attr:`holding`);
-      in a later iteration, the last good iterate is the result;
+      in a later iteration of a windowed redesign, the last good iterate is
+      the result; an unstable next prefilter is not taken;
     * ``negative_variance_argument`` at a sample, ``nonfinite_estimate``: that
       sample keeps the last good compensated estimate and sigma2;
-    * ``not_converged``: a redesign used all ``max_iterations``; its result is
-      used if the iteration was contracting;
-    * ``not_contracting``: a redesign stopped without meeting ``tolerance``
-      and :func:`~bcid_ros.estimators.cl_bcls_batch.is_contracting` is False;
-      the redesign is dropped as a failed one;
+    * ``not_converged``: a windowed redesign used all ``max_iterations``; its
+      result is used if the iteration was contracting;
+    * ``not_contracting``: a windowed redesign stopped without meeting
+      ``tolerance`` and :func:`~bcid_ros.estimators.cl_bcls_batch.is_contracting`
+      is False; the redesign is dropped as a failed one;
     * ``covariance_repaired``: P lost definiteness and was rebuilt.
 
     Parameters
     ----------
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor
         As for :class:`~bcid_ros.estimators.base.RecursiveEstimator`, with
-        ``num_inputs`` 1 (SISO), ``feedthrough`` False (eq. 3) and
-        ``forgetting_factor`` 1 (the estimator forgets through its ``window``);
-        :math:`P(0) = p_0 I` is used only before the first redesign.
+        ``num_inputs`` 1 (SISO) and ``feedthrough`` False (eq. 3).
+        ``forgetting_factor`` weighs the moments with ``window`` 0 and must be
+        1 with a window; :math:`P(0) = p_0 I` is used only before the first
+        redesign.
     controller_numerator, controller_denominator : sequence of float
         b_c(q) and a_c(q) in descending powers of q (eqs. 5, 6); b_c is
         left-padded with zeros to the length of a_c. The paper's (60) is
@@ -125,14 +252,17 @@ class ClosedLoopBcls(RecursiveEstimator):
         :math:`f^{(0)}`: a pole p giving f(q) = (q - p)^n (default 0: f = q^n,
         step 1 of Algorithm 1), or ``[1, f_1, ..., f_n]``; must be stable.
     window : int
-        Cap on the samples kept for a redesign (default 4096, the paper's N).
+        0 (default): every sample since the last controller change; > 0: the
+        last ``window`` samples (at least ``10 * 2n + n``), for slowly
+        varying plants.
     redesign_period : int
         Samples between redesigns (default 1000).
     max_iterations : int
-        Cap on the LS solves of one redesign (default 20).
+        Cap on the LS solves of one windowed redesign (default 20).
     tolerance : float
-        Stop a redesign when the estimate moves by less (default 1e-3, as in
-        section 7.3).
+        Stop a windowed redesign when the estimate moves by less; with
+        ``window`` 0, keep the prefilter when the redesigned one moves by
+        less (default 1e-3, as in section 7.3).
 
     Raises
     ------
@@ -163,27 +293,32 @@ class ClosedLoopBcls(RecursiveEstimator):
         if self.feedthrough:
             raise ValueError('feedthrough must be False for cl_bcls (b_p(q) has degree < n, '
                              'eq. (3)), got True')
-        self._check_forgetting(self._forgetting_factor)
         self.controller = make_controller(controller_numerator, controller_denominator,
                                           controller_sign)
         self.prefilter_initial = prefilter_polynomial(prefilter_initial, self.order)
         self.min_window = ROWS_PER_PARAMETER * 2 * self.order + self.order
-        self.window = check_int('window', window, self.min_window)
-        self.first_window = max(self.window // FIRST_WINDOW_DIVISOR, self.min_window)
+        window = check_int('window', window, 0)
+        if 0 < window < self.min_window:
+            raise ValueError(f'window must be 0 (all data since the controller change) or an '
+                             f'integer >= {self.min_window}, got {window!r}')
+        self.window = window
+        self.all_data = window == 0
+        self._check_forgetting(self._forgetting_factor)
+        self.first_window = (self.min_window if self.all_data
+                             else max(self.window // FIRST_WINDOW_DIVISOR, self.min_window))
         self.redesign_period = check_int('redesign_period', redesign_period, 1)
         self.max_iterations = check_int('max_iterations', max_iterations, 1)
         self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
         self._reset()
 
-    @staticmethod
-    def _check_forgetting(value: float) -> None:
-        if value != 1.0:
-            raise ValueError('forgetting_factor must be 1 for cl_bcls (it forgets through its '
-                             f'finite window), got {value!r}')
+    def _check_forgetting(self, value: float) -> None:
+        if value != 1.0 and not self.all_data:
+            raise ValueError('forgetting_factor must be 1 for cl_bcls with a window (it forgets '
+                             f'through its finite window), got {value!r}')
 
     @property
     def forgetting_factor(self) -> float:
-        """Return the forgetting factor; cl_bcls only accepts 1."""
+        """Return the forgetting factor (below 1 only with ``window`` 0)."""
         return self._forgetting_factor
 
     @forgetting_factor.setter
@@ -192,9 +327,265 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._check_forgetting(value)
         self._forgetting_factor = value
 
+    # ------------------------------------------------------ controller change
+    def set_controller(self, numerator: Sequence[float], denominator: Sequence[float],
+                       sign: str = 'negative') -> bool:
+        """
+        Install the controller now in the loop and restart the statistics.
+
+        The prefilter and the flags are kept; the moments (or the window),
+        the running LS, the filters, the excitation meter and the
+        compensation restart, so the next redesign uses only samples from
+        after the change (``10 * 2n + n`` rows with ``window`` 0,
+        :attr:`first_window` samples with a window). Until then ``theta`` is
+        the LS since the change and :attr:`valid` is False.
+
+        Parameters
+        ----------
+        numerator, denominator, sign
+            As ``controller_numerator``, ``controller_denominator`` and
+            ``controller_sign``.
+
+        Returns
+        -------
+        bool
+            False (and nothing restarted) if the controller, normalised, is
+            the one already in use; True otherwise.
+
+        Raises
+        ------
+        ValueError
+            If the controller is not valid; the estimator is unchanged.
+
+        """
+        controller = make_controller(numerator, denominator, sign)
+        current = self.controller
+        if (controller.sign == current.sign
+                and np.array_equal(controller.numerator, current.numerator)
+                and np.array_equal(controller.denominator, current.denominator)):
+            return False
+        self.controller = controller
+        self._restart_statistics()
+        self._controller_changes += 1
+        return True
+
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
         u0 = float(u[0])
+        self._samples += 1
+        self._excitation.update(y, u0, self._forgetting_factor)
+        if self.all_data:
+            self._update_all_data(y, u0)
+        else:
+            self._update_window(y, u0)
+
+    def _advance_filters(self, y: float, u0: float) -> None:
+        # phi[k+1] = blockdiag(F, F) phi[k] + [g y[k]; g u[k]]        (10), (14)
+        phi = self._shift.dot(self._phi)
+        phi[0] += y
+        phi[self.order] += u0
+        self._phi = phi
+
+    # ------------------------------------------------ all data since the change
+    def _update_all_data(self, y: float, u0: float) -> None:
+        if self._lags >= self.order:
+            self._moment_step(y, self._phi)
+        else:
+            self._lags += 1
+        self._advance_filters(y, u0)
+        if self._rows >= self._next_redesign:
+            rows = self._rows
+            self._next_redesign = rows + min(rows, self.redesign_period)
+            self._redesign_all_data()
+
+    def _moment_step(self, y: float, phi: np.ndarray) -> None:
+        """Add one row to the moments, do the RLS step in plant form and compensate."""
+        n = self.order
+        lam = self._forgetting_factor
+        # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
+        target = y - self._prefilter[1:].dot(phi[:n])
+        psi = phi.copy()
+        psi[:n] = -psi[:n]
+        if lam != 1.0:
+            self._information *= lam
+            self._cross *= lam
+            self._energy *= lam
+            self._epoch_weights *= lam
+        self._information += np.outer(psi, psi)
+        self._cross += psi * target
+        self._energy += target * target
+        self._epoch_weights[-1] += 1.0
+        self._rows += 1
+        theta = self._theta_ls
+        g = self._p.dot(psi)
+        s = lam + psi.dot(g)
+        if not s > 0.0:
+            self._repair_covariance()
+            return
+        e = target - psi.dot(theta)
+        theta += g * (e / s)
+        h = g * (1.0 / math.sqrt(s))
+        self._p -= h[:, None] * h
+        if lam != 1.0:
+            self._p *= 1.0 / lam
+        # J = lam J + lam e^2 / s (weighted LS loss)
+        self._loss = lam * (self._loss + e * e / s)
+        if self._direction is None or self._holding:
+            return
+        weights = self._epoch_weights
+        # C = sum_e W_e D c_e ; B = sum_e W_e beta_e
+        direction = weights.dot(self._epoch_directions)
+        total_beta = weights.dot(self._epoch_betas)
+        self._compensate(theta, self._p.dot(direction), direction, total_beta)
+
+    def _compensate(self, theta: np.ndarray, pc: np.ndarray, direction: np.ndarray,
+                    total_beta: float) -> None:
+        """Apply the generalised eqs. (58), (59) with C, B and P C given."""
+        quadratic = direction.dot(pc)
+        loss = self._loss
+        discriminant = total_beta * total_beta - 4.0 * quadratic * loss
+        if not discriminant >= 0.0:
+            self._flag('negative_variance_argument')
+            self._discriminant_ratio = 0.0
+            return
+        root = math.sqrt(discriminant)
+        # sigma2 = 2 J / (B + sqrt(B^2 - 4 C'PC J))                          (58)
+        sigma2 = 2.0 * loss / (total_beta + root)
+        # theta_BC = theta_LS - sigma2 P C                                   (59)
+        compensated = theta - sigma2 * pc
+        if not math.isfinite(compensated.dot(compensated) + sigma2):
+            self._flag('nonfinite_estimate')
+            return
+        self._discriminant_ratio = root / total_beta
+        self._theta_bc = compensated
+        self._sigma2 = sigma2
+
+    def _redesign_all_data(self) -> None:
+        """Run Algorithm 1 on the moments of every row since the change (no refiltering)."""
+        n = self.order
+        try:
+            theta_ls, inverse, loss = self._exact_ls()
+            starts = [theta_ls]
+            if self._direction is not None:
+                # warm start from the last compensated estimate (the fixed point moves
+                # little between redesigns); from theta_LS if that fails
+                starts.insert(0, self._theta_bc.copy())
+            for number, start in enumerate(starts):
+                try:
+                    estimate, terms, result, iterations = self._moment_iteration(
+                        start, theta_ls, inverse, loss)
+                    break
+                except CompensationFailure:
+                    if number == len(starts) - 1:
+                        raise
+            directions, betas = terms
+            _, pc, total = result
+            # steps (6), (7): f = a_BC with the unstable roots mirrored (Remark 3)
+            following = stable_reflection(np.concatenate(([1.0], estimate[:n])))
+            next_terms = None
+            if not is_stable(following):
+                self._flag('unstable_prefilter')
+            elif (self._rows >= self.redesign_period
+                  and np.linalg.norm(following - self._prefilter) > PREFILTER_STEP):
+                next_terms = bias_terms(estimate, following, self.controller)
+        except CompensationFailure as error:
+            self._flag(error.flag)
+            self._holding = self._direction is not None
+            return
+        self._redesigns += 1
+        self._last_iterations = iterations
+        self._theta_ls = theta_ls
+        self._p = inverse
+        self._loss = loss
+        self._epoch_directions = directions
+        self._epoch_betas = betas
+        self._direction = total[0]
+        self._holding = False
+        self._compensate(theta_ls, pc, total[0], total[1])
+        if next_terms is not None:
+            c_next, beta_next = next_terms
+            self._open_epoch(following, np.concatenate((-c_next[:n], c_next[n:])), beta_next)
+        self._check_model()
+
+    def _moment_iteration(self, estimate: np.ndarray, theta_ls: np.ndarray,
+                          inverse: np.ndarray, loss: float) -> tuple[Any, ...]:
+        """
+        Iterate steps (3)-(5) on the moments from ``estimate`` to a fixed point.
+
+        The iteration converges linearly (factor rho about 0.6-0.98 on the
+        paper's loop, the larger the farther f is from a_p), so it stops when
+        the estimated distance to the fixed point, step * rho / (1 - rho)
+        with rho the ratio of the last two steps, is below ``tolerance``.
+        """
+        last_step = math.inf
+        for iterations in range(1, self.max_iterations + 1):
+            # c_e, beta_e of every epoch from the current estimate            (37), (57)
+            terms = self._epoch_terms(estimate)
+            result = self._moment_compensation(theta_ls, inverse, loss, *terms)
+            step = float(np.linalg.norm(result[0] - estimate))
+            estimate = result[0]
+            rate = step / last_step  # 0 at the first iteration: never stops there
+            if step == 0.0 or (0.0 < rate < 1.0
+                               and step * rate / (1.0 - rate) < self.tolerance):
+                break
+            last_step = step
+        else:
+            self._flag('not_converged')
+        return estimate, terms, result, iterations
+
+    def _epoch_terms(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return D c_e and beta_e of every epoch for the plant ``theta`` (eqs. 37, 57)."""
+        n = self.order
+        prefilters = self._epoch_prefilters
+        directions = np.empty((len(prefilters), 2 * n))
+        betas = np.empty(len(prefilters))
+        for index, prefilter in enumerate(prefilters):
+            c_e, betas[index] = bias_terms(theta, prefilter, self.controller)
+            directions[index] = np.concatenate((-c_e[:n], c_e[n:]))
+        return directions, betas
+
+    def _moment_compensation(self, theta_ls: np.ndarray, inverse: np.ndarray, loss: float,
+                             directions: np.ndarray, betas: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, float]]:
+        """Return (theta_BC, P C, (C, B)) of the generalised eqs. (58), (59)."""
+        direction = self._epoch_weights.dot(directions)
+        total_beta = float(self._epoch_weights.dot(betas))
+        pc = inverse.dot(direction)
+        discriminant = total_beta * total_beta - 4.0 * direction.dot(pc) * loss
+        if not discriminant >= 0.0:
+            raise CompensationFailure('negative_variance_argument',
+                                      'B^2 - 4 C\'PC J < 0 in eq. (58)')
+        sigma2 = 2.0 * loss / (total_beta + math.sqrt(discriminant))
+        compensated = theta_ls - sigma2 * pc
+        if not np.isfinite(compensated).all():
+            raise CompensationFailure('lyapunov_failed', 'compensated estimate not finite')
+        return compensated, pc, (direction, total_beta)
+
+    def _exact_ls(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Return (theta_LS, P, J) solved from the moments (plant form)."""
+        information = self._information
+        try:
+            np.linalg.cholesky(information)
+            inverse = np.linalg.inv(information)
+        except np.linalg.LinAlgError:
+            raise CompensationFailure('singular_information',
+                                      'the information matrix is not positive definite') from None
+        theta = inverse.dot(self._cross)
+        loss = max(self._energy - self._cross.dot(theta), 0.0)
+        if not (np.isfinite(theta).all() and np.isfinite(inverse).all()):
+            raise CompensationFailure('singular_information', 'the LS solution is not finite')
+        return theta, 0.5 * (inverse + inverse.T), loss
+
+    def _open_epoch(self, prefilter: np.ndarray, direction: np.ndarray, beta: float) -> None:
+        """Filter the following rows with a new prefilter (a new epoch)."""
+        self._epoch_prefilters.append(prefilter)
+        self._epoch_weights = np.append(self._epoch_weights, 0.0)
+        self._epoch_directions = np.vstack((self._epoch_directions, direction))
+        self._epoch_betas = np.append(self._epoch_betas, beta)
+        self._set_prefilter(prefilter)
+
+    # ---------------------------------------------------------- the window
+    def _update_window(self, y: float, u0: float) -> None:
         # keep the raw sample for the redesign window
         pos = self._pos
         if pos == self._buffer.shape[0]:
@@ -204,17 +595,11 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._pos = pos + 1
         if self._filled < self.window:
             self._filled += 1
-        self._samples += 1
-        phi = self._phi
         if self._lags >= self.order:
-            self._ls_step(y, phi)
+            self._ls_step(y, self._phi)
         else:
             self._lags += 1
-        # phi[k+1] = blockdiag(F, F) phi[k] + [g y[k]; g u[k]]        (10), (14)
-        phi = self._shift.dot(phi)
-        phi[0] += y
-        phi[self.order] += u0
-        self._phi = phi
+        self._advance_filters(y, u0)
         self._since_redesign += 1
         if (self._since_redesign >= self.redesign_period and self._filled >= (
                 self.min_window if self._direction is not None else self.first_window)):
@@ -243,27 +628,11 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._count += 1.0
         if self._direction is None or self._holding:
             return
+        # gamma = J / N, alpha = N c' P c, eqs. (53), (56), are eq. (58) with B = N beta
+        # and C = N c: sigma2 = 2 J / (N beta + sqrt(N^2 beta^2 - 4 N^2 c'Pc J))
         count = self._count
-        direction = self._direction
-        pc = self._p.dot(direction)
-        # gamma = J / N                                                      (53)
-        gamma = self._loss / count
-        # alpha = N c' P c                                                   (56)
-        alpha = count * direction.dot(pc)
-        beta = self._beta
-        discriminant = beta * beta - 4.0 * alpha * gamma
-        if not discriminant >= 0.0:
-            self._flag('negative_variance_argument')
-            return
-        # sigma2 = 2 gamma / (beta + sqrt(beta^2 - 4 alpha gamma))           (58)
-        sigma2 = 2.0 * gamma / (beta + math.sqrt(discriminant))
-        # theta_BC = theta_LS - N sigma2 P c                                 (59)
-        compensated = theta - (count * sigma2) * pc
-        if not math.isfinite(compensated.dot(compensated) + sigma2):
-            self._flag('nonfinite_estimate')
-            return
-        self._theta_bc = compensated
-        self._sigma2 = sigma2
+        direction = count * self._direction
+        self._compensate(theta, self._p.dot(direction), direction, count * self._beta)
 
     def _repair_covariance(self) -> None:
         """Rebuild P as the nearest symmetric positive definite matrix."""
@@ -310,6 +679,11 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._theta_bc = regression_from_plant(result.theta, result.prefilter)
         self._sigma2 = float(result.sigma2)
         self._holding = False
+        # sqrt(beta^2 - 4 alpha gamma) / beta of eq. (58) for the redesign's result
+        alpha = self._count * self._direction.dot(self._p.dot(self._direction))
+        discriminant = self._beta ** 2 - 4.0 * alpha * self._loss / self._count
+        self._discriminant_ratio = math.sqrt(max(discriminant, 0.0)) / self._beta
+        self._check_model()
 
     def _set_prefilter(self, prefilter: np.ndarray) -> None:
         n = self.order
@@ -320,43 +694,76 @@ class ClosedLoopBcls(RecursiveEstimator):
         shift[n:, n:] = f_matrix
         self._shift = shift
 
-    # ------------------------------------------------- the controller in the loop
-    def set_controller(self, numerator: Sequence[float], denominator: Sequence[float],
-                       sign: str = 'negative') -> None:
+    # ------------------------------------------------------------ validity
+    def _check_model(self) -> None:
+        """Check the compensated model after a redesign (see :attr:`validity_reasons`)."""
+        n = self.order
+        theta, theta_ls = self._theta(), self._theta_uncompensated()
+        reasons = []
+        a_p = np.concatenate(([1.0], theta[:n]))
+        if not is_stable(closed_loop_polynomial(a_p, theta[n:], self.controller)):
+            reasons.append('unstable_closed_loop')
+        step = theta - theta_ls
+        if (np.linalg.norm(step[:n]) > RUNAWAY_RATIO * max(1.0, np.linalg.norm(theta_ls[:n]))
+                or np.linalg.norm(step[n:]) > RUNAWAY_RATIO * np.linalg.norm(theta_ls[n:])):
+            reasons.append('runaway_compensation')
+        if scaled_condition(self._p) > MAX_CONDITION:
+            reasons.append('ill_conditioned_information')
+        self._model_reasons = tuple(reasons)
+
+    def _validity_reasons(self) -> tuple[str, ...]:
+        r"""
+        Return why the estimate is not valid (the base class's :attr:`validity_reasons`).
+
+        * ``not_compensated``: no redesign has succeeded since the last reset
+          or controller change (the estimator is not :attr:`ready`);
+        * ``no_excitation``: the reconstructed reference
+          :math:`a_c(q) u + b_c(q) y = b_c(q) r` has a varying power below
+          :data:`MIN_EXCITATION_RATIO` times that of :math:`b_c(q) y`: the
+          loop runs on noise alone and the plant is not identifiable;
+        * ``unstable_closed_loop``: the compensated model in the loop with the
+          known controller is unstable, while the data are bounded;
+        * ``runaway_compensation``: the compensation moves a or b by more
+          than :data:`RUNAWAY_RATIO` times the LS estimate's size;
+        * ``redesign_failed``: the last redesign failed and the compensated
+          estimate is held (:attr:`holding`);
+        * ``ill_conditioned_compensation``: eq. (58) is near its double root,
+          :math:`\sqrt{\beta^2 - 4\alpha\gamma}/\beta` <
+          :data:`MIN_DISCRIMINANT_RATIO` (sigma2 and theta then react
+          without bound to the data);
+        * ``ill_conditioned_information``: the information matrix scaled to
+          unit diagonal has a condition number above :data:`MAX_CONDITION`.
+
+        The model checks run at each redesign; the excitation and the
+        discriminant at each sample.
         """
-        Take a new controller in the loop and restart the compensation from it.
-
-        Minimal version for the adaptive loop (the identifier's
-        ``controller_topic``): the estimator restarts from its initial state
-        with the new controller, so no sample from before the change enters
-        a redesign with the new controller. The estimate is not valid until
-        the first redesign on the new samples.
-
-        Parameters
-        ----------
-        numerator, denominator : sequence of float
-            b_c(q) and a_c(q) in descending powers of q, as in the
-            ``~/controller`` message data.
-        sign : str
-            ``'negative'`` (u = C (r - y), the message convention) or
-            ``'positive'``.
-
-        Raises
-        ------
-        ValueError
-            If the controller is not allowed (as for the constructor); the
-            estimator is then unchanged.
-
-        """
-        controller = make_controller(numerator, denominator, sign)
-        self.controller = controller
-        self._reset()
+        if self._direction is None:
+            reasons = ['not_compensated']
+        else:
+            reasons = list(self._model_reasons)
+            if self._holding:
+                reasons.append('redesign_failed')
+            if self._discriminant_ratio < MIN_DISCRIMINANT_RATIO:
+                reasons.append('ill_conditioned_compensation')
+        if self._excitation.ratio() < MIN_EXCITATION_RATIO:
+            reasons.append('no_excitation')
+        return tuple(reasons)
 
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
-        """Whether a compensation (redesign) has succeeded since the last reset."""
+        """Whether a compensation (redesign) has succeeded since the last reset or change."""
         return self._direction is not None
+
+    @property
+    def excitation_ratio(self) -> float:
+        """Return var(a_c u + b_c y) / var(b_c y) since the last reset or controller change."""
+        return self._excitation.ratio()
+
+    @property
+    def controller_changes(self) -> int:
+        """Count the controller changes since the last reset."""
+        return self._controller_changes
 
     @property
     def samples(self) -> int:
@@ -390,8 +797,13 @@ class ClosedLoopBcls(RecursiveEstimator):
 
     @property
     def window_length(self) -> int:
-        """Return the number of samples the next redesign would use."""
-        return self._filled
+        """Return the samples the next redesign would use (rows since the change with 0)."""
+        return self._rows if self.all_data else self._filled
+
+    @property
+    def epochs(self) -> int:
+        """Return the number of prefilters used since the last reset or change (``window`` 0)."""
+        return len(self._epoch_prefilters)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -406,10 +818,14 @@ class ClosedLoopBcls(RecursiveEstimator):
     def _theta(self) -> np.ndarray:
         if self._direction is None:
             return self._theta_uncompensated()
+        if self.all_data:
+            return self._theta_bc
         # a_i = f_i - theta_i ; b_i = theta_(n+i)                            (13)
         return plant_from_regression(self._theta_bc, self._prefilter)
 
     def _theta_uncompensated(self) -> np.ndarray:
+        if self.all_data:
+            return self._theta_ls
         return plant_from_regression(self._theta_ls, self._prefilter)
 
     def _noise(self) -> np.ndarray:
@@ -424,8 +840,16 @@ class ClosedLoopBcls(RecursiveEstimator):
 
     # -------------------------------------------------------------- the state
     def _reset(self) -> None:
-        p = self.num_parameters
         self._set_prefilter(self.prefilter_initial)
+        self._samples = 0
+        self._redesigns = 0
+        self._last_iterations = 0
+        self._controller_changes = 0
+        self._restart_statistics()
+
+    def _restart_statistics(self) -> None:
+        """Restart everything learnt from the data except the prefilter."""
+        p = self.num_parameters
         self._buffer = np.zeros((2 * self.window, 2))
         self._pos = 0
         self._filled = 0
@@ -440,31 +864,57 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._theta_bc = np.zeros(p)
         self._sigma2 = 0.0
         self._holding = False
-        self._samples = 0
         self._since_redesign = 0
-        self._redesigns = 0
-        self._last_iterations = 0
+        self._information = np.zeros((p, p))
+        self._cross = np.zeros(p)
+        self._energy = 0.0
+        self._rows = 0
+        self._next_redesign = self.min_window
+        self._epoch_prefilters = [self._prefilter.copy()]
+        self._epoch_weights = np.zeros(1)
+        self._epoch_directions = np.zeros((1, p))
+        self._epoch_betas = np.ones(1)
+        self._excitation = _ExcitationMeter(self.controller)
+        self._model_reasons: tuple[str, ...] = ()
+        self._discriminant_ratio = 1.0
 
     def _restart_regressor(self) -> None:
         self._filled = 0
         self._phi = np.zeros(self.num_parameters)
         self._lags = 0
+        self._excitation.restart()
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         compensated = self._direction is not None
         arrays = {'prefilter': self._prefilter, 'buffer': self._buffer, 'phi': self._phi,
                   'theta_ls': self._theta_ls, 'p': self._p, 'theta_bc': self._theta_bc,
                   'direction': (self._direction if compensated
-                                else np.zeros(self.num_parameters))}
+                                else np.zeros(self.num_parameters)),
+                  'information': self._information, 'cross': self._cross}
+        controller = self.controller
         scalars = {'pos': self._pos, 'filled': self._filled, 'lags': self._lags,
                    'loss': self._loss, 'count': self._count, 'beta': self._beta,
                    'sigma2': self._sigma2, 'samples': self._samples,
                    'since_redesign': self._since_redesign, 'redesigns': self._redesigns,
                    'last_iterations': self._last_iterations, 'compensated': compensated,
-                   'holding': self._holding}
+                   'holding': self._holding, 'energy': self._energy, 'rows': self._rows,
+                   'next_redesign': self._next_redesign,
+                   'epoch_prefilters': [f.tolist() for f in self._epoch_prefilters],
+                   'epoch_weights': self._epoch_weights.tolist(),
+                   'epoch_directions': self._epoch_directions.tolist(),
+                   'epoch_betas': self._epoch_betas.tolist(),
+                   'controller': (controller.numerator.tolist(),
+                                  controller.denominator.tolist(), controller.sign),
+                   'controller_changes': self._controller_changes,
+                   'excitation': self._excitation.state().tolist(),
+                   'model_reasons': list(self._model_reasons),
+                   'discriminant_ratio': self._discriminant_ratio}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        self.controller = make_controller(*scalars['controller'])
+        self._excitation = _ExcitationMeter(self.controller)
+        self._excitation.load(np.array(scalars['excitation'], dtype=float))
         self._set_prefilter(arrays['prefilter'])
         self._buffer = arrays['buffer']
         self._phi = arrays['phi']
@@ -472,6 +922,8 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._p = arrays['p']
         self._theta_bc = arrays['theta_bc']
         self._direction = arrays['direction'] if scalars['compensated'] else None
+        self._information = arrays['information']
+        self._cross = arrays['cross']
         self._pos = int(scalars['pos'])
         self._filled = int(scalars['filled'])
         self._lags = int(scalars['lags'])
@@ -484,3 +936,14 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._redesigns = int(scalars['redesigns'])
         self._last_iterations = int(scalars['last_iterations'])
         self._holding = bool(scalars['holding'])
+        self._energy = float(scalars['energy'])
+        self._rows = int(scalars['rows'])
+        self._next_redesign = int(scalars['next_redesign'])
+        self._epoch_prefilters = [np.array(f, dtype=float) for f in scalars['epoch_prefilters']]
+        self._epoch_weights = np.array(scalars['epoch_weights'], dtype=float)
+        self._epoch_directions = np.array(scalars['epoch_directions'], dtype=float).reshape(
+            len(self._epoch_prefilters), self.num_parameters)
+        self._epoch_betas = np.array(scalars['epoch_betas'], dtype=float)
+        self._controller_changes = int(scalars['controller_changes'])
+        self._model_reasons = tuple(scalars['model_reasons'])
+        self._discriminant_ratio = float(scalars['discriminant_ratio'])
