@@ -14,22 +14,11 @@ from bcid_ros.parameters import (check_identifier_parameters, estimator_from_par
                                  load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
+from test_lti import random_stable_polynomial
 
 PAPER = IkedaClosedLoop()
 CONTROLLER = {key: PAPER.estimator_settings()[key]
               for key in ('controller_numerator', 'controller_denominator', 'controller_sign')}
-
-
-def random_stable_polynomial(rng, degree, radius=0.9):
-    """Return a monic real polynomial with random roots of modulus < radius."""
-    roots = []
-    while len(roots) < degree:
-        if degree - len(roots) >= 2 and rng.random() < 0.5:
-            root = radius * rng.random() * np.exp(1j * np.pi * rng.random())
-            roots += [root, np.conj(root)]
-        else:
-            roots.append(radius * rng.uniform(-1, 1))
-    return np.real(np.poly(roots))
 
 
 def make(**settings):
