@@ -28,6 +28,7 @@ from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, Compensat
                                                regression_from_plant)
 from bcid_ros.estimators.lti import (closed_loop_polynomial, Controller, controller_canonical,
                                      is_stable, make_controller, stable_reflection)
+from bcid_ros.estimators.rls import repair_covariance, rls_innovation, rls_step
 
 #: Default ``window``: 0, every sample since the last controller change (recursive moments).
 DEFAULT_WINDOW = 0
@@ -609,20 +610,13 @@ class ClosedLoopBcls(RecursiveEstimator):
     def _ls_step(self, y: float, phi: np.ndarray) -> None:
         """Do the RLS step and, once a redesign has succeeded, eqs. (56)-(59)."""
         theta = self._theta_ls
-        # g = P phi
-        g = self._p.dot(phi)
-        # s = 1 + phi' P phi
-        s = 1.0 + phi.dot(g)
+        # e = y[k] - phi' theta_LS, g = P phi, s = 1 + phi' P phi (the shared RLS step, lambda 1)
+        e, g, s = rls_innovation(theta, self._p, phi, y, 1.0)
         if not s > 0.0:
             self._repair_covariance()
             return
-        # e = y[k] - phi' theta_LS
-        e = y - phi.dot(theta)
-        # theta_LS += P phi e / s
-        theta += g * (e / s)
-        # P -= P phi phi' P / s, written as h h' with h = g / sqrt(s)
-        h = g * (1.0 / math.sqrt(s))
-        self._p -= h[:, None] * h
+        # theta_LS += g e / s ; P -= g g' / s
+        self._p = rls_step(theta, self._p, g, s, e)
         # J += e^2 / s ; N += 1
         self._loss += e * e / s
         self._count += 1.0
@@ -637,13 +631,7 @@ class ClosedLoopBcls(RecursiveEstimator):
     def _repair_covariance(self) -> None:
         """Rebuild P as the nearest symmetric positive definite matrix."""
         self._flag('covariance_repaired')
-        sym = 0.5 * (self._p + self._p.T)
-        if not np.isfinite(sym).all():
-            self._p = self.initial_covariance * np.eye(self.num_parameters)
-            return
-        values, vectors = np.linalg.eigh(sym)
-        floor = max(values.max(), 1.0) * 1e-12
-        self._p = (vectors * np.maximum(values, floor)) @ vectors.T
+        self._p = repair_covariance(self._p, self.initial_covariance * np.eye(self.num_parameters))
 
     def _redesign(self) -> None:
         """Run Algorithm 1 on the window and take over its result."""
