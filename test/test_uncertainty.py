@@ -109,6 +109,10 @@ def test_not_ready_and_uncalibrated_estimators_have_no_covariance():
     bciv = make_estimator('bciv', order=2, iv_lag=4, idle_samples=100)
     bciv.run(y, u)
     assert bciv.ready and bciv.parameter_covariance is None and bciv.parameter_std is None
+    # cl_bcls has none either (docs/estimators.md, "Uncertainty"): the base's None
+    cl_bcls = make_estimator('cl_bcls', order=2, controller_numerator=[0.2289],
+                             controller_denominator=[1.0, -0.09004])
+    assert cl_bcls.parameter_covariance is None and cl_bcls.parameter_std is None
 
 
 def test_bcrls_lagged_moments_equal_the_batch_sums_and_survive_a_state_round_trip():

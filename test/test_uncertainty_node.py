@@ -62,8 +62,8 @@ def test_node_publishes_std_and_covariance_equal_to_replay(estimator, ros_contex
     for start in range(0, len(rows), 100):
         for row in rows[start:start + 100]:
             publisher.publish(samples_message(row))
-        assert spin_until(executor, lambda: identifier.feeder.used >= min(start + 100,
-                                                                           len(rows)))
+        target = min(start + 100, len(rows))
+        assert spin_until(executor, lambda: identifier.feeder.used >= target)
     published = identifier.estimates_published
     # rls has no std at its first estimate (p updates: no degree of freedom left)
     expected = {'parameters': published, 'parameter_std': published - (estimator == 'rls'),

@@ -286,7 +286,7 @@ class Bcrls(Rls):
         sums, weight = self._new_moments(self._pending_moments())
         if not weight > 0.0:
             return None
-        n, p = self.order, self.num_parameters
+        n = self.order
         # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
         y_scale = self._signal_scale[0] if self._signal_scale[0] > 0.0 else 1.0
         scale = np.append(self._component_scale, y_scale)

@@ -301,4 +301,5 @@ __all__ = ['BAD', 'BOOL', 'COUNTERS', 'DIAGNOSTICS', 'DROPPED', 'DiagnosticKey',
            'OUTPUT', 'OUTPUT_TYPES', 'PARAMETER_COVARIANCE', 'PARAMETER_STD', 'PARAMETERS',
            'PARAMETERS_UNCOMPENSATED', 'RESET',
            'SAMPLES', 'SIMULATOR_NODE', 'TRUE_NOISE_VARIANCE', 'TRUE_PARAMETERS', 'VALID',
-           'basename', 'check_input_width', 'covariance_layout', 'reader', 'resolve', 'stamp_ns', 'status_name']
+           'basename', 'check_input_width', 'covariance_layout', 'reader', 'resolve',
+           'stamp_ns', 'status_name']
