@@ -324,21 +324,22 @@ def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: float,
     """
     n, p = order, theta.shape[0]
     a = np.concatenate(([1.0], theta[:n]))
-    meat = np.zeros((p + 1, p + 1))
-    for k in range(n + 1):
-        gamma_w = sigma2 * float(a[:n + 1 - k] @ a[k:])
-        # c_k = E[zeta_t w_{t-k}], d_k = E[w_t zeta_{t-k}]; zeta = [-v(t-1..t-n), 0, v(t)]
-        c = np.zeros(p + 1)
-        d = np.zeros(p + 1)
-        for j in range(1, n + 1):
-            if j >= k:
-                c[j - 1] = -sigma2 * a[j - k]
-            if j + k <= n:
-                d[j - 1] = -sigma2 * a[j + k]
-        c[p] = sigma2 if k == 0 else 0.0
-        d[p] = sigma2 * a[k]
-        term = gamma_z[k] * gamma_w + np.outer(c, d)
-        meat += term if k == 0 else term + term.T
+    # gamma_w(k) = sigma2 sum_i a_i a_{i+k}, k = 0..n
+    gamma_w = sigma2 * np.correlate(a, a, 'full')[n:]
+    # c_k = E[zeta_t w_{t-k}], d_k = E[w_t zeta_{t-k}] (rows k); zeta = [-v(t-1..t-n), 0, v(t)]
+    padded = np.zeros(3 * n + 1)
+    padded[n:2 * n + 1] = a  # padded[m + n] = a_m, zero outside 0..n
+    lags = np.arange(1, n + 1) + n - np.arange(n + 1)[:, None]
+    c = np.zeros((n + 1, p + 1))
+    d = np.zeros((n + 1, p + 1))
+    c[:, :n] = -sigma2 * padded[lags]
+    d[:, :n] = -sigma2 * padded[lags + 2 * np.arange(n + 1)[:, None]]
+    c[0, p] = sigma2
+    d[:, p] = sigma2 * a
+    # S = S_0 + sum_{k>=1} (S_k + S_k'), S_k = Gamma_z(k) gamma_w(k) + c_k d_k'
+    lagged = np.tensordot(gamma_w, gamma_z, axes=1) + c.T @ d
+    first = gamma_z[0] * gamma_w[0] + np.outer(c[0], d[0])
+    meat = lagged + lagged.T - first
     lam = np.zeros(p)
     lam[:n] = 1.0
     bread = np.empty((p + 1, p + 1))
