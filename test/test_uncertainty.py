@@ -90,7 +90,7 @@ def test_rls_covariance_with_forgetting_uses_the_effective_sample_size():
     tau = estimator.weighted_count
     updates = y.shape[0] - 2
     weights = lam ** np.arange(updates)
-    # the closed form of sum(w^2) / sum(w) equals the sum itself
+    # the closed form equals sum(w^2) / sum(w) over the weights of the updates
     assert weighted_square_ratio(tau, lam) == pytest.approx(
         (weights ** 2).sum() / weights.sum(), rel=1e-9)
     ratio = weighted_square_ratio(tau, lam)
@@ -168,6 +168,7 @@ def test_calibrated_at_10000_samples(name, data):
 
 
 @pytest.mark.slow
-def test_rls_calibrated_with_forgetting():
-    check_calibrated(coverage('rls', arx_data, 3000, RUNS, seed=40_000,
-                              forgetting_factor=0.995))
+@pytest.mark.parametrize('name, data', [('rls', arx_data), ('bcrls', ding_data)],
+                         ids=['rls-arx', 'bcrls-ding'])
+def test_calibrated_with_forgetting(name, data):
+    check_calibrated(coverage(name, data, 3000, RUNS, seed=40_000, forgetting_factor=0.995))
