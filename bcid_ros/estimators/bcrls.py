@@ -31,8 +31,8 @@ CONTRACTION_MAX = 0.8
 #: A compensation larger than this times |theta_LS| (normalised units) has
 #: run away from the LS estimate.
 RUNAWAY = 1.0
-#: The extended regressors z = [phi; y] of this many updates are kept in a
-#: ring and added to the lagged moments of the covariance in one product.
+#: The extended regressors z = [phi; y] of this many updates are kept, then
+#: added to the lagged moments of the covariance in one product per lag.
 MOMENT_BLOCK = 64
 
 
