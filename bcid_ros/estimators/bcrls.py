@@ -199,6 +199,9 @@ class Bcrls(Rls):
         # sum over t of w_t z_t z_{t-k}', k = 0..n, and the sum of the weights w_t
         self._moment_sums = np.zeros((n + 1, width, width))
         self._moment_weight = 0.0
+        # [theta_c, sigma2] and [scales of phi, scale of y] at the last flush
+        self._moment_snapshot = np.zeros((2, width))
+        self._sandwich: np.ndarray | None = None
 
     def _pending_moments(self) -> np.ndarray:
         """Return the lag context and the rows z not yet summed, oldest first."""
@@ -233,12 +236,17 @@ class Bcrls(Rls):
         self._moment_context = ring[ring.shape[0] - self.order:].copy()
         self._moment_phi = []
         self._moment_y = []
+        y_scale = self._signal_scale[0] if self._signal_scale[0] > 0.0 else 1.0
+        self._moment_snapshot = np.array([np.append(self._theta_c, self._sigma2),
+                                          np.append(self._component_scale, y_scale)])
+        self._sandwich = None
 
     def _moment_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         ring = np.zeros((self.order + MOMENT_BLOCK, self.num_parameters + 1))
         pending = self._pending_moments()
         ring[:pending.shape[0]] = pending
-        return ({'moment_ring': ring, 'moment_sums': self._moment_sums},
+        return ({'moment_ring': ring, 'moment_sums': self._moment_sums,
+                 'moment_snapshot': self._moment_snapshot},
                 {'moment_pending': len(self._moment_y), 'moment_weight': self._moment_weight})
 
     def _load_moments(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -249,6 +257,8 @@ class Bcrls(Rls):
         self._moment_y = ring[n:end, -1].tolist()
         self._moment_sums = arrays['moment_sums']
         self._moment_weight = float(scalars['moment_weight'])
+        self._moment_snapshot = arrays['moment_snapshot']
+        self._sandwich = None
 
     def _parameter_covariance(self) -> np.ndarray | None:
         r"""
@@ -278,25 +288,31 @@ class Bcrls(Rls):
         :math:`z_t z_{t-k}^T`, :math:`\gamma_w(k) = \sigma^2\sum_i a_i a_{i+k}`
         (:math:`a_0 = 1`), :math:`c_k = E[\zeta_t w_{t-k}]`,
         :math:`d_k = E[w_t \zeta_{t-k}]` with :math:`\zeta` the noise part of
-        z (Gaussian v). All is evaluated at :math:`(\hat\theta_c, \hat\sigma^2)`
-        in normalised units. None before ready.
+        z (Gaussian v). :math:`H^{-1} S H^{-T}`, a per-sample quantity, is
+        evaluated in normalised units at the moments and the
+        :math:`(\hat\theta_c, \hat\sigma^2)` of the last block of
+        ``MOMENT_BLOCK`` steps, once per block and only when read; the factor
+        :math:`\tau_2/\tau^2` is the current one. None before ready and before
+        the first block.
         """
-        if self._updates < self.num_parameters:
+        if self._updates < self.num_parameters or not self._moment_weight > 0.0:
             return None
-        sums, weight = self._new_moments(self._pending_moments())
-        if not weight > 0.0:
-            return None
-        n = self.order
-        # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
-        y_scale = self._signal_scale[0] if self._signal_scale[0] > 0.0 else 1.0
-        scale = np.append(self._component_scale, y_scale)
-        gamma_z = sums / (weight * np.outer(scale, scale))
-        theta = self._theta_c * self._component_scale / y_scale
-        sigma2 = self._sigma2 / (y_scale * y_scale)
-        covariance = bcls_sandwich(gamma_z, theta, sigma2, n)
-        back = y_scale / self._component_scale
+        if self._sandwich is None:
+            self._sandwich = self._block_sandwich()
         ratio = weighted_square_ratio(self._tau, self._forgetting_factor)
-        return covariance * np.outer(back, back) * (ratio / self._tau)
+        return self._sandwich * (ratio / self._tau)
+
+    def _block_sandwich(self) -> np.ndarray:
+        """Return H^-1 S H^-T in the user's units from the moments and estimates of a block."""
+        n, p = self.order, self.num_parameters
+        estimates, scale = self._moment_snapshot
+        # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
+        y_scale = scale[p]
+        gamma_z = self._moment_sums / (self._moment_weight * np.outer(scale, scale))
+        theta = estimates[:p] * scale[:p] / y_scale
+        sigma2 = estimates[p] / (y_scale * y_scale)
+        back = y_scale / scale[:p]
+        return bcls_sandwich(gamma_z, theta, sigma2, n) * np.outer(back, back)
 
 
 def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: float,
