@@ -98,7 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser('demo', formatter_class=fmt,
                           help='simulator + identifier nodes, converging live')
-    demo.add_argument('--scenario', choices=SCENARIO_NAMES, default='ding_miso')
+    demo.add_argument('--scenario', choices=SCENARIO_NAMES + ('adaptive_loop',),
+                      default='ding_miso', help='a paper scenario, or adaptive_loop: plant, '
+                      'identifier and adaptive controller as three processes')
+    demo.add_argument('--estimator', choices=ESTIMATOR_NAMES, default=None,
+                      help="adaptive_loop: the identifier's estimator (default: the config's "
+                      'cl_bcls)')
     demo.add_argument('--samples', type=int, default=0,
                       help="samples to simulate (0: the scenario's default)")
     demo.add_argument('--rate', type=float, default=0.0,

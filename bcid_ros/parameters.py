@@ -26,6 +26,7 @@ from typing import Any
 
 from bcid_ros.estimators import estimator_class, ESTIMATORS, RecursiveEstimator
 from bcid_ros.nodes.interface import check_input_width, INPUT_TYPES, MESSAGE_TYPES, OUTPUT_TYPES
+from bcid_ros.simulation import SCENARIOS
 
 #: Parameter types, named as the ROS parameter types they become.
 TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array')
@@ -33,6 +34,10 @@ TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array')
 #: The keyword arguments of every estimator's base constructor.
 BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
                  'forgetting_factor')
+
+#: The JointState field of y when ``output_field`` is empty, by ``input_mode``.
+OUTPUT_FIELD_DEFAULTS = {'combined': 'position', 'separate': 'position',
+                         'joint_state': 'velocity'}
 
 #: Parameters every ROS node has; accepted in parameter files and ignored here.
 ROS_BUILTIN = ('use_sim_time', 'start_type_description_service')
@@ -205,8 +210,11 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'than this. Unset: the estimator default.', low=0.0, high=1e6, low_open=True),
     # --- node: input topics, pairing, publishing
     _p('input_mode', 'string', 'combined', 'combined: y and u in one Float64MultiArray on '
-       'samples (single samples or frames). separate: u on input and y on output.',
-       choices=('combined', 'separate')),
+       'samples (single samples or frames). separate: u on input and y on output. '
+       'joint_state: one estimator per joint of joints, fed from joint_states.',
+       choices=('combined', 'separate', 'joint_state')),
+    _p('joints', 'string_array', [], 'joint_state mode (required there): the joint names, one '
+       'single-input estimator each; each name becomes a topic token (letters, digits, _).'),
     _p('sync', 'string', 'arrival', 'Separate mode pairing: arrival (FIFO in arrival order) or '
        'stamp (header stamps equal within sync_tolerance; needs JointState).',
        choices=('arrival', 'stamp')),
@@ -223,24 +231,30 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        choices=OUTPUT_TYPES),
     _p('input_joints', 'string_array', [], 'JointState input: joint names of u1..ur, in order '
        '(empty: the first r entries).'),
-    _p('input_field', 'string', 'effort', 'JointState input: the field holding u.',
-       choices=('position', 'velocity', 'effort')),
+    _p('input_field', 'string', 'effort', 'JointState input (separate and joint_state '
+       'modes): the field holding u.', choices=('position', 'velocity', 'effort')),
     _p('output_joint', 'string', '', 'JointState output: joint name of y (empty: the first '
        'entry).'),
-    _p('output_field', 'string', 'position', 'JointState output: the field holding y.',
-       choices=('position', 'velocity', 'effort')),
+    _p('output_field', 'string', '', 'JointState output: the field holding y. Empty: '
+       'position in separate mode, velocity in joint_state mode.',
+       choices=('', 'position', 'velocity', 'effort')),
     _p('publish_period', 'integer', 1, 'Publish the estimates every this many samples. May be '
        'changed while running.', low=1, high=1000000, read_only=False),
     _p('excitation_window', 'integer', 200, 'Warn (and count) when the input has not changed '
        'for this many samples (no excitation); 0 turns the check off.', low=0, high=1e9),
+    # --- the adaptive loop
+    _p('controller_topic', 'string', '', 'cl_bcls only: take the controller in the loop from '
+       'this topic (Float64MultiArray, latched; numerator then denominator in descending '
+       'powers of q, as the adaptive controller\'s ~/controller) and restart the compensation '
+       'at every change. Empty: the controller is fixed by controller_numerator/'
+       'controller_denominator.'),
 )
 
 #: The simulator node's parameters (docs/nodes.md), in declaration order.
 SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
-    _p('scenario', 'string', 'ding_miso', 'The papers\' scenarios, or custom (plant, noise and '
-       'input given by the custom parameters below).',
-       choices=('ding_miso', 'ding_miso_nonstationary', 'ikenoue_colored',
-                'ikenoue_white_input', 'ikeda_closed_loop', 'custom')),
+    _p('scenario', 'string', 'ding_miso', 'The papers\' scenarios, custom (plant, noise and '
+       'input given by the custom parameters below), or joints (num_joints random plants on '
+       'joint_states).', choices=tuple(SCENARIOS)),
     _p('rate_hz', 'double', 100.0, 'Samples per second.', low=0.0, high=1e6, low_open=True),
     _p('seed', 'integer', 0, 'Seed of the random generator; the same seed gives the same '
        'data at any rate and frame size.', low=0, high=2 ** 63 - 1),
@@ -257,6 +271,11 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        'so that subscribers can connect.', low=0.0, high=3600.0),
     _p('wait_for_subscribers', 'integer', 0, 'Before the first sample, wait until the samples '
        '(or output) topic has this many subscribers.', low=0, high=1000),
+    # --- the joints scenario
+    _p('num_joints', 'integer', 6, 'joints: number of joints K, each an independent random '
+       'stable second-order plant drawn from seed.', low=1, high=100000),
+    _p('joints', 'string_array', [], 'joints: the joint names, num_joints of them (empty: '
+       'joint_1 ... joint_K).'),
     # --- the custom scenario
     _p('plant_denominator', 'double_array', [1.0, -0.8], 'custom: A(z) = 1 + a1 z^-1 + ... + '
        'an z^-n, as [1, a1, ..., an].'),
@@ -283,7 +302,30 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        'colouring filter.'),
     _p('input_noise_variance', 'double', 0.0, 'custom: variance of white measurement noise '
        'added to the published inputs (errors in variables).', low=0.0, high=1e12),
+    _p('input_delay', 'double_array', [0.0], 'custom: dead time d_i of each input in samples '
+       '(integers >= 0; one number for all inputs or one per input).', low=0.0, high=1e6),
+    _p('input_offset', 'double_array', [0.0], 'custom: operating point u0_i of each input '
+       '(one number or one per input): y = y0 + B/A (u - u0) + v.'),
+    _p('output_offset', 'double', 0.0, 'custom: operating point y0 of the output.'),
+    # --- plant mode: the plant in a loop (docs/adaptive_loop.md)
+    _p('mode', 'string', 'open_loop', 'open_loop: the scenario draws its own inputs. plant '
+       '(custom only): the input is read from the input topic and held (zero-order hold, 0 '
+       'until the first command); samples [y, u] and output are published at rate_hz.',
+       choices=('open_loop', 'plant')),
+    _p('change_after_samples', 'integer', 0, 'plant mode: after this many samples the plant '
+       'becomes plant_denominator_after / plant_numerator_after and the truth topics are '
+       'published again; 0: no change.', low=0, high=1e12),
+    _p('plant_denominator_after', 'double_array', [], 'plant mode: A(z) after the change, as '
+       '[1, a1, ..., an] (empty: unchanged).'),
+    _p('plant_numerator_after', 'double_array', [], 'plant mode: B_i(z) after the change, '
+       'concatenated as plant_numerator (empty: unchanged).'),
+    _p('lockstep', 'bool', False, 'plant mode: before each sample, wait (up to 1 s) for the '
+       'command computed from the previous output, so that a slow controller never misses '
+       'a sample (a simulation in step with the controller, not real time).'),
 )
+
+#: Custom-plant settings beyond CUSTOM_SETTINGS: dead time and operating point.
+OPERATING_POINT_SETTINGS = ('input_delay', 'input_offset', 'output_offset')
 
 #: The custom scenario's parameter names (passed to CustomScenario).
 CUSTOM_SETTINGS = ('plant_denominator', 'plant_numerator', 'noise_numerator',
@@ -432,12 +474,33 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
                     raise ValueError(f'parameter {name!r} must be a stamped type (one of '
                                      f'{", ".join(stamped)}) with sync: stamp, got '
                                      f'{checked[name]!r}')
+    if not checked['output_field']:
+        checked['output_field'] = OUTPUT_FIELD_DEFAULTS[checked['input_mode']]
+    if checked['input_mode'] == 'joint_state':
+        _check_joint_state_parameters(checked)
     if checked['input_joints'] and len(checked['input_joints']) != checked['num_inputs']:
         raise ValueError(f"parameter 'input_joints' must have num_inputs = "
                          f"{checked['num_inputs']} names (or none), got "
                          f"{checked['input_joints']!r}")
     estimator_options(checked['estimator'])  # raises if the estimator is not installed
     return checked
+
+
+def _check_joint_state_parameters(checked: dict[str, Any]) -> None:
+    """Check what ``input_mode: joint_state`` needs: names, a batched estimator, one input."""
+    from bcid_ros.joint_feeder import check_joint_names, JOINT_ESTIMATORS
+
+    check_joint_names(checked['joints'])
+    if checked['estimator'] not in JOINT_ESTIMATORS:
+        raise ValueError(f"parameter 'estimator' must be one of {', '.join(JOINT_ESTIMATORS)} "
+                         f"with input_mode: joint_state (the estimators with a batched form), "
+                         f"got {checked['estimator']!r}")
+    if checked['num_inputs'] != 1:
+        raise ValueError(f"parameter 'num_inputs' must be 1 with input_mode: joint_state (one "
+                         f"single-input estimator per joint), got {checked['num_inputs']}")
+    if checked['input_field'] == checked['output_field']:
+        raise ValueError(f"parameters 'input_field' and 'output_field' must differ with "
+                         f"input_mode: joint_state, both are {checked['input_field']!r}")
 
 
 def estimator_options(name: str) -> tuple[str, ...]:
@@ -528,10 +591,24 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
         Naming the parameter and its allowed values.
 
     """
-    return check_parameters(values, SIMULATOR_PARAMETERS)
+    checked = check_parameters(values, SIMULATOR_PARAMETERS)
+    if checked['scenario'] == 'joints':
+        from bcid_ros.joint_feeder import check_joint_names
+
+        if checked['joints']:
+            check_joint_names(checked['joints'])
+            if len(checked['joints']) != checked['num_joints']:
+                raise ValueError(f"parameter 'joints' must have num_joints = "
+                                 f"{checked['num_joints']} names (or none), got "
+                                 f"{len(checked['joints'])}")
+        if checked['frame_size'] != 1:
+            raise ValueError(f"parameter 'frame_size' must be 1 with scenario joints (one "
+                             f"JointState per sample), got {checked['frame_size']}")
+    return checked
 
 
-__all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS', 'ParameterSpec',
+__all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS',
+           'OPERATING_POINT_SETTINGS', 'ParameterSpec',
            'SIMULATOR_PARAMETERS', 'TYPES', 'check_identifier_parameters', 'check_parameters',
            'check_simulator_parameters', 'estimator_from_parameters', 'estimator_options',
            'estimator_settings', 'load_yaml_parameters', 'markdown_table', 'spec_by_name',

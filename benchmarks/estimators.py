@@ -8,8 +8,10 @@ the naive way re-solves the batch problem over all data so far at every sample
 (timed at N = 1000); the peer is padasip's FilterRLS of the same size.
 
 Many plants: the batched rls and bcrls update all K plants of the `joints` scenario
-(n = 2, r = 1) in one call; the figure is the median time of one call divided by K,
-against the single-plant update of the same structure timed in the same run. The
+(n = 2, r = 1) in one call, with the single-plant safeguards at their defaults (units,
+transaction, the gate at its 1e6 limit, validity); the figure is the median time of one
+call divided by K, against the single-plant update of the same structure timed in the same
+run. The
 JointState demultiplexer (names matched to joints, both fields taken out) is timed per
 message on messages shaped as rclpy delivers them, the joints listed in reverse order.
 """

@@ -235,6 +235,7 @@ def run(quick: bool = False) -> list[Result]:
         results += memory(bench, rows, 200_000 if quick else 1_000_000)
     finally:
         bench.close()
+    results += joints(quick)
     return results
 
 
@@ -281,3 +282,289 @@ def memory(bench: Bench, rows: np.ndarray, total: int) -> list[Result]:
     return [Result(SECTION, f'RSS growth from {tenth:,} to {total:,} samples', growth, 'MB',
                    '< 5 MB', growth < 5.0,
                    note=f'{early:.1f} MB → {late:.1f} MB; node used {used:,.0f} samples')]
+
+
+# ------------------------------------------------------------------ many joints
+#: The joint_state cases: (joints, JointState messages per second), publishing every 10th.
+JOINT_CASES = ((100, 100.0), (1000, 10.0))
+JOINTS_PUBLISH_PERIOD = 10
+#: Node CPU target of every joint_state case (cores).
+JOINTS_CPU_TARGET = 0.5
+
+
+class JointsBench:
+    """The benchmark's node for the joint_state cases: JointState publisher, diagnostics."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import JointState
+
+        from bcid_ros.joint_feeder import JOINT_STATES
+        from bcid_ros.nodes import interface
+        from bcid_ros.nodes.common import SAMPLES_QOS
+
+        self.rclpy = rclpy
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('bcid_joints_bench', context=self.context)
+        self.joint_states = self.node.create_publisher(JointState, JOINT_STATES, SAMPLES_QOS)
+        self._status_name = interface.status_name(interface.IDENTIFIER_NODE)
+        self.counters: dict[str, float] = {}
+        self.statuses = 0
+        self.node.create_subscription(DiagnosticArray, interface.DIAGNOSTICS,
+                                      self._on_diagnostics, 10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # shutdown while spinning
+            pass
+
+    def _on_diagnostics(self, message) -> None:
+        for status in message.status:
+            if status.name == self._status_name:
+                self.statuses = len(message.status)
+                for pair in status.values:
+                    try:
+                        self.counters[pair.key] = float(pair.value)
+                    except ValueError:
+                        pass
+
+    def wait_for_subscriber(self, timeout: float = 120.0) -> float:
+        """Block until the identifier subscribes to joint_states; return the seconds waited."""
+        start = time.monotonic()
+        while self.joint_states.get_subscription_count() < 1:
+            if time.monotonic() - start > timeout:
+                raise RuntimeError('no subscriber on joint_states')
+            time.sleep(0.05)
+        return time.monotonic() - start
+
+    def publish_at_rate(self, messages: list, rate: float) -> int:
+        """Publish the messages at ``rate`` per second; return how many were sent."""
+        start = time.perf_counter()
+        sent = 0
+        while sent < len(messages):
+            due = min(int((time.perf_counter() - start) * rate) + 1, len(messages))
+            while sent < due:
+                self.joint_states.publish(messages[sent])
+                sent += 1
+            time.sleep(0.001)
+        return sent
+
+    def settled(self, key: str, settle: float = 3.0) -> float:
+        """Wait until the diagnostic value ``key`` stops changing (1 Hz) and return it."""
+        last, stable_since = None, time.monotonic()
+        while time.monotonic() - stable_since < settle:
+            value = self.counters.get(key)
+            if value != last:
+                last, stable_since = value, time.monotonic()
+            time.sleep(0.1)
+        return last or 0.0
+
+    def estimates(self, joints: list[str], timeout: float = 60.0) -> dict[str, np.ndarray]:
+        """Subscribe to every joint's latched estimate and return the latest of each."""
+        from std_msgs.msg import Float64MultiArray
+
+        from bcid_ros.joint_feeder import joint_topic
+        from bcid_ros.nodes import interface
+        from bcid_ros.nodes.common import LATCHED_QOS
+
+        received: dict[str, np.ndarray] = {}
+        subscriptions = []
+        for joint in joints:
+            topic = interface.resolve(joint_topic(joint, interface.PARAMETERS),
+                                      interface.IDENTIFIER_NODE)
+            subscriptions.append(self.node.create_subscription(
+                Float64MultiArray, topic,
+                lambda message, joint=joint: received.__setitem__(joint, np.array(message.data)),
+                LATCHED_QOS))
+        deadline = time.monotonic() + timeout
+        while len(received) < len(joints) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        for subscription in subscriptions:
+            self.node.destroy_subscription(subscription)
+        return received
+
+    def close(self) -> None:
+        """Stop spinning and shut the context down."""
+        self.executor.shutdown()
+        self.thread.join(5.0)
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+def joints_identifier(joints: list[str], directory: Path) -> subprocess.Popen:
+    """Start identifier_node in joint_state mode (bcrls, n = 2) for ``joints``."""
+    import yaml
+
+    path = directory / f'joints_{len(joints)}.yaml'
+    path.write_text(yaml.safe_dump({'bcid_identifier': {'ros__parameters': {
+        'estimator': 'bcrls', 'order': 2, 'input_mode': 'joint_state', 'joints': joints,
+        'publish_period': JOINTS_PUBLISH_PERIOD}}}))
+    binary = str(Path(sys.executable).parent / 'identifier_node')
+    return start([binary, '--ros-args', '--params-file', str(path)])
+
+
+def joint_state_messages(scenario, samples: int,
+                         seed: int) -> tuple[list, np.ndarray, np.ndarray]:
+    """Return one JointState per sample of the joints scenario, and its (y, u)."""
+    from sensor_msgs.msg import JointState
+
+    from bcid_ros.nodes.messages import as_doubles
+
+    y, u = scenario.simulate(samples, seed)
+    names = list(scenario.joint_names)
+    messages = []
+    for t in range(samples):
+        message = JointState(name=names)
+        message.velocity = as_doubles(y[t])
+        message.effort = as_doubles(u[t])
+        messages.append(message)
+    return messages, y, u
+
+
+def joints_case(bench: JointsBench, joints: int, rate: float, seconds: float,
+                directory: Path) -> tuple[list[Result], float]:
+    """Run one joint_state case; return its rows and the node's RSS after the run (MB)."""
+    from bcid_ros.estimators.batched import make_batched_estimator
+    from bcid_ros.simulation import make_scenario
+
+    samples = int(rate * seconds) // JOINTS_PUBLISH_PERIOD * JOINTS_PUBLISH_PERIOD
+    scenario = make_scenario('joints', num_joints=joints, seed=11)
+    messages, y, u = joint_state_messages(scenario, samples, 12)
+    label = f'{joints:,} joints at {rate:g} Hz, every {JOINTS_PUBLISH_PERIOD}th published'
+    deadline = time.monotonic() + 30.0
+    while bench.joint_states.get_subscription_count() and time.monotonic() < deadline:
+        time.sleep(0.1)  # the last case's node has left the graph
+    node = joints_identifier(list(scenario.joint_names), directory)
+    try:
+        bench.counters.clear()
+        startup = bench.wait_for_subscriber()
+        time.sleep(2.0)  # discovery of the per-joint endpoints settles
+        cpu_before = cpu_seconds(node.pid)
+        start = time.perf_counter()
+        sent = bench.publish_at_rate(messages, rate)
+        elapsed = time.perf_counter() - start
+        received = bench.settled(DiagnosticKey.MESSAGES)
+        cpu = cpu_seconds(node.pid) - cpu_before
+        lost = bench.counters.get('lost in transport (messages, by sequence number)', 0.0)
+        statuses = bench.statuses
+        rss = rss_mb(node.pid)
+        estimates = bench.estimates(list(scenario.joint_names))
+    finally:
+        stop(node)
+    # the node's estimates against the same samples run offline (each joint equals its
+    # single-plant run to 1e-12, test_batched.py), and both against the truth
+    offline = make_batched_estimator('bcrls', joints, order=2)
+    for t in range(samples):
+        offline.update(y[t], u[t])
+    truth = scenario.parameters
+    scale = np.linalg.norm(truth, axis=1)
+    node_theta = np.array([estimates.get(joint, np.full(4, np.nan))
+                           for joint in scenario.joint_names])
+    delta_node = np.linalg.norm(node_theta - truth, axis=1) / scale
+    delta_single = np.linalg.norm(offline.theta - truth, axis=1) / scale
+    complete = bool(np.all(delta_node <= delta_single + 1e-9)) and len(estimates) == joints
+    cores = cpu / elapsed
+    loss = sent - received
+    return [
+        Result(SECTION, f'{label}: messages lost', loss, 'messages', '0', loss == 0 and not lost,
+               note=f'sent {sent:,} in {elapsed:.1f} s, node took {received:,.0f}; lost in '
+               f'transport {lost:.0f}; {statuses} statuses per /diagnostics message'),
+        Result(SECTION, f'{label}: node CPU', cores, 'cores', f'≤ {JOINTS_CPU_TARGET}',
+               cores <= JOINTS_CPU_TARGET,
+               note=f'{cpu / max(received, 1) * 1e6:.0f} µs per message, '
+               f'{cpu / max(received * joints, 1) * 1e6:.2f} µs per joint sample; start-up '
+               f'(to the subscription) {startup:.1f} s'),
+        Result(SECTION, f'{label}: joints with δ within the single-plant δ',
+               joints if complete else 0, f'of {joints}', f'all {joints}', complete,
+               note=f'δ median {np.nanmedian(delta_node):.3g}, max {np.nanmax(delta_node):.3g} '
+               f'after {samples:,} samples; largest |δ node − δ single| '
+               f'{np.nanmax(np.abs(delta_node - delta_single)):.2g}; estimates of '
+               f'{len(estimates)} joints received'),
+    ], rss
+
+
+def joints_baseline_rss(bench: JointsBench, directory: Path) -> float:
+    """Return the RSS (MB) of an identifier with one joint, after start-up."""
+    node = joints_identifier(['joint_1'], directory)
+    try:
+        bench.wait_for_subscriber()
+        time.sleep(2.0)
+        return rss_mb(node.pid)
+    finally:
+        stop(node)
+
+
+def joints_diagnostics_cost(count: int, repeats: int = 10) -> Result:
+    """Time one 1 Hz /diagnostics message of ``count`` joints: compose and serialise."""
+    from bcid_ros.estimators.batched import make_batched_estimator
+    from bcid_ros.joint_feeder import JointFeeder
+    from bcid_ros.nodes.diagnostics_cdr import DiagnosticArrayEncoder
+    from bcid_ros.nodes.joint_diagnostics import JointStatuses
+    from bcid_ros.simulation import make_scenario
+
+    scenario = make_scenario('joints', num_joints=count, seed=11)
+    messages, _, _ = joint_state_messages(scenario, 50, 12)
+    feeder = JointFeeder(scenario.joint_names, make_batched_estimator('bcrls', count, order=2))
+    for message in messages:
+        feeder.take(message)
+    statuses = JointStatuses('bcid_identifier', feeder)
+    encoder = DiagnosticArrayEncoder()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        encoder.encode((0, 0), statuses.statuses())
+        times.append(time.perf_counter() - start)
+    best = min(times)
+    return Result(SECTION, f'{count:,} joints: one /diagnostics message (statuses composed '
+                  'and serialised)', best * 1e3, 'ms',
+                  note=f'{best * 100:.1f} % of a core at 1 Hz; best of {repeats}')
+
+
+def joints(quick: bool = False) -> list[Result]:
+    """Measure the joint_state cases: loss, node CPU, δ per joint, memory per joint."""
+    import tempfile
+
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('ROS_DOMAIN_ID', str(150 + os.getpid() % 50))
+    seconds = 10.0 if quick else 60.0
+    bench = JointsBench()
+    results: list[Result] = []
+    try:
+        with tempfile.TemporaryDirectory() as directory:
+            baseline = joints_baseline_rss(bench, Path(directory))
+            for count, rate in JOINT_CASES:
+                rows, rss = joints_case(bench, count, rate, seconds, Path(directory))
+                results += rows
+                results.append(Result(
+                    SECTION, f'{count:,} joints: memory per joint', (rss - baseline) * 1024 /
+                    (count - 1), 'KB', note=f'node RSS {rss:.0f} MB against {baseline:.0f} MB '
+                    'with one joint, divided by the joints added'))
+    finally:
+        bench.close()
+    results.append(joints_diagnostics_cost(JOINT_CASES[-1][0]))
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the joint_state cases alone: ``python -m benchmarks.node joints [--quick]``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument('part', choices=['joints'])
+    parser.add_argument('--quick', action='store_true', help='10 s per case instead of 60 s')
+    args = parser.parse_args(argv)
+    for row in joints(quick=args.quick):
+        print(' | '.join(row.cells()))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -204,13 +204,14 @@ def test_the_config_file_starts_the_node(ros_context, executor):
         context=ros_context, parameter_overrides=[Parameter(k, value=v)
                                                   for k, v in values.items()])
     executor.add_node(node)
-    assert node.loop.settings['closed_loop_poles'] == [0.5, 0.5]
-    # the design the file asks for: C = 0.18/(q - 0.2) on the true plant
+    assert node.loop.settings['closed_loop_poles'] == [0.4, 0.6]
+    # the design the file asks for: C = 0.16/(q - 0.2) on the true plant
     node.loop.offer_parameters(NAMES, TRUE_THETA, 0.0)
     node.loop.offer_std(NAMES, [0.001, 0.001])
     node.loop.offer_valid(True)
     assert node.loop.redesign(0.0).kind == 'switched'
-    np.testing.assert_allclose(node.loop.controller.numerator, [0.18], atol=1e-12)
+    np.testing.assert_allclose(node.loop.controller.numerator, [0.16], atol=1e-12)
+    np.testing.assert_allclose(node.loop.controller.denominator, [1.0, -0.2], atol=1e-12)
 
 
 def test_bad_parameters_stop_the_node_with_a_clear_message():

@@ -54,6 +54,9 @@ def test_each_joint_equals_the_single_plant_identifier_path(name):
         np.testing.assert_allclose(batched.noise[k], single.noise, rtol=TOLERANCE,
                                    atol=TOLERANCE)
         assert batched.samples[k] == single.samples
+        assert batched.valid[k] == single.valid
+        assert batched.plant_validity_reasons(k) == single.validity_reasons
+        assert batched.plant_flags(k) == single.flags
         assert batched.nonfinite[k] == feeder.nonfinite == demux.nonfinite[k]
         assert batched.used[k] == feeder.used
     np.testing.assert_array_equal(batched.missing, demux.missing)

@@ -300,6 +300,41 @@ class Controller:
         return [float(v) for v in self.numerator], [float(v) for v in self.denominator]
 
 
+#: The ``layout.dim`` labels of a ``~/controller`` message, in order.
+CONTROLLER_LABELS = ('numerator', 'denominator')
+
+
+def controller_from_message(labels: Sequence[str], sizes: Sequence[int],
+                            data: Sequence[float]) -> Controller:
+    """
+    Return the controller of a ``~/controller`` message, or say why it is malformed.
+
+    Parameters
+    ----------
+    labels, sizes : sequence
+        ``layout.dim[k].label`` and ``.size``: exactly ``numerator``,
+        ``denominator``.
+    data : sequence of float
+        The numerator then the denominator, descending powers of q.
+
+    Raises
+    ------
+    ValueError
+        If the layout is not (numerator, denominator), the sizes do not add
+        up to the data, or the controller is not finite and causal.
+
+    """
+    if tuple(labels) != CONTROLLER_LABELS:
+        raise ValueError(f'controller message layout must be dim labels '
+                         f'{list(CONTROLLER_LABELS)}, got {list(labels)}')
+    sizes = [int(size) for size in sizes]
+    values = np.asarray(data, dtype=float)
+    if min(sizes) < 1 or sum(sizes) != values.size:
+        raise ValueError(f'controller message sizes {sizes} must be >= 1 and add up to the '
+                         f'{values.size} values of data')
+    return Controller.from_coefficients(values[:sizes[0]], values[sizes[0]:])
+
+
 def closed_loop_polynomial(plant: Plant, controller: Controller) -> np.ndarray:
     """Return A R + B S, descending powers of q."""
     return np.polyadd(np.polymul(plant.denominator, controller.denominator),
@@ -453,8 +488,7 @@ def place_poles(plant: Plant, poles: Sequence[float], *, integral: bool = False,
     return controller
 
 
-__all__ = ['Controller', 'DEFAULT_MAX_CONDITION', 'DesignRefused', 'ModelStructure', 'Plant',
-           'check_estimate', 'closed_loop_polynomial', 'closed_loop_poles',
-           'controller_degree', 'parse_names', 'place_poles', 'pole_distance',
-           'required_pole_count',
-           'sylvester_matrix']
+__all__ = ['CONTROLLER_LABELS', 'Controller', 'DEFAULT_MAX_CONDITION', 'DesignRefused',
+           'ModelStructure', 'Plant', 'check_estimate', 'closed_loop_polynomial',
+           'closed_loop_poles', 'controller_degree', 'controller_from_message', 'parse_names',
+           'place_poles', 'pole_distance', 'required_pole_count', 'sylvester_matrix']

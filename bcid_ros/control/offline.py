@@ -14,8 +14,9 @@ same estimators, sample by sample:
 4. every ``redesign_every`` samples the estimate is offered (names, values,
    valid) and the controller looks at it. When the controller switches,
    ``estimator_factory`` may be called again with the new controller (a
-   closed-loop estimator that must know the controller restarts, as the
-   identifier's ``controller_topic`` will make ``cl_bcls`` do).
+   closed-loop estimator that must know the controller restarts), or the
+   estimator's ``set_controller`` is called with it, as the identifier's
+   ``controller_topic`` makes ``cl_bcls`` do.
 
 It measures what the loop achieves: at each look, the estimate and the
 closed-loop poles of (true plant, controller in the loop).
@@ -96,6 +97,7 @@ def simulate_adaptive_loop(estimator_factory: Callable[[Controller], Any],
                            settings: dict[str, Any], theta: Sequence[float], *,
                            samples: int, noise_std: float, rng: np.random.Generator,
                            redesign_every: int = 1000, restart_on_switch: bool = False,
+                           set_controller_on_switch: bool = False,
                            y0: float = 0.0, u0: float = 0.0, change_at: int | None = None,
                            theta_after: Sequence[float] | None = None,
                            std_of: Callable[[Any], Sequence[float]] | None = None) -> LoopRun:
@@ -122,6 +124,10 @@ def simulate_adaptive_loop(estimator_factory: Callable[[Controller], Any],
         Samples between two looks at the estimate.
     restart_on_switch : bool
         Build a new estimator at every controller switch.
+    set_controller_on_switch : bool
+        Call ``estimator.set_controller(numerator, denominator)`` with the
+        new controller at every switch, as the identifier does with
+        ``controller_topic``.
     y0, u0 : float
         Operating point of the plant.
     change_at : int, optional
@@ -178,6 +184,8 @@ def simulate_adaptive_loop(estimator_factory: Callable[[Controller], Any],
         outcome = loop.redesign(float(t))
         if outcome.kind == 'switched' and restart_on_switch:
             estimator = estimator_factory(loop.controller)
+        elif outcome.kind == 'switched' and set_controller_on_switch:
+            estimator.set_controller(*loop.controller.message_data())
         looks.append(t + 1)
         estimates.append(values if valid else np.full(values.size, np.nan))
         poles.append(closed_loop_poles(truth, loop.controller))

@@ -320,6 +320,38 @@ class ClosedLoopBcls(RecursiveEstimator):
         shift[n:, n:] = f_matrix
         self._shift = shift
 
+    # ------------------------------------------------- the controller in the loop
+    def set_controller(self, numerator: Sequence[float], denominator: Sequence[float],
+                       sign: str = 'negative') -> None:
+        """
+        Take a new controller in the loop and restart the compensation from it.
+
+        Minimal version for the adaptive loop (the identifier's
+        ``controller_topic``): the estimator restarts from its initial state
+        with the new controller, so no sample from before the change enters
+        a redesign with the new controller. The estimate is not valid until
+        the first redesign on the new samples.
+
+        Parameters
+        ----------
+        numerator, denominator : sequence of float
+            b_c(q) and a_c(q) in descending powers of q, as in the
+            ``~/controller`` message data.
+        sign : str
+            ``'negative'`` (u = C (r - y), the message convention) or
+            ``'positive'``.
+
+        Raises
+        ------
+        ValueError
+            If the controller is not allowed (as for the constructor); the
+            estimator is then unchanged.
+
+        """
+        controller = make_controller(numerator, denominator, sign)
+        self.controller = controller
+        self._reset()
+
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:

@@ -1,6 +1,11 @@
 """
 ``bcid demo``: the simulator and identifier nodes, converging live.
 
+``bcid demo --scenario adaptive_loop`` runs the adaptive loop instead: the
+plant (``simulator_node``, ``mode: plant``), the identifier and
+``adaptive_controller_node`` as three processes with
+config/adaptive_loop.yaml (docs/adaptive_loop.md).
+
 Starts ``simulator_node`` and ``identifier_node`` as two processes with the
 scenario's config file, as a user would, and watches them from a small
 in-process node: one line per second (samples, the current estimate, its
@@ -36,6 +41,7 @@ DEMO_DEFAULTS = {
     'ikenoue_colored': (10000, 2000.0, 20),
     'ikenoue_white_input': (10000, 2000.0, 20),
     'ikeda_closed_loop': (8192, 2000.0, 8),
+    'adaptive_loop': (12000, 500.0, 1),
 }
 #: Seconds to wait for the last estimate after the simulator has finished.
 SETTLE_TIMEOUT = 10.0
@@ -54,7 +60,8 @@ def executable(name: str) -> list[str]:
     if found:
         return [found]
     module = {'identifier_node': 'bcid_ros.nodes.identifier_node',
-              'simulator_node': 'bcid_ros.nodes.simulator_node'}[name]
+              'simulator_node': 'bcid_ros.nodes.simulator_node',
+              'adaptive_controller_node': 'bcid_ros.nodes.adaptive_controller_node'}[name]
     return [sys.executable, '-m', module]
 
 
@@ -265,6 +272,10 @@ def _one_decimal(text: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``bcid demo``; return the exit code."""
+    if args.scenario == 'adaptive_loop':
+        from bcid_ros.nodes.demo_loop import run_adaptive_loop
+
+        return run_adaptive_loop(args)
     samples, rate, frame = DEMO_DEFAULTS[args.scenario]
     samples = args.samples or samples
     rate = args.rate or rate

@@ -24,12 +24,14 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Bool, Float64MultiArray
 from std_srvs.srv import Trigger
 
+from bcid_ros.control.design import controller_from_message
 from bcid_ros.estimators.base import standard_deviations
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
                                    SAMPLES_QOS, Throttle, usage)
 from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, EstimatorTask,
                                         SampleRateTask)
+from bcid_ros.nodes.joint_identifier import JointStateIdentifier
 from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
                                      topic_class, valid_message)
 from bcid_ros.nodes.pairing import GAP, Paired, Pairing, SequenceTracker
@@ -65,6 +67,9 @@ class IdentifierNode(Node):
         for name in unused_options(settings):
             self.get_logger().warning(f'parameter {name!r} does not apply to estimator '
                                       f'{settings["estimator"]!r}; ignored')
+        if settings['input_mode'] == 'joint_state':
+            self._start_joint_state(settings, specs)
+            return
         self.estimator = estimator_from_parameters(settings)  # as bcid replay builds it
         self.feeder = SampleFeeder(self.estimator, settings['excitation_window'],
                                    settings['publish_period'])
@@ -99,6 +104,7 @@ class IdentifierNode(Node):
                 SampleRateTask(self.feeder, lambda: self.get_clock().now().nanoseconds * 1e-9,
                                self)],
             hardware_id=self.get_name())
+        self._subscribe_controller(settings)
         self._table_check = make_parameter_check(specs)
         self.add_on_set_parameters_callback(self.check_parameters)
         self.add_post_set_parameters_callback(self.on_parameters_set)
@@ -107,6 +113,24 @@ class IdentifierNode(Node):
             f'feedthrough={settings["feedthrough"]}; input_mode {settings["input_mode"]}'
             + (f' (sync {settings["sync"]})' if settings['input_mode'] == 'separate' else '')
             + f'; parameters {names_label(names)}')
+
+    def _start_joint_state(self, settings: dict[str, Any], specs: dict[str, Any]) -> None:
+        """Set up ``input_mode: joint_state``: one estimator per joint, all batched."""
+        self.joint_state = JointStateIdentifier(self, settings)
+        self.feeder = self.joint_state.feeder
+        self.estimator = self.feeder.estimator
+        self.counters = self.joint_state.counters
+        self._table_check = make_parameter_check(specs)
+        self.add_on_set_parameters_callback(self.check_parameters)
+        self.add_post_set_parameters_callback(self.on_parameters_set)
+        joints = self.feeder.joints
+        shown = ', '.join(joints[:5]) + (f' and {len(joints) - 5} more' if len(joints) > 5 else '')
+        self.get_logger().info(
+            f'{settings["estimator"]} with n={settings["order"]}, '
+            f'feedthrough={settings["feedthrough"]} for each of {len(joints)} joints ({shown}); '
+            f'input_mode joint_state, u = {settings["input_field"]}, '
+            f'y = {settings["output_field"]}; parameters '
+            f'{names_label(self.estimator.parameter_names)}')
 
     def _subscribe(self, settings: dict[str, Any]) -> None:
         if settings['input_mode'] == 'combined':
@@ -120,6 +144,71 @@ class IdentifierNode(Node):
                 lambda message, info, side=side, read=read: self.on_separate(
                     side, read, message, info),
                 SAMPLES_QOS)
+
+    # ----------------------------------------------- the controller in the loop
+    def _subscribe_controller(self, settings: dict[str, Any]) -> None:
+        """With controller_topic: take cl_bcls's controller from the adaptive controller."""
+        topic = settings['controller_topic']
+        self.controller_counts = {'changes': 0, 'unchanged': 0, 'refused': 0}
+        self._controller_data: tuple[list[float], list[float]] | None = None
+        if not topic:
+            return
+        if not hasattr(self.estimator, 'set_controller'):
+            raise ValueError(f"parameter 'controller_topic' applies to estimator cl_bcls only "
+                             f"(the closed-loop estimator that needs the controller), got "
+                             f"estimator {settings['estimator']!r} with controller_topic "
+                             f"{topic!r}")
+        controller = self.estimator.controller
+        self._controller_data = (controller.numerator.tolist(),
+                                 controller.denominator.tolist())
+        try:
+            self.controller_subscription = self.create_subscription(
+                Float64MultiArray, topic, self.on_controller, LATCHED_QOS)
+        except Exception as error:  # rclpy's InvalidTopicNameException
+            raise ValueError(f"parameter 'controller_topic' must be a valid topic name, got "
+                             f"{topic!r}: {error}") from None
+        self.diagnostics.tasks.append(self._diagnose_controller)
+        self.get_logger().info(f'controller in the loop from {topic}')
+
+    def on_controller(self, message: Float64MultiArray) -> None:
+        """Restart the compensation at a new controller; ignore an identical republish."""
+        dims = message.layout.dim
+        try:
+            controller = controller_from_message([d.label for d in dims],
+                                                 [d.size for d in dims], message.data)
+            # the estimator's own form (b_c padded to a_c), to compare with the one in use
+            numerator, denominator = controller.message_data()
+            if self._same_controller(numerator, denominator):
+                self.controller_counts['unchanged'] += 1
+                return
+            used = self.estimator.samples
+            self.estimator.set_controller(numerator, denominator, 'negative')
+        except ValueError as error:
+            self.controller_counts['refused'] += 1
+            self._throttle.warn('controller_refused', f'controller message refused, the '
+                                f'controller in use kept: {error}')
+            return
+        self._controller_data = (numerator, denominator)
+        self.controller_counts['changes'] += 1
+        if self._valid != self.estimator.valid:
+            self._publish_valid()
+        self.get_logger().info(f'new controller in the loop {numerator} / {denominator}: '
+                               f'compensation restarted (after {used} samples)')
+
+    def _same_controller(self, numerator: list[float], denominator: list[float]) -> bool:
+        old_numerator, old_denominator = self._controller_data
+        width = max(len(numerator), len(old_numerator))
+        pad = [0.0] * width
+        return (denominator == old_denominator
+                and (pad + numerator)[-width:] == (pad + old_numerator)[-width:])
+
+    def _diagnose_controller(self, status: Any) -> None:
+        numerator, denominator = self._controller_data
+        status.add('controller in the loop', f'{numerator} / {denominator}')
+        status.add('controller changes (compensation restarted)',
+                   self.controller_counts['changes'])
+        status.add('controller republished unchanged', self.controller_counts['unchanged'])
+        status.add('controller messages refused (malformed)', self.controller_counts['refused'])
 
     @property
     def publish_period(self) -> int:
