@@ -248,6 +248,12 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'powers of q, as the adaptive controller\'s ~/controller) and restart the compensation '
        'at every change. Empty: the controller is fixed by controller_numerator/'
        'controller_denominator.'),
+    # --- keeping the state across restarts
+    _p('state_file', 'string', '', 'File that keeps the estimator state across restarts: '
+       'saved atomically every state_save_period and at shutdown, restored at start-up if it '
+       'matches the configuration. Empty: off.'),
+    _p('state_save_period', 'double', 10.0, 'Seconds between saves of state_file.',
+       low=0.0, high=86400.0, low_open=True),
 )
 
 #: The simulator node's parameters (docs/nodes.md), in declaration order.

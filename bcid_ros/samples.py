@@ -421,6 +421,28 @@ class SampleFeeder:
         """Whether the input is constant right now (for longer than the window)."""
         return bool(self.excitation_window) and self._constant_run >= self.excitation_window
 
+    def get_state(self) -> dict[str, Any]:
+        """
+        Return the feeder's own state as plain values (the estimator's is its own).
+
+        With the estimator's snapshot it is all that the next results depend
+        on: the count towards the next publication, the input history of the
+        excitation check, a pending regressor restart, and the totals.
+        """
+        return {'since_publish': self.since_publish, 'used': self.used,
+                'nonfinite': self.nonfinite, 'unexcited': self.unexcited,
+                'last_u': None if self._last_u is None else list(self._last_u),
+                'constant_run': self._constant_run, 'restart_pending': self._restart_pending}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Restore a state made by :meth:`get_state` (KeyError if one is missing)."""
+        last_u = state['last_u']
+        values = (int(state['since_publish']), int(state['used']), int(state['nonfinite']),
+                  int(state['unexcited']), None if last_u is None else [float(v) for v in last_u],
+                  int(state['constant_run']), bool(state['restart_pending']))
+        (self.since_publish, self.used, self.nonfinite, self.unexcited, self._last_u,
+         self._constant_run, self._restart_pending) = values
+
 
 __all__ = ['FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'decode_samples', 'estimate_layout',
            'names_label', 'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']

@@ -34,6 +34,8 @@ class FakeEstimator:
     def __init__(self):
         self.flags = {}
         self.valid = False
+        self.ready = False
+        self.validity_reasons = ()
         self.samples = 2
         self.covariance_trace = float('inf')
         self.forgetting_factor = 1.0
@@ -91,7 +93,7 @@ def test_estimator_task_warns_on_raised_flags_and_says_when_filling():
     assert (status.level, status.message) == (OK, 'filling the regressor (2 samples)')
     assert status.as_dict()[DiagnosticKey.COVARIANCE_TRACE] == 'n/a'
     assert DiagnosticKey.NOISE + 'sigma2' not in status.as_dict()
-    estimator.valid = True
+    estimator.valid = estimator.ready = True
     estimator.flags = {'windup_limited': 1}
     status = run(task)
     assert (status.level, status.message) == (WARN, 'estimator flags in the last period: '
@@ -122,14 +124,23 @@ def test_rate_task_measures_over_the_period_and_warns_without_samples():
 
 def test_the_tasks_together_give_every_documented_key():
     feeder, estimator = FakeFeeder(), FakeEstimator()
-    estimator.valid = True
+    estimator.valid = estimator.ready = True
     rate = SampleRateTask(feeder, iter([0.0, 1.0]).__next__,
                           SimpleNamespace(messages=1, estimates_published=0))
     feeder.used = 100
     status = run(EstimatorTask('rls', estimator, lambda: 1),
                  CounterTask(dict.fromkeys(COUNTERS, 0), lambda: False), rate)
     keys = {value for name, value in vars(DiagnosticKey).items()
-            if name.isupper() and name not in ('FLAG', 'NOISE')}
+            if name.isupper() and name not in ('FLAG', 'NOISE', 'NOT_VALID_BECAUSE')}
     assert keys | set(COUNTERS.values()) <= set(status.as_dict())
     # A valid estimator at a steady rate: OK, and the rate task's message.
     assert (status.level, status.message) == (OK, 'estimating at 100 samples/s')
+
+
+def test_a_ready_estimate_that_is_not_valid_says_why():
+    estimator = FakeEstimator()
+    estimator.ready = True
+    estimator.validity_reasons = ('unstable model (pole radius 1.3) on bounded data',)
+    status = run(EstimatorTask('bcrls', estimator, lambda: 1))
+    assert status.level == WARN and 'unstable model' in status.message
+    assert status.as_dict()[DiagnosticKey.NOT_VALID_BECAUSE] == estimator.validity_reasons[0]

@@ -241,6 +241,9 @@ class EstimatorTask:
         trace = estimator.covariance_trace
         status.add(Key.ESTIMATOR, self._name)
         status.add(Key.VALID, bool(estimator.valid))
+        reasons = tuple(getattr(estimator, 'validity_reasons', ()))
+        if reasons:
+            status.add(Key.NOT_VALID_BECAUSE, '; '.join(reasons))
         status.add(Key.SAMPLES_SINCE_RESET, estimator.samples)
         status.add(Key.COVARIANCE_TRACE, trace if math.isfinite(trace) else 'n/a')
         status.add(Key.FORGETTING_FACTOR, estimator.forgetting_factor)
@@ -250,10 +253,13 @@ class EstimatorTask:
         if estimator.valid:
             for name, value in zip(estimator.noise_names, estimator.noise):
                 status.add(Key.NOISE + name, float(value))
+        if reasons:
+            # ~/valid is false although the estimator is ready: say why, so a person sees it
+            status.merge_summary(WARN, 'estimate not valid: ' + '; '.join(reasons))
         if raised:
             status.merge_summary(WARN, 'estimator flags in the last period: '
                                  + ', '.join(raised))
-        elif not estimator.valid:
+        elif not estimator.ready:
             status.merge_summary(OK, f'filling the regressor ({estimator.samples} samples)')
 
 

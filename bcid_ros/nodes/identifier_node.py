@@ -8,7 +8,9 @@ adapter between rclpy and four ROS-free parts: the message table of
 :class:`bcid_ros.samples.SampleFeeder` feeds the samples with the same rule
 as the offline replay (so the node gives the same estimates as
 ``bcid replay`` on the same samples), and the tasks of
-:mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``.
+:mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``. With
+``state_file`` set, :mod:`bcid_ros.persistence` keeps the state across
+restarts.
 
 Run it as ``identifier_node --ros-args --params-file config/ding_miso.yaml``.
 """
@@ -25,6 +27,7 @@ from std_msgs.msg import Bool, Float64MultiArray
 from std_srvs.srv import Trigger
 
 from bcid_ros.control.design import controller_from_message
+from bcid_ros import persistence
 from bcid_ros.estimators.base import standard_deviations
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
@@ -73,6 +76,7 @@ class IdentifierNode(Node):
         self.estimator = estimator_from_parameters(settings)  # as bcid replay builds it
         self.feeder = SampleFeeder(self.estimator, settings['excitation_window'],
                                    settings['publish_period'])
+        restored = self._restore_state(settings)
         self.counters = dict.fromkeys(interface.COUNTERS, 0)
         self.messages = 0
         self.estimates_published = 0
@@ -108,6 +112,7 @@ class IdentifierNode(Node):
         self._table_check = make_parameter_check(specs)
         self.add_on_set_parameters_callback(self.check_parameters)
         self.add_post_set_parameters_callback(self.on_parameters_set)
+        self._keep_state(settings, restored)
         self.get_logger().info(
             f'{settings["estimator"]} with n={settings["order"]}, r={settings["num_inputs"]}, '
             f'feedthrough={settings["feedthrough"]}; input_mode {settings["input_mode"]}'
@@ -351,6 +356,113 @@ class IdentifierNode(Node):
         response.message = f'estimator reset after {used} samples'
         self.get_logger().info(response.message)
         return response
+
+    # ---------------------------------------------------------- state file
+    def _restore_state(self, settings: dict[str, Any]) -> bool:
+        """Restore the estimator and feeder from ``state_file`` if it fits; log one line."""
+        self._state_path = settings['state_file']
+        if not self._state_path:
+            return False
+        self._state_fingerprint = persistence.configuration_fingerprint(settings)
+        self._state_failing = False
+        self._state_saved = None
+        try:
+            sections = persistence.load_state(self._state_path, self._state_fingerprint)
+            if sections is None:
+                self.get_logger().info(f'state file {self._state_path} does not exist yet; '
+                                       'starting fresh')
+                return False
+            self._load_state_sections(sections)
+        except persistence.StateRefused as error:
+            self.get_logger().warning(f'{error}; starting fresh')
+            return False
+        self.get_logger().info(
+            f'state restored from {self._state_path}: {self.feeder.used} samples used, '
+            f'{self.estimator.samples} since reset, valid {self.estimator.valid}')
+        return True
+
+    def _load_state_sections(self, sections: dict[str, persistence.Section]) -> None:
+        """Restore every section, or nothing (StateRefused): a half-restored node is worse."""
+        fresh = self.feeder.get_state()
+        try:
+            persistence.restore_estimator(self.estimator, sections['estimator'])
+            self.feeder.set_state(sections['feeder'][1])
+            # a live parameter: the value the node starts with applies, as without a state
+            self.estimator.forgetting_factor = self.settings['forgetting_factor']
+        except Exception as error:  # a missing key, a shape, a value the estimator refuses
+            self.estimator.reset()
+            self.feeder.set_state(fresh)
+            raise persistence.StateRefused(
+                f'state file {self._state_path} does not fit this estimator '
+                f'({type(error).__name__}: {error})') from None
+
+    def _state_sections(self) -> dict[str, persistence.Section]:
+        """Return everything the next estimates depend on, by section."""
+        return {'estimator': persistence.estimator_section(self.estimator),
+                'feeder': ({}, self.feeder.get_state())}
+
+    def _state_signature(self) -> tuple[int, int]:
+        """Return what changes whenever the state does (messages taken, or a reset)."""
+        return self.messages, self.estimator.samples
+
+    def _keep_state(self, settings: dict[str, Any], restored: bool) -> None:
+        """Publish a restored estimate at once (latched) and save every period."""
+        if not self._state_path:
+            return
+        if restored:
+            self._state_saved = self._state_signature()  # the file holds it already
+        if restored and self.estimator.ready:
+            theta, uncompensated = self.estimator.theta, self.estimator.theta_uncompensated
+            if np.isfinite(theta).all() and np.isfinite(uncompensated).all():
+                self.publish_estimates(theta, uncompensated, self.estimator.noise)
+        self.state_timer = self.create_timer(settings['state_save_period'],
+                                             self._on_state_timer)
+
+    def _on_state_timer(self) -> None:
+        if self._state_signature() != self._state_saved:
+            self.save_state()
+
+    def save_state(self) -> bool:
+        """
+        Write ``state_file`` now (atomically); return whether it was written.
+
+        A failure is logged once (and the recovery once); the node keeps
+        running and tries again at the next period.
+        """
+        error = self._write_state()
+        if error is None and self._state_failing:
+            self.get_logger().info(f'state file {self._state_path} written again')
+        elif error is not None and not self._state_failing:
+            self.get_logger().error(error)
+        self._state_failing = error is not None
+        return error is None
+
+    def _write_state(self) -> str | None:
+        """Write ``state_file``; return None, or the line that says why it failed."""
+        signature = self._state_signature()
+        try:
+            persistence.save_state(self._state_path, self._state_fingerprint,
+                                   self._state_sections())
+        except (OSError, TypeError, ValueError) as error:
+            return (f'cannot write state file {self._state_path}: {error}; the node keeps '
+                    f'running and tries again every {self.settings["state_save_period"]:g} s')
+        self._state_saved = signature
+        return None
+
+    def destroy_node(self) -> None:
+        """Save the state (with ``state_file`` set) before the node goes: nothing is lost."""
+        if not getattr(self, '_state_path', ''):
+            super().destroy_node()
+            return
+        error = self._write_state()
+        # logged after the node is gone, when its /rosout publisher (whose context a
+        # signal has already shut down) no longer takes the line
+        super().destroy_node()
+        if error is None:
+            self.get_logger().info(f'state saved to {self._state_path} at shutdown '
+                                   f'({self.feeder.used} samples used)')
+        elif not self._state_failing:
+            self.get_logger().error(error)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -256,6 +256,7 @@ class DiagnosticKey:
 
     ESTIMATOR = 'estimator'
     VALID = 'valid'
+    NOT_VALID_BECAUSE = 'not valid because'
     SAMPLES_USED = 'samples used'
     SAMPLES_SINCE_RESET = 'samples since reset'
     SAMPLES_DROPPED = 'samples dropped'
