@@ -291,11 +291,12 @@ def test_replay_json_is_the_spec_object(capsys):
 
     summary = json.loads(capsys.readouterr().out)
     assert list(summary) == ['estimator', 'samples', 'valid', 'parameters', 'uncompensated',
-                             'noise', 'flags', 'truth', 'delta']
+                             'noise', 'flags', 'std', 'truth', 'delta']
     assert summary['estimator'] == 'bcrls' and summary['samples'] == 10000
     names = ['a1', 'a2', 'b1_1', 'b1_2', 'b2_1', 'b2_2']
     assert list(summary['parameters']) == names == list(summary['uncompensated'])
     assert list(summary['noise']) == ['sigma2']
+    assert list(summary['std']) == names and all(value > 0 for value in summary['std'].values())
     assert summary['truth']['parameters'] == pytest.approx(
         dict(zip(names, [-0.84, 0.16, 0.12, 0.324, 0.25, 0.186])), rel=TRUTH_RTOL)
     theta = np.array(list(summary['parameters'].values()))

@@ -71,6 +71,8 @@ class ReplayResult:
     theta_trajectory: np.ndarray
     uncompensated_trajectory: np.ndarray
     noise_trajectory: np.ndarray
+    #: The final parameter standard deviations (None if the estimator has none).
+    std: np.ndarray | None = None
 
     @property
     def delta(self) -> float | None:
@@ -87,8 +89,9 @@ class ReplayResult:
         Keys: ``estimator``, ``samples``, ``valid`` (whether the final
         estimate is valid, as ``~/valid`` would say), ``parameters``,
         ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
-        ``{name: count}``) and, when the bag carries the truth, ``truth``
-        (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
+        ``{name: count}``), ``std`` (the standard deviations of the final
+        parameters, for estimators that have them: rls, bcrls) and, when the
+        bag carries the truth, ``truth`` (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
         (the relative error ||theta_hat - theta|| / ||theta||, a fraction).
         """
         out: dict[str, Any] = {
@@ -100,6 +103,8 @@ class ReplayResult:
             'noise': _named(self.noise_names, self.noise),
             'flags': dict(self.flags),
         }
+        if self.std is not None:
+            out['std'] = _named(self.parameter_names, self.std)
         if self.truth is not None:
             out['truth'] = self.truth.as_dict()
             delta = self.delta
@@ -189,7 +194,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),
         theta_trajectory=np.array(thetas).reshape(-1, p),
         uncompensated_trajectory=np.array(uncompensated).reshape(-1, p),
-        noise_trajectory=np.array(noises).reshape(-1, q))
+        noise_trajectory=np.array(noises).reshape(-1, q), std=est.parameter_std)
 
 
 def write_output(result: ReplayResult, path: Path) -> None:

@@ -63,6 +63,31 @@ def power_of_two_at_least(value: float) -> float:
     return math.ldexp(1.0, exponent - 1 if mantissa == 0.5 else exponent)
 
 
+def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
+    """Return the square roots of the diagonal of ``covariance`` (None passes through)."""
+    if covariance is None:
+        return None
+    return np.sqrt(np.maximum(np.diagonal(covariance), 0.0))
+
+
+def weighted_square_ratio(tau: float, forgetting_factor: float) -> float:
+    r"""
+    Return :math:`\tau_2/\tau`, the sum of the squared weights over the sum of the weights.
+
+    With weights :math:`\lambda^{t-i}` over t samples,
+    :math:`\tau = (1 - \lambda^t)/(1 - \lambda)` and
+    :math:`\tau_2 = \sum\lambda^{2(t-i)} = \tau(2 - (1-\lambda)\tau)/(1 + \lambda)`,
+    so the ratio follows from :math:`\tau` and :math:`\lambda` alone: 1 without
+    forgetting, :math:`1/(1 + \lambda)` in the steady state. A weighted
+    estimate from :math:`\tau` samples has the variance of one from
+    :math:`\tau^2/\tau_2` (its effective sample size). :math:`(1-\lambda)\tau`
+    is clipped to 1 (its steady state), which also covers a factor lowered
+    while running.
+    """
+    lam = forgetting_factor
+    return (2.0 - min((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
+
+
 def parameter_names(order: int, num_inputs: int, feedthrough: bool) -> tuple[str, ...]:
     """
     Return the names of the ARX parameter vector (those of the node's topics).
@@ -439,6 +464,29 @@ class RecursiveEstimator(abc.ABC):
     def covariance_trace(self) -> float:
         """Trace of the parameter covariance P (a health indicator), or NaN if none."""
         return float('nan')
+
+    @property
+    def parameter_covariance(self) -> np.ndarray | None:
+        """
+        Return the covariance of :attr:`theta` in the units of theta, ``(p, p)``, or None.
+
+        None when the estimator has no calibrated covariance (the default) or
+        not yet enough data for one. Each estimator documents its formula
+        (docs/estimators.md, "Uncertainty").
+        """
+        covariance = self._parameter_covariance()
+        if covariance is None or not np.isfinite(covariance).all():
+            return None
+        return np.array(covariance, dtype=float)
+
+    @property
+    def parameter_std(self) -> np.ndarray | None:
+        """Return the standard deviation of each parameter of :attr:`theta`, or None."""
+        return standard_deviations(self.parameter_covariance)
+
+    def _parameter_covariance(self) -> np.ndarray | None:
+        """Return the covariance of the estimate (see :attr:`parameter_covariance`); none here."""
+        return None
 
     def _flag(self, key: str) -> None:
         """Count one occurrence of a reported condition (see :attr:`flags`)."""

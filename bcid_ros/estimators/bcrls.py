@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.rls import load_blas, ls_batch, Rls
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
@@ -30,6 +31,9 @@ CONTRACTION_MAX = 0.8
 #: A compensation larger than this times |theta_LS| (normalised units) has
 #: run away from the LS estimate.
 RUNAWAY = 1.0
+#: The extended regressors z = [phi; y] of this many updates are kept, then
+#: added to the lagged moments of the covariance in one product per lag.
+MOMENT_BLOCK = 64
 
 
 class Bcrls(Rls):
@@ -156,11 +160,14 @@ class Bcrls(Rls):
         self._theta_c = np.zeros(self.num_parameters)
         self._lambda_theta_c = np.zeros(self.num_parameters)
         self._sigma2 = 0.0
+        self._reset_moments()
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._state_items()
-        return {**arrays, 'theta_c': self._theta_c}, {
-            **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked}
+        moment_arrays, moment_scalars = self._moment_state()
+        return {**arrays, 'theta_c': self._theta_c, **moment_arrays}, {
+            **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked,
+            **moment_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
@@ -168,6 +175,197 @@ class Bcrls(Rls):
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
         self._resets_checked = int(scalars['resets_checked'])
+        self._load_moments(arrays, scalars)
+
+    # ------------------------------------------------------- the uncertainty
+    def _ls_step(self, y: float, phi: np.ndarray) -> bool:
+        """Do the LS step and, if it was made, keep z = [phi; y] for the lagged moments."""
+        if not super()._ls_step(y, phi):
+            return False
+        # list appends: the cheapest record (phi is a fresh array from the regressor)
+        self._moment_phi.append(phi)
+        self._moment_y.append(y)
+        if len(self._moment_y) == MOMENT_BLOCK:
+            self._flush_moments()
+        return True
+
+    def _reset_moments(self) -> None:
+        n, width = self.order, self.num_parameters + 1
+        # z of the last n steps already summed (the lag context; zeros at the start)
+        self._moment_context = np.zeros((n, width))
+        # z of the steps not yet summed, as [phi] and [y] lists
+        self._moment_phi: list[np.ndarray] = []
+        self._moment_y: list[float] = []
+        # sum over t of w_t z_t z_{t-k}', k = 0..n, and the sum of the weights w_t
+        self._moment_sums = np.zeros((n + 1, width, width))
+        self._moment_weight = 0.0
+        # [theta_c, sigma2] and [scales of phi, scale of y] at the last flush
+        self._moment_snapshot = np.zeros((2, width))
+        self._sandwich: np.ndarray | None = None
+
+    def _pending_moments(self) -> np.ndarray:
+        """Return the lag context and the rows z not yet summed, oldest first."""
+        if not self._moment_y:
+            return self._moment_context
+        rows = np.empty((len(self._moment_y), self.num_parameters + 1))
+        rows[:, :-1] = self._moment_phi
+        rows[:, -1] = self._moment_y
+        return np.concatenate((self._moment_context, rows))
+
+    def _new_moments(self, ring: np.ndarray) -> tuple[np.ndarray, float]:
+        """Return the moment sums and weight with the rows after the context of ``ring`` added."""
+        n = self.order
+        count = ring.shape[0] - n
+        lam = self._forgetting_factor
+        decay = lam ** count
+        sums = self._moment_sums * decay
+        weight = self._moment_weight * decay
+        if count:
+            # w = lambda^(age): the newest row has weight 1
+            weights = lam ** np.arange(count - 1, -1, -1, dtype=float)
+            newest = ring[n:] * weights[:, None]
+            for k in range(n + 1):
+                sums[k] += newest.T @ ring[n - k:n - k + count]
+            weight += float(weights.sum())
+        return sums, weight
+
+    def _flush_moments(self) -> None:
+        """Add the pending rows to the moment sums; keep the last n rows as lag context."""
+        ring = self._pending_moments()
+        self._moment_sums, self._moment_weight = self._new_moments(ring)
+        self._moment_context = ring[ring.shape[0] - self.order:].copy()
+        self._moment_phi = []
+        self._moment_y = []
+        y_scale = self._signal_scale[0] if self._signal_scale[0] > 0.0 else 1.0
+        self._moment_snapshot = np.array([np.append(self._theta_c, self._sigma2),
+                                          np.append(self._component_scale, y_scale)])
+        self._sandwich = None
+
+    def _moment_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        ring = np.zeros((self.order + MOMENT_BLOCK, self.num_parameters + 1))
+        pending = self._pending_moments()
+        ring[:pending.shape[0]] = pending
+        return ({'moment_ring': ring, 'moment_sums': self._moment_sums,
+                 'moment_snapshot': self._moment_snapshot},
+                {'moment_pending': len(self._moment_y), 'moment_weight': self._moment_weight})
+
+    def _load_moments(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        n, ring = self.order, arrays['moment_ring']
+        end = n + int(scalars['moment_pending'])
+        self._moment_context = ring[:n].copy()
+        self._moment_phi = list(ring[n:end, :-1].copy())
+        self._moment_y = ring[n:end, -1].tolist()
+        self._moment_sums = arrays['moment_sums']
+        self._moment_weight = float(scalars['moment_weight'])
+        self._moment_snapshot = arrays['moment_snapshot']
+        self._sandwich = None
+
+    def _parameter_covariance(self) -> np.ndarray | None:
+        r"""
+        Return the asymptotic covariance of :math:`\hat\theta_c` (docs/estimators.md).
+
+        :math:`\beta = (\theta_c, \sigma^2)` solves the estimating equations
+        :math:`\sum_t w_t g_t(\beta) = 0` with :math:`z = [\varphi; y]`,
+
+        .. math::
+
+            g_t = \begin{bmatrix} \varphi(t)(y(t) - \varphi^T(t)\theta)
+                + \sigma^2\Lambda\theta \\ y(t)(y(t) - \varphi^T(t)\theta)
+                - \sigma^2 \end{bmatrix},
+
+        the fixed point of (46) and, equivalently, (51). The sandwich is
+        :math:`\mathrm{cov}\,\hat\beta = (\tau_2/\tau^2) H^{-1} S H^{-T}` with
+        :math:`H = \begin{bmatrix} -(R - \sigma^2\Lambda) & \Lambda\theta \\
+        -r^T & -1\end{bmatrix}` and, the equation error
+        :math:`w = \alpha(q) v` being MA(n),
+
+        .. math::
+
+            S = \sum_{k=-n}^{n} S_k, \quad
+            S_k = \Gamma_z(k)\gamma_w(k) + c_k d_k^T, \quad S_{-k} = S_k^T,
+
+        where :math:`\Gamma_z(k)` is the weighted mean of
+        :math:`z_t z_{t-k}^T`, :math:`\gamma_w(k) = \sigma^2\sum_i a_i a_{i+k}`
+        (:math:`a_0 = 1`), :math:`c_k = E[\zeta_t w_{t-k}]`,
+        :math:`d_k = E[w_t \zeta_{t-k}]` with :math:`\zeta` the noise part of
+        z (Gaussian v). :math:`H^{-1} S H^{-T}`, a per-sample quantity, is
+        evaluated in normalised units at the moments and the
+        :math:`(\hat\theta_c, \hat\sigma^2)` of the last block of
+        ``MOMENT_BLOCK`` steps, once per block and only when read; the factor
+        :math:`\tau_2/\tau^2` is the current one. None before ready and before
+        the first block.
+        """
+        if self._updates < self.num_parameters or not self._moment_weight > 0.0:
+            return None
+        if self._sandwich is None:
+            self._sandwich = self._block_sandwich()
+        ratio = weighted_square_ratio(self._tau, self._forgetting_factor)
+        return self._sandwich * (ratio / self._tau)
+
+    def _block_sandwich(self) -> np.ndarray:
+        """Return H^-1 S H^-T in the user's units from the moments and estimates of a block."""
+        n, p = self.order, self.num_parameters
+        estimates, scale = self._moment_snapshot
+        # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
+        y_scale = scale[p]
+        gamma_z = self._moment_sums / (self._moment_weight * np.outer(scale, scale))
+        theta = estimates[:p] * scale[:p] / y_scale
+        sigma2 = estimates[p] / (y_scale * y_scale)
+        back = y_scale / scale[:p]
+        return bcls_sandwich(gamma_z, theta, sigma2, n) * np.outer(back, back)
+
+
+def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: float,
+                  order: int) -> np.ndarray:
+    r"""
+    Return :math:`H^{-1} S H^{-T}` of the BCLS fixed point, the p x p block of theta.
+
+    Parameters
+    ----------
+    gamma_z : numpy.ndarray, shape ``(n + 1, p + 1, p + 1)``
+        :math:`\Gamma_z(k)`, the mean of :math:`z_t z_{t-k}^T` with
+        :math:`z = [\varphi; y]`, k = 0..n.
+    theta : numpy.ndarray, shape ``(p,)``
+        :math:`\hat\theta_c` (its first n entries are :math:`a_1 \ldots a_n`).
+    sigma2 : float
+        :math:`\hat\sigma^2`.
+    order : int
+        n.
+
+    Returns
+    -------
+    numpy.ndarray, shape ``(p, p)``
+        The covariance of one sample's worth: divide by the (effective) count.
+
+    """
+    n, p = order, theta.shape[0]
+    a = np.concatenate(([1.0], theta[:n]))
+    # gamma_w(k) = sigma2 sum_i a_i a_{i+k}, k = 0..n
+    gamma_w = sigma2 * np.correlate(a, a, 'full')[n:]
+    # c_k = E[zeta_t w_{t-k}], d_k = E[w_t zeta_{t-k}] (rows k); zeta = [-v(t-1..t-n), 0, v(t)]
+    padded = np.zeros(3 * n + 1)
+    padded[n:2 * n + 1] = a  # padded[m + n] = a_m, zero outside 0..n
+    lags = np.arange(1, n + 1) + n - np.arange(n + 1)[:, None]
+    c = np.zeros((n + 1, p + 1))
+    d = np.zeros((n + 1, p + 1))
+    c[:, :n] = -sigma2 * padded[lags]
+    d[:, :n] = -sigma2 * padded[lags + 2 * np.arange(n + 1)[:, None]]
+    c[0, p] = sigma2
+    d[:, p] = sigma2 * a
+    # S = S_0 + sum_{k>=1} (S_k + S_k'), S_k = Gamma_z(k) gamma_w(k) + c_k d_k'
+    lagged = np.tensordot(gamma_w, gamma_z, axes=1) + c.T @ d
+    first = gamma_z[0] * gamma_w[0] + np.outer(c[0], d[0])
+    meat = lagged + lagged.T - first
+    lam = np.zeros(p)
+    lam[:n] = 1.0
+    bread = np.empty((p + 1, p + 1))
+    bread[:p, :p] = np.diag(sigma2 * lam) - gamma_z[0][:p, :p]
+    bread[:p, p] = lam * theta
+    bread[p, :p] = -gamma_z[0][p, :p]
+    bread[p, p] = -1.0
+    half = np.linalg.solve(bread, meat)
+    covariance = np.linalg.solve(bread, half.T)
+    return 0.5 * (covariance + covariance.T)[:p, :p]
 
 
 def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.base import power_of_two_at_least, RecursiveEstimator
+from bcid_ros.estimators.base import (power_of_two_at_least, RecursiveEstimator,
+                                      weighted_square_ratio)
 from bcid_ros.estimators.regressor import ArxRegressor
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
@@ -464,6 +465,31 @@ class Rls(RecursiveEstimator):
     def weighted_count(self) -> float:
         """Return tau(t) = sum of lambda^(t-i); equals t when lambda = 1."""
         return self._tau
+
+    # ------------------------------------------------------- the uncertainty
+    def _parameter_covariance(self) -> np.ndarray | None:
+        r"""
+        Return the LS covariance :math:`\hat\sigma_e^2 P \tau_2/\tau` (None before ready).
+
+        For an ARX plant (white equation error of variance :math:`\sigma_e^2`),
+        the weighted LS estimate has the sandwich covariance
+        :math:`\sigma_e^2 P (\sum w_i^2\varphi\varphi^T) P`, which is
+        :math:`\sigma_e^2 P\,\tau_2/\tau` for stationary data
+        (:func:`~bcid_ros.estimators.base.weighted_square_ratio`; 1 without
+        forgetting). :math:`\hat\sigma_e^2 = J / (\tau - p\,\tau_2/\tau)`,
+        the weighted residual sum over its expected value per unit variance
+        (:math:`J/(N - p)` without forgetting). Not calibrated for coloured
+        equation error (output-error data): use bcrls there.
+        """
+        tau = self._tau
+        p = self.num_parameters
+        if self._updates < p or not tau > 0.0:
+            return None
+        ratio = weighted_square_ratio(tau, self._forgetting_factor)
+        dof = tau - p * ratio
+        if not dof > 0.0:
+            return None
+        return (self._loss / dof * ratio) * self._p
 
     def _theta(self) -> np.ndarray:
         return self._theta_ls

@@ -28,13 +28,15 @@ from std_srvs.srv import Trigger
 
 from bcid_ros.control.design import controller_from_message
 from bcid_ros import persistence
+from bcid_ros.estimators.base import standard_deviations
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
                                    SAMPLES_QOS, Throttle, usage)
 from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, EstimatorTask,
                                         SampleRateTask)
 from bcid_ros.nodes.joint_identifier import JointStateIdentifier
-from bcid_ros.nodes.messages import as_doubles, estimate_message, topic_class, valid_message
+from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
+                                     topic_class, valid_message)
 from bcid_ros.nodes.pairing import GAP, Paired, Pairing, SequenceTracker
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
                                  IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
@@ -88,7 +90,11 @@ class IdentifierNode(Node):
                     estimate_message(labels))
             for topic, labels in ((interface.PARAMETERS, names),
                                   (interface.PARAMETERS_UNCOMPENSATED, names),
-                                  (interface.NOISE_VARIANCE, tuple(self.estimator.noise_names)))}
+                                  (interface.NOISE_VARIANCE, tuple(self.estimator.noise_names)),
+                                  (interface.PARAMETER_STD, names))}
+        self._estimates[interface.PARAMETER_COVARIANCE] = (
+            self.create_publisher(Float64MultiArray, interface.PARAMETER_COVARIANCE,
+                                  LATCHED_QOS), covariance_message(names))
         self.valid_publisher = self.create_publisher(Bool, interface.VALID, LATCHED_QOS)
         self._valid = bool(self.estimator.valid)
         self.valid_publisher.publish(valid_message(self._valid))
@@ -319,7 +325,15 @@ class IdentifierNode(Node):
         self._publish(interface.PARAMETERS_UNCOMPENSATED, uncompensated)
         if noise.size and np.isfinite(noise).all():
             self._publish(interface.NOISE_VARIANCE, noise)
+        self._publish_uncertainty()
         self.estimates_published += 1
+
+    def _publish_uncertainty(self) -> None:
+        """Publish the parameter std and covariance, if the estimator has them now."""
+        covariance = self.estimator.parameter_covariance
+        if covariance is not None:
+            self._publish(interface.PARAMETER_STD, standard_deviations(covariance))
+            self._publish(interface.PARAMETER_COVARIANCE, covariance)
 
     def _publish(self, topic: str, values: np.ndarray) -> None:
         publisher, message = self._estimates[topic]

@@ -34,6 +34,7 @@ PARAMETERS_UNCOMPENSATED = '~/parameters_uncompensated'
 NOISE_VARIANCE = '~/noise_variance'
 VALID = '~/valid'
 PARAMETER_STD = '~/parameter_std'
+PARAMETER_COVARIANCE = '~/parameter_covariance'
 RESET = '~/reset'
 
 #: The adaptive controller's feedback C(q) in the loop (private, latched).
@@ -61,6 +62,20 @@ def resolve(topic: str, node: str, namespace: str = '/') -> str:
     if topic.startswith('~/'):
         return f'{prefix}/{node}/{topic[2:]}'
     return f'{prefix}/{topic}'
+
+
+def covariance_layout(names: Sequence[str]) -> list[tuple[str, int, int]]:
+    """
+    Return the ``(label, size, stride)`` dimensions of ``~/parameter_covariance``.
+
+    A row-major p x p matrix: both dimensions carry the comma-separated
+    parameter names of ``~/parameters``.
+
+    >>> covariance_layout(('a1', 'b1_1'))
+    [('a1,b1_1', 2, 4), ('a1,b1_1', 2, 2)]
+    """
+    label, size = ','.join(names), len(names)
+    return [(label, size, size * size), (label, size, size)]
 
 
 def basename(topic: str) -> str:
@@ -284,6 +299,8 @@ FAILING = ('estimator_errors', 'nonfinite_estimates')
 __all__ = ['BAD', 'BOOL', 'COUNTERS', 'DIAGNOSTICS', 'DROPPED', 'DiagnosticKey', 'FAILING',
            'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'IDENTIFIER_NODE', 'INPUT',
            'INPUT_TYPES', 'JOINT_STATE', 'MESSAGE_TYPES', 'MessageType', 'NOISE_VARIANCE',
-           'OUTPUT', 'OUTPUT_TYPES', 'PARAMETERS', 'PARAMETERS_UNCOMPENSATED', 'RESET',
+           'OUTPUT', 'OUTPUT_TYPES', 'PARAMETER_COVARIANCE', 'PARAMETER_STD', 'PARAMETERS',
+           'PARAMETERS_UNCOMPENSATED', 'RESET',
            'SAMPLES', 'SIMULATOR_NODE', 'TRUE_NOISE_VARIANCE', 'TRUE_PARAMETERS', 'VALID',
-           'basename', 'check_input_width', 'reader', 'resolve', 'stamp_ns', 'status_name']
+           'basename', 'check_input_width', 'covariance_layout', 'reader', 'resolve',
+           'stamp_ns', 'status_name']

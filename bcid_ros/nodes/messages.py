@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
 
-from bcid_ros.nodes.interface import MESSAGE_TYPES
+from bcid_ros.nodes.interface import covariance_layout, MESSAGE_TYPES
 from bcid_ros.samples import estimate_layout, samples_layout
 
 
@@ -51,6 +51,15 @@ def estimate_message(names: Sequence[str], values: Any = None) -> Float64MultiAr
     return message
 
 
+def covariance_message(names: Sequence[str], values: Any = None) -> Float64MultiArray:
+    """Return a ``~/parameter_covariance`` message: p x p, row-major, names on both axes."""
+    message = Float64MultiArray()
+    message.layout.dim = _dimensions(covariance_layout(names))
+    if values is not None:
+        message.data = as_doubles(np.asarray(values, dtype=float).reshape(-1))
+    return message
+
+
 def samples_message(rows: np.ndarray) -> Float64MultiArray:
     """Return a samples message of rows ``[y, u1, ..., ur]``: one sample, or a frame."""
     message = Float64MultiArray()
@@ -82,5 +91,5 @@ class SamplesLayouts:
         return message
 
 
-__all__ = ['SamplesLayouts', 'as_doubles', 'estimate_message', 'message_class',
-           'samples_message', 'topic_class', 'valid_message']
+__all__ = ['SamplesLayouts', 'as_doubles', 'covariance_message', 'estimate_message',
+           'message_class', 'samples_message', 'topic_class', 'valid_message']
