@@ -121,7 +121,11 @@ SCENARIOS = [
 def test_end_to_end_equals_offline(ros_context, executor, scenario, samples, bound):
     # Frames of 10 at 3 kHz for the slower, longer bciv runs.
     frame, rate = (10, 3000.0) if scenario.startswith('ikenoue') else (1, 1000.0)
+    # Both nodes share one Python thread here; publishing every 10th estimate (five latched
+    # topics each) keeps them within 1 kHz on a busy 2-core machine. The check is the final
+    # estimate, which the publish period does not change.
     identifier, _ = run_pair(executor, ros_context, scenario, samples,
+                             identifier_values={'publish_period': 10},
                              simulator_values={'frame_size': frame, 'rate_hz': rate})
     reference = offline(scenario, samples)
     np.testing.assert_allclose(identifier.estimator.theta, reference.theta, rtol=0, atol=1e-12)
