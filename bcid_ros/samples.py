@@ -336,10 +336,10 @@ class SampleFeeder:
         # The checks of estimator.update, done once for the block: the shape
         # above, finiteness here; then each sample goes in unchecked.
         finite = np.isfinite(rows).all(axis=1)
-        if self.excitation_window or not finite.all():
-            used, nonfinite, unexcited = self._feed_checked(rows, finite.tolist())
+        if finite.all():
+            (used, unexcited), nonfinite = self._feed_finite(rows), 0
         else:
-            used, nonfinite, unexcited = self._feed_finite(rows), 0, 0
+            used, nonfinite, unexcited = self._feed_checked(rows, finite.tolist())
         self.used += used
         self.nonfinite += nonfinite
         self.unexcited += unexcited
@@ -349,17 +349,23 @@ class SampleFeeder:
         result.unexcited += unexcited
         return result
 
-    def _feed_finite(self, rows: np.ndarray) -> int:
-        """Feed rows known to be finite, with no excitation check; return how many."""
-        if rows.shape[0] and self._restart_pending:
-            self.estimator.restart_regressor()
-            self._restart_pending = False
-        update = self.estimator.update_trusted
+    def _feed_finite(self, rows: np.ndarray) -> tuple[int, int]:
+        """Feed rows known to be finite; return (used, unexcited)."""
+        total_rows = rows.shape[0]
+        if not total_rows:
+            return 0, 0
+        inputs = rows[:, 1:]
+        runs = self._constant_runs(inputs)
+        estimator = self.estimator
+        update = estimator.update_trusted
         clock = time.perf_counter_ns
         count = total = 0
         largest = self.update_ns_max
         try:
-            for y, u in zip(rows[:, 0].tolist(), rows[:, 1:]):
+            if self._restart_pending:
+                estimator.restart_regressor()
+                self._restart_pending = False
+            for y, u in zip(rows[:, 0].tolist(), inputs):
                 start = clock()
                 update(y, u)
                 elapsed = clock() - start
@@ -371,7 +377,33 @@ class SampleFeeder:
             self.update_count += count
             self.update_ns_total += total
             self.update_ns_max = largest
-        return count
+            if runs is not None:  # the check of a failing sample came before its update
+                self._keep_run(runs, inputs, min(count, total_rows - 1))
+        unexcited = 0 if runs is None else int(np.count_nonzero(runs >= self.excitation_window))
+        return count, unexcited
+
+    def _constant_runs(self, inputs: np.ndarray) -> np.ndarray | None:
+        """
+        Return the unchanged-input run after each of these finite samples (None without a window).
+
+        The excitation check of :meth:`_feed_checked` for a whole block: the
+        run grows by one for a sample whose input equals the previous one and
+        is 0 otherwise; a sample is unexcited when its run reaches the window.
+        """
+        if not self.excitation_window:
+            return None
+        count = inputs.shape[0]
+        same = np.empty(count, dtype=bool)
+        same[0] = self._last_u is not None and inputs[0].tolist() == self._last_u
+        same[1:] = np.all(inputs[1:] == inputs[:-1], axis=1)
+        steps = np.arange(count)
+        reset = np.maximum.accumulate(np.where(same, -1, steps))
+        return np.where(reset >= 0, steps - reset, self._constant_run + steps + 1)
+
+    def _keep_run(self, runs: np.ndarray, inputs: np.ndarray, last: int) -> None:
+        """Keep the excitation state after sample ``last`` of a block (see _constant_runs)."""
+        self._constant_run = int(runs[last])
+        self._last_u = inputs[last].tolist()
 
     def _feed_checked(self, rows: np.ndarray, finite: list[bool]) -> tuple[int, int, int]:
         """Feed rows with NaN/Inf skipping and the excitation check; return the counts."""
@@ -481,15 +513,15 @@ class SampleFeeder:
             raise ValueError(f'rows must be whole messages of count = {count} samples of '
                              f'1 + num_inputs = {width} values, got shape {rows.shape}')
         result = BlockResult()
-        if self.excitation_window or not np.isfinite(rows).all():
-            self._take_each(rows, count, publish, result)
-        else:
+        if np.isfinite(rows).all():
             self._take_finite(rows, count, publish, result)
+        else:
+            self._take_each(rows, count, publish, result)
         return result
 
     def _take_each(self, rows: np.ndarray, count: int, publish: bool,
                    result: BlockResult) -> None:
-        """Feed message by message through :meth:`feed` (samples to skip, or a window)."""
+        """Feed message by message through :meth:`feed` (for blocks with samples to skip)."""
         for index in range(rows.shape[0] // count):
             fed = FeedResult()
             try:
@@ -506,46 +538,79 @@ class SampleFeeder:
 
     def _take_finite(self, rows: np.ndarray, count: int, publish: bool,
                      result: BlockResult) -> None:
-        """Feed finite samples with no excitation check: one loop over the samples."""
-        estimator = self.estimator
-        update = estimator.update_trusted
-        clock = time.perf_counter_ns
-        period = self.publish_period
-        outputs = rows[:, 0].tolist()
-        inputs = list(rows[:, 1:])
+        """Feed finite samples: one loop over the samples, the excitation check vectorised."""
+        messages = rows.shape[0] // count
         updates = total = 0
         largest = self.update_ns_max
-        sample = 0
+        first = 0
         try:
-            for index in range(len(outputs) // count):
-                stop = sample + count
-                try:
-                    if self._restart_pending:
-                        estimator.restart_regressor()
-                        self._restart_pending = False
-                    while sample < stop:
-                        start = clock()
-                        update(outputs[sample], inputs[sample])
-                        elapsed = clock() - start
-                        updates += 1
-                        total += elapsed
-                        if elapsed > largest:
-                            largest = elapsed
-                        sample += 1
-                except Exception as error:  # as in take_rows: drop the rest, restart
-                    sample = stop
-                    self._restart_pending = True
-                    result.failures.append((index, repr(error)))
-                    continue
-                self.used += count
-                self.since_publish += count
-                result.used += count
-                if publish and self.since_publish >= period and estimator.valid:
-                    self._collect(result, index)
+            while first < messages:
+                # Until an update fails, from message ``first`` on; then again after it.
+                first, done, elapsed = self._take_finite_from(rows, count, first, publish,
+                                                              result, largest)
+                updates += done
+                total += elapsed[0]
+                largest = elapsed[1]
         finally:
             self.update_count += updates
             self.update_ns_total += total
             self.update_ns_max = largest
+
+    def _take_finite_from(self, rows: np.ndarray, count: int, first: int, publish: bool,
+                          result: BlockResult, largest: int
+                          ) -> tuple[int, int, tuple[int, int]]:
+        """
+        Feed messages from ``first`` on until one fails or all are done.
+
+        Returns the message to go on from, the updates made and their
+        ``(total, largest)`` time in ns.
+        """
+        estimator = self.estimator
+        update = estimator.update_trusted
+        clock = time.perf_counter_ns
+        period = self.publish_period
+        window = self.excitation_window
+        inputs = rows[first * count:, 1:]
+        runs = self._constant_runs(inputs)
+        unexcited = (None if runs is None else
+                     np.count_nonzero((runs >= window).reshape(-1, count), axis=1).tolist())
+        outputs = rows[first * count:, 0].tolist()
+        input_rows = list(inputs)
+        messages = len(outputs) // count
+        updates = total = sample = 0
+        failed = None
+        for index in range(messages):
+            stop = sample + count
+            try:
+                if self._restart_pending:
+                    estimator.restart_regressor()
+                    self._restart_pending = False
+                while sample < stop:
+                    start = clock()
+                    update(outputs[sample], input_rows[sample])
+                    elapsed = clock() - start
+                    updates += 1
+                    total += elapsed
+                    if elapsed > largest:
+                        largest = elapsed
+                    sample += 1
+            except Exception as error:  # as in take_rows: drop the rest, restart
+                self._restart_pending = True
+                result.failures.append((first + index, repr(error)))
+                failed = index
+                break
+            self.used += count
+            self.since_publish += count
+            result.used += count
+            if unexcited is not None:
+                self.unexcited += unexcited[index]
+                result.unexcited += unexcited[index]
+            if publish and self.since_publish >= period and estimator.valid:
+                self._collect(result, first + index)
+        if runs is not None:
+            self._keep_run(runs, inputs, min(sample, len(outputs) - 1))
+        following = first + messages if failed is None else first + failed + 1
+        return following, updates, (total, largest)
 
     def _collect(self, result: BlockResult, index: int) -> None:
         """Add the estimates due after message ``index`` to ``result`` (or count them withheld)."""

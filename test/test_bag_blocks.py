@@ -346,3 +346,33 @@ def test_take_messages_is_bit_equal_to_the_node_path(estimator):
         np.testing.assert_array_equal(block.estimator.theta, one.estimator.theta)
         np.testing.assert_array_equal(np.array([e[0] for e in result.estimates]),
                                       np.array(thetas))
+
+
+@pytest.mark.parametrize('window', [1, 3, 8])
+def test_vectorised_excitation_check_equals_the_sample_loop(window):
+    # Inputs that stay constant for runs of random length, fed in blocks of random size.
+    generator = np.random.default_rng(4)
+    inputs = np.repeat(generator.normal(size=40), generator.integers(1, 12, size=40))
+    rows = np.column_stack([np.arange(inputs.shape[0], dtype=float), inputs])
+    cuts = np.sort(generator.choice(np.arange(1, rows.shape[0]), 15, replace=False))
+    vectorised = SampleFeeder(Recorder(fail_on={30.0, 31.0, 100.0}), window)
+    looped = SampleFeeder(Recorder(fail_on={30.0, 31.0, 100.0}), window)
+    for part in np.split(rows, cuts):
+        try:
+            vectorised.feed(part)
+        except FloatingPointError:
+            pass
+        try:
+            looped._feed_checked(part, [True] * part.shape[0])
+        except FloatingPointError:
+            pass
+        assert (vectorised._constant_run, vectorised._last_u) == (
+            looped._constant_run, looped._last_u)
+        assert vectorised.excitation_lost == looped.excitation_lost
+    assert vectorised.estimator.log == looped.estimator.log
+    again_vectorised = SampleFeeder(Recorder(), window)
+    again_looped = SampleFeeder(Recorder(), window)
+    counted = [again_vectorised.feed(part).unexcited for part in np.split(rows, cuts)]
+    looped_counts = [again_looped._feed_checked(part, [True] * part.shape[0])[2]
+                     for part in np.split(rows, cuts)]
+    assert counted == looped_counts and sum(counted) > 0
