@@ -255,6 +255,11 @@ def all_finite(*arrays: np.ndarray) -> bool:
     return all(bool(np.isfinite(values).all()) for values in arrays)  # or it overflowed
 
 
+def block_is_finite(rows: np.ndarray) -> bool:
+    """Return whether every value of ``rows`` is finite (one sum, exact if that overflows)."""
+    return math.isfinite(rows.sum()) or bool(np.isfinite(rows).all())
+
+
 class SampleFeeder:
     """
     Feed samples to an estimator with the identifier node's bad-sample policy.
@@ -335,11 +340,11 @@ class SampleFeeder:
                              f'columns, got shape {rows.shape}')
         # The checks of estimator.update, done once for the block: the shape
         # above, finiteness here; then each sample goes in unchecked.
-        finite = np.isfinite(rows).all(axis=1)
-        if finite.all():
+        if block_is_finite(rows):
             (used, unexcited), nonfinite = self._feed_finite(rows), 0
         else:
-            used, nonfinite, unexcited = self._feed_checked(rows, finite.tolist())
+            finite = np.isfinite(rows).all(axis=1).tolist()
+            used, nonfinite, unexcited = self._feed_checked(rows, finite)
         self.used += used
         self.nonfinite += nonfinite
         self.unexcited += unexcited
@@ -393,9 +398,15 @@ class SampleFeeder:
         if not self.excitation_window:
             return None
         count = inputs.shape[0]
+        first_same = self._last_u is not None and inputs[0].tolist() == self._last_u
+        changes = inputs[1:] != inputs[:-1]
+        if changes.all():  # every input differs from the one before: no run past sample 0
+            runs = np.zeros(count, dtype=np.int64)
+            runs[0] = self._constant_run + 1 if first_same else 0
+            return runs
         same = np.empty(count, dtype=bool)
-        same[0] = self._last_u is not None and inputs[0].tolist() == self._last_u
-        same[1:] = np.all(inputs[1:] == inputs[:-1], axis=1)
+        same[0] = first_same
+        same[1:] = ~changes.any(axis=1)
         steps = np.arange(count)
         reset = np.maximum.accumulate(np.where(same, -1, steps))
         return np.where(reset >= 0, steps - reset, self._constant_run + steps + 1)
@@ -513,7 +524,7 @@ class SampleFeeder:
             raise ValueError(f'rows must be whole messages of count = {count} samples of '
                              f'1 + num_inputs = {width} values, got shape {rows.shape}')
         result = BlockResult()
-        if np.isfinite(rows).all():
+        if block_is_finite(rows):
             self._take_finite(rows, count, publish, result)
         else:
             self._take_each(rows, count, publish, result)
@@ -678,5 +689,5 @@ class SampleFeeder:
 
 
 __all__ = ['BlockResult', 'FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'all_finite',
-           'decode_samples', 'estimate_layout', 'names_label', 'parse_names_label',
+           'block_is_finite', 'decode_samples', 'estimate_layout', 'names_label', 'parse_names_label',
            'sample_label', 'samples_data', 'samples_layout']
