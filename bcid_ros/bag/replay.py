@@ -18,10 +18,8 @@ wrong goes message by message through
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 from pathlib import Path
-import shutil
 import time
 from typing import Any
 
@@ -276,6 +274,8 @@ def write_output(result: ReplayResult, path: Path) -> None:
 
 
 def _write_csv(result: ReplayResult, path: Path) -> None:
+    import csv  # here, as the writers below: a replay without --output needs none of them
+
     names = result.parameter_names
     header = (['time_s', 'samples'] + list(names) + [f'uncompensated_{n}' for n in names]
               + list(result.noise_names))
@@ -290,6 +290,8 @@ def _write_csv(result: ReplayResult, path: Path) -> None:
 
 
 def _write_mcap(result: ReplayResult, path: Path) -> None:
+    import shutil
+
     from bcid_ros.bag.qos import LATCHED
     from bcid_ros.bag.writer import BagWriter, float64_multi_array
 
