@@ -689,5 +689,5 @@ class SampleFeeder:
 
 
 __all__ = ['BlockResult', 'FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'all_finite',
-           'block_is_finite', 'decode_samples', 'estimate_layout', 'names_label', 'parse_names_label',
-           'sample_label', 'samples_data', 'samples_layout']
+           'block_is_finite', 'decode_samples', 'estimate_layout', 'names_label',
+           'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']

@@ -36,7 +36,7 @@ LARGE, LARGE_QUICK = 1_000_000, 100_000
 
 
 def timed(command: list[str], repeats: int) -> tuple[float, float, subprocess.CompletedProcess]:
-    """Run ``command`` ``repeats`` times; return the fastest wall time, its CPU time, the result."""
+    """Run ``command`` ``repeats`` times; return the best wall time, its CPU time, the result."""
     best, best_cpu, result = float('inf'), float('nan'), None
     for _ in range(repeats):
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
