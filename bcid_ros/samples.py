@@ -14,6 +14,7 @@ both use it, so they give the same estimates on the same messages.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from typing import Any, Iterable, Sequence
 
@@ -21,6 +22,10 @@ import numpy as np
 
 #: ``layout.dim[0].label`` of a frame (a message holding k samples).
 FRAME_LABEL = 'samples'
+
+#: Fewest samples for which the vectorised excitation check beats the sample loop (measured:
+#: for one sample it costs about 5 µs more; for a frame of 50 it is cheaper).
+VECTOR_CHECK_MIN = 16
 
 
 def sample_label(num_inputs: int) -> str:
@@ -209,6 +214,56 @@ class FeedResult:
     withheld: bool = False
 
 
+@dataclasses.dataclass(slots=True)
+class BlockResult:
+    """
+    What :meth:`SampleFeeder.take_messages` did with a block of messages.
+
+    Attributes
+    ----------
+    used, nonfinite, unexcited : int
+        Sums over the block, as in :class:`FeedResult` (the samples of a
+        message dropped for an estimator error are not counted).
+    failures : list of tuple
+        ``(message index, repr of the exception)`` of each message dropped
+        because the estimator raised.
+    withheld : int
+        Messages after which a due estimate was not finite and so not returned.
+    published : list of int
+        Index of each message after which estimates were due.
+    used_totals : list of int
+        :attr:`SampleFeeder.used` right after each of those messages.
+    estimates : list of tuple
+        ``(theta, theta_uncompensated, noise)`` for each of those messages.
+
+    """
+
+    used: int = 0
+    nonfinite: int = 0
+    unexcited: int = 0
+    failures: list[tuple[int, str]] = dataclasses.field(default_factory=list)
+    withheld: int = 0
+    published: list[int] = dataclasses.field(default_factory=list)
+    used_totals: list[int] = dataclasses.field(default_factory=list)
+    estimates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = dataclasses.field(
+        default_factory=list)
+
+
+def all_finite(*arrays: np.ndarray) -> bool:
+    """Return whether every value of the 1-D float arrays is finite (one dot product each)."""
+    total = 0.0
+    for values in arrays:
+        total += values.dot(values)
+    if math.isfinite(total):
+        return True  # a NaN or Inf would have made a square, and so the sum, non-finite
+    return all(bool(np.isfinite(values).all()) for values in arrays)  # or it overflowed
+
+
+def block_is_finite(rows: np.ndarray) -> bool:
+    """Return whether every value of ``rows`` is finite (one sum, exact if that overflows)."""
+    return math.isfinite(rows.sum()) or bool(np.isfinite(rows).all())
+
+
 class SampleFeeder:
     """
     Feed samples to an estimator with the identifier node's bad-sample policy.
@@ -225,8 +280,9 @@ class SampleFeeder:
     :meth:`take_message` and :meth:`take_rows` are the identifier's whole
     per-message rule (what is dropped, what restarts the regressor, when
     estimates are published); they say what happened in a
-    :class:`FeedResult`. identifier_node and ``bcid replay`` both go through
-    them, which is why they agree bit for bit.
+    :class:`FeedResult`. identifier_node goes through them, and ``bcid
+    replay`` through :meth:`take_messages`, the same rule for a block of
+    messages at once, which is why they agree bit for bit.
 
     Parameters
     ----------
@@ -286,12 +342,91 @@ class SampleFeeder:
         if rows.ndim != 2 or rows.shape[1] != 1 + estimator.num_inputs:
             raise ValueError(f'rows must have 1 + num_inputs = {1 + estimator.num_inputs} '
                              f'columns, got shape {rows.shape}')
+        # The checks of estimator.update, done once for the block: the shape
+        # above, finiteness here; then each sample goes in unchecked.
+        short = self.excitation_window and rows.shape[0] < VECTOR_CHECK_MIN
+        if not short and block_is_finite(rows):
+            (used, unexcited), nonfinite = self._feed_finite(rows), 0
+        else:
+            finite = np.isfinite(rows).all(axis=1).tolist()
+            used, nonfinite, unexcited = self._feed_checked(rows, finite)
+        self.used += used
+        self.nonfinite += nonfinite
+        self.unexcited += unexcited
+        self.since_publish += used
+        result.used += used
+        result.nonfinite += nonfinite
+        result.unexcited += unexcited
+        return result
+
+    def _feed_finite(self, rows: np.ndarray) -> tuple[int, int]:
+        """Feed rows known to be finite; return (used, unexcited)."""
+        total_rows = rows.shape[0]
+        if not total_rows:
+            return 0, 0
+        inputs = rows[:, 1:]
+        runs = self._constant_runs(inputs)
+        estimator = self.estimator
+        update = estimator.update_trusted
+        clock = time.perf_counter_ns
+        count = total = 0
+        largest = self.update_ns_max
+        try:
+            if self._restart_pending:
+                estimator.restart_regressor()
+                self._restart_pending = False
+            for y, u in zip(rows[:, 0].tolist(), inputs):
+                start = clock()
+                update(y, u)
+                elapsed = clock() - start
+                count += 1
+                total += elapsed
+                if elapsed > largest:
+                    largest = elapsed
+        finally:
+            self.update_count += count
+            self.update_ns_total += total
+            self.update_ns_max = largest
+            if runs is not None:  # the check of a failing sample came before its update
+                self._keep_run(runs, inputs, min(count, total_rows - 1))
+        unexcited = 0 if runs is None else int(np.count_nonzero(runs >= self.excitation_window))
+        return count, unexcited
+
+    def _constant_runs(self, inputs: np.ndarray) -> np.ndarray | None:
+        """
+        Return the unchanged-input run after each of these finite samples (None without a window).
+
+        The excitation check of :meth:`_feed_checked` for a whole block: the
+        run grows by one for a sample whose input equals the previous one and
+        is 0 otherwise; a sample is unexcited when its run reaches the window.
+        """
+        if not self.excitation_window:
+            return None
+        count = inputs.shape[0]
+        first_same = self._last_u is not None and inputs[0].tolist() == self._last_u
+        changes = inputs[1:] != inputs[:-1]
+        if changes.all():  # every input differs from the one before: no run past sample 0
+            runs = np.zeros(count, dtype=np.int64)
+            runs[0] = self._constant_run + 1 if first_same else 0
+            return runs
+        same = np.empty(count, dtype=bool)
+        same[0] = first_same
+        same[1:] = ~changes.any(axis=1)
+        steps = np.arange(count)
+        reset = np.maximum.accumulate(np.where(same, -1, steps))
+        return np.where(reset >= 0, steps - reset, self._constant_run + steps + 1)
+
+    def _keep_run(self, runs: np.ndarray, inputs: np.ndarray, last: int) -> None:
+        """Keep the excitation state after sample ``last`` of a block (see _constant_runs)."""
+        self._constant_run = int(runs[last])
+        self._last_u = inputs[last].tolist()
+
+    def _feed_checked(self, rows: np.ndarray, finite: list[bool]) -> tuple[int, int, int]:
+        """Feed rows with NaN/Inf skipping and the excitation check; return the counts."""
+        estimator = self.estimator
         used = nonfinite = unexcited = 0
         clock = time.perf_counter_ns
         window = self.excitation_window
-        # The checks of estimator.update, done once for the block: the shape
-        # above, finiteness here; then each sample goes in unchecked.
-        finite = np.isfinite(rows).all(axis=1).tolist()
         outputs = rows[:, 0].tolist()
         inputs = rows[:, 1:]
         input_lists = inputs.tolist() if window else None
@@ -321,14 +456,7 @@ class SampleFeeder:
             if elapsed > self.update_ns_max:
                 self.update_ns_max = elapsed
             used += 1
-        self.used += used
-        self.nonfinite += nonfinite
-        self.unexcited += unexcited
-        self.since_publish += used
-        result.used += used
-        result.nonfinite += nonfinite
-        result.unexcited += unexcited
-        return result
+        return used, nonfinite, unexcited
 
     def take_message(self, message: Any) -> FeedResult:
         """
@@ -366,6 +494,150 @@ class SampleFeeder:
         self._add_estimates(result)
         return result
 
+    def take_messages(self, rows: np.ndarray, count: int, publish: bool = True) -> BlockResult:
+        """
+        Feed consecutive messages of ``count`` samples each, with the rule of :meth:`take_rows`.
+
+        The result is what calling :meth:`take_rows` on each message in turn
+        would give, estimator state and counts alike, but without a call per
+        message: this is how ``bcid replay`` feeds a bag's blocks.
+
+        Parameters
+        ----------
+        rows : numpy.ndarray, shape ``(m count, 1 + r)``
+            The samples of m messages, oldest first.
+        count : int
+            Samples per message, >= 1.
+        publish : bool
+            Whether to collect the due estimates; without, nothing is
+            checked for publication (for a caller that publishes nothing).
+
+        Returns
+        -------
+        BlockResult
+
+        Raises
+        ------
+        ValueError
+            If the rows are not m whole messages of 1 + r values (nothing is fed then).
+
+        """
+        estimator = self.estimator
+        rows = np.asarray(rows, dtype=float)
+        width = 1 + estimator.num_inputs
+        if count < 1 or rows.ndim != 2 or rows.shape[1] != width or rows.shape[0] % count:
+            raise ValueError(f'rows must be whole messages of count = {count} samples of '
+                             f'1 + num_inputs = {width} values, got shape {rows.shape}')
+        result = BlockResult()
+        if block_is_finite(rows):
+            self._take_finite(rows, count, publish, result)
+        else:
+            self._take_each(rows, count, publish, result)
+        return result
+
+    def _take_each(self, rows: np.ndarray, count: int, publish: bool,
+                   result: BlockResult) -> None:
+        """Feed message by message through :meth:`feed` (for blocks with samples to skip)."""
+        for index in range(rows.shape[0] // count):
+            fed = FeedResult()
+            try:
+                self.feed(rows[index * count:(index + 1) * count], fed)
+            except Exception as error:  # as in take_rows
+                self.gap()
+                result.failures.append((index, repr(error)))
+                continue
+            result.used += fed.used
+            result.nonfinite += fed.nonfinite
+            result.unexcited += fed.unexcited
+            if publish and self._due():
+                self._collect(result, index)
+
+    def _take_finite(self, rows: np.ndarray, count: int, publish: bool,
+                     result: BlockResult) -> None:
+        """Feed finite samples: one loop over the samples, the excitation check vectorised."""
+        messages = rows.shape[0] // count
+        updates = total = 0
+        largest = self.update_ns_max
+        first = 0
+        try:
+            while first < messages:
+                # Until an update fails, from message ``first`` on; then again after it.
+                first, done, elapsed = self._take_finite_from(rows, count, first, publish,
+                                                              result, largest)
+                updates += done
+                total += elapsed[0]
+                largest = elapsed[1]
+        finally:
+            self.update_count += updates
+            self.update_ns_total += total
+            self.update_ns_max = largest
+
+    def _take_finite_from(self, rows: np.ndarray, count: int, first: int, publish: bool,
+                          result: BlockResult, largest: int
+                          ) -> tuple[int, int, tuple[int, int]]:
+        """
+        Feed messages from ``first`` on until one fails or all are done.
+
+        Returns the message to go on from, the updates made and their
+        ``(total, largest)`` time in ns.
+        """
+        estimator = self.estimator
+        update = estimator.update_trusted
+        clock = time.perf_counter_ns
+        period = self.publish_period
+        window = self.excitation_window
+        inputs = rows[first * count:, 1:]
+        runs = self._constant_runs(inputs)
+        unexcited = (None if runs is None else
+                     np.count_nonzero((runs >= window).reshape(-1, count), axis=1).tolist())
+        outputs = rows[first * count:, 0].tolist()
+        input_rows = list(inputs)
+        messages = len(outputs) // count
+        updates = total = sample = 0
+        failed = None
+        for index in range(messages):
+            stop = sample + count
+            try:
+                if self._restart_pending:
+                    estimator.restart_regressor()
+                    self._restart_pending = False
+                while sample < stop:
+                    start = clock()
+                    update(outputs[sample], input_rows[sample])
+                    elapsed = clock() - start
+                    updates += 1
+                    total += elapsed
+                    if elapsed > largest:
+                        largest = elapsed
+                    sample += 1
+            except Exception as error:  # as in take_rows: drop the rest, restart
+                self._restart_pending = True
+                result.failures.append((first + index, repr(error)))
+                failed = index
+                break
+            self.used += count
+            self.since_publish += count
+            result.used += count
+            if unexcited is not None:
+                self.unexcited += unexcited[index]
+                result.unexcited += unexcited[index]
+            if publish and self.since_publish >= period and estimator.ready:
+                self._collect(result, first + index)
+        if runs is not None:
+            self._keep_run(runs, inputs, min(sample, len(outputs) - 1))
+        following = first + messages if failed is None else first + failed + 1
+        return following, updates, (total, largest)
+
+    def _collect(self, result: BlockResult, index: int) -> None:
+        """Add the estimates due after message ``index`` to ``result`` (or count them withheld)."""
+        estimates = self.due_estimates()
+        if estimates is None:
+            result.withheld += 1
+            return
+        result.published.append(index)
+        result.used_totals.append(self.used)
+        result.estimates.append(estimates)
+
     def _add_estimates(self, result: FeedResult) -> None:
         estimates = self.due_estimates()
         if estimates is None and self._due():
@@ -389,7 +661,7 @@ class SampleFeeder:
         estimator = self.estimator
         theta = estimator.theta
         uncompensated = estimator.theta_uncompensated
-        if not (np.isfinite(theta).all() and np.isfinite(uncompensated).all()):
+        if not all_finite(theta, uncompensated):
             return None
         self.since_publish = 0
         return theta, uncompensated, estimator.noise
@@ -444,5 +716,6 @@ class SampleFeeder:
          self._constant_run, self._restart_pending) = values
 
 
-__all__ = ['FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'decode_samples', 'estimate_layout',
-           'names_label', 'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']
+__all__ = ['BlockResult', 'FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'all_finite',
+           'block_is_finite', 'decode_samples', 'estimate_layout', 'names_label',
+           'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']

@@ -226,17 +226,60 @@ def run(quick: bool = False) -> list[Result]:
         results += single
         results.append(Result(SECTION, 'highest zero-loss rate, one sample per message',
                               best_single, 'samples/s', '≥ 2,000', best_single >= 2000))
-        framed, best_framed = max_rate(bench, rows, 50,
-                                       [20000, 30000, 40000, 50000, 100000], seconds)
+        framed, best_framed = max_rate(bench, rows, 50, FRAME_RATES, seconds)
         results += framed
         results.append(Result(SECTION, 'highest zero-loss rate, frames of 50', best_framed,
                               'samples/s', '≥ 50,000', best_framed >= 50000))
+        results.append(frame_callback_capacity(bench, rows, 50, 400 if quick else 2000))
         results += latency(bench, rows, 100 if quick else 1000)
         results += memory(bench, rows, 200_000 if quick else 1_000_000)
     finally:
         bench.close()
     results += joints(quick)
     return results
+
+
+#: The frames ladder (samples/s); it stops at the first rate with a loss.
+FRAME_RATES = [20000, 30000, 40000, 50000, 60000, 80000, 100000]
+
+
+def frame_callback_capacity(bench: Bench, rows: np.ndarray, frame: int,
+                            frames: int) -> Result:
+    """
+    Return the CPU cost of identifier_node's samples callback per sample, for frames.
+
+    An IdentifierNode in this process (Ding MISO, bcrls, publishing after
+    every frame) takes ``frames`` deserialised frames straight into its
+    callback, without the transport: the CPU time of the callback (decode,
+    feed, publish) bounds the node's rate on one free core, which a loaded
+    machine does not show in the ladder above.
+    """
+    from rclpy.parameter import Parameter
+    from rclpy.serialization import deserialize_message, serialize_message
+    from std_msgs.msg import Float64MultiArray
+
+    from bcid_ros.nodes.identifier_node import IdentifierNode
+    from bcid_ros.parameters import load_yaml_parameters
+
+    values = load_yaml_parameters(CONFIG)
+    # In a namespace of its own, so that the benchmark's node does not hear its estimates.
+    node = IdentifierNode(context=bench.context, namespace='capacity_probe',
+                          parameter_overrides=[Parameter(name, value=value)
+                                               for name, value in values.items()])
+    messages = [deserialize_message(serialize_message(bench.message(
+        rows[k * frame:(k + 1) * frame])), Float64MultiArray) for k in range(frames)]
+    try:
+        start = time.thread_time()  # this thread only: the benchmark's executor spins too
+        for k, message in enumerate(messages):
+            node.on_samples(message, {'publication_sequence_number': k + 1})
+        cpu = time.thread_time() - start
+    finally:
+        node.destroy_node()
+    per_sample = cpu / (frames * frame) * 1e6
+    return Result(SECTION, f'samples callback CPU, frames of {frame} (in process, no '
+                  'transport)', per_sample, 'µs/sample',
+                  note=f'{1e6 / per_sample:,.0f} samples/s on one free core; '
+                  f'{frames * frame:,} samples')
 
 
 def latency(bench: Bench, rows: np.ndarray, count: int) -> list[Result]:

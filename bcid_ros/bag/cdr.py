@@ -68,35 +68,73 @@ def decode_float64_multi_array(raw: bytes) -> Float64MultiArray:
         If the encapsulation is not plain CDR or the bytes do not hold a whole message.
 
     """
+    layout, start, length, dtype = decode_head(raw)
+    return Float64MultiArray(layout, np.frombuffer(raw, dtype=dtype, count=length,
+                                                   offset=start))
+
+
+def decode_head(raw: bytes) -> tuple[Layout, int, int, np.dtype]:
+    """
+    Decode the layout of a CDR Float64MultiArray and find its data.
+
+    Everything before the data (the layout, the data length, the padding)
+    is the message's *head*: two messages with the same head bytes have the
+    same layout and the same number of values at the same place, which is
+    what lets a reader decode a whole run of such messages at once.
+
+    Parameters
+    ----------
+    raw : bytes
+        The serialised message, encapsulation header included.
+
+    Returns
+    -------
+    layout : Layout
+        The decoded layout.
+    start : int
+        Byte offset of the first value in ``raw`` (the length of the head).
+    length : int
+        Number of values.
+    dtype : numpy.dtype
+        Their float64 byte order.
+
+    Raises
+    ------
+    ValueError
+        If the encapsulation is not plain CDR or the bytes do not hold a whole message.
+
+    """
     if len(raw) < 4 or raw[0] != 0 or raw[1] not in (0, 1):
         raise ValueError('not a plain CDR encapsulation')
     order = '<' if raw[1] == 1 else '>'
     uint32, pair = _UINT32[order], _UINT32_PAIR[order]
     base = 4  # alignment counts from the end of the encapsulation header
     pos = base
-    (count,) = uint32.unpack_from(raw, pos)
-    pos += 4
-    if count > len(raw):
-        raise ValueError('dimension count beyond the message')
-    dims = []
-    for _ in range(count):
-        pos += -(pos - base) % 4
-        (length,) = uint32.unpack_from(raw, pos)
+    try:
+        (count,) = uint32.unpack_from(raw, pos)
         pos += 4
-        end = pos + length
-        if length == 0 or end > len(raw) or raw[end - 1] != 0:
-            raise ValueError('bad string in the layout')
-        label = bytes(raw[pos:end - 1]).decode('utf-8')
-        pos = end + (-(end - base) % 4)
-        size, stride = pair.unpack_from(raw, pos)
-        pos += 8
-        dims.append(Dimension(label, size, stride))
-    pos += -(pos - base) % 4
-    data_offset, length = pair.unpack_from(raw, pos)
+        if count > len(raw):
+            raise ValueError('dimension count beyond the message')
+        dims = []
+        for _ in range(count):
+            pos += -(pos - base) % 4
+            (length,) = uint32.unpack_from(raw, pos)
+            pos += 4
+            end = pos + length
+            if length == 0 or end > len(raw) or raw[end - 1] != 0:
+                raise ValueError('bad string in the layout')
+            label = bytes(raw[pos:end - 1]).decode('utf-8')
+            pos = end + (-(end - base) % 4)
+            size, stride = pair.unpack_from(raw, pos)
+            pos += 8
+            dims.append(Dimension(label, size, stride))
+        pos += -(pos - base) % 4
+        data_offset, length = pair.unpack_from(raw, pos)
+    except struct.error as error:
+        raise ValueError(f'message ends inside the layout ({error})') from None
     pos += 8
     if length:
         pos += -(pos - base) % 8
     if pos + 8 * length > len(raw):
         raise ValueError('data beyond the message')
-    data = np.frombuffer(raw, dtype=_DOUBLE[order], count=length, offset=pos)
-    return Float64MultiArray(Layout(tuple(dims), data_offset), data)
+    return Layout(tuple(dims), data_offset), pos, length, _DOUBLE[order]

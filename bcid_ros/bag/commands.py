@@ -21,7 +21,12 @@ def replay(args: argparse.Namespace) -> int:
 
     if not args.params.is_file():
         raise BcidError(f'--params {args.params}: no such file')
-    result = run(args.bag, load_yaml_parameters(args.params), estimator=args.estimator)
+    # The trajectory is kept only for --output; the final estimate is the same either way.
+    result = run(args.bag, load_yaml_parameters(args.params), estimator=args.estimator,
+                 trajectory=args.output is not None)
+    if not result.in_file_order:
+        print('bcid replay: note: the samples were not stored in log-time order; '
+              'replayed in log-time order', file=sys.stderr)
     if args.output is not None:
         write_output(result, args.output)
     if args.json:

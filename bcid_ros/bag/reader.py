@@ -6,6 +6,12 @@ a single ``.mcap`` file, checks that it is a ROS 2 MCAP (profile ``ros2``,
 ``cdr`` messages), and turns every way a bag can be broken (missing,
 truncated, corrupt, not MCAP, a topic missing or of the wrong type) into a
 :class:`~bcid_ros.errors.BcidError` that says what is wrong in one line.
+
+The samples are read by :meth:`BagReader.blocks` (:mod:`bcid_ros.bag.blocks`):
+chunks in file order, checked to be in log-time order, and runs of messages
+decoded at once. Only what that needs is imported up front; ``rosbags`` (for
+the QoS) and ``mcap_ros2`` (for messages of another form) are imported when
+used, which keeps ``bcid replay``'s start-up short.
 """
 
 from __future__ import annotations
@@ -17,13 +23,11 @@ from typing import Any, Iterator, Sequence
 
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import yaml
 import zstandard
 
-from bcid_ros.bag.cdr import decode_float64_multi_array
-from bcid_ros.bag.qos import parse_offered, Qos
+from bcid_ros.bag.blocks import MessageBlock, ordered_blocks, OrderReport, topic_blocks
 from bcid_ros.errors import BcidError
 from bcid_ros.nodes.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
                                       TRUE_PARAMETERS)
@@ -41,8 +45,27 @@ class TopicInfo:
     name: str
     type: str
     count: int
-    qos: tuple[Qos, ...]
+    #: The ``offered_qos_profiles`` YAML of the topic's first channel that has one.
+    qos_text: str
     encoding: str
+
+    @property
+    def qos(self) -> tuple[Any, ...]:
+        """
+        Return the offered QoS profiles (rosbags ``Qos``), parsed now.
+
+        Raises
+        ------
+        BcidError
+            If the ``offered_qos_profiles`` YAML cannot be parsed.
+
+        """
+        from bcid_ros.bag.qos import parse_offered
+
+        try:
+            return tuple(parse_offered(self.qos_text))
+        except ValueError as error:
+            raise BcidError(f'topic {self.name}: {error}') from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,6 +141,9 @@ class BagReader:
         self.topics: dict[str, TopicInfo] = {}
         self.start_ns: int | None = None
         self.end_ns: int | None = None
+        #: How far file order was from log-time order, per topic read by :meth:`blocks`.
+        self.order: dict[str, OrderReport] = {}
+        self._summaries: dict[Path, Any] = {}
         for file in self.files:
             self._read_summary(file)
 
@@ -135,6 +161,7 @@ class BagReader:
         if summary is None or summary.statistics is None:
             raise BcidError(f'{file}: the MCAP has no summary (an unfinished recording?); '
                             'it cannot be read safely')
+        self._summaries[file] = summary
         counts = summary.statistics.channel_message_counts
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
@@ -145,17 +172,14 @@ class BagReader:
                 raise BcidError(f'{file}: topic {channel.topic} is encoded as '
                                 f'{channel.message_encoding}/{schema.encoding}, not '
                                 'cdr/ros2msg')
-            try:
-                qos = tuple(parse_offered(channel.metadata.get('offered_qos_profiles', '')))
-            except ValueError as error:
-                raise BcidError(f'{file}: topic {channel.topic}: {error}') from None
+            qos = channel.metadata.get('offered_qos_profiles', '')
             previous = self.topics.get(channel.topic)
             if previous is not None and previous.type != schema.name:
                 raise BcidError(f'{file}: topic {channel.topic} has two types, '
                                 f'{previous.type} and {schema.name}')
             count = counts.get(channel.id, 0) + (previous.count if previous else 0)
             self.topics[channel.topic] = TopicInfo(
-                channel.topic, schema.name, count, qos or (previous.qos if previous else ()),
+                channel.topic, schema.name, count, (previous.qos_text if previous else '') or qos,
                 channel.message_encoding)
         stats = summary.statistics
         if stats.message_count:
@@ -195,14 +219,15 @@ class BagReader:
                             f'{msgtype}')
         return info
 
-    def float64_multi_arrays(self, topic: str, reverse: bool = False
-                             ) -> Iterator[tuple[int, Any]]:
+    def blocks(self, topic: str) -> Iterator[MessageBlock]:
         """
-        Yield ``(log time ns, message)`` of a Float64MultiArray topic, decoded fast.
+        Yield the messages of a Float64MultiArray topic in log-time order, in blocks.
 
-        Uses :func:`bcid_ros.bag.cdr.decode_float64_multi_array` and falls back
-        to ``mcap_ros2`` for a message it does not recognise, so the fields are
-        the same either way.
+        A block is a run of messages with the same layout and number of
+        values, decoded at once (:mod:`bcid_ros.bag.blocks`); a message that
+        the fast CDR decoder does not recognise comes alone, decoded by
+        ``mcap_ros2``, with the same fields. Each file is read in file order
+        where that is log-time order, else sorted; :attr:`order` says which.
 
         Raises
         ------
@@ -210,22 +235,52 @@ class BagReader:
             If a chunk, record or CDR message is corrupt.
 
         """
-        fallback = None
-        for file in self.files[::-1] if reverse else self.files:
+        order = self.order[topic] = OrderReport()
+        for file in self.files:
+            summary = self._summaries[file]
+            channels = {c.id for c in summary.channels.values() if c.topic == topic}
+            if not channels:
+                continue
+            schema = summary.schemas[summary.channels[min(channels)].schema_id]
+            fallback = _Fallback(schema)
             try:
                 with file.open('rb') as stream:
-                    reader = make_reader(stream)
-                    for schema, channel, message in reader.iter_messages(topics=[topic],
-                                                                         reverse=reverse):
-                        try:
-                            decoded = decode_float64_multi_array(message.data)
-                        except ValueError:
-                            fallback = fallback or DecoderFactory().decoder_for('cdr', schema)
-                            decoded = fallback(message.data)
-                        yield message.log_time, decoded
+                    if summary.chunk_indexes:
+                        yield from topic_blocks(stream, summary, channels, fallback, order)
+                    else:
+                        yield from self._unindexed_blocks(stream, topic, fallback, order)
             except READ_ERRORS as error:
                 raise BcidError(f'{file}: corrupt MCAP data or CDR message '
                                 f'({type(error).__name__}: {error})') from None
+
+    @staticmethod
+    def _unindexed_blocks(stream: Any, topic: str, fallback: _Fallback,
+                          order: OrderReport) -> Iterator[MessageBlock]:
+        """Yield one-message blocks from an MCAP without chunk indexes (``mcap``'s order)."""
+        from bcid_ros.bag.blocks import equal_head_blocks
+
+        reader = make_reader(stream)
+        for _, _, message in reader.iter_messages(topics=[topic]):
+            raw = np.frombuffer(message.data, dtype=np.uint8)[None, :]
+            order.messages += 1
+            yield from equal_head_blocks(np.array([message.log_time], dtype=np.int64), raw,
+                                         fallback)
+
+    def float64_multi_arrays(self, topic: str) -> Iterator[tuple[int, Any]]:
+        """
+        Yield ``(log time ns, message)`` of a Float64MultiArray topic, in log-time order.
+
+        The messages come from :meth:`blocks` and have the fields of the ROS
+        type (``layout.dim[i].label/size/stride``, ``layout.data_offset``,
+        ``data``).
+
+        Raises
+        ------
+        BcidError
+            If a chunk, record or CDR message is corrupt.
+
+        """
+        return ordered_blocks(self.blocks(topic))
 
     def messages(self, topics: Sequence[str] | None = None
                  ) -> Iterator[tuple[str, int, bytes]]:
@@ -263,6 +318,8 @@ class BagReader:
         for file in self.files:
             try:
                 with file.open('rb') as stream:
+                    from mcap_ros2.decoder import DecoderFactory
+
                     reader = make_reader(stream, decoder_factories=[DecoderFactory()])
                     for item in reader.iter_decoded_messages(topics=topics):
                         yield item.channel.topic, item.message.log_time, item.decoded_message
@@ -279,9 +336,10 @@ class BagReader:
 
     def last_float64_multi_array(self, topic: str) -> Any:
         """Return the last message of a Float64MultiArray topic, or None if it has none."""
-        for _, message in self.float64_multi_arrays(topic, reverse=True):
-            return message
-        return None
+        last = None
+        for block in self.blocks(topic):
+            last = block
+        return None if last is None else last.message(len(last) - 1)
 
     def find_topic(self, suffix: str, msgtype: str = FLOAT64_MULTI_ARRAY) -> str | None:
         """Return the topic whose name ends with ``/suffix`` and has ``msgtype``, if one."""
@@ -307,6 +365,21 @@ class BagReader:
             noise_names, noise = _named_values(self.last_float64_multi_array(noise_topic),
                                                noise_topic)
         return BagTruth(names, values, noise_names, noise)
+
+
+class _Fallback:
+    """Decode a CDR message with ``mcap_ros2`` from its schema (imported on first use)."""
+
+    def __init__(self, schema: Any) -> None:
+        self.schema = schema
+        self.decoder: Any = None
+
+    def __call__(self, raw: bytes) -> Any:
+        if self.decoder is None:
+            from mcap_ros2.decoder import DecoderFactory
+
+            self.decoder = DecoderFactory().decoder_for('cdr', self.schema)
+        return self.decoder(raw)
 
 
 def _named_values(message: Any, topic: str) -> tuple[tuple[str, ...], np.ndarray]:

@@ -4,30 +4,34 @@ Offline replay: run the identifier's estimator over a bag's samples, no ROS grap
 The estimator is built from the same parameter file through
 :func:`bcid_ros.parameters.estimator_from_parameters`, and every message
 goes through the node's own per-message rule,
-:meth:`bcid_ros.samples.SampleFeeder.take_message`, which also decides the
-samples where estimates are published. So the replay's final estimate
-equals what ``identifier_node`` publishes for the same bag, to the last bit.
+:class:`bcid_ros.samples.SampleFeeder`, which also decides the samples where
+estimates are published. So the replay's final estimate equals what
+``identifier_node`` publishes for the same bag, to the last bit.
+
+The bag is read in blocks (:meth:`bcid_ros.bag.reader.BagReader.blocks`):
+runs of messages with the same layout, in log-time order, fed with
+:meth:`~bcid_ros.samples.SampleFeeder.take_messages`, which applies the
+per-message rule to a whole block in one loop. A block whose layout is
+wrong goes message by message through
+:meth:`~bcid_ros.samples.SampleFeeder.take_message`, as the node would.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 from pathlib import Path
-import shutil
 import time
 from typing import Any
 
 import numpy as np
 
-from bcid_ros.bag.qos import LATCHED
+from bcid_ros.bag.blocks import MessageBlock
 from bcid_ros.bag.reader import BagReader, BagTruth
-from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.errors import BcidError
 from bcid_ros.nodes.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
                                       PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
 from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
-from bcid_ros.samples import estimate_layout, SampleFeeder
+from bcid_ros.samples import decode_samples, estimate_layout, SampleFeeder
 
 #: The topic the identifier reads (combined input mode).
 SAMPLES_TOPIC = resolve(SAMPLES, IDENTIFIER_NODE)
@@ -47,7 +51,8 @@ class ReplayResult:
 
     The trajectory has one row per published estimate (every
     ``publish_period`` samples once the estimator is valid), stamped with
-    the log time of the message that completed it.
+    the log time of the message that completed it; it is empty when the
+    replay was asked for none (``trajectory=False``).
     """
 
     estimator: str
@@ -73,6 +78,8 @@ class ReplayResult:
     noise_trajectory: np.ndarray
     #: The final parameter standard deviations (None if the estimator has none).
     std: np.ndarray | None = None
+    #: Whether the bag's file order was its log-time order (else it was sorted).
+    in_file_order: bool = True
 
     @property
     def delta(self) -> float | None:
@@ -118,7 +125,8 @@ def _named(names: tuple[str, ...], values: np.ndarray) -> dict[str, float]:
 
 
 def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
-           estimator: str | None = None, topic: str = SAMPLES_TOPIC) -> ReplayResult:
+           estimator: str | None = None, topic: str = SAMPLES_TOPIC,
+           trajectory: bool = True) -> ReplayResult:
     """
     Run the configured estimator over the samples of a bag.
 
@@ -132,6 +140,9 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         Overrides the ``estimator`` parameter.
     topic : str
         The samples topic.
+    trajectory : bool
+        Whether to keep every published estimate (for ``--output``); the
+        final estimate is the same either way.
 
     Returns
     -------
@@ -157,29 +168,23 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     truth = reader.truth()
     est = estimator_from_parameters(values)
     feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'])
-
-    times: list[int] = []
-    counts: list[int] = []
-    thetas: list[np.ndarray] = []
-    uncompensated: list[np.ndarray] = []
-    noises: list[np.ndarray] = []
+    published = _Published()
     messages = malformed = failures = 0
     start = time.perf_counter()
-    for log_time, message in reader.float64_multi_arrays(topic):
-        messages += 1
-        # The node's own per-message rule (SampleFeeder), so that the estimates are equal.
-        result = feeder.take_message(message)
-        if result.dropped == 'estimator_errors':
-            failures += 1
-        elif result.dropped:
-            malformed += 1
-        estimates = result.estimates
-        if estimates is not None:
-            times.append(log_time)
-            counts.append(feeder.used)
-            thetas.append(estimates[0])
-            uncompensated.append(estimates[1])
-            noises.append(estimates[2])
+    for block in reader.blocks(topic):
+        messages += len(block)
+        rows, count = _block_rows(block, est.num_inputs)
+        if rows is None:
+            malformed_here, failures_here = _take_one_by_one(feeder, block, published)
+            malformed += malformed_here
+            failures += failures_here
+            continue
+        # The node's per-message rule, for the whole block in one loop.
+        result = feeder.take_messages(rows, count, publish=trajectory)
+        failures += len(result.failures)
+        for index, used, estimates in zip(result.published, result.used_totals,
+                                          result.estimates):
+            published.add(int(block.times_ns[index]), used, estimates)
     elapsed = time.perf_counter() - start
     if messages == 0:
         raise BcidError(f'{reader.path}: topic {topic} has no messages')
@@ -191,10 +196,63 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         validity_reasons=tuple(est.validity_reasons), flags=dict(est.flags),
         samples=feeder.used, messages=messages, malformed=malformed, failures=failures,
         nonfinite=feeder.nonfinite, truth=truth, elapsed_s=elapsed,
-        times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),
-        theta_trajectory=np.array(thetas).reshape(-1, p),
-        uncompensated_trajectory=np.array(uncompensated).reshape(-1, p),
-        noise_trajectory=np.array(noises).reshape(-1, q), std=est.parameter_std)
+        times_ns=np.array(published.times, dtype=np.int64),
+        sample_counts=np.array(published.counts, dtype=np.int64),
+        theta_trajectory=published.array(0, p),
+        uncompensated_trajectory=published.array(1, p),
+        noise_trajectory=published.array(2, q),
+        in_file_order=reader.order[topic].in_file_order, std=est.parameter_std)
+
+
+class _Published:
+    """The published estimates of a replay, in order."""
+
+    def __init__(self) -> None:
+        self.times: list[int] = []
+        self.counts: list[int] = []
+        self.estimates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def add(self, stamp: int, used: int,
+            estimates: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        self.times.append(stamp)
+        self.counts.append(used)
+        self.estimates.append(estimates)
+
+    def array(self, which: int, width: int) -> np.ndarray:
+        """Return estimate ``which`` (0 theta, 1 uncompensated, 2 noise) of all, one per row."""
+        return np.array([e[which] for e in self.estimates]).reshape(-1, width)
+
+
+def _block_rows(block: MessageBlock, num_inputs: int) -> tuple[np.ndarray | None, int]:
+    """
+    Return the rows of all the messages of a block and the samples per message.
+
+    The messages share their layout and length, so the first one's decoding
+    (:func:`~bcid_ros.samples.decode_samples`) holds for all. ``(None, 0)``
+    if that decoding fails: the block then goes message by message.
+    """
+    try:
+        first = decode_samples(block.message(0), num_inputs)
+    except ValueError:
+        return None, 0
+    count, width = first.shape
+    offset = int(getattr(block.layout, 'data_offset', 0) or 0)
+    return block.data[:, offset:].reshape(len(block) * count, width), count
+
+
+def _take_one_by_one(feeder: SampleFeeder, block: MessageBlock,
+                     published: _Published) -> tuple[int, int]:
+    """Feed each message of a block through take_message; return (malformed, failures)."""
+    malformed = failures = 0
+    for index in range(len(block)):
+        result = feeder.take_message(block.message(index))
+        if result.dropped == 'estimator_errors':
+            failures += 1
+        elif result.dropped:
+            malformed += 1
+        if result.estimates is not None:
+            published.add(int(block.times_ns[index]), feeder.used, result.estimates)
+    return malformed, failures
 
 
 def write_output(result: ReplayResult, path: Path) -> None:
@@ -222,6 +280,8 @@ def write_output(result: ReplayResult, path: Path) -> None:
 
 
 def _write_csv(result: ReplayResult, path: Path) -> None:
+    import csv  # here, as the writers below: a replay without --output needs none of them
+
     names = result.parameter_names
     header = (['time_s', 'samples'] + list(names) + [f'uncompensated_{n}' for n in names]
               + list(result.noise_names))
@@ -236,6 +296,11 @@ def _write_csv(result: ReplayResult, path: Path) -> None:
 
 
 def _write_mcap(result: ReplayResult, path: Path) -> None:
+    import shutil
+
+    from bcid_ros.bag.qos import LATCHED
+    from bcid_ros.bag.writer import BagWriter, float64_multi_array
+
     series = (('parameters', result.parameter_names, result.theta_trajectory),
               ('uncompensated', result.parameter_names, result.uncompensated_trajectory),
               ('noise', result.noise_names, result.noise_trajectory))
