@@ -28,11 +28,12 @@ from bcid_ros.estimators import estimator_class, ESTIMATORS, RecursiveEstimator
 from bcid_ros.nodes.interface import check_input_width, INPUT_TYPES, MESSAGE_TYPES, OUTPUT_TYPES
 
 #: Parameter types, named as the ROS parameter types they become.
-TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array')
+TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array',
+         'integer_array')
 
 #: The keyword arguments of every estimator's base constructor.
 BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
-                 'forgetting_factor')
+                 'forgetting_factor', 'input_delay', 'detrend', 'adapt', 'outlier_threshold')
 
 #: Parameters every ROS node has; accepted in parameter files and ignored here.
 ROS_BUILTIN = ('use_sim_time', 'start_type_description_service')
@@ -85,8 +86,9 @@ class ParameterSpec:
             high = 'inf' if self.high is None else f'{self.high:g}'
             bracket = '(' if self.low_open else '['
             kind = {'integer': 'an integer', 'double': 'a number',
-                    'double_array': 'a list of numbers'}.get(self.type, self.type)
-            each = ' each' if self.type == 'double_array' else ''
+                    'double_array': 'a list of numbers',
+                    'integer_array': 'a list of integers'}.get(self.type, self.type)
+            each = ' each' if self.type.endswith('_array') else ''
             return f'{kind}{each} in {bracket}{low}, {high}]'
         return {'integer': 'an integer', 'double': 'a finite number',
                 'double_array': 'a list of numbers', 'string_array': 'a list of strings',
@@ -111,7 +113,7 @@ class ParameterSpec:
         if converted is None:
             raise ValueError(self._message(value))
         numbers = ([converted] if self.type in ('integer', 'double')
-                   else converted if self.type == 'double_array' else [])
+                   else converted if self.type in ('double_array', 'integer_array') else [])
         for number in numbers:
             if not math.isfinite(number) or not self._in_range(number):
                 raise ValueError(self._message(value))
@@ -131,6 +133,9 @@ class ParameterSpec:
             return float(value) if ok else None
         if self.type == 'string':
             return value if isinstance(value, str) else None
+        if self.type == 'integer_array' and isinstance(value, int) and \
+                not isinstance(value, bool):
+            return [value]  # one integer for all inputs
         if not isinstance(value, (list, tuple)) and not hasattr(value, 'tolist'):
             return None
         items = list(value.tolist() if hasattr(value, 'tolist') else value)
@@ -138,6 +143,11 @@ class ParameterSpec:
             if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
                 return None
             return [float(v) for v in items]
+        if self.type == 'integer_array':
+            if any(isinstance(v, bool) or not isinstance(v, (int, float))
+                   or not float(v).is_integer() for v in items):
+                return None
+            return [int(v) for v in items]
         if any(not isinstance(v, str) for v in items):
             return None
         return items
@@ -170,6 +180,20 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('forgetting_factor', 'double', 1.0, 'Exponential forgetting factor lambda; 1 means no '
        'forgetting. May be changed while running.', low=0.0, high=1.0, low_open=True,
        read_only=False),
+    # --- beside a real plant
+    _p('input_delay', 'integer_array', [0], 'Dead time d_i (samples) of each input, one '
+       'integer per input or one for all: B_i(q) = q^-d_i (b_i1 q^-1 + ... + b_in q^-n); '
+       'the parameter names carry the true lags. Not for cl_bcls.', low=0, high=100000),
+    _p('detrend', 'string', 'none', 'mean: regress the deviations from the recursive means of '
+       'y and u (with the forgetting factor), published on ~/operating_point; none: the raw '
+       'data.', choices=('none', 'mean')),
+    _p('adapt', 'bool', True, 'false holds the estimate, P and the noise statistics while '
+       'samples keep flowing. May be changed while running.', read_only=False),
+    _p('freeze_unexcited', 'bool', False, 'Hold the adaptation while the input has not '
+       'changed for excitation_window samples (instead of only warning).'),
+    _p('outlier_threshold', 'double', 0.0, 'Refuse (and count) a sample whose normalised '
+       'one-step prediction error exceeds this; 0 turns the gate off. May be changed while '
+       'running.', low=0.0, high=1e6, read_only=False),
     # --- bciv (Ikenoue et al. 2008)
     _p('iv_lag', 'integer', None, 'bciv: IV lag l (the IV vector has n + 2l past inputs; '
        'colored input noise needs l >= 2n). Unset: the estimator default.', low=1, high=1000),
@@ -432,6 +456,13 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
                     raise ValueError(f'parameter {name!r} must be a stamped type (one of '
                                      f'{", ".join(stamped)}) with sync: stamp, got '
                                      f'{checked[name]!r}')
+    delays = checked['input_delay']
+    if len(delays) not in (1, checked['num_inputs']):
+        raise ValueError(f"parameter 'input_delay' must have one integer or num_inputs = "
+                         f"{checked['num_inputs']} integers, got {delays!r}")
+    if checked['estimator'] == 'cl_bcls' and any(delays):
+        raise ValueError(f"parameter 'input_delay' must be 0 with estimator 'cl_bcls' (no "
+                         f'dead time in its closed-loop model), got {delays!r}')
     if checked['input_joints'] and len(checked['input_joints']) != checked['num_inputs']:
         raise ValueError(f"parameter 'input_joints' must have num_inputs = "
                          f"{checked['num_inputs']} names (or none), got "

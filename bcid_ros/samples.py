@@ -237,12 +237,16 @@ class SampleFeeder:
         0 turns the check off.
     publish_period : int
         Samples between published estimates (see :meth:`due_estimates`).
+    freeze_unexcited : bool
+        Hold the estimator's adaptation (``excitation_hold``) while the
+        input is unexcited, instead of using the samples.
 
     """
 
     def __init__(self, estimator: Any, excitation_window: int = 0,
-                 publish_period: int = 1) -> None:
+                 publish_period: int = 1, freeze_unexcited: bool = False) -> None:
         self.estimator = estimator
+        self.freeze_unexcited = bool(freeze_unexcited)
         self.excitation_window = int(excitation_window)
         self.publish_period = int(publish_period)
         self.since_publish = 0
@@ -310,6 +314,9 @@ class SampleFeeder:
                 else:
                     self._constant_run = 0
                     self._last_u = u
+                # --- freeze_unexcited: hold the adaptation while the input is constant
+                if self.freeze_unexcited:
+                    estimator.excitation_hold = self._constant_run >= window
             if self._restart_pending:
                 estimator.restart_regressor()
                 self._restart_pending = False
@@ -401,6 +408,7 @@ class SampleFeeder:
     def reset(self) -> None:
         """Reset the estimator and forget the input history (the totals are kept)."""
         self.estimator.reset()
+        self.estimator.excitation_hold = False  # freeze_unexcited starts over too
         self.since_publish = 0
         self._last_u = None
         self._constant_run = 0

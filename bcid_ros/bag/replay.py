@@ -71,6 +71,9 @@ class ReplayResult:
     theta_trajectory: np.ndarray
     uncompensated_trajectory: np.ndarray
     noise_trajectory: np.ndarray
+    #: The final operating point (``detrend: mean``) and its names, else None.
+    operating_point: np.ndarray | None = None
+    operating_point_names: tuple[str, ...] = ()
 
     @property
     def delta(self) -> float | None:
@@ -87,7 +90,8 @@ class ReplayResult:
         Keys: ``estimator``, ``samples``, ``valid`` (whether the final
         estimate is valid, as ``~/valid`` would say), ``parameters``,
         ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
-        ``{name: count}``) and, when the bag carries the truth, ``truth``
+        ``{name: count}``), with ``detrend: mean`` ``operating_point``
+        (``{'y': y0, 'u1': ..., ...}``) and, when the bag carries the truth, ``truth``
         (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
         (the relative error ||theta_hat - theta|| / ||theta||, a fraction).
         """
@@ -100,6 +104,8 @@ class ReplayResult:
             'noise': _named(self.noise_names, self.noise),
             'flags': dict(self.flags),
         }
+        if self.operating_point is not None:
+            out['operating_point'] = _named(self.operating_point_names, self.operating_point)
         if self.truth is not None:
             out['truth'] = self.truth.as_dict()
             delta = self.delta
@@ -151,7 +157,8 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     reader.require(topic, FLOAT64_MULTI_ARRAY)
     truth = reader.truth()
     est = estimator_from_parameters(values)
-    feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'])
+    feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'],
+                          values['freeze_unexcited'])
 
     times: list[int] = []
     counts: list[int] = []
@@ -189,7 +196,9 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         times_ns=np.array(times, dtype=np.int64), sample_counts=np.array(counts, dtype=np.int64),
         theta_trajectory=np.array(thetas).reshape(-1, p),
         uncompensated_trajectory=np.array(uncompensated).reshape(-1, p),
-        noise_trajectory=np.array(noises).reshape(-1, q))
+        noise_trajectory=np.array(noises).reshape(-1, q),
+        operating_point=est.operating_point,
+        operating_point_names=est.operating_point_names)
 
 
 def write_output(result: ReplayResult, path: Path) -> None:
