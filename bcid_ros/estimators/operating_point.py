@@ -15,8 +15,10 @@ import math
 
 import numpy as np
 
-#: Not centred: |mean| above this many standard deviations of the signal.
-CENTRING_SIGMAS = 3.0
+#: Not centred: |mean| above this many standard deviations of the signal. At one,
+#: the offset carries more of the mean square than the variation does, and an
+#: ARX model without the operating point is visibly biased (docs/estimators.md).
+CENTRING_SIGMAS = 1.0
 #: The check looks at about this many recent samples (exponential memory).
 CENTRING_MEMORY = 1000
 #: It takes one sample in this many (the statistic needs no more, and costs less).

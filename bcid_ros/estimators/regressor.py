@@ -88,6 +88,25 @@ class ArxRegressor:
             self.filled += 1
         return self._flat[self._index[position]]
 
+    def peaks(self) -> np.ndarray:
+        """
+        Return the largest magnitude per channel (y, u_1 ... u_r) over the lags phi uses.
+
+        That is y(t) ... y(t-n) and u_i(t-d_i) ... u_i(t-d_i-n) of the newest
+        sample t: without delays, the whole history.
+        """
+        magnitude = np.abs(self.history)
+        if not any(self.input_delay):
+            return magnitude.max(axis=0)
+        rows = self.span + 1
+        newest = (self.position - 1) % rows
+        lags = np.arange(self.order + 1)
+        peaks = np.empty(1 + self.num_inputs)
+        peaks[0] = magnitude[(newest - lags) % rows, 0].max()
+        for i, delay in enumerate(self.input_delay):
+            peaks[1 + i] = magnitude[(newest - lags - delay) % rows, 1 + i].max()
+        return peaks
+
     @property
     def ready(self) -> bool:
         """Whether every lag in phi(t) comes from a real sample."""

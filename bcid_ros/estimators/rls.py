@@ -374,7 +374,7 @@ class Rls(RecursiveEstimator):
 
     def _choose_scales(self) -> None:
         """Give each channel still without a scale the one of the data in the regressor."""
-        peaks = np.abs(self._regressor.history).max(axis=0)
+        peaks = self._regressor.peaks()
         scales = self._signal_scale
         for channel in np.flatnonzero((scales == 0.0) & (peaks > 0.0)):
             scale = power_of_two_at_least(float(peaks[channel]))
