@@ -216,9 +216,10 @@ def test_frozen_estimator_holds_theta_and_p_and_continues(name):
     fresh = make_estimator(name, forgetting_factor=0.999, **settings)
     fresh.run(y[:3000], u[:3000])
     # continuing after the hold is as good as never having held (the same samples
-    # apart from the held stretch; bound: 1.5 times the unheld error plus 0.02)
+    # apart from the held stretch); measured with this seed: rls 0.2842 / 0.2847,
+    # bcrls 0.0262 / 0.0260, bciv 0.0683 / 0.0682 (held / never held)
     fresh.run(y[23000:], u[23000:])
-    assert relative_error(frozen, scenario) <= 1.5 * relative_error(fresh, scenario) + 0.02
+    assert relative_error(frozen, scenario) <= 1.1 * relative_error(fresh, scenario) + 0.005
 
 
 def test_without_hold_a_constant_input_winds_up():
