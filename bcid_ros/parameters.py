@@ -307,13 +307,19 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        'colouring filter.'),
     _p('input_noise_variance', 'double', 0.0, 'custom: variance of white measurement noise '
        'added to the published inputs (errors in variables).', low=0.0, high=1e12),
+    _p('input_delay', 'integer_array', [0], 'custom: dead time d_i (samples) of each input, '
+       'one per input or one for all.', low=0, high=100000),
+    _p('input_offset', 'double_array', [0.0], 'custom: operating point u0_i added to each '
+       'published input, one per input or one for all.'),
+    _p('output_offset', 'double', 0.0, 'custom: operating point y0 added to the published '
+       'output.'),
 )
 
 #: The custom scenario's parameter names (passed to CustomScenario).
 CUSTOM_SETTINGS = ('plant_denominator', 'plant_numerator', 'noise_numerator',
                    'noise_denominator', 'noise_variance', 'equation_error', 'input_signal',
                    'input_variance', 'input_hold', 'input_numerator', 'input_denominator',
-                   'input_noise_variance')
+                   'input_noise_variance', 'input_delay', 'input_offset', 'output_offset')
 
 #: Parameters that may change while the identifier runs.
 IDENTIFIER_LIVE = tuple(p.name for p in IDENTIFIER_PARAMETERS if not p.read_only)

@@ -100,3 +100,29 @@ def test_bad_values_are_refused_at_start_up(ros_context):
                           'input_delay')):
         with pytest.raises(ValueError, match=name):
             identifier(ros_context, values)
+
+
+def test_simulator_custom_plant_with_dead_time_and_offsets(ros_context, executor):
+    from bcid_ros.nodes.simulator_node import SimulatorNode
+
+    plant = {'scenario': 'custom', 'plant_denominator': [1.0, -1.5, 0.7],
+             'plant_numerator': [0.0, 1.0, 0.5], 'noise_variance': 0.5, 'input_delay': 2,
+             'input_offset': [2.0], 'output_offset': 5.0}
+    samples, seed = 1500, 4
+    values = {'estimator': 'bcrls', 'order': 2, 'input_delay': 2, 'detrend': 'mean'}
+    node = identifier(ros_context, values)
+    simulator = SimulatorNode(context=ros_context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in dict(
+            plant, seed=seed, num_samples=samples, frame_size=50, rate_hz=1000.0,
+            start_delay=0.0, wait_for_subscribers=1).items()])
+    executor.add_node(node)
+    executor.add_node(simulator)
+    assert spin_until(executor, lambda: simulator.done, timeout=30)
+    assert spin_until(executor, lambda: node.feeder.used >= samples, timeout=10)
+    scenario = CustomScenario(**{k: v for k, v in plant.items() if k != 'scenario'})
+    y, u = scenario.simulate(samples, seed)
+    reference = estimator_from_parameters(values)
+    reference.run(y, u)
+    assert node.estimator.parameter_names == scenario.truth().parameter_names
+    np.testing.assert_array_equal(node.estimator.theta, reference.theta)
+    np.testing.assert_array_equal(node.estimator.operating_point, reference.operating_point)
