@@ -220,7 +220,8 @@ class SampleFeeder:
       malformed message, an unpaired or out-of-order sample, a stamp gap).
     * A run of more than ``excitation_window`` samples with an unchanged
       input is counted in ``unexcited`` (the samples are still used; the
-      estimators guard their covariance against wind-up).
+      estimators guard their covariance against wind-up), or, with
+      ``freeze_unexcited``, taken with the adaptation held.
 
     :meth:`take_message` and :meth:`take_rows` are the identifier's whole
     per-message rule (what is dropped, what restarts the regressor, when

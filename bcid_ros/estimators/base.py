@@ -201,9 +201,11 @@ class RecursiveEstimator(abc.ABC):
     ``_theta``/``_theta_uncompensated``/``_noise`` accessors; they may
     override :meth:`_guarded_update` (the transaction), call :meth:`_gate`
     with their normalised prediction error, and report
-    :meth:`_validity_reasons`. The base class owns the input checks, the
-    generic transaction, the gate's change detection and the snapshot
-    plumbing.
+    :meth:`_validity_reasons`, and may override :meth:`_hold` (a sample
+    taken while the adaptation is held). The base class owns the input
+    checks, the generic transaction, the gate's change detection, the
+    snapshot plumbing and the operating point (``detrend``) and ``adapt``
+    settings.
 
     Parameters
     ----------
