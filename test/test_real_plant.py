@@ -6,6 +6,7 @@ is asserted. docs/estimators.md has the derivations and the measured figures.
 """
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,11 +16,13 @@ from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.bciv import Bciv
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 IDENTIFIER_PARAMETERS, spec_by_name)
+                                 IDENTIFIER_PARAMETERS, load_yaml_parameters, spec_by_name)
 from bcid_ros.samples import SampleFeeder
+from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.custom import CustomScenario
 
 A = [1.0, -1.5, 0.7]
+CONFIG = Path(__file__).resolve().parent.parent / 'config'
 
 
 def relative_error(estimator, scenario):
@@ -222,6 +225,21 @@ def test_frozen_estimator_holds_theta_and_p_and_continues(name):
     assert relative_error(frozen, scenario) <= 1.1 * relative_error(fresh, scenario) + 0.005
 
 
+def test_cl_bcls_holds_by_restarting_its_regressor():
+    values = load_yaml_parameters(CONFIG / 'ikeda_closed_loop.yaml')
+    y, u = make_scenario('ikeda_closed_loop').simulate(3500, 0)
+    estimator = estimator_from_parameters(values)
+    estimator.run(y[:3000], u[:3000])
+    theta, used = estimator.theta, estimator.samples
+    estimator.adapt = False
+    estimator.run(y[3000:3400], u[3000:3400])
+    np.testing.assert_array_equal(estimator.theta, theta)
+    assert estimator.samples == used and estimator.held_samples == 400
+    estimator.adapt = True
+    estimator.run(y[3400:], u[3400:])
+    assert estimator.samples == used + 100
+
+
 def test_without_hold_a_constant_input_winds_up():
     # the contrast of the test above: the same constant stretch, adapting
     y, u = offset_plant(0).simulate(3000, 8)
@@ -282,4 +300,8 @@ def test_replay_json_has_the_operating_point(tmp_path):
     result = replay(bag, {'order': 2, 'num_inputs': 2, 'detrend': 'mean'})
     summary = result.summary()
     assert list(summary['operating_point']) == ['y', 'u1', 'u2']
+    y, u = make_scenario('ding_miso').simulate(500, 3)
+    estimator = make_estimator('bcrls', order=2, num_inputs=2, detrend='mean')
+    estimator.run(y, u)
+    assert list(summary['operating_point'].values()) == estimator.operating_point.tolist()
     assert 'operating_point' not in replay(bag, {'order': 2, 'num_inputs': 2}).summary()
