@@ -203,6 +203,9 @@ class Rls(RecursiveEstimator):
     ----------
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+    input_delay, detrend, adapt
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; a dead time
+        delays the input lags of phi (docs/estimators.md, "Dead time").
 
     """
 
