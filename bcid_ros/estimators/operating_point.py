@@ -22,7 +22,7 @@ CENTRING_SIGMAS = 1.0
 #: The check looks at about this many recent samples (exponential memory).
 CENTRING_MEMORY = 1000
 #: It takes one sample in this many (the statistic needs no more, and costs less).
-CENTRING_STRIDE = 8
+CENTRING_STRIDE = 16
 
 
 def operating_point_names(num_inputs: int) -> tuple[str, ...]:
