@@ -29,11 +29,12 @@ from bcid_ros.nodes.interface import check_input_width, INPUT_TYPES, MESSAGE_TYP
 from bcid_ros.simulation import SCENARIOS
 
 #: Parameter types, named as the ROS parameter types they become.
-TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array')
+TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array',
+         'integer_array')
 
 #: The keyword arguments of every estimator's base constructor.
 BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
-                 'forgetting_factor')
+                 'forgetting_factor', 'input_delay', 'detrend', 'adapt', 'outlier_threshold')
 
 #: The JointState field of y when ``output_field`` is empty, by ``input_mode``.
 OUTPUT_FIELD_DEFAULTS = {'combined': 'position', 'separate': 'position',
@@ -90,8 +91,9 @@ class ParameterSpec:
             high = 'inf' if self.high is None else f'{self.high:g}'
             bracket = '(' if self.low_open else '['
             kind = {'integer': 'an integer', 'double': 'a number',
-                    'double_array': 'a list of numbers'}.get(self.type, self.type)
-            each = ' each' if self.type == 'double_array' else ''
+                    'double_array': 'a list of numbers',
+                    'integer_array': 'a list of integers'}.get(self.type, self.type)
+            each = ' each' if self.type.endswith('_array') else ''
             return f'{kind}{each} in {bracket}{low}, {high}]'
         return {'integer': 'an integer', 'double': 'a finite number',
                 'double_array': 'a list of numbers', 'string_array': 'a list of strings',
@@ -116,7 +118,7 @@ class ParameterSpec:
         if converted is None:
             raise ValueError(self._message(value))
         numbers = ([converted] if self.type in ('integer', 'double')
-                   else converted if self.type == 'double_array' else [])
+                   else converted if self.type in ('double_array', 'integer_array') else [])
         for number in numbers:
             if not math.isfinite(number) or not self._in_range(number):
                 raise ValueError(self._message(value))
@@ -136,6 +138,9 @@ class ParameterSpec:
             return float(value) if ok else None
         if self.type == 'string':
             return value if isinstance(value, str) else None
+        if self.type == 'integer_array' and isinstance(value, int) and \
+                not isinstance(value, bool):
+            return [value]  # one integer for all inputs
         if not isinstance(value, (list, tuple)) and not hasattr(value, 'tolist'):
             return None
         items = list(value.tolist() if hasattr(value, 'tolist') else value)
@@ -143,6 +148,11 @@ class ParameterSpec:
             if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
                 return None
             return [float(v) for v in items]
+        if self.type == 'integer_array':
+            if any(isinstance(v, bool) or not isinstance(v, (int, float))
+                   or not float(v).is_integer() for v in items):
+                return None
+            return [int(v) for v in items]
         if any(not isinstance(v, str) for v in items):
             return None
         return items
@@ -175,6 +185,20 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('forgetting_factor', 'double', 1.0, 'Exponential forgetting factor lambda; 1 means no '
        'forgetting. May be changed while running.', low=0.0, high=1.0, low_open=True,
        read_only=False),
+    # --- beside a real plant
+    _p('input_delay', 'integer_array', [0], 'Dead time d_i (samples) of each input, one '
+       'integer per input or one for all: B_i(q) = q^-d_i (b_i1 q^-1 + ... + b_in q^-n); '
+       'the parameter names carry the true lags. Not for cl_bcls.', low=0, high=100000),
+    _p('detrend', 'string', 'none', 'mean: regress the deviations from the recursive means of '
+       'y and u (with the forgetting factor), published on ~/operating_point; none: the raw '
+       'data.', choices=('none', 'mean')),
+    _p('adapt', 'bool', True, 'false holds the estimate, P and the noise statistics while '
+       'samples keep flowing. May be changed while running.', read_only=False),
+    _p('freeze_unexcited', 'bool', False, 'Hold the adaptation while the input has not '
+       'changed for excitation_window samples (instead of only warning).'),
+    _p('outlier_threshold', 'double', 0.0, 'Refuse (and count) a sample whose normalised '
+       'one-step prediction error exceeds this; 0 turns the gate off. May be changed while '
+       'running.', low=0.0, high=1e6, read_only=False),
     # --- bciv (Ikenoue et al. 2008)
     _p('iv_lag', 'integer', None, 'bciv: IV lag l (the IV vector has n + 2l past inputs; '
        'colored input noise needs l >= 2n). Unset: the estimator default.', low=1, high=1000),
@@ -338,7 +362,7 @@ OPERATING_POINT_SETTINGS = ('input_delay', 'input_offset', 'output_offset')
 CUSTOM_SETTINGS = ('plant_denominator', 'plant_numerator', 'noise_numerator',
                    'noise_denominator', 'noise_variance', 'equation_error', 'input_signal',
                    'input_variance', 'input_hold', 'input_numerator', 'input_denominator',
-                   'input_noise_variance')
+                   'input_noise_variance', 'input_delay', 'input_offset', 'output_offset')
 
 #: Parameters that may change while the identifier runs.
 IDENTIFIER_LIVE = tuple(p.name for p in IDENTIFIER_PARAMETERS if not p.read_only)
@@ -485,6 +509,13 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
         checked['output_field'] = OUTPUT_FIELD_DEFAULTS[checked['input_mode']]
     if checked['input_mode'] == 'joint_state':
         _check_joint_state_parameters(checked)
+    delays = checked['input_delay']
+    if len(delays) not in (1, checked['num_inputs']):
+        raise ValueError(f"parameter 'input_delay' must have one integer or num_inputs = "
+                         f"{checked['num_inputs']} integers, got {delays!r}")
+    if checked['estimator'] == 'cl_bcls' and any(delays):
+        raise ValueError(f"parameter 'input_delay' must be 0 with estimator 'cl_bcls' (no "
+                         f'dead time in its closed-loop model), got {delays!r}')
     if checked['input_joints'] and len(checked['input_joints']) != checked['num_inputs']:
         raise ValueError(f"parameter 'input_joints' must have num_inputs = "
                          f"{checked['num_inputs']} names (or none), got "

@@ -275,7 +275,8 @@ class SampleFeeder:
       malformed message, an unpaired or out-of-order sample, a stamp gap).
     * A run of more than ``excitation_window`` samples with an unchanged
       input is counted in ``unexcited`` (the samples are still used; the
-      estimators guard their covariance against wind-up).
+      estimators guard their covariance against wind-up), or, with
+      ``freeze_unexcited``, taken with the adaptation held.
 
     :meth:`take_message` and :meth:`take_rows` are the identifier's whole
     per-message rule (what is dropped, what restarts the regressor, when
@@ -293,12 +294,16 @@ class SampleFeeder:
         0 turns the check off.
     publish_period : int
         Samples between published estimates (see :meth:`due_estimates`).
+    freeze_unexcited : bool
+        Hold the estimator's adaptation (``excitation_hold``) while the
+        input is unexcited, instead of using the samples.
 
     """
 
     def __init__(self, estimator: Any, excitation_window: int = 0,
-                 publish_period: int = 1) -> None:
+                 publish_period: int = 1, freeze_unexcited: bool = False) -> None:
         self.estimator = estimator
+        self.freeze_unexcited = bool(freeze_unexcited)
         self.excitation_window = int(excitation_window)
         self.publish_period = int(publish_period)
         self.since_publish = 0
@@ -345,7 +350,8 @@ class SampleFeeder:
         # The checks of estimator.update, done once for the block: the shape
         # above, finiteness here; then each sample goes in unchecked.
         short = self.excitation_window and rows.shape[0] < VECTOR_CHECK_MIN
-        if not short and block_is_finite(rows):
+        # freeze_unexcited sets the hold sample by sample: only the checked loop does that
+        if not short and not self.freeze_unexcited and block_is_finite(rows):
             (used, unexcited), nonfinite = self._feed_finite(rows), 0
         else:
             finite = np.isfinite(rows).all(axis=1).tolist()
@@ -445,6 +451,9 @@ class SampleFeeder:
                 else:
                     self._constant_run = 0
                     self._last_u = u
+                # --- freeze_unexcited: hold the adaptation while the input is constant
+                if self.freeze_unexcited:
+                    estimator.excitation_hold = self._constant_run >= window
             if self._restart_pending:
                 estimator.restart_regressor()
                 self._restart_pending = False
@@ -529,7 +538,7 @@ class SampleFeeder:
             raise ValueError(f'rows must be whole messages of count = {count} samples of '
                              f'1 + num_inputs = {width} values, got shape {rows.shape}')
         result = BlockResult()
-        if block_is_finite(rows):
+        if not self.freeze_unexcited and block_is_finite(rows):
             self._take_finite(rows, count, publish, result)
         else:
             self._take_each(rows, count, publish, result)
@@ -673,6 +682,7 @@ class SampleFeeder:
     def reset(self) -> None:
         """Reset the estimator and forget the input history (the totals are kept)."""
         self.estimator.reset()
+        self.estimator.excitation_hold = False  # freeze_unexcited starts over too
         self.since_publish = 0
         self._last_u = None
         self._constant_run = 0

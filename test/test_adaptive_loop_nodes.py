@@ -151,7 +151,7 @@ def test_identifier_takes_the_controller_from_the_topic(ros_context, executor):
     controllers.publish(controller_message([0.16], [1.0, -0.2]))
     assert spin_until(executor, lambda: counts['changes'] == 1)
     np.testing.assert_allclose(identifier.estimator.controller.denominator, [1.0, -0.2])
-    assert identifier.estimator.samples == 0
+    assert not identifier.estimator.ready and identifier.estimator.controller_changes == 1
     assert spin_until(executor, lambda: valid[-1] is False)
     # malformed messages: refused, counted, the controller kept
     bad = controller_message([0.3], [1.0, -0.5])

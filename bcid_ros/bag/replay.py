@@ -80,6 +80,9 @@ class ReplayResult:
     std: np.ndarray | None = None
     #: Whether the bag's file order was its log-time order (else it was sorted).
     in_file_order: bool = True
+    #: The final operating point (``detrend: mean``) and its names, else None.
+    operating_point: np.ndarray | None = None
+    operating_point_names: tuple[str, ...] = ()
 
     @property
     def delta(self) -> float | None:
@@ -97,8 +100,9 @@ class ReplayResult:
         estimate is valid, as ``~/valid`` would say), ``parameters``,
         ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
         ``{name: count}``), ``std`` (the standard deviations of the final
-        parameters, for estimators that have them: rls, bcrls) and, when the
-        bag carries the truth, ``truth`` (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
+        parameters, for estimators that have them: rls, bcrls), with ``detrend: mean``
+        ``operating_point`` (``{'y': y0, 'u1': ..., ...}``) and, when the bag carries the
+        truth, ``truth`` (``{'parameters': {...}, 'noise': {...}}``) and ``delta``
         (the relative error ||theta_hat - theta|| / ||theta||, a fraction).
         """
         out: dict[str, Any] = {
@@ -112,6 +116,8 @@ class ReplayResult:
         }
         if self.std is not None:
             out['std'] = _named(self.parameter_names, self.std)
+        if self.operating_point is not None:
+            out['operating_point'] = _named(self.operating_point_names, self.operating_point)
         if self.truth is not None:
             out['truth'] = self.truth.as_dict()
             delta = self.delta
@@ -167,7 +173,8 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     reader.require(topic, FLOAT64_MULTI_ARRAY)
     truth = reader.truth()
     est = estimator_from_parameters(values)
-    feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'])
+    feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'],
+                          values['freeze_unexcited'])
     published = _Published()
     messages = malformed = failures = 0
     start = time.perf_counter()
@@ -201,7 +208,9 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         theta_trajectory=published.array(0, p),
         uncompensated_trajectory=published.array(1, p),
         noise_trajectory=published.array(2, q),
-        in_file_order=reader.order[topic].in_file_order, std=est.parameter_std)
+        in_file_order=reader.order[topic].in_file_order, std=est.parameter_std,
+        operating_point=est.operating_point,
+        operating_point_names=est.operating_point_names)
 
 
 class _Published:

@@ -31,6 +31,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
+                                                 RunningMean)
+
 #: Normalised prediction error beyond which a sample is refused even with the
 #: gate off (``outlier_threshold`` = 0): no Gaussian noise produces it, and
 #: taking it would move the estimate by a million standard deviations.
@@ -48,6 +51,10 @@ CHECKPOINT_PERIOD = 64
 CHANGE_SCORE = 2.4
 #: See CHANGE_SCORE.
 CHANGE_DECAY = 0.8
+#: Largest dead time accepted (samples): the regressor keeps d_i more past inputs.
+MAX_DELAY = 100000
+#: Values of the ``detrend`` setting.
+DETRENDS = ('none', 'mean')
 
 
 def power_of_two_at_least(value: float) -> float:
@@ -88,7 +95,8 @@ def weighted_square_ratio(tau: float, forgetting_factor: float) -> float:
     return (2.0 - min((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
 
 
-def parameter_names(order: int, num_inputs: int, feedthrough: bool) -> tuple[str, ...]:
+def parameter_names(order: int, num_inputs: int, feedthrough: bool,
+                    input_delay: Any = None) -> tuple[str, ...]:
     """
     Return the names of the ARX parameter vector (those of the node's topics).
 
@@ -100,18 +108,44 @@ def parameter_names(order: int, num_inputs: int, feedthrough: bool) -> tuple[str
         Number of inputs r.
     feedthrough : bool
         Whether the lag-0 coefficients ``b{i}_0`` are estimated.
+    input_delay : sequence of int, optional
+        Dead time d_i of each input; the names of input i carry the true
+        lags d_i + 1 ... d_i + n (from d_i with feedthrough). None: no delay.
 
     Returns
     -------
     tuple of str
-        ``('a1', ..., 'an', 'b1_0' or 'b1_1', ..., 'br_n')``.
+        ``('a1', ..., 'an', 'b1_0' or 'b1_1', ..., 'br_n')`` without delays.
 
     """
     first_lag = 0 if feedthrough else 1
+    delays = [0] * num_inputs if input_delay is None else list(input_delay)
     names = [f'a{k}' for k in range(1, order + 1)]
     for i in range(1, num_inputs + 1):
-        names.extend(f'b{i}_{k}' for k in range(first_lag, order + 1))
+        delay = delays[i - 1]
+        names.extend(f'b{i}_{k + delay}' for k in range(first_lag, order + 1))
     return tuple(names)
+
+
+def check_delays(value: Any, num_inputs: int) -> tuple[int, ...]:
+    """
+    Return one dead time d_i >= 0 per input from one integer or r integers.
+
+    Raises
+    ------
+    ValueError
+        Naming ``input_delay``, the allowed values and the value given.
+
+    """
+    items = list(np.atleast_1d(np.asarray(value, dtype=object)).reshape(-1))
+    if len(items) == 1:
+        items = items * num_inputs
+    if len(items) != num_inputs or any(
+            isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number))
+            or v != int(v) or not 0 <= v <= MAX_DELAY for v in items):
+        raise ValueError(f'input_delay must be one integer or r = {num_inputs} integers, '
+                         f'each in [0, {MAX_DELAY}] (samples), got {value!r}')
+    return tuple(int(v) for v in items)
 
 
 def check_int(name: str, value: Any, minimum: int) -> int:
@@ -192,9 +226,11 @@ class RecursiveEstimator(abc.ABC):
     ``_theta``/``_theta_uncompensated``/``_noise`` accessors; they may
     override :meth:`_guarded_update` (the transaction), call :meth:`_gate`
     with their normalised prediction error, and report
-    :meth:`_validity_reasons`. The base class owns the input checks, the
-    generic transaction, the gate's change detection and the snapshot
-    plumbing.
+    :meth:`_validity_reasons`, and may override :meth:`_hold` (a sample
+    taken while the adaptation is held). The base class owns the input
+    checks, the generic transaction, the gate's change detection, the
+    snapshot plumbing and the operating point (``detrend``) and ``adapt``
+    settings.
 
     Parameters
     ----------
@@ -212,6 +248,15 @@ class RecursiveEstimator(abc.ABC):
     outlier_threshold : float
         Gate of the normalised one-step prediction error, >= 0; 0 turns the
         gate off (estimators that implement it: see :meth:`_gate`).
+    input_delay : int or sequence of int
+        Dead time d_i >= 0 of each input (one integer for all):
+        B_i(q) = q^-d_i (b_i1 q^-1 + ... + b_in q^-n); the names carry the
+        true lags. Estimators that do not support it refuse a non-zero one.
+    detrend : str
+        ``'none'`` or ``'mean'``: regress the deviations from the recursive
+        means of y and u (:attr:`operating_point`, docs/estimators.md).
+    adapt : bool
+        False holds the learnt state (see :attr:`adapt`); may change while running.
 
     Raises
     ------
@@ -227,7 +272,8 @@ class RecursiveEstimator(abc.ABC):
 
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
-                 outlier_threshold: float = 0.0) -> None:
+                 outlier_threshold: float = 0.0, input_delay: Any = 0,
+                 detrend: str = 'none', adapt: bool = True) -> None:
         self.order = check_int('order', order, 1)
         self.num_inputs = check_int('num_inputs', num_inputs, 1)
         self.feedthrough = bool(feedthrough)
@@ -235,8 +281,11 @@ class RecursiveEstimator(abc.ABC):
             'initial_covariance', initial_covariance, 0.0, 1e15, low_open=True)
         self._forgetting_factor = check_range(
             'forgetting_factor', forgetting_factor, 0.0, 1.0, low_open=True)
-        self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
+        self.input_delay = check_delays(input_delay, self.num_inputs)
+        self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough,
+                                               self.input_delay)
         self.num_parameters = len(self.parameter_names)
+        self._init_operation(detrend, adapt)
         self.outlier_threshold = outlier_threshold
         self._change_score = 0.0
         self._screen = np.full(self.num_inputs, HUGE_SCREEN)
@@ -282,7 +331,9 @@ class RecursiveEstimator(abc.ABC):
             if not (math.isfinite(y) and np.isfinite(u).all()):
                 raise ValueError('sample contains NaN or Inf')
             self._quiet_left = self.order + 2
-        if self._quiet_left:
+        if self._operated:
+            self._operated_update(y, u)
+        elif self._quiet_left:
             self._quiet_update(y, u)
         else:
             self._guarded_update(y, u)
@@ -300,7 +351,9 @@ class RecursiveEstimator(abc.ABC):
         """
         if not abs(y) * HUGE_SCREEN + float(abs(u).dot(self._screen)) < 1.0:
             self._quiet_left = self.order + 2
-        if self._quiet_left:
+        if self._operated:
+            self._operated_update(y, u)
+        elif self._quiet_left:
             self._quiet_update(y, u)
         else:
             self._guarded_update(y, u)
@@ -317,6 +370,115 @@ class RecursiveEstimator(abc.ABC):
         self._quiet_left -= 1
         with np.errstate(all='ignore'):
             self._guarded_update(y, u)
+
+    # --------------------------------------- operating point and adaptation
+    def _init_operation(self, detrend: str, adapt: bool) -> None:
+        if detrend not in DETRENDS:
+            raise ValueError(f"detrend must be 'none' or 'mean', got {detrend!r}")
+        self.detrend = detrend
+        self._means = RunningMean(self.num_inputs) if detrend == 'mean' else None
+        self._centring: CentringMonitor | None = None
+        self._excitation_hold = False
+        self._held = 0
+        self.adapt = adapt
+
+    def _set_operated(self) -> None:
+        # the plain per-sample path unless a mean, a hold or a monitor is involved
+        self._operated = bool(self._means is not None or self._centring is not None
+                              or not self._adapting)
+
+    def _operated_update(self, y: float, u: np.ndarray) -> None:
+        """
+        Update with the operating point removed, or hold the learnt state.
+
+        With ``detrend: mean`` the sample minus the recursive means goes to
+        the estimator (the means themselves are held with the adaptation).
+        While adaptation is held, :meth:`_hold` only moves the sample
+        history on: nothing learnt changes, so nothing can wind up.
+        """
+        if self._centring is not None:
+            self._centring.take(y, u)
+        if not self._adapting:
+            self._held += 1
+            if self._means is not None:
+                y, u = self._means.apply(y, u)
+            self._hold(y, u)
+            return
+        if self._means is not None:
+            y, u = self._means.centre(y, u, self._forgetting_factor)
+        if self._quiet_left:
+            self._quiet_update(y, u)
+        else:
+            self._guarded_update(y, u)
+
+    def _hold(self, y: float, u: np.ndarray) -> None:
+        """
+        Take a sample without learning from it (adaptation held).
+
+        This generic form restarts the regressor, so that no update regresses
+        across the held stretch; estimators whose sample history is separate
+        from what they learn override it to keep the history running.
+        """
+        self._restart_regressor()
+
+    @property
+    def adapt(self) -> bool:
+        """
+        Whether samples update the estimate; may change while running.
+
+        False holds theta, P, the noise statistics and the operating point
+        while the regressor and the counters keep running (:attr:`held_samples`).
+        """
+        return self._adapt
+
+    @adapt.setter
+    def adapt(self, value: bool) -> None:
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f'adapt must be true or false, got {value!r}')
+        self._adapt = bool(value)
+        self._adapting = self._adapt and not self._excitation_hold
+        self._set_operated()
+
+    @property
+    def excitation_hold(self) -> bool:
+        """Whether adaptation is held because the input is not exciting (set by the feeder)."""
+        return self._excitation_hold
+
+    @excitation_hold.setter
+    def excitation_hold(self, value: bool) -> None:
+        self._excitation_hold = bool(value)
+        self.adapt = self._adapt
+
+    @property
+    def held_samples(self) -> int:
+        """Count the samples taken while adaptation was held (since construction)."""
+        return self._held
+
+    @property
+    def operating_point(self) -> np.ndarray | None:
+        """Return the recursive means ``[y0, u1, ..., ur]`` (``detrend: mean``), else None."""
+        return None if self._means is None else self._means.mean.copy()
+
+    @property
+    def operating_point_names(self) -> tuple[str, ...]:
+        """Return ``('y', 'u1', ..., 'ur')``, the names of :attr:`operating_point`."""
+        return operating_point_names(self.num_inputs)
+
+    def monitor_centring(self, on: bool = True) -> None:
+        """Watch whether the data are centred (see :attr:`centring_problem`)."""
+        self._centring = CentringMonitor(self.num_inputs) if on else None
+        self._set_operated()
+
+    @property
+    def centring_problem(self) -> str:
+        """
+        Return why the raw data look far from centred, or '' (see :meth:`monitor_centring`).
+
+        Only with ``detrend: none``: with ``mean`` the regression sees centred data.
+        """
+        if self._centring is None or self._means is not None:
+            return ''
+        return self._centring.problem()
 
     def run(self, y: Any, u: Any) -> Trajectory:
         """
@@ -358,6 +520,8 @@ class RecursiveEstimator(abc.ABC):
         self._change_score = 0.0
         self._quiet_left = 0
         self._checkpoint = None
+        if self._means is not None:
+            self._means.clear()
         self._reset()
 
     def restart_regressor(self) -> None:
@@ -373,6 +537,9 @@ class RecursiveEstimator(abc.ABC):
         """Return a frozen snapshot of the full state (copies)."""
         arrays, scalars = self._state_items()
         scalars = dict(scalars, flags=dict(self.flags), change_score=self._change_score)
+        if self._means is not None:
+            arrays = dict(arrays, operating_point=self._means.mean)
+            scalars['operating_weight'] = self._means.weight
         return EstimatorState(self.name, {k: np.array(v, copy=True) for k, v in arrays.items()},
                               scalars)
 
@@ -395,6 +562,10 @@ class RecursiveEstimator(abc.ABC):
         scalars = dict(state.scalars)
         self.flags = dict(scalars.pop('flags', {}))
         self._change_score = float(scalars.pop('change_score', 0.0))
+        weight = scalars.pop('operating_weight', None)
+        if self._means is not None and weight is not None:
+            self._means.mean[:] = state.arrays['operating_point']
+            self._means.weight = float(weight)
         self._checkpoint = None
         self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
 

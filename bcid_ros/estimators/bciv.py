@@ -685,6 +685,9 @@ class Bciv(RecursiveEstimator):
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; only
         ``num_inputs=1``. ``initial_covariance`` is rho of M_0 = rho I.
+    input_delay, detrend, adapt, outlier_threshold
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`. A dead
+        time d shifts the input history by d (see :meth:`_push`).
     iv_lag : int
         l >= 1 of eq. (54); m = n + 2l.
     input_noise : str
@@ -756,27 +759,20 @@ class Bciv(RecursiveEstimator):
         # ring[start:start + 2m] (row k of its (m, 2) view: sample t - k).
         self._ring = np.zeros(2 * (RING_SAMPLES + solver.m))
         self._start = 2 * RING_SAMPLES
+        # the delay line of the last d inputs (input_delay, see _push)
+        self._delay = self.input_delay[0]
+        self._line = np.zeros(self._delay)
         self._gather = np.concatenate(solver.window_indices())
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
+        if not self._push(y, u[0]):
+            return
         m = self._solver.m
-        ring = self._ring
-        start = self._start - 2
-        if start < 0:
-            # move the newest m - 1 samples to the end of the ring
-            start = 2 * RING_SAMPLES
-            ring[start + 2:] = ring[:2 * m - 2]
-        ring[start] = -y
-        ring[start + 1] = u[0]
-        self._start = start
-        if self._filled < m:
-            self._filled += 1
-            if self._filled < m:
-                return
+        start = self._start
         # [eta; p; -z] of eqs. (54), (68)-(70)
-        sample = ring[start:start + 2 * m][self._gather]
+        sample = self._ring[start:start + 2 * m][self._gather]
         lam = self._forgetting_factor
         if lam != 1.0:
             self._moments *= lam
@@ -787,6 +783,45 @@ class Bciv(RecursiveEstimator):
         self._decay *= lam * lam
         self._updates += 1
         self._estimate()
+
+    def _push(self, z: float, w: float) -> bool:
+        """
+        Add sample (z(t), w(t - d)) to the history; return whether the window is full.
+
+        With a dead time d the history pairs z(t) with w(t - d), read from a
+        delay line of the last d inputs: the IV-type vector and p_t then
+        shift together by d, so that eqs. (54)-(75) hold unchanged for the
+        shifted input (docs/bciv.md, "Dead time"). The first d samples only
+        fill the delay line.
+        """
+        delay = self._delay
+        if delay:
+            position = self._line_position
+            delayed = self._line[position]
+            self._line[position] = w
+            self._line_position = position + 1 if position + 1 < delay else 0
+            if self._line_filled < delay:
+                self._line_filled += 1
+                return False
+            w = delayed
+        m = self._solver.m
+        ring = self._ring
+        start = self._start - 2
+        if start < 0:
+            # move the newest m - 1 samples to the end of the ring
+            start = 2 * RING_SAMPLES
+            ring[start + 2:] = ring[:2 * m - 2]
+        ring[start] = -z
+        ring[start + 1] = w
+        self._start = start
+        if self._filled < m:
+            self._filled += 1
+            return self._filled == m
+        return True
+
+    def _hold(self, y: float, u: np.ndarray) -> None:
+        """Move the history on without touching the moments or the estimate."""
+        self._push(y, u[0])
 
     def _estimate(self) -> None:
         """Compute theta_IV,N and theta_BCIV,N from the moments."""
@@ -862,6 +897,9 @@ class Bciv(RecursiveEstimator):
         self._ring[:] = 0.0
         self._start = 2 * RING_SAMPLES
         self._filled = 0
+        self._line[:] = 0.0
+        self._line_position = 0
+        self._line_filled = 0
         #: The moments [R | -r] of Step 2 live in the solver's buffer, updated in place.
         self._moments = self._solver.moments
         self._moments[...] = 0.0
@@ -876,12 +914,14 @@ class Bciv(RecursiveEstimator):
     def _restart_regressor(self) -> None:
         self._history[:] = 0.0
         self._filled = 0
+        self._line_filled = 0
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays = {'moments': self._moments, 'history': self._history,
                   'theta_iv': self._theta_iv, 'theta_bciv': self._theta_bciv,
-                  'gamma': self._gamma}
+                  'gamma': self._gamma, 'delay_line': self._line}
         scalars = {'filled': self._filled, 'tau': self._tau, 'decay': self._decay,
+                   'line_position': self._line_position, 'line_filled': self._line_filled,
                    'updates': self._updates, 'iterations_used': self._iterations_used,
                    'forgetting_factor': self._forgetting_factor}
         return arrays, scalars
@@ -892,6 +932,9 @@ class Bciv(RecursiveEstimator):
         self._theta_iv = arrays['theta_iv']
         self._theta_bciv = arrays['theta_bciv']
         self._gamma = arrays['gamma']
+        self._line[...] = arrays['delay_line']
+        self._line_position = int(scalars['line_position'])
+        self._line_filled = int(scalars['line_filled'])
         self._filled = int(scalars['filled'])
         self._tau = float(scalars['tau'])
         self._decay = float(scalars['decay'])

@@ -84,6 +84,9 @@ class Bcrls(Rls):
     ----------
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+    input_delay, detrend, adapt
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; a dead time
+        delays the input lags of phi (docs/estimators.md, "Dead time").
 
     """
 
@@ -370,7 +373,8 @@ def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: float,
 
 def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
                      feedthrough: bool = False, tolerance: float = 1e-12,
-                     max_iterations: int = 1000) -> tuple[np.ndarray, float, np.ndarray]:
+                     max_iterations: int = 1000,
+                     input_delay: Any = None) -> tuple[np.ndarray, float, np.ndarray]:
     r"""
     Return the batch bias-compensated LS estimate: the fixed point of eqs. (24) and (39).
 
@@ -393,6 +397,9 @@ def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: in
         Stop when the estimate moves by less than this (2-norm).
     max_iterations : int
         Iteration cap.
+    input_delay : sequence of int, optional
+        Dead time d_i of each input (None: none); Lambda still selects the
+        a-block (docs/estimators.md, "Dead time").
 
     Returns
     -------
@@ -410,7 +417,7 @@ def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: in
 
     """
     theta_ls, p, loss, count = ls_batch(y, u, order=order, num_inputs=num_inputs,
-                                        feedthrough=feedthrough)
+                                        feedthrough=feedthrough, input_delay=input_delay)
     n = order
     theta_c = theta_ls.copy()
     for _ in range(max_iterations):

@@ -285,10 +285,17 @@ class ClosedLoopBcls(RecursiveEstimator):
                  controller_sign: str = 'negative', prefilter_initial: Any = 0.0,
                  window: int = DEFAULT_WINDOW, redesign_period: int = DEFAULT_REDESIGN_PERIOD,
                  max_iterations: int = DEFAULT_MAX_ITERATIONS,
-                 tolerance: float = DEFAULT_TOLERANCE) -> None:
+                 tolerance: float = DEFAULT_TOLERANCE, input_delay: Any = 0,
+                 **options: Any) -> None:
+        # options: the base class's detrend, adapt and outlier_threshold
         super().__init__(order=order, num_inputs=num_inputs, feedthrough=feedthrough,
                          initial_covariance=initial_covariance,
-                         forgetting_factor=forgetting_factor)
+                         forgetting_factor=forgetting_factor, input_delay=input_delay,
+                         **options)
+        if any(self.input_delay):
+            raise ValueError(f'input_delay must be 0 for cl_bcls (its prefiltered regressor '
+                             f'and the controller model assume no dead time), got '
+                             f'{input_delay!r}')
         if self.num_inputs != 1:
             raise ValueError(f'num_inputs must be 1 for cl_bcls (a SISO loop), got {num_inputs}')
         if self.feedthrough:

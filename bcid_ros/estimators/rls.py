@@ -204,6 +204,9 @@ class Rls(RecursiveEstimator):
     ----------
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+    input_delay, detrend, adapt
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; a dead time
+        delays the input lags of phi (docs/estimators.md, "Dead time").
 
     """
 
@@ -214,7 +217,8 @@ class Rls(RecursiveEstimator):
 
     def __init__(self, **settings: Any) -> None:
         super().__init__(**settings)
-        self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough)
+        self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough,
+                                       self.input_delay)
         self._trace_limit = self.initial_covariance * self.num_parameters
         # the signal channel (0 = y, i = u_i) of each component of phi
         lags = self.order + (1 if self.feedthrough else 0)
@@ -234,6 +238,10 @@ class Rls(RecursiveEstimator):
 
     #: _ls_step checks before it commits: the cheap form of the transaction.
     _guarded_update = _update
+
+    def _hold(self, y: float, u: np.ndarray) -> None:
+        """Move the regressor on without a step: theta, P, J and tau stay as they are."""
+        self._regressor.push(y, u)
 
     def _after_ls_step(self) -> None:
         """Extend the LS step (the bias compensation of subclasses); nothing here."""
@@ -370,7 +378,7 @@ class Rls(RecursiveEstimator):
 
     def _choose_scales(self) -> None:
         """Give each channel still without a scale the one of the data in the regressor."""
-        peaks = np.abs(self._regressor.history).max(axis=0)
+        peaks = self._regressor.peaks()
         scales = self._signal_scale
         for channel in np.flatnonzero((scales == 0.0) & (peaks > 0.0)):
             scale = power_of_two_at_least(float(peaks[channel]))
@@ -563,7 +571,8 @@ def spectral_radius(a: np.ndarray) -> float:
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
              feedthrough: bool = False, initial_covariance: Any = None,
-             forgetting_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray, float, float]:
+             forgetting_factor: float = 1.0,
+             input_delay: Any = None) -> tuple[np.ndarray, np.ndarray, float, float]:
     r"""
     Solve the (weighted, regularised) least-squares problem that :class:`Rls` solves recursively.
 
@@ -572,7 +581,7 @@ def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
         \hat\theta_{LS}(N) = \Big[\lambda^{N'} P_0^{-1} + \sum_i \lambda^{N'-i}\varphi(i)
             \varphi^T(i)\Big]^{-1} \sum_i \lambda^{N'-i}\varphi(i) y(i)
 
-    over the N' = N - n updates that have a filled regressor, with
+    over the N' = N - n - max(d_i) updates that have a filled regressor, with
     :math:`P_0 = \mathrm{diag}(` ``initial_covariance`` :math:`)` (a scalar
     or the p diagonal entries, e.g. :attr:`Rls.initial_covariance_diagonal`).
     With ``initial_covariance=None`` the :math:`P_0^{-1}` term is dropped
@@ -586,6 +595,8 @@ def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
         Inputs.
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor
         As for :class:`Rls`.
+    input_delay : sequence of int, optional
+        Dead time d_i of each input (None: none).
 
     Returns
     -------
@@ -601,8 +612,9 @@ def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
     """
     y = np.asarray(y, dtype=float).reshape(-1)
     u = np.asarray(u, dtype=float).reshape(y.shape[0], -1)
-    phi = ArxRegressor(order, num_inputs, feedthrough).regressors(y, u)
-    target = y[order:]
+    regressor = ArxRegressor(order, num_inputs, feedthrough, input_delay)
+    phi = regressor.regressors(y, u)
+    target = y[regressor.span:]
     weights = forgetting_factor ** np.arange(phi.shape[0] - 1, -1, -1, dtype=float)
     information = (phi * weights[:, None]).T @ phi
     if initial_covariance is not None:

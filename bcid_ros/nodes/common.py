@@ -39,6 +39,7 @@ _ROS_TYPES = {
     'string': Parameter.Type.STRING,
     'double_array': Parameter.Type.DOUBLE_ARRAY,
     'string_array': Parameter.Type.STRING_ARRAY,
+    'integer_array': Parameter.Type.INTEGER_ARRAY,
 }
 
 INT64_MAX = 2 ** 63 - 1
@@ -77,6 +78,10 @@ def _coerce_integer_overrides(node: Node, table: Sequence[ParameterSpec]) -> Non
         elif spec.type == 'double_array' and override.type_ == Parameter.Type.INTEGER_ARRAY:
             overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY,
                                              [float(v) for v in override.value])
+        elif spec.type == 'integer_array' and override.type_ == Parameter.Type.INTEGER:
+            # `input_delay: 3`: one integer for all inputs
+            overrides[spec.name] = Parameter(spec.name, Parameter.Type.INTEGER_ARRAY,
+                                             [override.value])
 
 
 def declare_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
@@ -108,7 +113,7 @@ def declare_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
         value = parameter.value
         if value is None:
             value = spec.default
-        elif spec.type in ('double_array', 'string_array'):
+        elif spec.type in ('double_array', 'string_array', 'integer_array'):
             value = list(value)
         values[spec.name] = value
     return values

@@ -248,6 +248,9 @@ class EstimatorTask:
         status.add(Key.COVARIANCE_TRACE, trace if math.isfinite(trace) else 'n/a')
         status.add(Key.FORGETTING_FACTOR, estimator.forgetting_factor)
         status.add(Key.PUBLISH_PERIOD, self._publish_period())
+        status.add(Key.ADAPT, bool(getattr(estimator, 'adapt', True))
+                   and not getattr(estimator, 'excitation_hold', False))
+        status.add(Key.SAMPLES_HELD, getattr(estimator, 'held_samples', 0))
         for name, count in sorted(flags.items()):
             status.add(Key.FLAG + name, count)
         if estimator.valid:
@@ -256,6 +259,9 @@ class EstimatorTask:
         if reasons:
             # ~/valid is false although the estimator is ready: say why, so a person sees it
             status.merge_summary(WARN, 'estimate not valid: ' + '; '.join(reasons))
+        centring = getattr(estimator, 'centring_problem', '')
+        if centring:
+            status.merge_summary(WARN, centring)
         if raised:
             status.merge_summary(WARN, 'estimator flags in the last period: '
                                  + ', '.join(raised))

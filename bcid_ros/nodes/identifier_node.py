@@ -75,7 +75,9 @@ class IdentifierNode(Node):
             return
         self.estimator = estimator_from_parameters(settings)  # as bcid replay builds it
         self.feeder = SampleFeeder(self.estimator, settings['excitation_window'],
-                                   settings['publish_period'])
+                                   settings['publish_period'], settings['freeze_unexcited'])
+        if settings['detrend'] == 'none':
+            self.estimator.monitor_centring()  # /diagnostics warns about offsets
         restored = self._restore_state(settings)
         self.counters = dict.fromkeys(interface.COUNTERS, 0)
         self.messages = 0
@@ -95,6 +97,11 @@ class IdentifierNode(Node):
         self._estimates[interface.PARAMETER_COVARIANCE] = (
             self.create_publisher(Float64MultiArray, interface.PARAMETER_COVARIANCE,
                                   LATCHED_QOS), covariance_message(names))
+        if settings['detrend'] == 'mean':
+            self._estimates[interface.OPERATING_POINT] = (
+                self.create_publisher(Float64MultiArray, interface.OPERATING_POINT,
+                                      LATCHED_QOS),
+                estimate_message(self.estimator.operating_point_names))
         self.valid_publisher = self.create_publisher(Bool, interface.VALID, LATCHED_QOS)
         self._valid = bool(self.estimator.valid)
         self.valid_publisher.publish(valid_message(self._valid))
@@ -245,6 +252,8 @@ class IdentifierNode(Node):
                 self.estimator.forgetting_factor = parameter.value
             elif parameter.name == 'publish_period':
                 self.feeder.publish_period = parameter.value
+            elif parameter.name in ('adapt', 'outlier_threshold'):
+                setattr(self.estimator, parameter.name, parameter.value)
             else:
                 continue
             self.settings[parameter.name] = parameter.value
@@ -326,6 +335,9 @@ class IdentifierNode(Node):
         if noise.size and np.isfinite(noise).all():
             self._publish(interface.NOISE_VARIANCE, noise)
         self._publish_uncertainty()
+        operating_point = self.estimator.operating_point
+        if operating_point is not None:
+            self._publish(interface.OPERATING_POINT, operating_point)
         self.estimates_published += 1
 
     def _publish_uncertainty(self) -> None:

@@ -35,6 +35,8 @@ NOISE_VARIANCE = '~/noise_variance'
 VALID = '~/valid'
 PARAMETER_STD = '~/parameter_std'
 PARAMETER_COVARIANCE = '~/parameter_covariance'
+#: The operating point [y0, u1, ..., ur] of ``detrend: mean`` (latched).
+OPERATING_POINT = '~/operating_point'
 RESET = '~/reset'
 
 #: The adaptive controller's feedback C(q) in the loop (private, latched).
@@ -270,6 +272,8 @@ class DiagnosticKey:
     COVARIANCE_TRACE = 'covariance trace'
     FORGETTING_FACTOR = 'forgetting factor'
     PUBLISH_PERIOD = 'publish period (samples)'
+    ADAPT = 'adapt'
+    SAMPLES_HELD = 'samples held (adaptation off)'
     #: Prefixes of ``flag <name>`` (estimator flag counts) and ``noise <name>``.
     FLAG = 'flag '
     NOISE = 'noise '

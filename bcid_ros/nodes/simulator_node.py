@@ -76,6 +76,7 @@ class SimulatorNode(Node):
         settings = check_simulator_parameters(declare_table(self, SIMULATOR_PARAMETERS))
         self.settings = settings
         self.plant: HeldInputPlant | None = None
+        self.joint_state_publisher = None  # scenario joints only (finish() looks at it)
         if settings['mode'] == 'plant':
             self._start_plant_mode(settings)
             return
