@@ -57,15 +57,26 @@ def single_runs(name, y, u, present, **settings):
     return singles
 
 
+#: bcrls's state for its sandwich covariance, which the batched estimators do not compute.
+COVARIANCE_STATE = ('moment_ring', 'moment_snapshot', 'moment_sums', 'moment_pending',
+                    'moment_weight')
+
+
 def assert_plants_equal(batched, singles):
     """Assert that every plant's full state equals its single-plant estimator's."""
     for k, single in enumerate(singles):
         mine, theirs = batched.plant_state(k), single.get_state()
-        assert mine.arrays.keys() == theirs.arrays.keys()
-        for key, value in theirs.arrays.items():
+        # The batched estimators keep no parameter covariance (docs/scaling.md): bcrls's
+        # moments of it are the single plant's alone.
+        shared = {key: value for key, value in theirs.arrays.items()
+                  if key not in COVARIANCE_STATE}
+        assert mine.arrays.keys() - set(COVARIANCE_STATE) == shared.keys()
+        for key, value in shared.items():
             np.testing.assert_allclose(mine.arrays[key], value, rtol=TOLERANCE,
                                        atol=TOLERANCE, err_msg=f'plant {k} {key}')
         for key, value in theirs.scalars.items():
+            if key in COVARIANCE_STATE:
+                continue
             if isinstance(value, float):
                 assert mine.scalars[key] == pytest.approx(value, rel=TOLERANCE, abs=TOLERANCE,
                                                           nan_ok=True)

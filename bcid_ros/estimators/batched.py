@@ -41,7 +41,7 @@ from bcid_ros.estimators.base import (CHANGE_DECAY, CHANGE_SCORE, check_int, che
                                       EstimatorState, HUGE_SCREEN, IMPLAUSIBLE_ERROR,
                                       parameter_names)
 from bcid_ros.estimators.bcrls import (COMPENSATION_MAX, CONTRACTION_MAX, DENOMINATOR_MIN,
-                                       RUNAWAY)
+                                       MOMENT_BLOCK, RUNAWAY)
 from bcid_ros.estimators.rls import (CAREFUL_GAIN, CHANGE_MEMORY, GATE_WARMUP, GROWTH,
                                      HEALTH_CHECK_PERIOD, repair_covariance, rls_step,
                                      UNSTABLE_RADIUS, VALIDITY_PERIOD, VARIANCE_FLOOR)
@@ -1054,6 +1054,14 @@ class BatchedBcrls(BatchedRls):
         arrays['theta_c'] = self._theta_c[plant]
         scalars['sigma2'] = float(self._sigma2[plant])
         scalars['resets_checked'] = int(self._resets_checked[plant])
+        # No parameter covariance here: a single plant loaded from this snapshot starts its
+        # covariance moments afresh (Bcrls: no std until its next block of steps).
+        width = self.num_parameters + 1
+        arrays['moment_ring'] = np.zeros((self.order + MOMENT_BLOCK, width))
+        arrays['moment_sums'] = np.zeros((self.order + 1, width, width))
+        arrays['moment_snapshot'] = np.zeros((2, width))
+        scalars['moment_pending'] = 0
+        scalars['moment_weight'] = 0.0
         return arrays, scalars
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
