@@ -33,7 +33,10 @@ import numpy as np
 from scipy.linalg.blas import dger
 from scipy.linalg.lapack import dgesv, dposv
 
-from bcid_ros.estimators.base import check_int, check_range, RecursiveEstimator
+from bcid_ros.estimators.base import (check_int, check_range, power_of_two_at_least,
+                                      RecursiveEstimator)
+from bcid_ros.estimators.rls import (GROWTH, spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD,
+                                     VARIANCE_FLOOR)
 
 #: Above this (estimated) condition number of Q~'XQ~ the noise system of
 #: eq. (75) counts as ill-conditioned and the estimate falls back to theta_IV.
@@ -50,6 +53,13 @@ CHECK_PERIOD = 4
 RING_SAMPLES = 512
 INPUT_NOISE = ('colored', 'white')
 UPDATES = ('converged', 'printed')
+#: The gate tests samples once this many times p equation errors were measured
+#: after the estimator became ready (their mean square is then a variance).
+GATE_WARMUP = 10
+#: A detected plant change cuts the weighted memory tau to this many times m samples.
+CHANGE_MEMORY = 4
+#: A compensation farther than this from theta_IV (relative, normalised units) is a runaway.
+RUNAWAY_SHIFT = 1.0
 
 #: Solver outcomes (the flag counted when the estimate falls back to theta_IV).
 OK = ''
@@ -757,11 +767,28 @@ class Bciv(RecursiveEstimator):
         self._ring = np.zeros(2 * (RING_SAMPLES + solver.m))
         self._start = 2 * RING_SAMPLES
         self._gather = np.concatenate(solver.window_indices())
+        # p(t) of the undelayed ARX equation from the newest n rows of the window
+        # (before the push): -z(t-j) at 2(j-1), w(t-j) at 2(j-1) + 1
+        lags = [k for k in solver.lags if k > 0]
+        self._error_gather = np.array([2 * (j - 1) for j in range(1, self.order + 1)]
+                                      + [2 * (k - 1) + 1 for k in lags], dtype=np.intp)
+        self._error_theta = np.array(list(range(self.order)) + [
+            self.order + i for i, k in enumerate(solver.lags) if k > 0], dtype=np.intp)
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
         m = self._solver.m
+        w = float(u[0])
+        error = (self._equation_error(y, w) if self._filled >= self.order
+                 and self._updates >= self._ready_count else None)
+        if self._error_count >= self._gate_from:
+            z2 = self._gate_score(y, w, error)
+            # (while the regressor refills only the sizes are tested: the change score waits)
+            if not z2 <= self._gate_limit2 or (self._change_score and error is not None):
+                if not self._gate(z2):
+                    return
+        self._track_signals(y, w, error)
         ring = self._ring
         start = self._start - 2
         if start < 0:
@@ -775,6 +802,8 @@ class Bciv(RecursiveEstimator):
             self._filled += 1
             if self._filled < m:
                 return
+        if self._scales_pending:
+            self._choose_scales()
         # [eta; p; -z] of eqs. (54), (68)-(70)
         sample = ring[start:start + 2 * m][self._gather]
         lam = self._forgetting_factor
@@ -787,10 +816,12 @@ class Bciv(RecursiveEstimator):
         self._decay *= lam * lam
         self._updates += 1
         self._estimate()
+        if self._updates >= self._next_check:
+            self._check_validity()
 
     def _estimate(self) -> None:
         """Compute theta_IV,N and theta_BCIV,N from the moments."""
-        regularisation = self._decay / self.initial_covariance
+        regularisation = self._regularisation()
         mode = 'idle' if self._updates < self.idle_samples else self._mode
         theta, gamma, theta_iv, done, converged, status = self._solver.estimate(
             self._moments, regularisation, mode=mode, iterations=self._iterations,
@@ -804,6 +835,7 @@ class Bciv(RecursiveEstimator):
         self._theta_iv = theta_iv
         self._theta_bciv = theta
         self._iterations_used = done
+        self._last_status = status
         if status:
             self._flag('fallback_iv')
             self._flag(status)
@@ -815,11 +847,117 @@ class Bciv(RecursiveEstimator):
                 # a finite-sample estimate of a variance below zero (see _noise)
                 self._flag('negative_variance')
 
+    # ----------------------------------------------------------- the gate
+    def _equation_error(self, y: float, w: float) -> float:
+        """Return the one-step equation error z(t) - p(t)' theta_BCIV of the new sample."""
+        window = self._ring[self._start:self._start + 2 * self.order]
+        theta = self._theta_bciv
+        error = y - float(window[self._error_gather].dot(theta[self._error_theta]))
+        if self.feedthrough:
+            error -= float(theta[self.order]) * w
+        return error
+
+    def _gate_score(self, y: float, w: float, error: float | None) -> float:
+        """Return the squared normalised one-step error of a new sample (see the class docstring)."""
+        score = w * w / self._input_power if self._input_power > 0.0 else 0.0
+        if error is not None:
+            part = error * error / (self._error_power + self._error_floor)
+        else:  # the regressor refills after a restart: the output's own size
+            part = y * y / self._output_power if self._output_power > 0.0 else 0.0
+        return part if part > score else score
+
+    def _track_signals(self, y: float, w: float, error: float | None) -> None:
+        """Add an accepted sample to the weighted mean squares of w, z and the equation error."""
+        lam = self._forgetting_factor
+        self._signal_count = lam * self._signal_count + 1.0
+        weight = 1.0 / self._signal_count
+        self._input_power += (w * w - self._input_power) * weight
+        self._output_power += (y * y - self._output_power) * weight
+        if error is not None:
+            self._error_count = lam * self._error_count + 1.0
+            self._error_power += (error * error - self._error_power) / self._error_count
+
+    def _accept_change(self) -> None:
+        """Cut the memory to CHANGE_MEMORY m samples and let the gate relearn its scales."""
+        keep = CHANGE_MEMORY * self._solver.m / self._tau if self._tau > 0.0 else 1.0
+        if keep < 1.0:
+            self._moments *= keep
+            self._tau *= keep
+            self._decay *= keep * keep  # the prior keeps its weight against R'WR
+        self._signal_count = min(self._signal_count, 1.0)
+        self._error_count = 0.0
+
+    # ---------------------------------------------------------- the units
+    def _choose_scales(self) -> None:
+        """Give z and w, if still without a scale, the power of two of the window's peak."""
+        peaks = np.abs(self._history).max(axis=0)
+        for channel in (0, 1):
+            if self._signal_scale[channel] == 0.0 and peaks[channel] > 0.0:
+                self._signal_scale[channel] = power_of_two_at_least(float(peaks[channel]))
+        self._set_scale_dependents()
+
+    def _set_scale_dependents(self) -> None:
+        scales = self._signal_scale
+        self._scales_pending = bool((scales == 0.0).any())
+        z_scale, w_scale = (float(s) if s > 0.0 else 1.0 for s in scales)
+        self._regularisation_weights = regularisation_weights(
+            z_scale, w_scale, self.order, self.num_parameters)
+        self._error_floor = (VARIANCE_FLOOR * z_scale) ** 2
+        self._normalised_units = np.ones(self.num_parameters)
+        self._normalised_units[self.order:] = w_scale / z_scale
+
+    def _regularisation(self) -> np.ndarray:
+        """Return the M_0 term rho^-1 lambda^2N S^2 of Step 1 in the user's units."""
+        return (self._decay / self.initial_covariance) * self._regularisation_weights
+
+    @property
+    def signal_scale(self) -> np.ndarray:
+        """Return the scales of z and w (0 while a channel has only seen zeros)."""
+        return self._signal_scale.copy()
+
+    @property
+    def initial_covariance_diagonal(self) -> np.ndarray:
+        """Return the diagonal of M_0 = rho S^-2 in the user's units (see the class docstring)."""
+        return self.initial_covariance / self._regularisation_weights
+
+    # ------------------------------------------------------- the validity
+    def _check_validity(self) -> None:
+        self._next_check = self._updates + VALIDITY_PERIOD
+        with np.errstate(all='ignore'):
+            self._reasons = tuple(self._find_problems())
+
+    def _find_problems(self) -> list[str]:
+        """Return the reasons not to trust the estimate now (see the class docstring)."""
+        reasons = []
+        power = self._output_power
+        bounded = not power > GROWTH * self._last_power
+        self._last_power = power
+        radius = spectral_radius(self._theta_bciv[:self.order])
+        if not radius <= UNSTABLE_RADIUS and bounded:
+            reasons.append(f'unstable model (pole radius {radius:.3g}) on bounded data')
+        fallbacks = self.flags.get('fallback_iv', 0)
+        if fallbacks > self._fallbacks_checked:
+            reasons.append(f'ill-conditioned or runaway compensation (fell back to theta_IV '
+                           f'{fallbacks - self._fallbacks_checked} times)')
+        self._fallbacks_checked = fallbacks
+        units = self._normalised_units
+        shift = float(np.linalg.norm(units * (self._theta_bciv - self._theta_iv)))
+        size = float(np.linalg.norm(units * self._theta_iv))
+        if not shift <= RUNAWAY_SHIFT * size:
+            reasons.append(f'compensation runs away from IV ({shift / size:.3g} x |theta_IV|)'
+                           if size > 0 else 'compensation runs away from IV')
+        return reasons
+
+    def _validity_reasons(self) -> tuple[str, ...]:
+        if self._last_status:
+            return self._reasons + (f'compensation fell back to theta_IV ({self._last_status})',)
+        return self._reasons
+
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether eta is filled, L updates are done and at least p updates were made."""
-        return self._updates >= max(self.idle_samples, self.num_parameters)
+        return self._updates >= self._ready_count
 
     @property
     def samples(self) -> int:
@@ -830,7 +968,7 @@ class Bciv(RecursiveEstimator):
     def covariance_trace(self) -> float:
         """Return tr M_N of Step 1, M_N = (S'WS + rho^-1 lambda^2N I)^-1 (a health indicator)."""
         if self._updates == 0:
-            return self.initial_covariance * self.num_parameters
+            return float((self.initial_covariance / self._regularisation_weights).sum())
         try:
             return float(np.trace(np.linalg.inv(self._solver.m_inverse)))
         except np.linalg.LinAlgError:
@@ -872,6 +1010,17 @@ class Bciv(RecursiveEstimator):
         self._theta_bciv = np.zeros(p)
         self._gamma = np.zeros(self._solver.q)
         self._iterations_used = 0
+        self._ready_count = max(self.idle_samples, p)
+        self._gate_from = GATE_WARMUP * p
+        self._signal_scale = np.zeros(2)
+        self._set_scale_dependents()
+        self._signal_count = self._error_count = 0.0
+        self._input_power = self._output_power = self._error_power = 0.0
+        self._next_check = VALIDITY_PERIOD
+        self._last_power = math.inf
+        self._fallbacks_checked = 0
+        self._reasons: tuple[str, ...] = ()
+        self._last_status = OK
 
     def _restart_regressor(self) -> None:
         self._history[:] = 0.0
@@ -880,10 +1029,15 @@ class Bciv(RecursiveEstimator):
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays = {'moments': self._moments, 'history': self._history,
                   'theta_iv': self._theta_iv, 'theta_bciv': self._theta_bciv,
-                  'gamma': self._gamma}
+                  'gamma': self._gamma, 'signal_scale': self._signal_scale}
         scalars = {'filled': self._filled, 'tau': self._tau, 'decay': self._decay,
                    'updates': self._updates, 'iterations_used': self._iterations_used,
-                   'forgetting_factor': self._forgetting_factor}
+                   'forgetting_factor': self._forgetting_factor,
+                   'signal_count': self._signal_count, 'error_count': self._error_count,
+                   'input_power': self._input_power, 'output_power': self._output_power,
+                   'error_power': self._error_power, 'next_check': self._next_check,
+                   'last_power': self._last_power, 'fallbacks_checked': self._fallbacks_checked,
+                   'reasons': self._reasons, 'last_status': self._last_status}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -898,8 +1052,20 @@ class Bciv(RecursiveEstimator):
         self._updates = int(scalars['updates'])
         self._iterations_used = int(scalars['iterations_used'])
         self._forgetting_factor = float(scalars['forgetting_factor'])
+        self._signal_scale = np.array(arrays['signal_scale'], dtype=float)
+        self._set_scale_dependents()
+        self._signal_count = float(scalars['signal_count'])
+        self._error_count = float(scalars['error_count'])
+        self._input_power = float(scalars['input_power'])
+        self._output_power = float(scalars['output_power'])
+        self._error_power = float(scalars['error_power'])
+        self._next_check = int(scalars['next_check'])
+        self._last_power = float(scalars['last_power'])
+        self._fallbacks_checked = int(scalars['fallbacks_checked'])
+        self._reasons = tuple(scalars['reasons'])
+        self._last_status = str(scalars['last_status'])
         if self._updates > 0:  # M_N^-1 for covariance_trace
-            self._solver.estimate(self._moments, self._decay / self.initial_covariance,
+            self._solver.estimate(self._moments, self._regularisation(),
                                   mode='idle', iterations=0, tolerance=self.tolerance)
 
     def __repr__(self) -> str:
@@ -934,6 +1100,40 @@ class BcivBatch:
     noise: np.ndarray
     iterations: np.ndarray
     status: tuple[str, ...]
+
+
+def regularisation_weights(z_scale: float, w_scale: float, order: int,
+                           num_parameters: int) -> np.ndarray:
+    r"""
+    Return the diagonal :math:`S^2` that puts :math:`M_0 = \rho I` in normalised units.
+
+    Column k of :math:`\bar R` sums :math:`w\,z` (a-part) or :math:`w\,w` (b-part).
+    Step 1 on the normalised signals :math:`z/s_z`, :math:`w/s_w` with
+    :math:`M_0 = \rho I`, mapped back, is Step 1 on the signals as given with
+    :math:`M_0^{-1} = \rho^{-1} S^2`, :math:`S = s_w\,\mathrm{diag}(s_z I_n, s_w I)`.
+    """
+    weights = np.full(num_parameters, w_scale * w_scale)
+    weights[:order] = w_scale * z_scale
+    return weights * weights
+
+
+def window_scales(z: np.ndarray, w: np.ndarray, m: int) -> tuple[float, float]:
+    """
+    Return the scales that :class:`Bciv` gives z and w when it runs over these arrays.
+
+    Each is the power of two at or above the peak of the first m-sample window
+    (ending at sample m - 1 or later) in which the channel is not all zero; 1
+    for a channel that is zero throughout.
+    """
+    scales = []
+    for x in (z, w):
+        nonzero = np.flatnonzero(x)
+        if nonzero.size == 0:
+            scales.append(1.0)
+            continue
+        end = max(int(nonzero[0]), m - 1)
+        scales.append(power_of_two_at_least(float(np.abs(x[end - m + 1:end + 1]).max())))
+    return scales[0], scales[1]
 
 
 def published_noise(gamma: np.ndarray) -> np.ndarray:
@@ -1000,6 +1200,8 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
     count = z.shape[0]
     checkpoints = [count] if checkpoints is None else [int(t) for t in checkpoints]
     eta, pz = solver.data_windows(z, w)
+    weights_s = regularisation_weights(*window_scales(z, w, solver.m), order,
+                                       solver.num_parameters)
     mode = 'fixed_point' if input_noise == 'white' else 'steps'
     rows = []
     lam = forgetting_factor
@@ -1009,7 +1211,7 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
         moments = eta[:updates].T @ (pz[:updates] * weights[:, None])
         tau = float(weights.sum())
         row_mode = mode if updates >= max(idle_samples, 1) else 'idle'
-        result = solver.estimate(moments, lam ** (2 * updates) / initial_covariance,
+        result = solver.estimate(moments, lam ** (2 * updates) / initial_covariance * weights_s,
                                  mode=row_mode, iterations=bciv_iterations, tolerance=tolerance)
         gamma = result.gamma / tau if tau > 0 else result.gamma
         rows.append((result.theta, result.theta_iv, gamma, result.iterations, result.status))
