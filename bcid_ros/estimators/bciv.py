@@ -903,12 +903,17 @@ class Bciv(RecursiveEstimator):
         self._regularisation_weights = regularisation_weights(
             z_scale, w_scale, self.order, self.num_parameters)
         self._error_floor = (VARIANCE_FLOOR * z_scale) ** 2
+        self._regularised_decay = math.nan  # recompute the M_0 term
         self._normalised_units = np.ones(self.num_parameters)
         self._normalised_units[self.order:] = w_scale / z_scale
 
     def _regularisation(self) -> np.ndarray:
         """Return the M_0 term rho^-1 lambda^2N S^2 of Step 1 in the user's units."""
-        return (self._decay / self.initial_covariance) * self._regularisation_weights
+        if self._decay != self._regularised_decay:  # (cached: constant without forgetting)
+            self._regularised_decay = self._decay
+            self._regularisation_term = (self._decay / self.initial_covariance) * \
+                self._regularisation_weights
+        return self._regularisation_term
 
     @property
     def signal_scale(self) -> np.ndarray:
