@@ -690,11 +690,47 @@ class Bciv(RecursiveEstimator):
       (the last iterate is used, and the next sample continues from it);
     * ``moments_reset``: the moments overflowed; they restart from zero.
 
+    **Units.** :math:`M_0 = \rho S^{-2}` with
+    :math:`S = s_w\,\mathrm{diag}(s_z I_n, s_w I)`, where :math:`s_z`,
+    :math:`s_w` are the smallest powers of two at or above the peaks of z and
+    w in the first full window (:func:`regularisation_weights`): Step 1 on
+    the normalised signals with :math:`M_0 = \rho I`, mapped back exactly.
+    The estimates do not depend on the units of z and w, and
+    ``initial_covariance`` is rho for signals of unit size.
+
+    **Outlier gate** (``outlier_threshold``, the base class's
+    :meth:`~bcid_ros.estimators.base.RecursiveEstimator._gate`): before a
+    sample enters the window its squared normalised one-step error is the
+    larger of
+
+    * :math:`\varepsilon^2/\bar\varepsilon^2`, the equation error
+      :math:`\varepsilon(t) = z(t) - p(t)^T\hat\theta_{BCIV}` of the undelayed
+      ARX equation (p(t) from the previous n samples) over its weighted mean
+      square since the estimator became ready (z(t)^2 over its mean square
+      while the window refills after a restart, when p(t) is not known);
+    * :math:`w(t)^2/\bar w^2`: w(t) enters the IV-type vector (54) at once,
+      l - 1 samples before it enters a regressor, so the input's size is
+      tested as it arrives.
+
+    The gate tests once ``GATE_WARMUP`` p equation errors were measured. A
+    detected plant change cuts the memory to ``CHANGE_MEMORY`` m samples
+    (moments and tau times kappa, lambda^2N times kappa^2) and the gate
+    relearns its scales.
+
+    **Validity**, re-evaluated every ``VALIDITY_PERIOD`` updates: the
+    compensated model is unstable (a pole beyond ``UNSTABLE_RADIUS``) while
+    the output's mean square did not grow ``GROWTH`` times since the last
+    check; the estimate fell back to theta_IV (ill-conditioned
+    :math:`\tilde Q^TX\tilde Q` or runaway) since the last check, or at this
+    sample; the compensation moved farther than ``RUNAWAY_SHIFT`` times
+    :math:`|\hat\theta_{IV}|` from theta_IV (normalised units).
+
     Parameters
     ----------
-    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; only
-        ``num_inputs=1``. ``initial_covariance`` is rho of M_0 = rho I.
+        ``num_inputs=1``. ``initial_covariance`` is rho of M_0 = rho I in
+        normalised units (see Units).
     iv_lag : int
         l >= 1 of eq. (54); m = n + 2l.
     input_noise : str
@@ -858,7 +894,7 @@ class Bciv(RecursiveEstimator):
         return error
 
     def _gate_score(self, y: float, w: float, error: float | None) -> float:
-        """Return the squared normalised one-step error of a new sample (see the class docstring)."""
+        """Return the squared normalised one-step error of a new sample (class docstring)."""
         score = w * w / self._input_power if self._input_power > 0.0 else 0.0
         if error is not None:
             part = error * error / (self._error_power + self._error_floor)
@@ -971,7 +1007,7 @@ class Bciv(RecursiveEstimator):
 
     @property
     def covariance_trace(self) -> float:
-        """Return tr M_N of Step 1, M_N = (S'WS + rho^-1 lambda^2N I)^-1 (a health indicator)."""
+        """Return tr M_N of Step 1, M_N = (R'WR + rho^-1 lambda^2N S^2)^-1 (a health indicator)."""
         if self._updates == 0:
             return float((self.initial_covariance / self._regularisation_weights).sum())
         try:
@@ -1178,7 +1214,8 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
     order, iv_lag, input_noise, feedthrough, bciv_iterations, tolerance
         As for :class:`Bciv`.
     initial_covariance, forgetting_factor
-        rho and lambda, as for :class:`Bciv`.
+        rho and lambda, as for :class:`Bciv` (M_0 = rho S^-2 with the scales of
+        :func:`window_scales`).
     idle_samples : int
         Below this many updates the estimate is theta_IV.
     checkpoints : sequence of int or None
