@@ -123,10 +123,10 @@ def test_the_gate_rarely_fires_on_clean_data(case):
         est = clean_run(case, *ikenoue(case, 6000, seed=3 + seed), outlier_threshold=5.0)
         refused += est.flags.get('outlier_rejected', 0)
         assert 'plant_change' not in est.flags
-    # |z| > 5 has probability 6e-7 for a Gaussian error; the equation error of the
-    # colored case is a moving average of two noises with an estimated scale: a few
-    # refusals in 12000 samples are allowed, a systematic one is not.
-    assert refused <= 6
+    # |z| > 5 has probability 6e-7 for a Gaussian error (0.007 expected in 12000 samples);
+    # the equation error is a moving average of the noises over an estimated scale, which
+    # fattens the tail: measured 0 here (1 in 3000 on seed 1, colored), 2 allowed.
+    assert refused <= 2
 
 
 # ------------------------------------------------------------------------ units
