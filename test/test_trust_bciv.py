@@ -84,36 +84,54 @@ def test_a_spike_of_any_size_does_not_move_the_gated_estimate(case, channel, siz
     assert est.flags.get('outlier_rejected', 0) >= 1
 
 
-def switched_plant(seed, samples=12000):
-    """Return errors-in-variables data whose plant changes halfway, and the second plant."""
+def switched_plant(seed, b, samples=12000):
+    """Return errors-in-variables data whose plant changes halfway (to B = ``b``), and it."""
     rng = np.random.default_rng(seed)
     u0 = signal.lfilter([1.0], [1.0, -0.5], rng.standard_normal(samples))
     half = samples // 2
     first = signal.lfilter([0.0, 1.0, 0.5], [1.0, -1.5, 0.7], u0)
-    second = signal.lfilter([0.0, -2.0, -1.0], [1.0, -0.3, -0.2], u0)
+    second = signal.lfilter([0.0, *b], [1.0, -0.3, -0.2], u0)
     y0 = np.r_[first[:half], second[half:]]
     z = y0 + 0.1 * np.std(first) * signal.lfilter([1.0, 0.5], [1.0], rng.standard_normal(samples))
     w = u0 + 0.1 * np.std(u0) * signal.lfilter([1.0, -0.3], [1.0], rng.standard_normal(samples))
-    return z, w, np.array([-0.3, -0.2, -2.0, -1.0])
+    return z, w, np.array([-0.3, -0.2, *b])
+
+
+def switch_errors(b, checks):
+    """Return the pole-coefficient errors at ``checks`` (seeds x checks) and the flags, per gate."""
+    errors, flags = {}, {}
+    for threshold in (0.0, 5.0):
+        runs, flags[threshold] = [], []
+        for seed in range(3):
+            z, w, truth = switched_plant(seed, b)
+            est = bciv('colored', forgetting_factor=0.999, outlier_threshold=threshold)
+            theta = est.run(z, w).theta
+            # the a-part: colored BCIV does not fix the gain of B (docs/bciv.md)
+            runs.append(np.linalg.norm(theta[checks, :2] - truth[:2], axis=1))
+            flags[threshold].append(est.flags.get('plant_change', 0))
+        errors[threshold] = np.array(runs)
+    return errors, flags
 
 
 @pytest.mark.slow
 def test_the_gate_does_not_freeze_the_tracking_of_a_plant_change():
-    errors = {}
-    for threshold in (0.0, 5.0):
-        runs = []
-        for seed in range(3):
-            z, w, truth = switched_plant(seed)
-            est = bciv('colored', forgetting_factor=0.999, outlier_threshold=threshold)
-            theta = est.run(z, w).theta
-            # the poles: colored BCIV does not fix the gain of B (docs/bciv.md)
-            runs.append(np.linalg.norm(theta[[8000, -1], :2] - truth[:2], axis=1))
-        errors[threshold] = np.array(runs)
+    errors, _ = switch_errors((-2.0, -1.0), [8000, -1])
     # 2000 samples (two memories of lambda = 0.999) after the switch, and at the end,
     # the gated estimator is as close to the new poles as the ungated one: measured
     # 0.13-0.21 against 0.15-0.21, and equal to 1e-2 at the end; 1.5x allows for the
-    # samples the gate drops during the change (11-16 refusals).
+    # samples the gate drops during the change (11-16 refusals, no plant_change).
     assert (errors[5.0] <= 1.5 * errors[0.0] + 0.02).all(), errors
+
+
+@pytest.mark.slow
+def test_a_large_plant_change_is_detected_and_tracked_faster():
+    errors, flags = switch_errors((10.0, 5.0), [6500, -1])
+    assert all(count >= 1 for count in flags[5.0]) and not any(flags[0.0])
+    # A ten times larger gain: three refusals in a row, the memory is cut to 4m samples.
+    # 500 samples after the switch: measured 0.01-0.13 gated against 0.87-0.99 ungated;
+    # at the end both sit at the noise floor (<= 0.04).
+    assert (errors[5.0][:, 0] <= 0.5 * errors[0.0][:, 0]).all(), errors
+    assert (errors[5.0][:, 1] <= 1.5 * errors[0.0][:, 1] + 0.02).all(), errors
 
 
 @pytest.mark.parametrize('case', sorted(CASES))
