@@ -98,7 +98,7 @@ def switched_plant(seed, b, samples=12000):
 
 
 def switch_errors(b, checks):
-    """Return the pole-coefficient errors at ``checks`` (seeds x checks) and the flags, per gate."""
+    """Return the a-part errors at ``checks`` (seeds x checks) and the flags, per gate."""
     errors, flags = {}, {}
     for threshold in (0.0, 5.0):
         runs, flags[threshold] = [], []
