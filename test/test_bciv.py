@@ -91,9 +91,10 @@ def test_recursive_equals_batch(name, settings):
         np.testing.assert_allclose(trajectory.noise[t - 1], published_noise(batch.noise[row]),
                                    rtol=0, atol=1e-8)
     # Updates start when the window of m samples is full (sample m - 1, 0-based);
-    # valid after L = 100 updates.
-    first_valid = 100 + (2 + 2 * settings['iv_lag']) - 2
-    assert trajectory.valid[first_valid:].all() and not trajectory.valid[:first_valid].any()
+    # ready after L = 100 updates, valid once converged (a fifth of the run).
+    first_ready = 100 + (2 + 2 * settings['iv_lag']) - 2
+    assert trajectory.ready[first_ready:].all() and not trajectory.ready[:first_ready].any()
+    assert not trajectory.valid[:first_ready].any() and trajectory.valid[2000:].all()
 
 
 @pytest.mark.parametrize('name, settings', [('ikenoue_colored', COLORED),
@@ -231,7 +232,8 @@ def test_restart_regressor_skips_the_gap():
 @pytest.mark.parametrize('rho', [1e-2, 1.0, 1e6])
 def test_theta_iv_is_step_1_with_m0_rho(rho):
     # theta_IV,N of Step 1 with M_0 = rho I and theta_IV,0 = 0 sums to
-    # (rho^-1 I + S'S)^-1 S's; early on (N < p) only the rho term makes it unique.
+    # (rho^-1 D^2 + S'S)^-1 S's (D: the units' power-of-two scales); early on (N < p) only
+    # the rho term makes it unique.
     z, w, _ = section('ikenoue_colored', 40)
     est = Bciv(order=2, initial_covariance=rho, idle_samples=1000, **COLORED)
     trajectory = est.run(z, w)
@@ -239,7 +241,8 @@ def test_theta_iv_is_step_1_with_m0_rho(rho):
     eta, pz = solver.data_windows(z, w)
     for updates in (1, 3, 29):
         s_p, s = eta[:updates].T @ pz[:updates, :4], eta[:updates].T @ -pz[:updates, 4]
-        phi = np.eye(4) / rho + s_p.T @ s_p
+        # M_0 = rho I in the units of z and w divided by their power-of-two scales
+        phi = np.diag(1.0 / est.initial_covariance_diagonal) + s_p.T @ s_p
         expected = np.linalg.solve(phi, s_p.T @ s)
         # Both solves lose about cond(Phi) * eps (cond ~ 1e10 at rho = 1e6, N = 1).
         tolerance = max(1e-9, 1e-14 * np.linalg.cond(phi))

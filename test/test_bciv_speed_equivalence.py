@@ -237,7 +237,7 @@ def test_recursive_estimate_equals_the_equations_on_its_own_moments(case):
         else:  # K alternations from theta_IV
             start, iterations = None, est.last_iterations
         dense = dense_bciv(arrays['moments'], est.order, lag, white, 0 if idle else iterations,
-                           regularisation=scalars['decay'] / est.initial_covariance,
+                           regularisation=scalars['decay'] / est.initial_covariance_diagonal,
                            start=start)
         iv, theta, gamma = tolerances(dense, m, iterations)
         assert_close(arrays['theta_iv'], dense.theta_iv, iv, f'theta_IV at {t}')
@@ -296,7 +296,7 @@ def test_covariance_trace_is_the_trace_of_m_n():
     est.run(z, w)
     eta, pz = est._solver.data_windows(z, w)
     s_p = eta.T @ pz[:, :4]
-    m_inverse = s_p.T @ s_p + np.eye(4) / 10.0
+    m_inverse = s_p.T @ s_p + np.diag(1.0 / est.initial_covariance_diagonal)
     # two inversions of M_N^-1 from differently summed moments: cond(M_N^-1) N eps apart
     rel = 2 * len(eta) * np.linalg.cond(m_inverse) * EPS
     assert est.covariance_trace == pytest.approx(np.trace(np.linalg.inv(m_inverse)), rel=rel)

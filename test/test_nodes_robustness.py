@@ -263,3 +263,131 @@ def test_demo_runs_two_processes_and_converges(tmp_path):
     # LS is biased by 7.5 % here (docs/reproduction_ding.md); BCRLS at N = 2000 is well
     # below 3 %.
     assert delta < 3.0
+
+
+# ------------------------------------------------ bad-input matrix, end to end
+BAD_KINDS = ('nan', 'inf', 'short', 'long', 'empty', 'label', 'size', 'huge308', 'huge150')
+
+
+def bad_message(kind, row):
+    """Return one malformed message of ``kind`` built around the good sample ``row``."""
+    if kind in ('nan', 'inf'):
+        row = row.copy()
+        row[1] = np.nan if kind == 'nan' else -np.inf
+        return frame_message(row[None])
+    if kind == 'short':
+        return frame_message(row[None, :2], layout=[('y,u1', 2, 2)])
+    if kind == 'long':
+        return frame_message(np.r_[row, row[:1]][None], layout=[('y,u1,u2,u3', 4, 4)])
+    if kind == 'empty':
+        return Float64MultiArray()
+    if kind == 'label':
+        return frame_message(row[None], layout=[('rows', 1, 3), ('y,u1,u2', 3, 3)])
+    if kind == 'size':
+        return frame_message(row[None], layout=[('samples', 2, 6), ('y,u1,u2', 3, 3)])
+    size = 1e308 if kind == 'huge308' else 1e150
+    return frame_message([[size, size, -size]])
+
+
+def delta_percent(theta, truth):
+    return 100.0 * np.linalg.norm(theta - truth) / np.linalg.norm(truth)
+
+
+def delta_spread(name, samples):
+    """Return the Monte Carlo standard deviation of the final delta (8 seeds), in percent."""
+    plant = make_scenario('ding_miso')
+    truth = plant.truth().parameters
+    deltas = []
+    for seed in range(100, 108):
+        y, u = plant.simulate(samples, seed)
+        est = estimator_from_parameters(dict(DING, estimator=name))
+        est.run(y, u)
+        deltas.append(delta_percent(est.theta, truth))
+    return float(np.std(deltas, ddof=1))
+
+
+class FiniteWatch:
+    """Records whether anything non-finite appears on the estimate topics or /diagnostics."""
+
+    def __init__(self, context):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.recorder = Recorder(context)
+        self.node = self.recorder.node
+        self.diagnostics = 0
+        self.nonfinite_diagnostics = []
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._diagnose, 10)
+
+    def _diagnose(self, message):
+        self.diagnostics += 1
+        for status in message.status:
+            for pair in status.values:
+                try:
+                    value = float(pair.value)
+                except ValueError:
+                    continue
+                if not np.isfinite(value):
+                    self.nonfinite_diagnostics.append((pair.key, pair.value))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('name', ['bcrls', 'rls'])
+def test_bad_input_matrix_end_to_end(ros_context, executor, name):
+    values = dict(DING, estimator=name)
+    identifier = IdentifierNode(context=ros_context, parameter_overrides=overrides(values))
+    watch = FiniteWatch(ros_context)
+    sender = Sender(ros_context, {'samples': Float64MultiArray})
+    for node in (identifier, watch.node, sender.node):
+        executor.add_node(node)
+    publisher = sender.publishers['samples']
+    assert spin_until(executor, lambda: publisher.get_subscription_count() == 1, timeout=10)
+
+    samples, frame = 3000, 50
+    plant = make_scenario('ding_miso')
+    y, u = plant.simulate(samples, 3)
+    rows = np.column_stack([y, u])
+    clean = estimator_from_parameters(values)
+    clean.run(y, u)
+    offline = SampleFeeder(estimator_from_parameters(values))
+    messages = []
+    for k, start in enumerate(range(0, samples, frame)):
+        messages.append(frame_message(rows[start:start + frame]))
+        if k:  # 59 gaps between the 60 good frames, one or two bad messages in each
+            messages.append(bad_message(BAD_KINDS[k % len(BAD_KINDS)], rows[start]))
+            if k % 10 == 0:
+                messages.append(bad_message('huge150', rows[start]))
+    bad = len(messages) - samples // frame
+    assert bad >= 60
+
+    for count, message in enumerate(messages, 1):
+        offline.take_message(message)
+        publisher.publish(message)
+        assert spin_until(executor, lambda: identifier.messages == count, timeout=10)
+    spin_until(executor, lambda: len(watch.recorder.parameters)
+               == identifier.estimates_published, timeout=5)
+    spin_until(executor, lambda: watch.diagnostics > 0, timeout=5)
+
+    # alive, and the node's run is the offline feeder's on the same messages
+    assert identifier.feeder.used == offline.used
+    np.testing.assert_array_equal(identifier.estimator.theta, offline.estimator.theta)
+    publisher.publish(frame_message(rows[:1]))
+    assert spin_until(executor, lambda: identifier.messages == len(messages) + 1)
+    # nothing non-finite on any topic
+    recorder = watch.recorder
+    assert recorder.parameters and identifier.estimator.valid and recorder.valid[-1]
+    for published in (recorder.parameters, recorder.uncompensated, recorder.noise):
+        assert all(np.isfinite(p).all() for p in published)
+    assert watch.diagnostics > 0 and not watch.nonfinite_diagnostics
+    # The final delta is within the clean run's limit: its own delta plus one Monte Carlo
+    # standard deviation of delta at N = 3000 (8 seeds), which covers the ~2 % of good
+    # samples lost to the regressor restarts after each bad message. Measured (seed 3, 64
+    # bad messages): bcrls 0.52 % against 0.45 + 0.35 %, rls 6.88 % (LS is biased) against
+    # 7.05 + 0.88 %.
+    truth = plant.truth().parameters
+    limit = delta_percent(clean.theta, truth) + delta_spread(name, samples)
+    assert delta_percent(identifier.estimator.theta, truth) <= limit
+    # every huge sample was refused (gate or transaction), never taken
+    refused = sum(identifier.estimator.flags.get(k, 0) for k in
+                  ('outlier_rejected', 'update_undone'))
+    assert refused >= sum(1 for k in range(1, samples // frame) if k % len(BAD_KINDS) >= 7) \
+        + len(range(10, samples // frame, 10))

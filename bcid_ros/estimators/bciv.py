@@ -33,7 +33,10 @@ import numpy as np
 from scipy.linalg.blas import dger
 from scipy.linalg.lapack import dgesv, dposv
 
-from bcid_ros.estimators.base import check_int, check_range, RecursiveEstimator
+from bcid_ros.estimators.base import (check_int, check_range, power_of_two_at_least,
+                                      RecursiveEstimator)
+from bcid_ros.estimators.rls import (GROWTH, spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD,
+                                     VARIANCE_FLOOR)
 
 #: Above this (estimated) condition number of Q~'XQ~ the noise system of
 #: eq. (75) counts as ill-conditioned and the estimate falls back to theta_IV.
@@ -50,6 +53,13 @@ CHECK_PERIOD = 4
 RING_SAMPLES = 512
 INPUT_NOISE = ('colored', 'white')
 UPDATES = ('converged', 'printed')
+#: The gate tests samples once this many times p equation errors were measured
+#: after the estimator became ready (their mean square is then a variance).
+GATE_WARMUP = 10
+#: A detected plant change cuts the weighted memory tau to this many times m samples.
+CHANGE_MEMORY = 4
+#: A compensation farther than this from theta_IV (relative, normalised units) is a runaway.
+RUNAWAY_SHIFT = 1.0
 
 #: Solver outcomes (the flag counted when the estimate falls back to theta_IV).
 OK = ''
@@ -680,11 +690,47 @@ class Bciv(RecursiveEstimator):
       (the last iterate is used, and the next sample continues from it);
     * ``moments_reset``: the moments overflowed; they restart from zero.
 
+    **Units.** :math:`M_0 = \rho S^{-2}` with
+    :math:`S = s_w\,\mathrm{diag}(s_z I_n, s_w I)`, where :math:`s_z`,
+    :math:`s_w` are the smallest powers of two at or above the peaks of z and
+    w in the first full window (:func:`regularisation_weights`): Step 1 on
+    the normalised signals with :math:`M_0 = \rho I`, mapped back exactly.
+    The estimates do not depend on the units of z and w, and
+    ``initial_covariance`` is rho for signals of unit size.
+
+    **Outlier gate** (``outlier_threshold``, the base class's
+    :meth:`~bcid_ros.estimators.base.RecursiveEstimator._gate`): before a
+    sample enters the window its squared normalised one-step error is the
+    larger of
+
+    * :math:`\varepsilon^2/\bar\varepsilon^2`, the equation error
+      :math:`\varepsilon(t) = z(t) - p(t)^T\hat\theta_{BCIV}` of the undelayed
+      ARX equation (p(t) from the previous n samples) over its weighted mean
+      square since the estimator became ready (z(t)^2 over its mean square
+      while the window refills after a restart, when p(t) is not known);
+    * :math:`w(t)^2/\bar w^2`: w(t) enters the IV-type vector (54) at once,
+      l - 1 samples before it enters a regressor, so the input's size is
+      tested as it arrives.
+
+    The gate tests once ``GATE_WARMUP`` p equation errors were measured. A
+    detected plant change cuts the memory to ``CHANGE_MEMORY`` m samples
+    (moments and tau times kappa, lambda^2N times kappa^2) and the gate
+    relearns its scales.
+
+    **Validity**, re-evaluated every ``VALIDITY_PERIOD`` updates: the
+    compensated model is unstable (a pole beyond ``UNSTABLE_RADIUS``) while
+    the output's mean square did not grow ``GROWTH`` times since the last
+    check; the estimate fell back to theta_IV (ill-conditioned
+    :math:`\tilde Q^TX\tilde Q` or runaway) since the last check, or at this
+    sample; the compensation moved farther than ``RUNAWAY_SHIFT`` times
+    :math:`|\hat\theta_{IV}|` from theta_IV (normalised units).
+
     Parameters
     ----------
-    order, num_inputs, feedthrough, initial_covariance, forgetting_factor
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; only
-        ``num_inputs=1``. ``initial_covariance`` is rho of M_0 = rho I.
+        ``num_inputs=1``. ``initial_covariance`` is rho of M_0 = rho I in
+        normalised units (see Units).
     input_delay, detrend, adapt, outlier_threshold
         See :class:`~bcid_ros.estimators.base.RecursiveEstimator`. A dead
         time d shifts the input history by d (see :meth:`_push`).
@@ -763,12 +809,35 @@ class Bciv(RecursiveEstimator):
         self._delay = self.input_delay[0]
         self._line = np.zeros(self._delay)
         self._gather = np.concatenate(solver.window_indices())
+        # p(t) of the undelayed ARX equation from the newest n rows of the window
+        # (before the push): -z(t-j) at 2(j-1), w(t-j) at 2(j-1) + 1
+        lags = [k for k in solver.lags if k > 0]
+        self._error_gather = np.array([2 * (j - 1) for j in range(1, self.order + 1)]
+                                      + [2 * (k - 1) + 1 for k in lags], dtype=np.intp)
+        self._error_theta = np.array(list(range(self.order)) + [
+            self.order + i for i, k in enumerate(solver.lags) if k > 0], dtype=np.intp)
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
-        if not self._push(y, u[0]):
+        w = float(u[0])
+        # the gate tests the raw input's size, and the equation error of z(t) with the
+        # input that enters the history now, w(t - d) (None while the delay line fills)
+        delayed = self._delayed_input(w)
+        error = (self._equation_error(y, delayed) if delayed is not None
+                 and self._filled >= self.order and self._updates >= self._ready_count
+                 else None)
+        if self._error_count >= self._gate_from:
+            z2 = self._gate_score(y, w, error)
+            # (while the regressor refills only the sizes are tested: the change score waits)
+            if not z2 <= self._gate_limit2 or (self._change_score and error is not None):
+                if not self._gate(z2):
+                    return
+        self._track_signals(y, w, error)
+        if not self._push(y, w):
             return
+        if self._scales_pending:
+            self._choose_scales()
         m = self._solver.m
         start = self._start
         # [eta; p; -z] of eqs. (54), (68)-(70)
@@ -783,6 +852,17 @@ class Bciv(RecursiveEstimator):
         self._decay *= lam * lam
         self._updates += 1
         self._estimate()
+        if self._updates >= self._next_check:
+            self._check_validity()
+
+    def _delayed_input(self, w: float) -> float | None:
+        """Return the input w(t - d) that the next push adds, or None while the line fills."""
+        delay = self._delay
+        if not delay:
+            return w
+        if self._line_filled < delay:
+            return None
+        return float(self._line[self._line_position])
 
     def _push(self, z: float, w: float) -> bool:
         """
@@ -825,7 +905,7 @@ class Bciv(RecursiveEstimator):
 
     def _estimate(self) -> None:
         """Compute theta_IV,N and theta_BCIV,N from the moments."""
-        regularisation = self._decay / self.initial_covariance
+        regularisation = self._regularisation()
         mode = 'idle' if self._updates < self.idle_samples else self._mode
         theta, gamma, theta_iv, done, converged, status = self._solver.estimate(
             self._moments, regularisation, mode=mode, iterations=self._iterations,
@@ -839,6 +919,7 @@ class Bciv(RecursiveEstimator):
         self._theta_iv = theta_iv
         self._theta_bciv = theta
         self._iterations_used = done
+        self._last_status = status
         if status:
             self._flag('fallback_iv')
             self._flag(status)
@@ -850,11 +931,122 @@ class Bciv(RecursiveEstimator):
                 # a finite-sample estimate of a variance below zero (see _noise)
                 self._flag('negative_variance')
 
+    # ----------------------------------------------------------- the gate
+    def _equation_error(self, y: float, w: float) -> float:
+        """Return the one-step equation error z(t) - p(t)' theta_BCIV of the new sample."""
+        window = self._ring[self._start:self._start + 2 * self.order]
+        theta = self._theta_bciv
+        error = y - float(window[self._error_gather].dot(theta[self._error_theta]))
+        if self.feedthrough:
+            error -= float(theta[self.order]) * w
+        return error
+
+    def _gate_score(self, y: float, w: float, error: float | None) -> float:
+        """Return the squared normalised one-step error of a new sample (class docstring)."""
+        score = w * w / self._input_power if self._input_power > 0.0 else 0.0
+        if error is not None:
+            part = error * error / (self._error_power + self._error_floor)
+        else:  # the regressor refills after a restart: the output's own size
+            part = y * y / self._output_power if self._output_power > 0.0 else 0.0
+        return part if part > score else score
+
+    def _track_signals(self, y: float, w: float, error: float | None) -> None:
+        """Add an accepted sample to the weighted mean squares of w, z and the equation error."""
+        lam = self._forgetting_factor
+        self._signal_count = lam * self._signal_count + 1.0
+        weight = 1.0 / self._signal_count
+        self._input_power += (w * w - self._input_power) * weight
+        self._output_power += (y * y - self._output_power) * weight
+        if error is not None:
+            self._error_count = lam * self._error_count + 1.0
+            self._error_power += (error * error - self._error_power) / self._error_count
+
+    def _accept_change(self) -> None:
+        """Cut the memory to CHANGE_MEMORY m samples and let the gate relearn its scales."""
+        keep = CHANGE_MEMORY * self._solver.m / self._tau if self._tau > 0.0 else 1.0
+        if keep < 1.0:
+            self._moments *= keep
+            self._tau *= keep
+            self._decay *= keep * keep  # the prior keeps its weight against R'WR
+        self._signal_count = min(self._signal_count, 1.0)
+        self._error_count = 0.0
+
+    # ---------------------------------------------------------- the units
+    def _choose_scales(self) -> None:
+        """Give z and w, if still without a scale, the power of two of the window's peak."""
+        peaks = np.abs(self._history).max(axis=0)
+        for channel in (0, 1):
+            if self._signal_scale[channel] == 0.0 and peaks[channel] > 0.0:
+                self._signal_scale[channel] = power_of_two_at_least(float(peaks[channel]))
+        self._set_scale_dependents()
+
+    def _set_scale_dependents(self) -> None:
+        scales = self._signal_scale
+        self._scales_pending = bool((scales == 0.0).any())
+        z_scale, w_scale = (float(s) if s > 0.0 else 1.0 for s in scales)
+        self._regularisation_weights = regularisation_weights(
+            z_scale, w_scale, self.order, self.num_parameters)
+        self._error_floor = (VARIANCE_FLOOR * z_scale) ** 2
+        self._regularised_decay = math.nan  # recompute the M_0 term
+        self._normalised_units = np.ones(self.num_parameters)
+        self._normalised_units[self.order:] = w_scale / z_scale
+
+    def _regularisation(self) -> np.ndarray:
+        """Return the M_0 term rho^-1 lambda^2N S^2 of Step 1 in the user's units."""
+        if self._decay != self._regularised_decay:  # (cached: constant without forgetting)
+            self._regularised_decay = self._decay
+            self._regularisation_term = (self._decay / self.initial_covariance) * \
+                self._regularisation_weights
+        return self._regularisation_term
+
+    @property
+    def signal_scale(self) -> np.ndarray:
+        """Return the scales of z and w (0 while a channel has only seen zeros)."""
+        return self._signal_scale.copy()
+
+    @property
+    def initial_covariance_diagonal(self) -> np.ndarray:
+        """Return the diagonal of M_0 = rho S^-2 in the user's units (see the class docstring)."""
+        return self.initial_covariance / self._regularisation_weights
+
+    # ------------------------------------------------------- the validity
+    def _check_validity(self) -> None:
+        self._next_check = self._updates + VALIDITY_PERIOD
+        with np.errstate(all='ignore'):
+            self._reasons = tuple(self._find_problems())
+
+    def _find_problems(self) -> list[str]:
+        """Return the reasons not to trust the estimate now (see the class docstring)."""
+        reasons = []
+        power = self._output_power
+        bounded = not power > GROWTH * self._last_power
+        self._last_power = power
+        radius = spectral_radius(self._theta_bciv[:self.order])
+        if not radius <= UNSTABLE_RADIUS and bounded:
+            reasons.append(f'unstable model (pole radius {radius:.3g}) on bounded data')
+        fallbacks = self.flags.get('fallback_iv', 0)
+        if fallbacks > self._fallbacks_checked:
+            reasons.append(f'ill-conditioned or runaway compensation (fell back to theta_IV '
+                           f'{fallbacks - self._fallbacks_checked} times)')
+        self._fallbacks_checked = fallbacks
+        units = self._normalised_units
+        shift = float(np.linalg.norm(units * (self._theta_bciv - self._theta_iv)))
+        size = float(np.linalg.norm(units * self._theta_iv))
+        if not shift <= RUNAWAY_SHIFT * size:
+            reasons.append(f'compensation runs away from IV ({shift / size:.3g} x |theta_IV|)'
+                           if size > 0 else 'compensation runs away from IV')
+        return reasons
+
+    def _validity_reasons(self) -> tuple[str, ...]:
+        if self._last_status:
+            return self._reasons + (f'compensation fell back to theta_IV ({self._last_status})',)
+        return self._reasons
+
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether eta is filled, L updates are done and at least p updates were made."""
-        return self._updates >= max(self.idle_samples, self.num_parameters)
+        return self._updates >= self._ready_count
 
     @property
     def samples(self) -> int:
@@ -863,9 +1055,9 @@ class Bciv(RecursiveEstimator):
 
     @property
     def covariance_trace(self) -> float:
-        """Return tr M_N of Step 1, M_N = (S'WS + rho^-1 lambda^2N I)^-1 (a health indicator)."""
+        """Return tr M_N of Step 1, M_N = (R'WR + rho^-1 lambda^2N S^2)^-1 (a health indicator)."""
         if self._updates == 0:
-            return self.initial_covariance * self.num_parameters
+            return float((self.initial_covariance / self._regularisation_weights).sum())
         try:
             return float(np.trace(np.linalg.inv(self._solver.m_inverse)))
         except np.linalg.LinAlgError:
@@ -910,6 +1102,17 @@ class Bciv(RecursiveEstimator):
         self._theta_bciv = np.zeros(p)
         self._gamma = np.zeros(self._solver.q)
         self._iterations_used = 0
+        self._ready_count = max(self.idle_samples, p)
+        self._gate_from = GATE_WARMUP * p
+        self._signal_scale = np.zeros(2)
+        self._set_scale_dependents()
+        self._signal_count = self._error_count = 0.0
+        self._input_power = self._output_power = self._error_power = 0.0
+        self._next_check = VALIDITY_PERIOD
+        self._last_power = math.inf
+        self._fallbacks_checked = 0
+        self._reasons: tuple[str, ...] = ()
+        self._last_status = OK
 
     def _restart_regressor(self) -> None:
         self._history[:] = 0.0
@@ -919,11 +1122,17 @@ class Bciv(RecursiveEstimator):
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays = {'moments': self._moments, 'history': self._history,
                   'theta_iv': self._theta_iv, 'theta_bciv': self._theta_bciv,
-                  'gamma': self._gamma, 'delay_line': self._line}
+                  'gamma': self._gamma, 'delay_line': self._line,
+                  'signal_scale': self._signal_scale}
         scalars = {'filled': self._filled, 'tau': self._tau, 'decay': self._decay,
                    'line_position': self._line_position, 'line_filled': self._line_filled,
                    'updates': self._updates, 'iterations_used': self._iterations_used,
-                   'forgetting_factor': self._forgetting_factor}
+                   'forgetting_factor': self._forgetting_factor,
+                   'signal_count': self._signal_count, 'error_count': self._error_count,
+                   'input_power': self._input_power, 'output_power': self._output_power,
+                   'error_power': self._error_power, 'next_check': self._next_check,
+                   'last_power': self._last_power, 'fallbacks_checked': self._fallbacks_checked,
+                   'reasons': self._reasons, 'last_status': self._last_status}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -941,8 +1150,20 @@ class Bciv(RecursiveEstimator):
         self._updates = int(scalars['updates'])
         self._iterations_used = int(scalars['iterations_used'])
         self._forgetting_factor = float(scalars['forgetting_factor'])
+        self._signal_scale = np.array(arrays['signal_scale'], dtype=float)
+        self._set_scale_dependents()
+        self._signal_count = float(scalars['signal_count'])
+        self._error_count = float(scalars['error_count'])
+        self._input_power = float(scalars['input_power'])
+        self._output_power = float(scalars['output_power'])
+        self._error_power = float(scalars['error_power'])
+        self._next_check = int(scalars['next_check'])
+        self._last_power = float(scalars['last_power'])
+        self._fallbacks_checked = int(scalars['fallbacks_checked'])
+        self._reasons = tuple(scalars['reasons'])
+        self._last_status = str(scalars['last_status'])
         if self._updates > 0:  # M_N^-1 for covariance_trace
-            self._solver.estimate(self._moments, self._decay / self.initial_covariance,
+            self._solver.estimate(self._moments, self._regularisation(),
                                   mode='idle', iterations=0, tolerance=self.tolerance)
 
     def __repr__(self) -> str:
@@ -977,6 +1198,40 @@ class BcivBatch:
     noise: np.ndarray
     iterations: np.ndarray
     status: tuple[str, ...]
+
+
+def regularisation_weights(z_scale: float, w_scale: float, order: int,
+                           num_parameters: int) -> np.ndarray:
+    r"""
+    Return the diagonal :math:`S^2` that puts :math:`M_0 = \rho I` in normalised units.
+
+    Column k of :math:`\bar R` sums :math:`w\,z` (a-part) or :math:`w\,w` (b-part).
+    Step 1 on the normalised signals :math:`z/s_z`, :math:`w/s_w` with
+    :math:`M_0 = \rho I`, mapped back, is Step 1 on the signals as given with
+    :math:`M_0^{-1} = \rho^{-1} S^2`, :math:`S = s_w\,\mathrm{diag}(s_z I_n, s_w I)`.
+    """
+    weights = np.full(num_parameters, w_scale * w_scale)
+    weights[:order] = w_scale * z_scale
+    return weights * weights
+
+
+def window_scales(z: np.ndarray, w: np.ndarray, m: int) -> tuple[float, float]:
+    """
+    Return the scales that :class:`Bciv` gives z and w when it runs over these arrays.
+
+    Each is the power of two at or above the peak of the first m-sample window
+    (ending at sample m - 1 or later) in which the channel is not all zero; 1
+    for a channel that is zero throughout.
+    """
+    scales = []
+    for x in (z, w):
+        nonzero = np.flatnonzero(x)
+        if nonzero.size == 0:
+            scales.append(1.0)
+            continue
+        end = max(int(nonzero[0]), m - 1)
+        scales.append(power_of_two_at_least(float(np.abs(x[end - m + 1:end + 1]).max())))
+    return scales[0], scales[1]
 
 
 def published_noise(gamma: np.ndarray) -> np.ndarray:
@@ -1016,7 +1271,8 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
     order, iv_lag, input_noise, feedthrough, bciv_iterations, tolerance
         As for :class:`Bciv`.
     initial_covariance, forgetting_factor
-        rho and lambda, as for :class:`Bciv`.
+        rho and lambda, as for :class:`Bciv` (M_0 = rho S^-2 with the scales of
+        :func:`window_scales`).
     idle_samples : int
         Below this many updates the estimate is theta_IV.
     checkpoints : sequence of int or None
@@ -1043,6 +1299,8 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
     count = z.shape[0]
     checkpoints = [count] if checkpoints is None else [int(t) for t in checkpoints]
     eta, pz = solver.data_windows(z, w)
+    weights_s = regularisation_weights(*window_scales(z, w, solver.m), order,
+                                       solver.num_parameters)
     mode = 'fixed_point' if input_noise == 'white' else 'steps'
     rows = []
     lam = forgetting_factor
@@ -1052,7 +1310,7 @@ def bciv_batch(y: Any, u: Any, *, order: int, iv_lag: int = 5, input_noise: str 
         moments = eta[:updates].T @ (pz[:updates] * weights[:, None])
         tau = float(weights.sum())
         row_mode = mode if updates >= max(idle_samples, 1) else 'idle'
-        result = solver.estimate(moments, lam ** (2 * updates) / initial_covariance,
+        result = solver.estimate(moments, lam ** (2 * updates) / initial_covariance * weights_s,
                                  mode=row_mode, iterations=bciv_iterations, tolerance=tolerance)
         gamma = result.gamma / tau if tau > 0 else result.gamma
         rows.append((result.theta, result.theta_iv, gamma, result.iterations, result.status))
