@@ -333,8 +333,8 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        'colouring filter.'),
     _p('input_noise_variance', 'double', 0.0, 'custom: variance of white measurement noise '
        'added to the published inputs (errors in variables).', low=0.0, high=1e12),
-    _p('input_delay', 'double_array', [0.0], 'custom: dead time d_i of each input in samples '
-       '(integers >= 0; one number for all inputs or one per input).', low=0.0, high=1e6),
+    _p('input_delay', 'integer_array', [0], 'custom: dead time d_i of each input in samples '
+       '(one integer for all inputs or one per input).', low=0, high=100000),
     _p('input_offset', 'double_array', [0.0], 'custom: operating point u0_i of each input '
        '(one number or one per input): y = y0 + B/A (u - u0) + v.'),
     _p('output_offset', 'double', 0.0, 'custom: operating point y0 of the output.'),
