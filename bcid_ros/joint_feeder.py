@@ -26,9 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.joints import JointStateDemux
-
-#: The JointState topic of ``input_mode: joint_state`` (relative, so a namespace moves it).
-JOINT_STATES = 'joint_states'
+from bcid_ros.nodes.interface import JOINT_STATES
 
 #: A joint name becomes one token of its topic names (``~/<joint>/parameters``):
 #: letters, digits and underscores, not starting with a digit, as ROS requires.

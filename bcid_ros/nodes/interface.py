@@ -25,6 +25,8 @@ CONTROLLER_NODE = 'bcid_controller'
 SAMPLES = 'samples'
 INPUT = 'input'
 OUTPUT = 'output'
+#: The one topic of ``input_mode: joint_state`` (sensor_msgs/JointState, relative).
+JOINT_STATES = 'joint_states'
 #: The adaptive controller's setpoint input (relative).
 REFERENCE = 'reference'
 
