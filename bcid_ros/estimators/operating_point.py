@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 
+#: Larger samples (their squares overflow) do not enter the means or the centring check.
+HUGE = 1e150
 #: Not centred: |mean| above this many standard deviations of the signal. At one,
 #: the offset carries more of the mean square than the variation does, and an
 #: ARX model without the operating point is visibly biased (docs/estimators.md).
@@ -55,6 +57,10 @@ class RunningMean:
 
     def centre(self, y: float, u: np.ndarray, lam: float) -> tuple[float, np.ndarray]:
         """Update the means with sample (y, u) and return the sample minus them."""
+        if not (abs(y) < HUGE and (np.abs(u) < HUGE).all()):
+            # a sample whose square overflows is refused by the estimator's gate anyway:
+            # it must not move the means for thousands of samples to come
+            return self.apply(y, u)
         self.weight = lam * self.weight + 1.0
         mean = self.mean
         gain = 1.0 / self.weight
@@ -102,9 +108,11 @@ class CentringMonitor:
             self._skip -= 1
             return
         self._skip = CENTRING_STRIDE - 1
+        row = np.concatenate(([y], u))
+        if not (np.abs(row) < HUGE).all():
+            return  # its square would overflow; the gate refuses such a sample anyway
         self.weight = min(self.weight + 1.0, CENTRING_MEMORY / CENTRING_STRIDE)
         gain = 1.0 / self.weight
-        row = np.concatenate(([y], u))
         self.mean += (row - self.mean) * gain
         self.square += (row * row - self.square) * gain
 
