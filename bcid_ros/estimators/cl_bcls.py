@@ -950,14 +950,14 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._redesigns = 0
         self._last_iterations = 0
         self._controller_changes = 0
-        # the signal scales (0 until the first LS step) and the peaks that set them
-        self._scales = np.zeros(2)
-        self._peaks = np.zeros(2)
         self._restart_statistics()
 
     def _restart_statistics(self) -> None:
         """Restart everything learnt from the data except the prefilter."""
         p = self.num_parameters
+        # the signal scales (0 until the first LS step) and the peaks that set them
+        self._scales = np.zeros(2)
+        self._peaks = np.zeros(2)
         self._buffer = np.zeros((2 * self.window, 2))
         self._pos = 0
         self._filled = 0
