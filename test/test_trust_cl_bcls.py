@@ -59,8 +59,12 @@ def test_a_spike_of_any_size_does_not_move_the_gated_estimate(channel, size, spr
     trajectory = est.run(*with_spike(channel, size))
     assert np.isfinite(trajectory.theta).all() and np.isfinite(trajectory.noise).all()
     # Dropping the spike and the n samples after it moved the estimate by 1e-3 to 7e-3;
-    # the spread (one standard deviation over 8 realisations) is about 0.7 and 0.25.
+    # the spread (one standard deviation over 8 realisations) is about 0.7 and 0.25
+    # (some realisations settle on spurious fixed points of Algorithm 1, so it is wide).
     assert (np.abs(est.theta - clean.theta) <= spread).all()
+    # Dropping k = n + 1 of N = 1500 rows moves an estimate by about sqrt(k / N) = 0.04
+    # of its spread: 0.1 spread leaves a margin of 2.5 (measured at most 0.02).
+    assert (np.abs(est.theta - clean.theta) <= 0.1 * spread).all()
     assert sum(est.flags.get(k, 0) for k in ('outlier_rejected', 'update_undone')) == 1
     assert est.valid
 
@@ -98,20 +102,29 @@ def test_the_gate_rarely_fires_on_clean_data():
     assert 'plant_change' not in est.flags
 
 
-def test_the_gate_does_not_freeze_the_tracking_of_a_plant_change():
-    changed = IkedaClosedLoop(plant_denominator=[1.0, -0.6], plant_numerator=[0.8])
-    y1, u1 = loop(5, 4000)
+@pytest.mark.parametrize('window', [1500, 0])
+def test_the_gate_does_not_freeze_the_tracking_of_a_plant_change(window):
+    # little noise: the changed plant's errors exceed the gate, one sample in many
+    before = IkedaClosedLoop(noise_variance=1e-4)
+    changed = IkedaClosedLoop(plant_denominator=[1.0, -0.5], plant_numerator=[1.5],
+                              noise_variance=1e-4)
+    y1, u1 = loop(5, 4000, before)
     y2, u2 = loop(6, 4000, changed)
     y, u = np.r_[y1, y2], np.r_[u1, u2]
-    finals = {}
+    settings = {'window': window, 'redesign_period': 250} if window else {
+        'forgetting_factor': 0.995}
+    errors, flags = {}, {}
     for gate in (0.0, GATE):
-        est = make(window=1500, redesign_period=250, outlier_threshold=gate)
-        est.run(y, u)
-        finals[gate] = est.theta
-    truth = np.array([-0.6, 0.8])
-    # the window holds only the new plant at the end: both end near it, the gated one
-    # no farther than the ungated one plus the spread of a 1500-sample window (~0.1)
-    assert np.abs(finals[GATE] - truth).max() <= np.abs(finals[0.0] - truth).max() + 0.1
+        est = make(outlier_threshold=gate, **settings)
+        trajectory = est.run(y, u)
+        errors[gate] = np.abs(trajectory.theta - [-0.5, 1.5]).max(axis=1)
+        flags[gate] = est.flags
+    assert flags[GATE].get('plant_change', 0) >= 1
+    # 500 samples after the change the gated estimate is no farther from the new plant
+    # than the ungated one (measured 0.003-0.009 against 0.07-0.9: the detected change
+    # cuts the memory); at the end both sit at the noise floor (~0.005).
+    assert errors[GATE][4500] <= errors[0.0][4500]
+    assert errors[GATE][-1] <= 0.05
 
 
 @pytest.mark.parametrize('y_scale, u_scale', [(1e-3, 1e4), (1e8, 1e8)])

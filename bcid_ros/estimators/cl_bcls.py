@@ -57,6 +57,11 @@ MIN_DISCRIMINANT_RATIO = 0.05
 #: ``ill_conditioned_information`` above this condition number of the information
 #: matrix scaled to unit diagonal (scale-free).
 MAX_CONDITION = 1e8
+#: The slow change score of the gate: +1 per refused sample, times REFUSAL_DECAY per
+#: tested sample; three refusals within about 100 samples reach it (docs/cl_bcls.md).
+REFUSAL_SCORE = 3.0
+#: See REFUSAL_SCORE.
+REFUSAL_DECAY = 0.99
 
 
 class _ExcitationMeter:
@@ -443,6 +448,11 @@ class ClosedLoopBcls(RecursiveEstimator):
           :math:`b^2 / \mathrm{var}\,\hat b` (a few units in a closed loop).
 
         A non-finite error or gain is refused outright (``update_undone``).
+        Besides the base class's three refusals in a row, a slow score
+        (+1 per refusal, times ``REFUSAL_DECAY`` per tested sample) that
+        reaches ``REFUSAL_SCORE`` is a plant change too: in a closed loop
+        the errors of a changed plant exceed the gate mostly after the
+        reference moves, one sample in many, never three in a row.
         """
         lam = self._forgetting_factor
         if not (s < math.inf and e * e < math.inf):
@@ -454,12 +464,22 @@ class ClosedLoopBcls(RecursiveEstimator):
         leverage = s - lam
         z2 = max(e * e / ((self._loss / count + y_floor * y_floor) * (leverage + 1.0)),
                  count * leverage / self.num_parameters)
-        if z2 <= self._gate_limit2 and not self._change_score:
+        if z2 <= self._gate_limit2 and not (self._change_score or self._refusals):
             return True
-        return self._gate(z2)
+        if self._refusals:
+            score = self._refusals * REFUSAL_DECAY
+            self._refusals = score if score > 1e-3 else 0.0
+        if self._gate(z2):
+            return True
+        self._refusals += 1.0
+        if self._refusals >= REFUSAL_SCORE:
+            self._flag('plant_change')
+            self._accept_change()
+        return False
 
     def _accept_change(self) -> None:
         """Cut the memory to CHANGE_MEMORY p rows: one extra forgetting step on everything."""
+        self._refusals = 0.0
         count = self._weighted_count()
         keep = CHANGE_MEMORY * self.num_parameters / count if count > 0.0 else 1.0
         if keep >= 1.0:
@@ -958,6 +978,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         # the signal scales (0 until the first LS step) and the peaks that set them
         self._scales = np.zeros(2)
         self._peaks = np.zeros(2)
+        self._refusals = 0.0
         self._buffer = np.zeros((2 * self.window, 2))
         self._pos = 0
         self._filled = 0
@@ -1017,7 +1038,8 @@ class ClosedLoopBcls(RecursiveEstimator):
                    'controller_changes': self._controller_changes,
                    'excitation': self._excitation.state().tolist(),
                    'model_reasons': list(self._model_reasons),
-                   'discriminant_ratio': self._discriminant_ratio}
+                   'discriminant_ratio': self._discriminant_ratio,
+                   'refusals': self._refusals}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -1058,3 +1080,4 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._controller_changes = int(scalars['controller_changes'])
         self._model_reasons = tuple(scalars['model_reasons'])
         self._discriminant_ratio = float(scalars['discriminant_ratio'])
+        self._refusals = float(scalars.get('refusals', 0.0))
