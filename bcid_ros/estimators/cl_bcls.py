@@ -21,7 +21,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.estimators.base import (check_forgetting_factor, check_int, check_range,
-                                      power_of_two_at_least, RecursiveEstimator)
+                                      IMPLAUSIBLE_ERROR, power_of_two_at_least,
+                                      RecursiveEstimator)
 from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, CompensationFailure,
                                                DEFAULT_TOLERANCE, is_contracting,
                                                plant_from_regression, prefilter_polynomial,
@@ -62,6 +63,9 @@ MAX_CONDITION = 1e8
 REFUSAL_SCORE = 3.0
 #: See REFUSAL_SCORE.
 REFUSAL_DECAY = 0.99
+#: Rows after a new prefilter (``window`` 0) during which only the gate's hard limit
+#: applies: the filters' transient and the new epoch's bias are not outliers.
+PREFILTER_SETTLE = 100
 
 
 class _ExcitationMeter:
@@ -452,7 +456,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         (+1 per refusal, times ``REFUSAL_DECAY`` per tested sample) that
         reaches ``REFUSAL_SCORE`` is a plant change too: in a closed loop
         the errors of a changed plant exceed the gate mostly after the
-        reference moves, one sample in many, never three in a row.
+        reference moves, one sample in many, never three in a row. For
+        ``PREFILTER_SETTLE`` rows after a new prefilter (``window`` 0) only
+        the hard limit ``IMPLAUSIBLE_ERROR`` applies: the filters keep their
+        state across the change, and their transient is not an outlier.
         """
         lam = self._forgetting_factor
         if not (s < math.inf and e * e < math.inf):
@@ -466,6 +473,12 @@ class ClosedLoopBcls(RecursiveEstimator):
                  count * leverage / self.num_parameters)
         if z2 <= self._gate_limit2 and not (self._change_score or self._refusals):
             return True
+        if self._rows < self._gate_resume:
+            # the transient of a new prefilter: only the hard limit
+            if z2 <= IMPLAUSIBLE_ERROR * IMPLAUSIBLE_ERROR:
+                return True
+            self._undo('outlier_rejected')
+            return False
         if self._refusals:
             score = self._refusals * REFUSAL_DECAY
             self._refusals = score if score > 1e-3 else 0.0
@@ -713,6 +726,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._epoch_directions = np.vstack((self._epoch_directions, direction))
         self._epoch_betas = np.append(self._epoch_betas, beta)
         self._set_prefilter(prefilter)
+        self._gate_resume = self._rows + PREFILTER_SETTLE
 
     # ---------------------------------------------------------- the window
     def _update_window(self, y: float, u0: float) -> None:
@@ -979,6 +993,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._scales = np.zeros(2)
         self._peaks = np.zeros(2)
         self._refusals = 0.0
+        self._gate_resume = 0
         self._buffer = np.zeros((2 * self.window, 2))
         self._pos = 0
         self._filled = 0
@@ -1039,7 +1054,7 @@ class ClosedLoopBcls(RecursiveEstimator):
                    'excitation': self._excitation.state().tolist(),
                    'model_reasons': list(self._model_reasons),
                    'discriminant_ratio': self._discriminant_ratio,
-                   'refusals': self._refusals}
+                   'refusals': self._refusals, 'gate_resume': self._gate_resume}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -1081,3 +1096,4 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._model_reasons = tuple(scalars['model_reasons'])
         self._discriminant_ratio = float(scalars['discriminant_ratio'])
         self._refusals = float(scalars.get('refusals', 0.0))
+        self._gate_resume = int(scalars.get('gate_resume', 0))
