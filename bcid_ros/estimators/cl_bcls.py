@@ -232,8 +232,22 @@ class ClosedLoopBcls(RecursiveEstimator):
     and restarts every statistic (moments, window, filters, excitation meter)
     but keeps the prefilter: no sample from before the change enters the
     statistics after it. Until the first redesign after a reset or change
-    ``theta`` is the LS from :math:`P(0) = p_0 I`, :math:`\hat\theta(0) = 0`
-    and :attr:`valid` is False.
+    ``theta`` is the LS from :math:`P(0) = p_0 S^{-2}`,
+    :math:`\hat\theta(0) = 0` and :attr:`valid` is False.
+
+    **Units.** :math:`S = \mathrm{diag}(s_y I_n, s_u I_n)`: per signal the
+    smallest power of two at or above its largest magnitude before the first
+    LS step (fixed then, until a reset or controller change). ``p0`` is
+    thus the prior variance for signals of unit size, and the redesign's
+    stopping rule measures its steps on :math:`[a \mid b\,s_u/s_y]`: the
+    estimates do not depend on the units of y and u.
+
+    **Outliers** (``outlier_threshold``, docs/cl_bcls.md, "Outliers and
+    units"). Each row is tested before it enters anything
+    (:meth:`_gate_sample`); a refused sample enters neither the filters,
+    the moments, the window nor the excitation meter, all of which restart
+    their lags. A detected plant change cuts the memory to ``CHANGE_MEMORY``
+    p rows (one extra forgetting step on every statistic).
 
     **Validity.** :attr:`validity_reasons` lists why the estimate is not to
     be trusted (empty: :attr:`valid`): ``not_compensated``, ``no_excitation``,
@@ -265,8 +279,8 @@ class ClosedLoopBcls(RecursiveEstimator):
         As for :class:`~bcid_ros.estimators.base.RecursiveEstimator`, with
         ``num_inputs`` 1 (SISO) and ``feedthrough`` False (eq. 3).
         ``forgetting_factor`` weighs the moments with ``window`` 0 and must be
-        1 with a window; :math:`P(0) = p_0 I` is used only before the first
-        redesign.
+        1 with a window; :math:`P(0) = p_0 S^{-2}` (see Units) is used only
+        before the first redesign.
     controller_numerator, controller_denominator : sequence of float
         b_c(q) and a_c(q) in descending powers of q (eqs. 5, 6); b_c is
         left-padded with zeros to the length of a_c. The paper's (60) is
