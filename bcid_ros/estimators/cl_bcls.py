@@ -356,6 +356,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self.redesign_period = check_int('redesign_period', redesign_period, 1)
         self.max_iterations = check_int('max_iterations', max_iterations, 1)
         self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
+        self._gate_from = GATE_WARMUP * self.num_parameters
         self._reset()
 
     def _check_forgetting(self, value: float) -> None:
@@ -435,6 +436,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         if self._lags >= self.order:
             self._scales = np.array([power_of_two_at_least(peak) for peak in peaks])
             self._p = self._initial_p()
+            self._variance_floor = (VARIANCE_FLOOR * self._scales[0]) ** 2
 
     def _initial_p(self) -> np.ndarray:
         """Return P(0) = p0 S^-2, S = diag(s_y I_n, s_u I_n) (p0 I before the scales)."""
@@ -475,15 +477,13 @@ class ClosedLoopBcls(RecursiveEstimator):
         the hard limit ``IMPLAUSIBLE_ERROR`` applies: the filters keep their
         state across the change, and their transient is not an outlier.
         """
-        lam = self._forgetting_factor
         if not (s < math.inf and e * e < math.inf):
             self._undo('update_undone')
             return False
-        if count < GATE_WARMUP * self.num_parameters:
+        if count < self._gate_from:
             return True
-        y_floor = VARIANCE_FLOOR * (self._scales[0] if self._scales[0] > 0.0 else 1.0)
-        leverage = s - lam
-        z2 = max(e * e / ((self._loss / count + y_floor * y_floor) * (leverage + 1.0)),
+        leverage = s - self._forgetting_factor
+        z2 = max(e * e / ((self._loss / count + self._variance_floor) * (leverage + 1.0)),
                  count * leverage / self.num_parameters)
         if z2 <= self._gate_limit2 and not (self._change_score or self._refusals):
             return True
@@ -511,6 +511,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         keep = CHANGE_MEMORY * self.num_parameters / count if count > 0.0 else 1.0
         if keep >= 1.0:
             return
+        self._memory_cuts += 1
         self._p *= 1.0 / keep
         self._loss *= keep
         self._count *= keep
@@ -556,10 +557,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         g = self._p.dot(psi)
         s = lam + psi.dot(g)
         e = target - psi.dot(theta)
-        count = float(self._epoch_weights.sum())
-        if not self._gate_sample(e, s, count):
+        cuts = self._memory_cuts
+        if not self._gate_sample(e, s, float(self._epoch_weights.sum())):
             return False
-        if self._epoch_weights.sum() != count:
+        if self._memory_cuts != cuts:
             # a plant change cut the memory (P grew): redo the a-priori part
             g = self._p.dot(psi)
             s = lam + psi.dot(g)
@@ -770,10 +771,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         theta = self._theta_ls
         # e = y[k] - phi' theta_LS, g = P phi, s = 1 + phi' P phi (the shared RLS step, lambda 1)
         e, g, s = rls_innovation(theta, self._p, phi, y, 1.0)
-        count = self._count
-        if not self._gate_sample(e, s, count):
+        cuts = self._memory_cuts
+        if not self._gate_sample(e, s, self._count):
             return False
-        if self._count != count:
+        if self._memory_cuts != cuts:
             # a plant change cut the memory (P grew): redo the a-priori part
             e, g, s = rls_innovation(theta, self._p, phi, y, 1.0)
         if not s > 0.0:
@@ -998,6 +999,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._redesigns = 0
         self._last_iterations = 0
         self._controller_changes = 0
+        self._memory_cuts = 0  # counts _accept_change's cuts (tells a step to redo P psi)
         self._restart_statistics()
 
     def _restart_statistics(self) -> None:
@@ -1006,6 +1008,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         # the signal scales (0 until the first LS step) and the peaks that set them
         self._scales = np.zeros(2)
         self._peaks = np.zeros(2)
+        self._variance_floor = VARIANCE_FLOOR ** 2
         self._refusals = 0.0
         self._gate_resume = 0
         self._buffer = np.zeros((2 * self.window, 2))
@@ -1086,6 +1089,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._cross = arrays['cross']
         self._scales = arrays.get('scales', np.zeros(2))
         self._peaks = arrays.get('peaks', np.zeros(2))
+        self._variance_floor = (VARIANCE_FLOOR * (self._scales[0] or 1.0)) ** 2
         self._pos = int(scalars['pos'])
         self._filled = int(scalars['filled'])
         self._lags = int(scalars['lags'])
