@@ -21,6 +21,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.estimators.base import (check_forgetting_factor, check_int, check_range,
+                                      IMPLAUSIBLE_ERROR, power_of_two_at_least,
                                       RecursiveEstimator)
 from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, CompensationFailure,
                                                DEFAULT_TOLERANCE, is_contracting,
@@ -28,7 +29,8 @@ from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, Compensat
                                                regression_from_plant)
 from bcid_ros.estimators.lti import (closed_loop_polynomial, Controller, controller_canonical,
                                      is_stable, make_controller, stable_reflection)
-from bcid_ros.estimators.rls import repair_covariance, rls_innovation, rls_step
+from bcid_ros.estimators.rls import (CHANGE_MEMORY, GATE_WARMUP, repair_covariance,
+                                     rls_innovation, rls_step, VARIANCE_FLOOR)
 
 #: Default ``window``: 0, every sample since the last controller change (recursive moments).
 DEFAULT_WINDOW = 0
@@ -56,6 +58,14 @@ MIN_DISCRIMINANT_RATIO = 0.05
 #: ``ill_conditioned_information`` above this condition number of the information
 #: matrix scaled to unit diagonal (scale-free).
 MAX_CONDITION = 1e8
+#: The slow change score of the gate: +1 per refused sample, times REFUSAL_DECAY per
+#: tested sample; three refusals within about 100 samples reach it (docs/cl_bcls.md).
+REFUSAL_SCORE = 3.0
+#: See REFUSAL_SCORE.
+REFUSAL_DECAY = 0.99
+#: Rows after a new prefilter (``window`` 0) during which only the gate's hard limit
+#: applies: the filters' transient and the new epoch's bias are not outliers.
+PREFILTER_SETTLE = 100
 
 
 class _ExcitationMeter:
@@ -65,7 +75,10 @@ class _ExcitationMeter:
     With :math:`u = (b_c/a_c)(r - y)` (negative-feedback form),
     :math:`w = a_c(q) u + b_c(q) y = b_c(q) r` exactly: the noise cancels.
     The meter keeps the weighted sums of w, w^2, v = b_c(q) y and v^2 over
-    the samples since the last restart whose m lags are all present.
+    the samples since the last restart whose m lags are all present. It takes
+    each sample one sample late (``pending``): an outlier in u shows only in
+    the next prediction error, and a refused sample restarts the meter before
+    the outlier has entered it.
     """
 
     def __init__(self, controller: Controller) -> None:
@@ -77,15 +90,24 @@ class _ExcitationMeter:
         self.u = np.zeros(size)
         self.lags = 0
         self.sums = np.zeros(5)  # weight, sum w, sum w^2, sum v, sum v^2
+        self.pending = np.zeros(3)  # y, u, 1 if held
 
     def restart(self) -> None:
-        """Forget the lags (after a gap), keep the sums."""
+        """Forget the lags and the pending sample (after a gap), keep the sums."""
         self.y[:] = 0.0
         self.u[:] = 0.0
         self.lags = 0
+        self.pending[2] = 0.0
 
     def update(self, y: float, u: float, forgetting: float) -> None:
-        """Take one sample."""
+        """Hold this sample and take the one held before it."""
+        pending = self.pending
+        held, last_y, last_u = pending[2], pending[0], pending[1]
+        pending[:] = (y, u, 1.0)
+        if held:
+            self._take(last_y, last_u, forgetting)
+
+    def _take(self, y: float, u: float, forgetting: float) -> None:
         self.y[1:] = self.y[:-1]
         self.u[1:] = self.u[:-1]
         self.y[0] = y
@@ -114,7 +136,7 @@ class _ExcitationMeter:
 
     def state(self) -> np.ndarray:
         """Return the state as one flat array."""
-        return np.concatenate((self.y, self.u, self.sums, [self.lags]))
+        return np.concatenate((self.y, self.u, self.sums, self.pending, [self.lags]))
 
     def load(self, flat: np.ndarray) -> None:
         """Load a state made by :meth:`state` (same controller order)."""
@@ -122,6 +144,9 @@ class _ExcitationMeter:
         self.y = np.array(flat[:size])
         self.u = np.array(flat[size:2 * size])
         self.sums = np.array(flat[2 * size:2 * size + 5])
+        # a state saved before the pending sample existed has none
+        self.pending = (np.array(flat[2 * size + 5:2 * size + 8])
+                        if flat.size == 2 * size + 9 else np.zeros(3))
         self.lags = int(flat[-1])
 
 
@@ -207,8 +232,22 @@ class ClosedLoopBcls(RecursiveEstimator):
     and restarts every statistic (moments, window, filters, excitation meter)
     but keeps the prefilter: no sample from before the change enters the
     statistics after it. Until the first redesign after a reset or change
-    ``theta`` is the LS from :math:`P(0) = p_0 I`, :math:`\hat\theta(0) = 0`
-    and :attr:`valid` is False.
+    ``theta`` is the LS from :math:`P(0) = p_0 S^{-2}`,
+    :math:`\hat\theta(0) = 0` and :attr:`valid` is False.
+
+    **Units.** :math:`S = \mathrm{diag}(s_y I_n, s_u I_n)`: per signal the
+    smallest power of two at or above its largest magnitude before the first
+    LS step (fixed then, until a reset or controller change). ``p0`` is
+    thus the prior variance for signals of unit size, and the redesign's
+    stopping rule measures its steps on :math:`[a \mid b\,s_u/s_y]`: the
+    estimates do not depend on the units of y and u.
+
+    **Outliers** (``outlier_threshold``, docs/cl_bcls.md, "Outliers and
+    units"). Each row is tested before it enters anything
+    (:meth:`_gate_sample`); a refused sample enters neither the filters,
+    the moments, the window nor the excitation meter, all of which restart
+    their lags. A detected plant change cuts the memory to ``CHANGE_MEMORY``
+    p rows (one extra forgetting step on every statistic).
 
     **Validity.** :attr:`validity_reasons` lists why the estimate is not to
     be trusted (empty: :attr:`valid`): ``not_compensated``, ``no_excitation``,
@@ -240,8 +279,8 @@ class ClosedLoopBcls(RecursiveEstimator):
         As for :class:`~bcid_ros.estimators.base.RecursiveEstimator`, with
         ``num_inputs`` 1 (SISO) and ``feedthrough`` False (eq. 3).
         ``forgetting_factor`` weighs the moments with ``window`` 0 and must be
-        1 with a window; :math:`P(0) = p_0 I` is used only before the first
-        redesign.
+        1 with a window; :math:`P(0) = p_0 S^{-2}` (see Units) is used only
+        before the first redesign.
     controller_numerator, controller_denominator : sequence of float
         b_c(q) and a_c(q) in descending powers of q (eqs. 5, 6); b_c is
         left-padded with zeros to the length of a_c. The paper's (60) is
@@ -317,6 +356,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self.redesign_period = check_int('redesign_period', redesign_period, 1)
         self.max_iterations = check_int('max_iterations', max_iterations, 1)
         self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
+        self._gate_from = GATE_WARMUP * self.num_parameters
         self._reset()
 
     def _check_forgetting(self, value: float) -> None:
@@ -381,13 +421,111 @@ class ClosedLoopBcls(RecursiveEstimator):
     def _update(self, y: float, u: np.ndarray) -> None:
         u0 = float(u[0])
         self._samples += 1
-        self._excitation.update(y, u0, self._forgetting_factor)
+        if self._scales[0] == 0.0:
+            self._watch_scales(y, u0)
         if self.all_data:
             self._update_all_data(y, u0)
         else:
             self._update_window(y, u0)
 
+    def _watch_scales(self, y: float, u0: float) -> None:
+        """Keep the peaks of |y|, |u| until the first LS step, then fix the scales."""
+        peaks = self._peaks
+        peaks[0] = max(peaks[0], abs(y))
+        peaks[1] = max(peaks[1], abs(u0))
+        if self._lags >= self.order:
+            self._scales = np.array([power_of_two_at_least(peak) for peak in peaks])
+            self._p = self._initial_p()
+            self._variance_floor = (VARIANCE_FLOOR * self._scales[0]) ** 2
+
+    def _initial_p(self) -> np.ndarray:
+        """Return P(0) = p0 S^-2, S = diag(s_y I_n, s_u I_n) (p0 I before the scales)."""
+        n = self.order
+        scales = self._scales if self._scales[0] > 0.0 else np.ones(2)
+        return np.diag(self.initial_covariance / np.repeat(scales, n) ** 2)
+
+    def _unit_weights(self) -> np.ndarray:
+        """Return the factors that make [a | b] unit-free: 1 for a, s_u / s_y for b."""
+        scales = self._scales if self._scales[0] > 0.0 else np.ones(2)
+        return np.repeat([1.0, scales[1] / scales[0]], self.order)
+
+    def _gate_sample(self, e: float, s: float, count: float) -> bool:
+        r"""
+        Return whether a sample with prediction error ``e`` and gain ``s`` is used.
+
+        The base class's :meth:`_gate` gets the larger of two squared
+        normalised sizes, once the weighted row count :math:`\tau` reaches
+        ``GATE_WARMUP`` p:
+
+        * :math:`e^2 / [(J/\tau)(1 + \psi^T P\psi)]`, the one-step error of
+          the prefiltered regression over its variance (an outlier in y);
+        * :math:`\tau\,\psi^T P\psi / p`, the squared Mahalanobis distance of
+          the regressor in the metric of the regressors' own second moments
+          :math:`M/\tau = (\tau P)^{-1}`, over its mean p (an outlier in u,
+          which enters the filters and shows in the next row). A spike in u
+          has a huge leverage: its error :math:`b u` and its variance
+          :math:`P_{bb} u^2` grow together, so the first measure stays at
+          :math:`b^2 / \mathrm{var}\,\hat b` (a few units in a closed loop).
+
+        A non-finite error or gain is refused outright (``update_undone``).
+        Besides the base class's three refusals in a row, a slow score
+        (+1 per refusal, times ``REFUSAL_DECAY`` per tested sample) that
+        reaches ``REFUSAL_SCORE`` is a plant change too: in a closed loop
+        the errors of a changed plant exceed the gate mostly after the
+        reference moves, one sample in many, never three in a row. For
+        ``PREFILTER_SETTLE`` rows after a new prefilter (``window`` 0) only
+        the hard limit ``IMPLAUSIBLE_ERROR`` applies: the filters keep their
+        state across the change, and their transient is not an outlier.
+        """
+        if not (s < math.inf and e * e < math.inf):
+            self._undo('update_undone')
+            return False
+        if count < self._gate_from:
+            return True
+        leverage = s - self._forgetting_factor
+        z2 = max(e * e / ((self._loss / count + self._variance_floor) * (leverage + 1.0)),
+                 count * leverage / self.num_parameters)
+        if z2 <= self._gate_limit2 and not (self._change_score or self._refusals):
+            return True
+        if self._rows < self._gate_resume:
+            # the transient of a new prefilter: only the hard limit
+            if z2 <= IMPLAUSIBLE_ERROR * IMPLAUSIBLE_ERROR:
+                return True
+            self._undo('outlier_rejected')
+            return False
+        if self._refusals:
+            score = self._refusals * REFUSAL_DECAY
+            self._refusals = score if score > 1e-3 else 0.0
+        if self._gate(z2):
+            return True
+        self._refusals += 1.0
+        if self._refusals >= REFUSAL_SCORE:
+            self._flag('plant_change')
+            self._accept_change()
+        return False
+
+    def _accept_change(self) -> None:
+        """Cut the memory to CHANGE_MEMORY p rows: one extra forgetting step on everything."""
+        self._refusals = 0.0
+        count = self._weighted_count()
+        keep = CHANGE_MEMORY * self.num_parameters / count if count > 0.0 else 1.0
+        if keep >= 1.0:
+            return
+        self._memory_cuts += 1
+        self._p *= 1.0 / keep
+        self._loss *= keep
+        self._count *= keep
+        self._information *= keep
+        self._cross *= keep
+        self._energy *= keep
+        self._epoch_weights *= keep
+
+    def _weighted_count(self) -> float:
+        """Return the weighted rows of the running LS (tau)."""
+        return float(self._epoch_weights.sum()) if self.all_data else self._count
+
     def _advance_filters(self, y: float, u0: float) -> None:
+        self._excitation.update(y, u0, self._forgetting_factor)
         # phi[k+1] = blockdiag(F, F) phi[k] + [g y[k]; g u[k]]        (10), (14)
         phi = self._shift.dot(self._phi)
         phi[0] += y
@@ -397,7 +535,8 @@ class ClosedLoopBcls(RecursiveEstimator):
     # ------------------------------------------------ all data since the change
     def _update_all_data(self, y: float, u0: float) -> None:
         if self._lags >= self.order:
-            self._moment_step(y, self._phi)
+            if not self._moment_step(y, self._phi):
+                return
         else:
             self._lags += 1
         self._advance_filters(y, u0)
@@ -406,14 +545,25 @@ class ClosedLoopBcls(RecursiveEstimator):
             self._next_redesign = rows + min(rows, self.redesign_period)
             self._redesign_all_data()
 
-    def _moment_step(self, y: float, phi: np.ndarray) -> None:
-        """Add one row to the moments, do the RLS step in plant form and compensate."""
+    def _moment_step(self, y: float, phi: np.ndarray) -> bool:
+        """Gate the row; add it to the moments, do the RLS step and compensate; or refuse."""
         n = self.order
         lam = self._forgetting_factor
         # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
         target = y - self._prefilter[1:].dot(phi[:n])
         psi = phi.copy()
         psi[:n] = -psi[:n]
+        theta = self._theta_ls
+        g = self._p.dot(psi)
+        s = lam + psi.dot(g)
+        e = target - psi.dot(theta)
+        cuts = self._memory_cuts
+        if not self._gate_sample(e, s, float(self._epoch_weights.sum())):
+            return False
+        if self._memory_cuts != cuts:
+            # a plant change cut the memory (P grew): redo the a-priori part
+            g = self._p.dot(psi)
+            s = lam + psi.dot(g)
         if lam != 1.0:
             self._information *= lam
             self._cross *= lam
@@ -424,13 +574,9 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._energy += target * target
         self._epoch_weights[-1] += 1.0
         self._rows += 1
-        theta = self._theta_ls
-        g = self._p.dot(psi)
-        s = lam + psi.dot(g)
         if not s > 0.0:
             self._repair_covariance()
-            return
-        e = target - psi.dot(theta)
+            return True
         theta += g * (e / s)
         h = g * (1.0 / math.sqrt(s))
         self._p -= h[:, None] * h
@@ -439,12 +585,13 @@ class ClosedLoopBcls(RecursiveEstimator):
         # J = lam J + lam e^2 / s (weighted LS loss)
         self._loss = lam * (self._loss + e * e / s)
         if self._direction is None or self._holding:
-            return
+            return True
         weights = self._epoch_weights
         # C = sum_e W_e D c_e ; B = sum_e W_e beta_e
         direction = weights.dot(self._epoch_directions)
         total_beta = weights.dot(self._epoch_betas)
         self._compensate(theta, self._p.dot(direction), direction, total_beta)
+        return True
 
     def _compensate(self, theta: np.ndarray, pc: np.ndarray, direction: np.ndarray,
                     total_beta: float) -> None:
@@ -526,11 +673,14 @@ class ClosedLoopBcls(RecursiveEstimator):
         with rho the ratio of the last two steps, is below ``tolerance``.
         """
         last_step = math.inf
+        # the step in unit-free parameters (b times s_u / s_y), so that the stopping
+        # point does not depend on the units of y and u
+        weights = self._unit_weights()
         for iterations in range(1, self.max_iterations + 1):
             # c_e, beta_e of every epoch from the current estimate            (37), (57)
             terms = self._epoch_terms(estimate)
             result = self._moment_compensation(theta_ls, inverse, loss, *terms)
-            step = float(np.linalg.norm(result[0] - estimate))
+            step = float(np.linalg.norm((result[0] - estimate) * weights))
             estimate = result[0]
             rate = step / last_step  # 0 at the first iteration: never stops there
             if step == 0.0 or (0.0 < rate < 1.0
@@ -591,9 +741,15 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._epoch_directions = np.vstack((self._epoch_directions, direction))
         self._epoch_betas = np.append(self._epoch_betas, beta)
         self._set_prefilter(prefilter)
+        self._gate_resume = self._rows + PREFILTER_SETTLE
 
     # ---------------------------------------------------------- the window
     def _update_window(self, y: float, u0: float) -> None:
+        if self._lags >= self.order:
+            if not self._ls_step(y, self._phi):
+                return
+        else:
+            self._lags += 1
         # keep the raw sample for the redesign window
         pos = self._pos
         if pos == self._buffer.shape[0]:
@@ -603,10 +759,6 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._pos = pos + 1
         if self._filled < self.window:
             self._filled += 1
-        if self._lags >= self.order:
-            self._ls_step(y, self._phi)
-        else:
-            self._lags += 1
         self._advance_filters(y, u0)
         self._since_redesign += 1
         if (self._since_redesign >= self.redesign_period and self._filled >= (
@@ -614,31 +766,38 @@ class ClosedLoopBcls(RecursiveEstimator):
             self._since_redesign = 0
             self._redesign()
 
-    def _ls_step(self, y: float, phi: np.ndarray) -> None:
-        """Do the RLS step and, once a redesign has succeeded, eqs. (56)-(59)."""
+    def _ls_step(self, y: float, phi: np.ndarray) -> bool:
+        """Gate the sample; do the RLS step and eqs. (56)-(59), or refuse it (False)."""
         theta = self._theta_ls
         # e = y[k] - phi' theta_LS, g = P phi, s = 1 + phi' P phi (the shared RLS step, lambda 1)
         e, g, s = rls_innovation(theta, self._p, phi, y, 1.0)
+        cuts = self._memory_cuts
+        if not self._gate_sample(e, s, self._count):
+            return False
+        if self._memory_cuts != cuts:
+            # a plant change cut the memory (P grew): redo the a-priori part
+            e, g, s = rls_innovation(theta, self._p, phi, y, 1.0)
         if not s > 0.0:
             self._repair_covariance()
-            return
+            return True
         # theta_LS += g e / s ; P -= g g' / s
         self._p = rls_step(theta, self._p, g, s, e)
         # J += e^2 / s ; N += 1
         self._loss += e * e / s
         self._count += 1.0
         if self._direction is None or self._holding:
-            return
+            return True
         # gamma = J / N, alpha = N c' P c, eqs. (53), (56), are eq. (58) with B = N beta
         # and C = N c: sigma2 = 2 J / (N beta + sqrt(N^2 beta^2 - 4 N^2 c'Pc J))
         count = self._count
         direction = count * self._direction
         self._compensate(theta, self._p.dot(direction), direction, count * self._beta)
+        return True
 
     def _repair_covariance(self) -> None:
         """Rebuild P as the nearest symmetric positive definite matrix."""
         self._flag('covariance_repaired')
-        self._p = repair_covariance(self._p, self.initial_covariance * np.eye(self.num_parameters))
+        self._p = repair_covariance(self._p, self._initial_p())
 
     def _redesign(self) -> None:
         """Run Algorithm 1 on the window and take over its result."""
@@ -840,18 +999,25 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._redesigns = 0
         self._last_iterations = 0
         self._controller_changes = 0
+        self._memory_cuts = 0  # counts _accept_change's cuts (tells a step to redo P psi)
         self._restart_statistics()
 
     def _restart_statistics(self) -> None:
         """Restart everything learnt from the data except the prefilter."""
         p = self.num_parameters
+        # the signal scales (0 until the first LS step) and the peaks that set them
+        self._scales = np.zeros(2)
+        self._peaks = np.zeros(2)
+        self._variance_floor = VARIANCE_FLOOR ** 2
+        self._refusals = 0.0
+        self._gate_resume = 0
         self._buffer = np.zeros((2 * self.window, 2))
         self._pos = 0
         self._filled = 0
         self._phi = np.zeros(p)
         self._lags = 0
         self._theta_ls = np.zeros(p)
-        self._p = self.initial_covariance * np.eye(p)
+        self._p = self._initial_p()
         self._loss = 0.0
         self._count = 0.0
         self._direction: np.ndarray | None = None
@@ -885,7 +1051,8 @@ class ClosedLoopBcls(RecursiveEstimator):
                   'theta_ls': self._theta_ls, 'p': self._p, 'theta_bc': self._theta_bc,
                   'direction': (self._direction if compensated
                                 else np.zeros(self.num_parameters)),
-                  'information': self._information, 'cross': self._cross}
+                  'information': self._information, 'cross': self._cross,
+                  'scales': self._scales, 'peaks': self._peaks}
         controller = self.controller
         scalars = {'pos': self._pos, 'filled': self._filled, 'lags': self._lags,
                    'loss': self._loss, 'count': self._count, 'beta': self._beta,
@@ -903,7 +1070,8 @@ class ClosedLoopBcls(RecursiveEstimator):
                    'controller_changes': self._controller_changes,
                    'excitation': self._excitation.state().tolist(),
                    'model_reasons': list(self._model_reasons),
-                   'discriminant_ratio': self._discriminant_ratio}
+                   'discriminant_ratio': self._discriminant_ratio,
+                   'refusals': self._refusals, 'gate_resume': self._gate_resume}
         return arrays, scalars
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -919,6 +1087,9 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._direction = arrays['direction'] if scalars['compensated'] else None
         self._information = arrays['information']
         self._cross = arrays['cross']
+        self._scales = arrays.get('scales', np.zeros(2))
+        self._peaks = arrays.get('peaks', np.zeros(2))
+        self._variance_floor = (VARIANCE_FLOOR * (self._scales[0] or 1.0)) ** 2
         self._pos = int(scalars['pos'])
         self._filled = int(scalars['filled'])
         self._lags = int(scalars['lags'])
@@ -942,3 +1113,5 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._controller_changes = int(scalars['controller_changes'])
         self._model_reasons = tuple(scalars['model_reasons'])
         self._discriminant_ratio = float(scalars['discriminant_ratio'])
+        self._refusals = float(scalars.get('refusals', 0.0))
+        self._gate_resume = int(scalars.get('gate_resume', 0))
