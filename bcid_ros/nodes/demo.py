@@ -17,6 +17,7 @@ parameter trajectories. The child processes are stopped on every way out.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 from pathlib import Path
 import shutil
@@ -24,7 +25,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -285,71 +286,55 @@ def run(args: argparse.Namespace) -> int:
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+    from rclpy.executors import ExternalShutdownException
 
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('bcid_demo', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    monitor = Monitor(node, interface.IDENTIFIER_NODE, interface.SIMULATOR_NODE)
-    children: list[Child] = []
-    previous_handler = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        print(f'bcid demo: {args.scenario}, {samples} samples at {rate:g} Hz '
-              f'({frame} per message), config {config}, ROS_DOMAIN_ID='
-              f'{os.environ.get("ROS_DOMAIN_ID", "0")}', flush=True)
-        params = ['--ros-args', '--params-file', str(config)]
-        children.append(Child('identifier_node', executable('identifier_node') + params,
-                              out_dir / 'identifier.log'))
-        # The simulator waits for two subscribers on /samples: the identifier and this monitor.
-        children.append(Child('simulator_node', executable('simulator_node') + params + [
-            '-p', f'num_samples:={samples}', '-p', f'rate_hz:={float(rate)}',
-            '-p', f'frame_size:={frame}', '-p', 'wait_for_subscribers:=2',
-            '-p', 'start_delay:=0.3'], out_dir / 'simulator.log'))
-        identifier, simulator = children
-        start = time.monotonic()
-        next_line = start + 1.0
-        finished_at = None
-        while True:
-            executor.spin_once(timeout_sec=0.05)
-            now = time.monotonic()
-            code = identifier.poll()
-            if code is not None:
-                raise BcidError(f'identifier_node exited with code {code}:\n{identifier.tail()}')
-            code = simulator.poll()
-            if code is not None and code != 0:
-                raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
-            if monitor.samples == 0 and now - start > START_TIMEOUT:
-                raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
-                                f'{simulator.tail()}\nidentifier log:\n{identifier.tail()}')
-            if now >= next_line:
-                print(live_line(monitor, samples, now - start), flush=True)
-                next_line += 1.0
-            if code == 0 and finished_at is None:
-                finished_at = now
-            if finished_at is not None:
-                used = int(monitor.diagnostics.get(Key.SAMPLES_USED, '0') or 0)
-                lost = int(monitor.diagnostics.get(COUNTERS['lost'], '0') or 0)
-                settled = used + lost * frame >= samples and \
-                    now - monitor.last_estimate_time > 0.3
-                if settled or now - finished_at > SETTLE_TIMEOUT:
-                    break
-        wall = time.monotonic() - start
+        with demo_graph() as (node, executor, children):
+            monitor = Monitor(node, interface.IDENTIFIER_NODE, interface.SIMULATOR_NODE)
+            print(f'bcid demo: {args.scenario}, {samples} samples at {rate:g} Hz '
+                  f'({frame} per message), config {config}, ROS_DOMAIN_ID='
+                  f'{os.environ.get("ROS_DOMAIN_ID", "0")}', flush=True)
+            params = ['--ros-args', '--params-file', str(config)]
+            children.append(Child('identifier_node', executable('identifier_node') + params,
+                                  out_dir / 'identifier.log'))
+            # The simulator waits for two subscribers on /samples: the identifier and this monitor.
+            children.append(Child('simulator_node', executable('simulator_node') + params + [
+                '-p', f'num_samples:={samples}', '-p', f'rate_hz:={float(rate)}',
+                '-p', f'frame_size:={frame}', '-p', 'wait_for_subscribers:=2',
+                '-p', 'start_delay:=0.3'], out_dir / 'simulator.log'))
+            identifier, simulator = children
+            start = time.monotonic()
+            next_line = start + 1.0
+            finished_at = None
+            while True:
+                executor.spin_once(timeout_sec=0.05)
+                now = time.monotonic()
+                code = identifier.poll()
+                if code is not None:
+                    raise BcidError(f'identifier_node exited with code {code}:\n'
+                                    f'{identifier.tail()}')
+                code = simulator.poll()
+                if code is not None and code != 0:
+                    raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
+                if monitor.samples == 0 and now - start > START_TIMEOUT:
+                    raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
+                                    f'{simulator.tail()}\nidentifier log:\n{identifier.tail()}')
+                if now >= next_line:
+                    print(live_line(monitor, samples, now - start), flush=True)
+                    next_line += 1.0
+                if code == 0 and finished_at is None:
+                    finished_at = now
+                if finished_at is not None:
+                    used = int(monitor.diagnostics.get(Key.SAMPLES_USED, '0') or 0)
+                    lost = int(monitor.diagnostics.get(COUNTERS['lost'], '0') or 0)
+                    settled = used + lost * frame >= samples and \
+                        now - monitor.last_estimate_time > 0.3
+                    if settled or now - finished_at > SETTLE_TIMEOUT:
+                        break
+            wall = time.monotonic() - start
     except (KeyboardInterrupt, ExternalShutdownException):
         print('bcid demo: interrupted', file=sys.stderr)
         return 130
-    finally:
-        for child in reversed(children):
-            child.stop()
-        signal.signal(signal.SIGTERM, previous_handler)
-        executor.remove_node(node)
-        node.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown(context=context)
 
     if monitor.theta is None:
         raise BcidError('the identifier published no valid estimate; see '
@@ -366,6 +351,38 @@ def run(args: argparse.Namespace) -> int:
     print(f'wall time {wall:.1f} s; final delta {100 * monitor.delta(monitor.theta):.3f} %; '
           f'wrote {png}')
     return 0
+
+
+@contextlib.contextmanager
+def demo_graph() -> Iterator[tuple[Any, Any, list[Child]]]:
+    """
+    Yield the demo's own node, its executor and the list of its child processes.
+
+    The children a demo appends are stopped on the way out, SIGTERM is an
+    interrupt meanwhile (as Ctrl-C), and the node and its context go down.
+    """
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node('bcid_demo', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    children: list[Child] = []
+    previous_handler = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield node, executor, children
+    finally:
+        for child in reversed(children):
+            child.stop()
+        signal.signal(signal.SIGTERM, previous_handler)
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
 
 
 def _interrupt(signum: int, frame: Any) -> None:

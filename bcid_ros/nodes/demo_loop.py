@@ -17,7 +17,6 @@ import argparse
 import dataclasses
 import os
 from pathlib import Path
-import signal
 import sys
 import time
 from typing import Any
@@ -29,7 +28,8 @@ from bcid_ros.control.design import (closed_loop_poles, Controller, ModelStructu
 from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.errors import BcidError
 from bcid_ros.nodes import interface
-from bcid_ros.nodes.demo import (_interrupt, Child, DEMO_DEFAULTS, executable, START_TIMEOUT)
+from bcid_ros.nodes.demo import (Child, demo_graph, DEMO_DEFAULTS, executable,
+                                 START_TIMEOUT)
 from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
@@ -367,74 +367,57 @@ def run_adaptive_loop(args: argparse.Namespace) -> int:
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+    from rclpy.executors import ExternalShutdownException
 
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('bcid_demo', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    monitor = LoopMonitor(node, record)
-    children: list[Child] = []
-    previous_handler = signal.signal(signal.SIGTERM, _interrupt)
     params = ['--ros-args', '--params-file', str(config)]
     identifier_overrides = ['-p', f'estimator:={estimator}']
     if estimator != 'cl_bcls':
         identifier_overrides += ['-p', 'controller_topic:=""']
     switches = 0
     try:
-        print(f'bcid demo: adaptive_loop with {estimator}, {samples} samples at {rate:g} Hz, '
-              f'plant change at sample {change_at}, config {config}, ROS_DOMAIN_ID='
-              f'{os.environ.get("ROS_DOMAIN_ID", "0")}', flush=True)
-        children.append(Child('identifier_node', executable('identifier_node') + params
-                              + identifier_overrides, out_dir / 'identifier.log'))
-        children.append(Child('adaptive_controller_node',
-                              executable('adaptive_controller_node') + params,
-                              out_dir / 'controller.log'))
-        # the plant waits for two subscribers on samples (identifier, this monitor) and the
-        # controller on output
-        children.append(Child('simulator_node', executable('simulator_node') + params + [
-            '-p', f'num_samples:={samples}', '-p', f'rate_hz:={float(rate)}',
-            '-p', f'change_after_samples:={change_at}', '-p', 'wait_for_subscribers:=2',
-            '-p', 'start_delay:=0.5'], out_dir / 'simulator.log'))
-        simulator = children[-1]
-        start = time.monotonic()
-        next_line = start + 1.0
-        while True:
-            executor.spin_once(timeout_sec=0.05)
-            now = time.monotonic()
-            for child in children[:-1]:
-                code = child.poll()
-                if code is not None:
-                    raise BcidError(f'{child.name} exited with code {code}:\n{child.tail()}')
-            code = simulator.poll()
-            if code is not None and code != 0:
-                raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
-            if not record.y and now - start > START_TIMEOUT:
-                raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
-                                f'{simulator.tail()}')
-            switches = max(len(record.controllers) - 1, 0)
-            if now >= next_line:
-                print(live_line(record, samples, now - start, switches), flush=True)
-                next_line += 1.0
-            if code == 0 and (len(record.y) >= samples
-                              or now - monitor.last_sample_time > 2.0):
-                break
-        wall = time.monotonic() - start
+        with demo_graph() as (node, executor, children):
+            monitor = LoopMonitor(node, record)
+            print(f'bcid demo: adaptive_loop with {estimator}, {samples} samples at {rate:g} Hz, '
+                  f'plant change at sample {change_at}, config {config}, ROS_DOMAIN_ID='
+                  f'{os.environ.get("ROS_DOMAIN_ID", "0")}', flush=True)
+            children.append(Child('identifier_node', executable('identifier_node') + params
+                                  + identifier_overrides, out_dir / 'identifier.log'))
+            children.append(Child('adaptive_controller_node',
+                                  executable('adaptive_controller_node') + params,
+                                  out_dir / 'controller.log'))
+            # the plant waits for two subscribers on samples (identifier, this monitor) and the
+            # controller on output
+            children.append(Child('simulator_node', executable('simulator_node') + params + [
+                '-p', f'num_samples:={samples}', '-p', f'rate_hz:={float(rate)}',
+                '-p', f'change_after_samples:={change_at}', '-p', 'wait_for_subscribers:=2',
+                '-p', 'start_delay:=0.5'], out_dir / 'simulator.log'))
+            simulator = children[-1]
+            start = time.monotonic()
+            next_line = start + 1.0
+            while True:
+                executor.spin_once(timeout_sec=0.05)
+                now = time.monotonic()
+                for child in children[:-1]:
+                    code = child.poll()
+                    if code is not None:
+                        raise BcidError(f'{child.name} exited with code {code}:\n{child.tail()}')
+                code = simulator.poll()
+                if code is not None and code != 0:
+                    raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
+                if not record.y and now - start > START_TIMEOUT:
+                    raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
+                                    f'{simulator.tail()}')
+                switches = max(len(record.controllers) - 1, 0)
+                if now >= next_line:
+                    print(live_line(record, samples, now - start, switches), flush=True)
+                    next_line += 1.0
+                if code == 0 and (len(record.y) >= samples
+                                  or now - monitor.last_sample_time > 2.0):
+                    break
+            wall = time.monotonic() - start
     except (KeyboardInterrupt, ExternalShutdownException):
         print('bcid demo: interrupted', file=sys.stderr)
         return 130
-    finally:
-        for child in reversed(children):
-            child.stop()
-        signal.signal(signal.SIGTERM, previous_handler)
-        executor.remove_node(node)
-        node.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown(context=context)
 
     print(live_line(record, samples, wall, switches))
     print()
