@@ -99,8 +99,13 @@ class Bcrls(Rls):
         self._dgemv = load_blas()['dgemv']
         super().__init__(**settings)
 
-    def _after_ls_step(self) -> None:
-        """Apply eqs. (51) and (46) after the LS step."""
+    def _after_ls_step(self, y: float, phi: np.ndarray) -> None:
+        """Apply eqs. (51) and (46) after the LS step; keep z = [phi; y] for the moments."""
+        # list appends: the cheapest record (phi is a fresh array from the regressor)
+        self._moment_phi.append(phi)
+        self._moment_y.append(y)
+        if len(self._moment_y) == MOMENT_BLOCK:
+            self._flush_moments()
         theta_ls = self._theta_ls
         # Lambda theta_c(t-1)
         previous = self._lambda_theta_c
@@ -181,17 +186,6 @@ class Bcrls(Rls):
         self._load_moments(arrays, scalars)
 
     # ------------------------------------------------------- the uncertainty
-    def _ls_step(self, y: float, phi: np.ndarray) -> bool:
-        """Do the LS step and, if it was made, keep z = [phi; y] for the lagged moments."""
-        if not super()._ls_step(y, phi):
-            return False
-        # list appends: the cheapest record (phi is a fresh array from the regressor)
-        self._moment_phi.append(phi)
-        self._moment_y.append(y)
-        if len(self._moment_y) == MOMENT_BLOCK:
-            self._flush_moments()
-        return True
-
     def _reset_moments(self) -> None:
         n, width = self.order, self.num_parameters + 1
         # z of the last n steps already summed (the lag context; zeros at the start)

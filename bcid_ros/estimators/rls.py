@@ -45,7 +45,7 @@ _BLAS: dict[str, Any] = {}
 
 def load_blas() -> dict[str, Any]:
     """
-    Return scipy's ``daxpy``, ``dgemv`` and ``dger``, importing scipy on the first call.
+    Return scipy's BLAS kernels daxpy, dgemv, dger and dscal, importing scipy on first call.
 
     The estimators call it when they are built, so that importing a module
     of this package does not import scipy. The kernels are called with
@@ -53,8 +53,8 @@ def load_blas() -> dict[str, Any]:
     kernel at p = 6.
     """
     if not _BLAS:
-        from scipy.linalg.blas import daxpy, dgemv, dger
-        _BLAS.update(daxpy=daxpy, dgemv=dgemv, dger=dger)
+        from scipy.linalg.blas import daxpy, dgemv, dger, dscal
+        _BLAS.update(daxpy=daxpy, dgemv=dgemv, dger=dger, dscal=dscal)
     return _BLAS
 
 
@@ -100,7 +100,8 @@ def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
     :math:`\hat\theta \leftarrow \hat\theta + g e/s` and
     :math:`P \leftarrow P - h h^T` with :math:`h = g/\sqrt{s}`, which is
     symmetric to the last bit. ``g``, ``s`` and ``e`` come from
-    :func:`rls_innovation` and ``s`` must be finite and positive.
+    :func:`rls_innovation` and ``s`` must be finite and positive; ``g`` is
+    overwritten with h.
 
     Returns
     -------
@@ -112,7 +113,8 @@ def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
     blas = _BLAS or load_blas()
     # theta(t) = theta(t-1) + g e / s   (BLAS axpy in place: daxpy(x, y, n, a))
     blas['daxpy'](g, theta, g.shape[0], e / s)
-    h = g * (1.0 / math.sqrt(s))
+    # h = g / sqrt(s), in place (a scaling into a new array costs twice as much)
+    h = blas['dscal'](1.0 / math.sqrt(s), g)
     # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view):
     # dger(alpha, x, y, incx, incy, a, overwrite_x, overwrite_y, overwrite_a)
     return blas['dger'](-1.0, h, h, 1, 1, p.T, 0, 0, 1).T
@@ -232,7 +234,7 @@ class Rls(RecursiveEstimator):
         if self._scales_pending and self._regressor.ready:
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
-            self._after_ls_step()
+            self._after_ls_step(y, phi)
             if self._updates >= self._next_check:
                 self._check_validity()
 
@@ -243,8 +245,8 @@ class Rls(RecursiveEstimator):
         """Move the regressor on without a step: theta, P, J and tau stay as they are."""
         self._regressor.push(y, u)
 
-    def _after_ls_step(self) -> None:
-        """Extend the LS step (the bias compensation of subclasses); nothing here."""
+    def _after_ls_step(self, y: float, phi: np.ndarray) -> None:
+        """Extend the LS step on (y, phi) (the bias compensation of subclasses); nothing here."""
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
