@@ -305,3 +305,23 @@ def test_replay_json_has_the_operating_point(tmp_path):
     estimator.run(y, u)
     assert list(summary['operating_point'].values()) == estimator.operating_point.tolist()
     assert 'operating_point' not in replay(bag, {'order': 2, 'num_inputs': 2}).summary()
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_a_refused_spike_does_not_move_the_operating_point(name):
+    y, u = offset_plant(1).simulate(3000, 8)
+    settings = dict(order=2, detrend='mean', outlier_threshold=5.0)
+    clean = make_estimator(name, **settings)
+    clean.run(y, u)
+    spiked_y = y.copy()
+    spiked_y[1500] *= 1e3
+    spiked = make_estimator(name, **settings)
+    spiked.run(spiked_y, u)
+    assert 'outlier_rejected' not in clean.flags
+    assert spiked.flags['outlier_rejected'] == 1
+    # kept in the means, the spike would move y0 by about 1e3 y / 3000 (1.7) for good;
+    # refused, it is the one sample missing from the plain means (lambda = 1)
+    kept = np.arange(len(y)) != 1500
+    np.testing.assert_allclose(spiked.operating_point, [y[kept].mean(), u[kept].mean()],
+                               rtol=1e-9)
+    assert abs(spiked.operating_point[0] - clean.operating_point[0]) < 0.01

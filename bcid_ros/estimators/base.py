@@ -291,6 +291,8 @@ class RecursiveEstimator(abc.ABC):
         self.outlier_threshold = outlier_threshold
         self._change_score = 0.0
         self._quiet_left = 0
+        # samples refused by _undo, so that they can be kept out of the operating point
+        self._refused = 0
         self._checkpoint: tuple[dict[str, np.ndarray], dict[str, Any]] | None = None
         self._since_checkpoint = 0
         self._checkpoint_period = 1
@@ -394,7 +396,9 @@ class RecursiveEstimator(abc.ABC):
         Update with the operating point removed, or hold the learnt state.
 
         With ``detrend: mean`` the sample minus the recursive means goes to
-        the estimator (the means themselves are held with the adaptation).
+        the estimator (the means themselves are held with the adaptation); a
+        sample the estimator refuses (:meth:`_undo`) is taken back out of the
+        means.
         While adaptation is held, :meth:`_hold` only moves the sample
         history on: nothing learnt changes, so nothing can wind up.
         """
@@ -406,8 +410,18 @@ class RecursiveEstimator(abc.ABC):
                 y, u = self._means.apply(y, u)
             self._hold(y, u)
             return
-        if self._means is not None:
-            y, u = self._means.centre(y, u, self._forgetting_factor)
+        if self._means is None:
+            self._learn(y, u)
+            return
+        refused = self._refused
+        self._learn(*self._means.centre(y, u, self._forgetting_factor))
+        if self._refused != refused:
+            # a sample the estimator refused (an outlier) must not move the
+            # operating point either: the means would carry it for 1 / (1 - lambda)
+            self._means.undo()
+
+    def _learn(self, y: float, u: np.ndarray) -> None:
+        """Update on a sample from which the operating point is removed, if one is."""
         if self._quiet_left:
             self._quiet_update(y, u)
         else:
@@ -706,6 +720,7 @@ class RecursiveEstimator(abc.ABC):
     def _undo(self, flag: str) -> None:
         """Count a refused step and restart the regressor."""
         self._flag(flag)
+        self._refused += 1
         self._restart_regressor()
 
     def _gate(self, z2: float) -> bool:

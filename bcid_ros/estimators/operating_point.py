@@ -54,6 +54,9 @@ class RunningMean:
     def __init__(self, num_inputs: int) -> None:
         self.mean = np.zeros(1 + num_inputs)
         self.weight = 0.0
+        # the means and weight before the last centre(), for undo()
+        self._previous = np.zeros(1 + num_inputs)
+        self._previous_weight = 0.0
 
     def centre(self, y: float, u: np.ndarray, lam: float) -> tuple[float, np.ndarray]:
         """Update the means with sample (y, u) and return the sample minus them."""
@@ -61,12 +64,19 @@ class RunningMean:
             # a sample whose square overflows is refused by the estimator's gate anyway:
             # it must not move the means for thousands of samples to come
             return self.apply(y, u)
-        self.weight = lam * self.weight + 1.0
         mean = self.mean
+        self._previous[:] = mean
+        self._previous_weight = self.weight
+        self.weight = lam * self.weight + 1.0
         gain = 1.0 / self.weight
         mean[0] += (y - mean[0]) * gain
         mean[1:] += (u - mean[1:]) * gain
         return y - mean[0], u - mean[1:]
+
+    def undo(self) -> None:
+        """Take the last sample given to :meth:`centre` back out of the means."""
+        self.mean[:] = self._previous
+        self.weight = self._previous_weight
 
     def apply(self, y: float, u: np.ndarray) -> tuple[float, np.ndarray]:
         """Return the sample minus the means, without updating them (adaptation held)."""
