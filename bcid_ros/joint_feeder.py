@@ -100,6 +100,9 @@ class JointFeedResult:
         Joints whose estimates are due for publication (ready and finite).
     theta, noise : numpy.ndarray
         Their estimates, shapes ``(len(due), p)`` and ``(len(due), m)``.
+    std : numpy.ndarray
+        Their parameter standard deviations, ``(len(due), p)``; a row of NaN
+        where a joint has none yet (not published).
     withheld : numpy.ndarray of int
         Joints whose due estimate was not finite, so not returned.
 
@@ -116,6 +119,7 @@ class JointFeedResult:
     due: np.ndarray = dataclasses.field(default_factory=lambda: _NONE)
     theta: np.ndarray | None = None
     noise: np.ndarray | None = None
+    std: np.ndarray | None = None
     withheld: np.ndarray = dataclasses.field(default_factory=lambda: _NONE)
 
 
@@ -250,13 +254,14 @@ class JointFeeder:
         estimator = self.estimator
         theta = estimator.theta[rows]
         noise = estimator.noise[rows]
+        std = estimator.parameter_std[rows]
         finite = np.isfinite(theta).all(axis=1)
         if not finite.all():
             result.withheld = rows[~finite]
             self.withheld[result.withheld] += 1
-            rows, theta, noise = rows[finite], theta[finite], noise[finite]
+            rows, theta, noise, std = rows[finite], theta[finite], noise[finite], std[finite]
         self.since_publish[rows] = 0
-        result.due, result.theta, result.noise = rows, theta, noise
+        result.due, result.theta, result.noise, result.std = rows, theta, noise, std
 
     # -------------------------------------------------------------- control
     def gap(self) -> None:

@@ -57,31 +57,31 @@ def single_runs(name, y, u, present, **settings):
     return singles
 
 
-#: bcrls's state for its sandwich covariance, which the batched estimators do not compute.
-COVARIANCE_STATE = ('moment_ring', 'moment_snapshot', 'moment_sums', 'moment_pending',
-                    'moment_weight')
-
-
 def assert_plants_equal(batched, singles):
     """Assert that every plant's full state equals its single-plant estimator's."""
     for k, single in enumerate(singles):
         mine, theirs = batched.plant_state(k), single.get_state()
-        # The batched estimators keep no parameter covariance (docs/scaling.md): bcrls's
-        # moments of it are the single plant's alone.
-        shared = {key: value for key, value in theirs.arrays.items()
-                  if key not in COVARIANCE_STATE}
-        assert mine.arrays.keys() - set(COVARIANCE_STATE) == shared.keys()
-        for key, value in shared.items():
+        assert mine.arrays.keys() == theirs.arrays.keys()
+        for key, value in theirs.arrays.items():
             np.testing.assert_allclose(mine.arrays[key], value, rtol=TOLERANCE,
                                        atol=TOLERANCE, err_msg=f'plant {k} {key}')
         for key, value in theirs.scalars.items():
-            if key in COVARIANCE_STATE:
-                continue
             if isinstance(value, float):
                 assert mine.scalars[key] == pytest.approx(value, rel=TOLERANCE, abs=TOLERANCE,
                                                           nan_ok=True)
             else:
                 assert mine.scalars[key] == value, (k, key)
+        covariance = single.parameter_covariance
+        if covariance is None:
+            assert np.isnan(batched.parameter_covariance[k]).all()
+            assert np.isnan(batched.parameter_std[k]).all()
+        else:
+            # the sandwich's solves amplify 1e-12 differences of the moments by its
+            # condition number: 1e-9 relative to the largest entry
+            np.testing.assert_allclose(batched.parameter_covariance[k], covariance, rtol=1e-9,
+                                       atol=1e-9 * np.abs(covariance).max())
+            np.testing.assert_allclose(batched.parameter_std[k], single.parameter_std,
+                                       rtol=1e-9)
         np.testing.assert_allclose(batched.theta[k], single.theta, rtol=TOLERANCE,
                                    atol=TOLERANCE)
         np.testing.assert_allclose(batched.noise[k], single.noise, rtol=TOLERANCE,
@@ -311,8 +311,12 @@ def test_state_bytes_count_each_plant_array_once():
     # change score, next check, last power); plus two bools (scales pending, has reasons)
     rls = 8 * (p + p * p + history + channels + 2 * p + 11) + 2
     assert BatchedRls(7, order=2).nbytes == 7 * rls
-    # bcrls adds theta_c, Lambda theta_c, sigma2 and the compensation resets checked
-    assert BatchedBcrls(7, order=2).nbytes == 7 * (rls + 8 * (2 * p + 2))
+    # bcrls adds theta_c, Lambda theta_c, sigma2 and the compensation resets checked, and
+    # for its covariance the moment ring ((n + 64) x (p + 1)), the rows pending, the sums
+    # ((n + 1) x (p + 1)^2), their weight, the snapshot (2 x (p + 1)), the sandwich (p x p)
+    # and one bool (sandwich due)
+    moments = (2 + 64) * (p + 1) + 1 + 3 * (p + 1) ** 2 + 1 + 2 * (p + 1) + p * p
+    assert BatchedBcrls(7, order=2).nbytes == 7 * (rls + 8 * (2 * p + 2 + moments) + 1)
 
 
 def assert_same_bits(batched, other, plants):

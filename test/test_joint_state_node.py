@@ -64,11 +64,13 @@ class Recorder:
         self.node = rclpy.create_node('recorder', context=context)
         self.parameters = {joint: [] for joint in joints}
         self.noise = {joint: [] for joint in joints}
+        self.std = {joint: [] for joint in joints}
         self.valid = {joint: [] for joint in joints}
         self.labels = {}
         self.diagnostics = []
         for joint in joints:
-            for topic, store in (('parameters', self.parameters), ('noise_variance', self.noise)):
+            for topic, store in (('parameters', self.parameters), ('noise_variance', self.noise),
+                                 ('parameter_std', self.std)):
                 self.node.create_subscription(
                     Float64MultiArray, f'{prefix}/{joint}/{topic}',
                     lambda message, store=store[joint], topic=topic: self._record(
@@ -123,7 +125,7 @@ def joint_messages(samples, seed, leave_out=(), nan_at=None, extra=True):
 def wait_for(executor, node, recorder):
     """Spin until the recorder is matched on every joint topic and has the first validity."""
     adapter = node.joint_state
-    publishers = adapter._parameters + adapter._noise + adapter._valid
+    publishers = adapter._parameters + adapter._noise + adapter._std + adapter._valid
     assert spin_until(executor, lambda: all(p.get_subscription_count() for p in publishers)
                       and all(recorder.valid.values()))
 
@@ -148,10 +150,14 @@ def replay(messages, name='bcrls', publish_period=1):
     feeder = JointFeeder(JOINTS, make_batched_estimator(name, len(JOINTS), order=2),
                          publish_period=publish_period)
     published = {joint: [] for joint in JOINTS}
+    published_std = {joint: [] for joint in JOINTS}
     for message in messages:
         result = feeder.take(message)
         for row, k in enumerate(result.due):
             published[JOINTS[k]].append(result.theta[row])
+            if np.isfinite(result.std[row]).all():
+                published_std[JOINTS[k]].append(result.std[row])
+    feeder.published_std = published_std
     return feeder, published
 
 
@@ -176,16 +182,23 @@ def test_each_joint_equals_its_single_plant_estimate_in_any_order(executor, ros_
     executor.add_node(recorder.node)
     wait_for(executor, node, recorder)
     drive(executor, ros_context, node, messages)
-    _, expected = replay(messages, publish_period=5)
+    replayed, expected = replay(messages, publish_period=5)
     total = sum(len(estimates) for estimates in expected.values())
     assert spin_until(executor, lambda: recorder.count() >= total)
+    std_total = sum(len(std) for std in replayed.published_std.values())
+    assert spin_until(executor, lambda: sum(map(len, recorder.std.values())) >= std_total)
     assert node.joint_state.estimates_published == total
     assert recorder.labels['parameters'] == 'a1,a2,b1_1,b1_2'
     assert recorder.labels['noise_variance'] == 'sigma2'
+    assert recorder.labels['parameter_std'] == 'a1,a2,b1_1,b1_2'
     for k, joint in enumerate(JOINTS):
         # the node is the replay, bit for bit (same machine, same run)
         np.testing.assert_array_equal(np.array(recorder.parameters[joint]),
                                       np.array(expected[joint]))
+        # a standard deviation from the first block of 64 steps on, with the parameters' names
+        assert len(recorder.std[joint]) > 100
+        np.testing.assert_array_equal(np.array(recorder.std[joint]),
+                                      np.array(replayed.published_std[joint]))
         # latched changes only: starts False, alternates, ends as the estimator ends
         flags = recorder.valid[joint]
         assert flags[0] is False and all(a != b for a, b in zip(flags, flags[1:]))

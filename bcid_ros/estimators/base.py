@@ -657,12 +657,15 @@ class RecursiveEstimator(abc.ABC):
         """
         Return the covariance of :attr:`theta` in the units of theta, ``(p, p)``, or None.
 
-        None when the estimator has no calibrated covariance (the default) or
-        not yet enough data for one. Each estimator documents its formula
-        (docs/estimators.md, "Uncertainty").
+        None when the estimator has no calibrated covariance (the default),
+        not yet enough data for one, or one that is not finite or has a
+        negative variance (a sandwich evaluated at an ill-conditioned
+        compensation: a standard deviation of zero would claim certainty).
+        Each estimator documents its formula (docs/estimators.md, "Uncertainty").
         """
         covariance = self._parameter_covariance()
-        if covariance is None or not np.isfinite(covariance).all():
+        if (covariance is None or not np.isfinite(covariance).all()
+                or not (np.diagonal(covariance) >= 0.0).all()):
             return None
         return np.array(covariance, dtype=float)
 

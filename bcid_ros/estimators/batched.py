@@ -40,8 +40,8 @@ import numpy as np
 from bcid_ros.estimators.base import (CHANGE_DECAY, CHANGE_SCORE, check_int, check_range,
                                       EstimatorState, HUGE_SCREEN, IMPLAUSIBLE_ERROR,
                                       parameter_names)
-from bcid_ros.estimators.bcrls import (COMPENSATION_MAX, CONTRACTION_MAX, DENOMINATOR_MIN,
-                                       MOMENT_BLOCK, RUNAWAY)
+from bcid_ros.estimators.bcrls import (block_sandwich, COMPENSATION_MAX, CONTRACTION_MAX,
+                                       DENOMINATOR_MIN, MOMENT_BLOCK, RUNAWAY)
 from bcid_ros.estimators.rls import (CAREFUL_GAIN, CHANGE_MEMORY, GATE_WARMUP, GROWTH,
                                      HEALTH_CHECK_PERIOD, repair_covariance, rls_step,
                                      UNSTABLE_RADIUS, VALIDITY_PERIOD, VARIANCE_FLOOR)
@@ -377,6 +377,38 @@ class BatchedRls:
         return self._tau.copy()
 
     @property
+    def parameter_covariance(self) -> np.ndarray:
+        """
+        Return each plant's covariance of :attr:`theta`, shape ``(K, p, p)``.
+
+        Plant k's is that of its single-plant estimator
+        (``parameter_covariance``, docs/estimators.md "Uncertainty"); all NaN
+        where that one is None (not ready, no data for one yet, not finite
+        or a negative variance).
+        """
+        covariance = self._parameter_covariance()
+        diagonal = np.diagonal(covariance, axis1=1, axis2=2)
+        unknown = ~(np.isfinite(covariance).all(axis=(1, 2)) & (diagonal >= 0.0).all(axis=1))
+        covariance[unknown] = np.nan
+        return covariance
+
+    @property
+    def parameter_std(self) -> np.ndarray:
+        """Return each plant's standard deviations of :attr:`theta`, ``(K, p)``; NaN where none."""
+        return np.sqrt(np.diagonal(self.parameter_covariance, axis1=1, axis2=2))
+
+    def _parameter_covariance(self) -> np.ndarray:
+        """Return sigma_e^2 P_k tau_2 / tau per plant (``Rls._parameter_covariance``)."""
+        p, lam, tau = self.num_parameters, self._forgetting_factor, self._tau
+        # weighted_square_ratio, per plant
+        ratio = (2.0 - np.minimum((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
+        dof = tau - p * ratio
+        known = (self._updates >= p) & (tau > 0.0) & (dof > 0.0)
+        factor = np.full(self.num_plants, np.nan)
+        factor[known] = self._loss[known] / dof[known] * ratio[known]
+        return factor[:, None, None] * self._p
+
+    @property
     def nbytes(self) -> int:
         """Bytes held by the per-plant state arrays (all plants), for sizing."""
         arrays = [value for value in vars(self).values()
@@ -542,6 +574,7 @@ class BatchedRls:
         if ordinary.all():
             theta, p_new, loss, tau, updates = self._commit(rows, theta, p_old, g, s, e, loss,
                                                             tau)
+            self._after_ls_step(rows, theta, p_new, loss, tau, y, phi)
         else:
             plants = self._indices(rows)
             if ordinary.any():
@@ -550,12 +583,14 @@ class BatchedRls:
             others = [plant for plant, y_k, phi_k in zip(
                 plants[~ordinary], y[~ordinary].tolist(), phi[~ordinary])
                 if self._plant_step(plant, y_k, phi_k)]
-            rows = np.sort(np.r_[plants[ordinary], np.array(others, dtype=np.intp)])
+            stepped = np.sort(np.r_[np.flatnonzero(ordinary), np.searchsorted(
+                plants, np.array(others, dtype=np.intp))])
+            rows = plants[stepped]
             if not rows.size:
                 return
             theta, p_new = self._theta_ls[rows], self._p[rows]
             loss, tau, updates = self._loss[rows], self._tau[rows], self._updates[rows]
-        self._after_ls_step(rows, theta, p_new, loss, tau)
+            self._after_ls_step(rows, theta, p_new, loss, tau, y[stepped], phi[stepped])
         due = updates >= self._next_check[rows]
         if due.any():
             self._check_validity(self._indices(rows)[due])
@@ -591,8 +626,9 @@ class BatchedRls:
         return theta, p_new, loss, tau, updates
 
     def _after_ls_step(self, rows: Rows, theta_ls: np.ndarray, p: np.ndarray,
-                       loss: np.ndarray, tau: np.ndarray) -> None:
-        """Extend the LS step of ``rows`` (the compensation of subclasses); nothing here."""
+                       loss: np.ndarray, tau: np.ndarray, y: np.ndarray,
+                       phi: np.ndarray) -> None:
+        """Extend the LS step of ``rows`` on (y, phi) (the compensation of subclasses)."""
 
     def _forget(self, rows: Rows, p: np.ndarray) -> None:
         """Apply P(t) <- P(t) / lambda in place, per plant unless that winds P up."""
@@ -969,8 +1005,10 @@ class BatchedBcrls(BatchedRls):
         return self._sigma2[:, None].copy()
 
     def _after_ls_step(self, rows: Rows, theta_ls: np.ndarray, p: np.ndarray,
-                       loss: np.ndarray, tau: np.ndarray) -> None:
-        """Apply eqs. (51) and (46) to the plants ``rows`` after their LS step."""
+                       loss: np.ndarray, tau: np.ndarray, y: np.ndarray,
+                       phi: np.ndarray) -> None:
+        """Apply eqs. (51) and (46) to the plants ``rows``; keep z = [phi; y] for the moments."""
+        self._record_moments(rows, y, phi)
         # Lambda theta_c(t-1)
         previous = self._lambda_theta_c[rows]
         # denominator of (51): 1 + theta_c(t-1)' Lambda theta_LS(t)
@@ -1031,6 +1069,73 @@ class BatchedBcrls(BatchedRls):
     def _theta(self) -> np.ndarray:
         return self._theta_c
 
+    # ------------------------------------------------------- the uncertainty
+    def _record_moments(self, rows: Rows, y: np.ndarray, phi: np.ndarray) -> None:
+        """Keep z = [phi; y] of the plants ``rows``; sum a plant's block when it is full."""
+        plants = self._indices(rows)
+        slots = self.order + self._moment_pending[plants]
+        p = self.num_parameters
+        self._moment_ring[plants, slots, :p] = phi
+        self._moment_ring[plants, slots, p] = y
+        self._moment_pending[plants] += 1
+        full = plants[self._moment_pending[plants] == MOMENT_BLOCK]
+        if full.size:
+            self._flush_moments(full)
+
+    def _flush_moments(self, plants: np.ndarray) -> None:
+        """Add full blocks to the lagged moment sums (``Bcrls._flush_moments``), per plant."""
+        n, block, lam = self.order, MOMENT_BLOCK, self._forgetting_factor
+        ring = self._moment_ring[plants]
+        decay = lam ** block
+        # w = lambda^(age): the newest row has weight 1
+        weights = lam ** np.arange(block - 1, -1, -1, dtype=float)
+        newest = (ring[:, n:] * weights[:, None]).transpose(0, 2, 1)
+        sums = self._moment_sums[plants] * decay
+        for k in range(n + 1):
+            sums[:, k] += newest @ ring[:, n - k:n - k + block]
+        self._moment_sums[plants] = sums
+        self._moment_weight[plants] = self._moment_weight[plants] * decay + float(weights.sum())
+        # the last n rows are the lag context of the next block
+        self._moment_ring[plants, :n] = ring[:, block:]
+        self._moment_pending[plants] = 0
+        p = self.num_parameters
+        snapshot = self._moment_snapshot
+        snapshot[plants, 0, :p] = self._theta_c[plants]
+        snapshot[plants, 0, p] = self._sigma2[plants]
+        snapshot[plants, 1, :p] = self._component_scale[plants]
+        y_scale = self._signal_scale[plants, 0]
+        snapshot[plants, 1, p] = np.where(y_scale > 0.0, y_scale, 1.0)
+        self._sandwich_due[plants] = True
+
+    def _parameter_covariance(self) -> np.ndarray:
+        """Return each plant's sandwich covariance (``Bcrls._parameter_covariance``)."""
+        known = (self._updates >= self.num_parameters) & (self._moment_weight > 0.0)
+        due = np.flatnonzero(known & self._sandwich_due)
+        if due.size:
+            # all plants whose block ended since the last read, in one batched evaluation;
+            # a singular one (LinAlgError) is evaluated alone, and stays unknown
+            try:
+                self._sandwich[due] = block_sandwich(
+                    self._moment_sums[due], self._moment_weight[due],
+                    self._moment_snapshot[due], self.order)
+            except np.linalg.LinAlgError:
+                for plant in due.tolist():
+                    self._sandwich[plant] = self._plant_sandwich(plant)
+            self._sandwich_due[due] = False
+        lam, tau = self._forgetting_factor, self._tau
+        ratio = (2.0 - np.minimum((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
+        factor = np.full(self.num_plants, np.nan)
+        factor[known] = ratio[known] / tau[known]
+        return factor[:, None, None] * self._sandwich
+
+    def _plant_sandwich(self, plant: int) -> np.ndarray:
+        """Return plant k's sandwich, or NaN if its bread is singular."""
+        try:
+            return block_sandwich(self._moment_sums[plant], self._moment_weight[plant],
+                                  self._moment_snapshot[plant], self.order)
+        except np.linalg.LinAlgError:
+            return np.full((self.num_parameters,) * 2, np.nan)
+
     def _allocate(self) -> None:
         super()._allocate()
         plants, p = self.num_plants, self.num_parameters
@@ -1041,6 +1146,17 @@ class BatchedBcrls(BatchedRls):
         self._lambda_theta_c = np.zeros((plants, p))
         self._sigma2 = np.zeros(plants)
         self._resets_checked = np.zeros(plants, dtype=np.int64)
+        # per plant as in Bcrls: the lag context (n rows) then the rows z = [phi; y] not yet
+        # summed; the sums of w_t z_t z_{t-k}' (k = 0..n) and of w_t; the estimates and
+        # scales at the last block; the sandwich H^-1 S H^-T of that block, when computed
+        width = p + 1
+        self._moment_ring = np.zeros((plants, self.order + MOMENT_BLOCK, width))
+        self._moment_pending = np.zeros(plants, dtype=np.intp)
+        self._moment_sums = np.zeros((plants, self.order + 1, width, width))
+        self._moment_weight = np.zeros(plants)
+        self._moment_snapshot = np.zeros((plants, 2, width))
+        self._sandwich = np.full((plants, p, p), np.nan)
+        self._sandwich_due = np.zeros(plants, dtype=bool)
 
     def _reset_learning(self, rows: Rows) -> None:
         super()._reset_learning(rows)
@@ -1048,20 +1164,27 @@ class BatchedBcrls(BatchedRls):
         self._lambda_theta_c[rows] = 0.0
         self._sigma2[rows] = 0.0
         self._resets_checked[rows] = 0
+        self._moment_ring[rows] = 0.0
+        self._moment_pending[rows] = 0
+        self._moment_sums[rows] = 0.0
+        self._moment_weight[rows] = 0.0
+        self._moment_snapshot[rows] = 0.0
+        self._sandwich[rows] = np.nan
+        self._sandwich_due[rows] = False
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._plant_items(plant)
         arrays['theta_c'] = self._theta_c[plant]
         scalars['sigma2'] = float(self._sigma2[plant])
         scalars['resets_checked'] = int(self._resets_checked[plant])
-        # No parameter covariance here: a single plant loaded from this snapshot starts its
-        # covariance moments afresh (Bcrls: no std until its next block of steps).
-        width = self.num_parameters + 1
-        arrays['moment_ring'] = np.zeros((self.order + MOMENT_BLOCK, width))
-        arrays['moment_sums'] = np.zeros((self.order + 1, width, width))
-        arrays['moment_snapshot'] = np.zeros((2, width))
-        scalars['moment_pending'] = 0
-        scalars['moment_weight'] = 0.0
+        # the moments in Bcrls's layout: the ring holds the context, then the pending rows
+        ring = self._moment_ring[plant].copy()
+        ring[self.order + int(self._moment_pending[plant]):] = 0.0
+        arrays['moment_ring'] = ring
+        arrays['moment_sums'] = self._moment_sums[plant]
+        arrays['moment_snapshot'] = self._moment_snapshot[plant]
+        scalars['moment_pending'] = int(self._moment_pending[plant])
+        scalars['moment_weight'] = float(self._moment_weight[plant])
         return arrays, scalars
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
@@ -1071,6 +1194,12 @@ class BatchedBcrls(BatchedRls):
         self._lambda_theta_c[plant] = self._theta_c[plant] * self._lambda_diagonal
         self._sigma2[plant] = float(scalars['sigma2'])
         self._resets_checked[plant] = int(scalars['resets_checked'])
+        self._moment_ring[plant] = arrays['moment_ring']
+        self._moment_pending[plant] = int(scalars['moment_pending'])
+        self._moment_sums[plant] = arrays['moment_sums']
+        self._moment_weight[plant] = float(scalars['moment_weight'])
+        self._moment_snapshot[plant] = arrays['moment_snapshot']
+        self._sandwich_due[plant] = self._moment_weight[plant] > 0.0
 
 
 #: Registry name of the single-plant estimator -> its batched form.

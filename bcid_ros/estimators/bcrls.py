@@ -295,74 +295,98 @@ class Bcrls(Rls):
         if self._updates < self.num_parameters or not self._moment_weight > 0.0:
             return None
         if self._sandwich is None:
-            self._sandwich = self._block_sandwich()
+            try:
+                self._sandwich = block_sandwich(self._moment_sums, self._moment_weight,
+                                                self._moment_snapshot, self.order)
+            except np.linalg.LinAlgError:
+                # a singular bread: no covariance for this block
+                self._sandwich = np.full((self.num_parameters,) * 2, np.nan)
         ratio = weighted_square_ratio(self._tau, self._forgetting_factor)
         return self._sandwich * (ratio / self._tau)
 
-    def _block_sandwich(self) -> np.ndarray:
-        """Return H^-1 S H^-T in the user's units from the moments and estimates of a block."""
-        n, p = self.order, self.num_parameters
-        estimates, scale = self._moment_snapshot
-        # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
-        y_scale = scale[p]
-        gamma_z = self._moment_sums / (self._moment_weight * np.outer(scale, scale))
-        theta = estimates[:p] * scale[:p] / y_scale
-        sigma2 = estimates[p] / (y_scale * y_scale)
-        back = y_scale / scale[:p]
-        return bcls_sandwich(gamma_z, theta, sigma2, n) * np.outer(back, back)
+
+def block_sandwich(sums: np.ndarray, weight: Any, snapshot: np.ndarray,
+                   order: int) -> np.ndarray:
+    """
+    Return H^-1 S H^-T in the user's units from the moments and estimates of a block.
+
+    ``sums`` ``(..., n + 1, p + 1, p + 1)`` are the weighted sums of
+    z_t z_{t-k}' (k = 0..n) over ``weight`` ``(...)``; ``snapshot``
+    ``(..., 2, p + 1)`` holds ``[theta_c, sigma2]`` and ``[scales of phi,
+    scale of y]`` at the block's end. Leading dimensions are plants (the
+    batched estimators). The sandwich is evaluated in normalised units
+    (z / scale), where its conditioning does not depend on the user's units.
+    """
+    estimates, scale = snapshot[..., 0, :], snapshot[..., 1, :]
+    p = estimates.shape[-1] - 1
+    # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
+    y_scale = scale[..., p:]
+    outer = scale[..., :, None] * scale[..., None, :]
+    gamma_z = sums / (np.asarray(weight)[..., None, None, None] * outer[..., None, :, :])
+    theta = estimates[..., :p] * scale[..., :p] / y_scale
+    sigma2 = estimates[..., p] / (y_scale[..., 0] * y_scale[..., 0])
+    back = y_scale / scale[..., :p]
+    return (bcls_sandwich(gamma_z, theta, sigma2, order)
+            * (back[..., :, None] * back[..., None, :]))
 
 
-def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: float,
+def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: Any,
                   order: int) -> np.ndarray:
     r"""
     Return :math:`H^{-1} S H^{-T}` of the BCLS fixed point, the p x p block of theta.
 
     Parameters
     ----------
-    gamma_z : numpy.ndarray, shape ``(n + 1, p + 1, p + 1)``
+    gamma_z : numpy.ndarray, shape ``(..., n + 1, p + 1, p + 1)``
         :math:`\Gamma_z(k)`, the mean of :math:`z_t z_{t-k}^T` with
         :math:`z = [\varphi; y]`, k = 0..n.
-    theta : numpy.ndarray, shape ``(p,)``
+    theta : numpy.ndarray, shape ``(..., p)``
         :math:`\hat\theta_c` (its first n entries are :math:`a_1 \ldots a_n`).
-    sigma2 : float
+    sigma2 : float or numpy.ndarray, shape ``(...)``
         :math:`\hat\sigma^2`.
     order : int
         n.
 
     Returns
     -------
-    numpy.ndarray, shape ``(p, p)``
+    numpy.ndarray, shape ``(..., p, p)``
         The covariance of one sample's worth: divide by the (effective) count.
+        Leading dimensions (plants) are computed at once.
 
     """
-    n, p = order, theta.shape[0]
-    a = np.concatenate(([1.0], theta[:n]))
+    n, p = order, theta.shape[-1]
+    sigma2 = np.asarray(sigma2, dtype=float)[..., None]
+    lead = theta.shape[:-1]
+    a = np.concatenate((np.ones(lead + (1,)), theta[..., :n]), axis=-1)
     # gamma_w(k) = sigma2 sum_i a_i a_{i+k}, k = 0..n
-    gamma_w = sigma2 * np.correlate(a, a, 'full')[n:]
+    gamma_w = sigma2 * np.stack([(a[..., :n + 1 - k] * a[..., k:]).sum(axis=-1)
+                                 for k in range(n + 1)], axis=-1)
     # c_k = E[zeta_t w_{t-k}], d_k = E[w_t zeta_{t-k}] (rows k); zeta = [-v(t-1..t-n), 0, v(t)]
-    padded = np.zeros(3 * n + 1)
-    padded[n:2 * n + 1] = a  # padded[m + n] = a_m, zero outside 0..n
+    padded = np.zeros(lead + (3 * n + 1,))
+    padded[..., n:2 * n + 1] = a  # padded[m + n] = a_m, zero outside 0..n
     lags = np.arange(1, n + 1) + n - np.arange(n + 1)[:, None]
-    c = np.zeros((n + 1, p + 1))
-    d = np.zeros((n + 1, p + 1))
-    c[:, :n] = -sigma2 * padded[lags]
-    d[:, :n] = -sigma2 * padded[lags + 2 * np.arange(n + 1)[:, None]]
-    c[0, p] = sigma2
-    d[:, p] = sigma2 * a
+    c = np.zeros(lead + (n + 1, p + 1))
+    d = np.zeros(lead + (n + 1, p + 1))
+    c[..., :n] = -sigma2[..., None] * padded[..., lags]
+    d[..., :n] = -sigma2[..., None] * padded[..., lags + 2 * np.arange(n + 1)[:, None]]
+    c[..., 0, p] = sigma2[..., 0]
+    d[..., p] = sigma2 * a
     # S = S_0 + sum_{k>=1} (S_k + S_k'), S_k = Gamma_z(k) gamma_w(k) + c_k d_k'
-    lagged = np.tensordot(gamma_w, gamma_z, axes=1) + c.T @ d
-    first = gamma_z[0] * gamma_w[0] + np.outer(c[0], d[0])
-    meat = lagged + lagged.T - first
+    lagged = (np.einsum('...k,...kij->...ij', gamma_w, gamma_z)
+              + np.swapaxes(c, -1, -2) @ d)
+    first = (gamma_z[..., 0, :, :] * gamma_w[..., :1, None]
+             + c[..., 0, :, None] * d[..., 0, None, :])
+    meat = lagged + np.swapaxes(lagged, -1, -2) - first
     lam = np.zeros(p)
     lam[:n] = 1.0
-    bread = np.empty((p + 1, p + 1))
-    bread[:p, :p] = np.diag(sigma2 * lam) - gamma_z[0][:p, :p]
-    bread[:p, p] = lam * theta
-    bread[p, :p] = -gamma_z[0][p, :p]
-    bread[p, p] = -1.0
+    bread = np.empty(lead + (p + 1, p + 1))
+    bread[..., :p, :p] = sigma2[..., None] * np.diag(lam) - gamma_z[..., 0, :p, :p]
+    bread[..., :p, p] = lam * theta
+    bread[..., p, :p] = -gamma_z[..., 0, p, :p]
+    bread[..., p, p] = -1.0
     half = np.linalg.solve(bread, meat)
-    covariance = np.linalg.solve(bread, half.T)
-    return 0.5 * (covariance + covariance.T)[:p, :p]
+    covariance = np.linalg.solve(bread, np.swapaxes(half, -1, -2))
+    return 0.5 * (covariance + np.swapaxes(covariance, -1, -2))[..., :p, :p]
 
 
 def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,

@@ -72,6 +72,7 @@ class JointStateIdentifier:
 
         self._parameters = publishers(Float64MultiArray, interface.PARAMETERS)
         self._noise = publishers(Float64MultiArray, interface.NOISE_VARIANCE)
+        self._std = publishers(Float64MultiArray, interface.PARAMETER_STD)
         self._valid = publishers(Bool, interface.VALID)
         # one reusable message per topic kind: a publication copies it out
         self._parameters_message = estimate_message(estimator.parameter_names)
@@ -123,24 +124,29 @@ class JointStateIdentifier:
                         'published', int(result.withheld.size))
         self._publish_valid(result.valid_changed)
         if result.due.size:
-            self.publish_estimates(result.due, result.theta, result.noise)
+            self.publish_estimates(result.due, result.theta, result.noise, result.std)
 
     def _count(self, kind: str, text: str, count: int = 1) -> None:
         self.counters[kind] += count
         self._throttle.warn(kind, text)
 
     # -------------------------------------------------------------- output
-    def publish_estimates(self, joints: np.ndarray, theta: np.ndarray,
-                          noise: np.ndarray) -> None:
-        """Publish the estimates of ``joints`` (indices): rows of ``theta`` and ``noise``."""
+    def publish_estimates(self, joints: np.ndarray, theta: np.ndarray, noise: np.ndarray,
+                          std: np.ndarray) -> None:
+        """Publish the estimates of ``joints`` (indices): rows of ``theta``, ``noise``, ``std``."""
         parameters, noise_message = self._parameters_message, self._noise_message
         finite = np.isfinite(noise).all(axis=1) if noise.size else np.zeros(len(joints), bool)
+        # a joint without a standard deviation yet (NaN row) publishes none
+        known = np.isfinite(std).all(axis=1)
         for row, joint in enumerate(joints.tolist()):
             parameters.data = as_doubles(theta[row])
             self._parameters[joint].publish(parameters)
             if finite[row]:
                 noise_message.data = as_doubles(noise[row])
                 self._noise[joint].publish(noise_message)
+            if known[row]:
+                parameters.data = as_doubles(std[row])  # the same names as the parameters
+                self._std[joint].publish(parameters)
         self.estimates_published += len(joints)
 
     def _publish_valid(self, joints: np.ndarray) -> None:
