@@ -47,6 +47,8 @@ class StateKeeper:
         The state file.
     restored : bool
         Whether the state was restored from ``path`` at start.
+    timer : rclpy.timer.Timer
+        The save timer, once :meth:`start` has run.
 
     """
 
