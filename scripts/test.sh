@@ -4,7 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup_venv.sh
-# Keep every ROS graph of this run on this machine and on a domain of its own.
+# Keep every ROS graph of this run on this machine and on a domain of its own. The ROS
+# graph tests take their domains from a slice of 101..232 that this id selects
+# (test/conftest.py): runs at once on one machine need ids that differ modulo 33.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
 exec .venv/bin/python -m pytest "$@"

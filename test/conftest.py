@@ -6,7 +6,36 @@ import time
 
 import pytest
 
-_domains = itertools.count()
+#: The test domains: 101..232, above 0..100 where callers run their own graphs
+#: (scripts/test.sh and .ci/run pick ROS_DOMAIN_ID in 1..100) and up to the highest
+#: domain id DDS can map to ports. They are cut into SLICES slices of DOMAINS_PER_SUITE.
+FIRST_TEST_DOMAIN, LAST_DOMAIN = 101, 232
+DOMAINS_PER_SUITE = 4
+SLICES = (LAST_DOMAIN + 1 - FIRST_TEST_DOMAIN) // DOMAINS_PER_SUITE
+
+
+def _caller_domain():
+    """Return the ROS_DOMAIN_ID the suite was started with (from the pid if it is unset)."""
+    text = os.environ.get('ROS_DOMAIN_ID', '').strip()
+    if not text:
+        return os.getpid() % SLICES
+    if not text.isdigit() or int(text) > LAST_DOMAIN:
+        raise ValueError(f'ROS_DOMAIN_ID must be an integer in [0, {LAST_DOMAIN}], got {text!r}')
+    return int(text)
+
+
+def suite_domains(caller):
+    """Return the test domains of a suite started on domain ``caller`` (a range)."""
+    for shift in (0, 1):  # a caller inside the band never gets its own domain
+        first = FIRST_TEST_DOMAIN + (caller + shift) % SLICES * DOMAINS_PER_SUITE
+        domains = range(first, first + DOMAINS_PER_SUITE)
+        if caller not in domains:
+            return domains
+
+
+# read once, at collection: a test that sets ROS_DOMAIN_ID for its children moves nothing
+_SUITE_DOMAINS = suite_domains(_caller_domain())
+_sequence = itertools.count()
 
 #: Test modules that read data made on another machine (committed bags, saved
 #: references). `.ci/run` runs them a second time with numpy's highest SIMD
@@ -22,8 +51,22 @@ def pytest_collection_modifyitems(config, items):
 
 
 def fresh_domain_id():
-    """Return a ROS domain id for one test, apart from scripts/test.sh's 1..100."""
-    return 130 + (os.getpid() * 7 + next(_domains)) % 100
+    """
+    Return a ROS domain id for one test: the next of its suite's slice, in turn.
+
+    The slice (:func:`suite_domains`) follows from the ROS_DOMAIN_ID the
+    suite was started with, read once at collection. Suites run at once on
+    one machine with ROS_DOMAIN_IDs in 0..100 that differ modulo
+    :data:`SLICES` (33) never share a domain: give each concurrent run its
+    own ROS_DOMAIN_ID in 1..33, or distinct ones that differ modulo 33 (21 and
+    61..64 do). The test domains lie in 101..232 and never on the caller's own
+    domain, so a graph the caller runs on its ROS_DOMAIN_ID is not crossed
+    either. Without ROS_DOMAIN_ID the slice follows from the pid. Consecutive
+    calls cycle through the slice's :data:`DOMAINS_PER_SUITE` domains: a test
+    may use up to four at once, and a domain comes back only after three
+    other tests.
+    """
+    return _SUITE_DOMAINS[next(_sequence) % DOMAINS_PER_SUITE]
 
 
 @pytest.fixture

@@ -8,9 +8,14 @@ adapter between rclpy and four ROS-free parts: the message table of
 :class:`bcid_ros.samples.SampleFeeder` feeds the samples with the same rule
 as the offline replay (so the node gives the same estimates as
 ``bcid replay`` on the same samples), and the tasks of
-:mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``. With
-``state_file`` set, :mod:`bcid_ros.persistence` keeps the state across
-restarts.
+:mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``. Three helpers
+that the node composes do the rest on rclpy:
+:class:`~bcid_ros.nodes.estimate_publisher.EstimatePublisher` publishes the
+estimates, :class:`~bcid_ros.nodes.state_keeping.StateKeeper` keeps the
+state across restarts (``state_file``) and
+:class:`~bcid_ros.nodes.controller_input.ControllerInput` takes the
+controller in the loop (``controller_topic``); ``input_mode: joint_state`` is
+:class:`~bcid_ros.nodes.joint_identifier.JointStateIdentifier`.
 
 Run it as ``identifier_node --ros-args --params-file config/ding_miso.yaml``.
 """
@@ -23,21 +28,20 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Bool, Float64MultiArray
+from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from bcid_ros.control.design import controller_from_message
-from bcid_ros import persistence
-from bcid_ros.estimators.base import standard_deviations
 from bcid_ros.nodes import interface
-from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
-                                   SAMPLES_QOS, Throttle, usage)
+from bcid_ros.nodes.common import (declare_table, make_parameter_check, run_node, SAMPLES_QOS,
+                                   Throttle, usage)
+from bcid_ros.nodes.controller_input import ControllerInput
 from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, EstimatorTask,
                                         SampleRateTask)
+from bcid_ros.nodes.estimate_publisher import EstimatePublisher
 from bcid_ros.nodes.joint_identifier import JointStateIdentifier
-from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
-                                     topic_class, valid_message)
+from bcid_ros.nodes.messages import topic_class
 from bcid_ros.nodes.pairing import GAP, Paired, Pairing, SequenceTracker
+from bcid_ros.nodes.state_keeping import StateKeeper
 from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
                                  IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
 from bcid_ros.samples import FeedResult, names_label, SampleFeeder
@@ -78,33 +82,15 @@ class IdentifierNode(Node):
                                    settings['publish_period'], settings['freeze_unexcited'])
         if settings['detrend'] == 'none':
             self.estimator.monitor_centring()  # /diagnostics warns about offsets
-        restored = self._restore_state(settings)
+        self.state_keeper = (StateKeeper(self, settings, self.estimator, self.feeder,
+                                         lambda: (self.messages, self.estimator.samples))
+                             if settings['state_file'] else None)
         self.counters = dict.fromkeys(interface.COUNTERS, 0)
         self.messages = 0
-        self.estimates_published = 0
         self._throttle = Throttle(self.get_logger())
         self._sequences = SequenceTracker()
         self.pairing = Pairing.from_settings(settings)
-
-        names = self.estimator.parameter_names
-        self._estimates = {  # publisher and reusable message of each estimate topic
-            topic: (self.create_publisher(Float64MultiArray, topic, LATCHED_QOS),
-                    estimate_message(labels))
-            for topic, labels in ((interface.PARAMETERS, names),
-                                  (interface.PARAMETERS_UNCOMPENSATED, names),
-                                  (interface.NOISE_VARIANCE, tuple(self.estimator.noise_names)),
-                                  (interface.PARAMETER_STD, names))}
-        self._estimates[interface.PARAMETER_COVARIANCE] = (
-            self.create_publisher(Float64MultiArray, interface.PARAMETER_COVARIANCE,
-                                  LATCHED_QOS), covariance_message(names))
-        if settings['detrend'] == 'mean':
-            self._estimates[interface.OPERATING_POINT] = (
-                self.create_publisher(Float64MultiArray, interface.OPERATING_POINT,
-                                      LATCHED_QOS),
-                estimate_message(self.estimator.operating_point_names))
-        self.valid_publisher = self.create_publisher(Bool, interface.VALID, LATCHED_QOS)
-        self._valid = bool(self.estimator.valid)
-        self.valid_publisher.publish(valid_message(self._valid))
+        self.estimates = EstimatePublisher(self, self.estimator, settings['detrend'])
         self._subscribe(settings)
 
         self.reset_service = self.create_service(Trigger, interface.RESET, self.on_reset)
@@ -115,11 +101,15 @@ class IdentifierNode(Node):
                 SampleRateTask(self.feeder, lambda: self.get_clock().now().nanoseconds * 1e-9,
                                self)],
             hardware_id=self.get_name())
-        self._subscribe_controller(settings)
+        self.controller = (ControllerInput(self, settings, self.estimator, self.diagnostics,
+                                           self.estimates.update_valid)
+                           if settings['controller_topic'] else None)
         self._table_check = make_parameter_check(specs)
         self.add_on_set_parameters_callback(self.check_parameters)
         self.add_post_set_parameters_callback(self.on_parameters_set)
-        self._keep_state(settings, restored)
+        if self.state_keeper:
+            self.state_keeper.start(self.estimates.publish)
+        names = self.estimator.parameter_names
         self.get_logger().info(
             f'{settings["estimator"]} with n={settings["order"]}, r={settings["num_inputs"]}, '
             f'feedthrough={settings["feedthrough"]}; input_mode {settings["input_mode"]}'
@@ -157,75 +147,22 @@ class IdentifierNode(Node):
                     side, read, message, info),
                 SAMPLES_QOS)
 
-    # ----------------------------------------------- the controller in the loop
-    def _subscribe_controller(self, settings: dict[str, Any]) -> None:
-        """With controller_topic: take cl_bcls's controller from the adaptive controller."""
-        topic = settings['controller_topic']
-        self.controller_counts = {'changes': 0, 'unchanged': 0, 'refused': 0}
-        self._controller_data: tuple[list[float], list[float]] | None = None
-        if not topic:
-            return
-        if not hasattr(self.estimator, 'set_controller'):
-            raise ValueError(f"parameter 'controller_topic' applies to estimator cl_bcls only "
-                             f"(the closed-loop estimator that needs the controller), got "
-                             f"estimator {settings['estimator']!r} with controller_topic "
-                             f"{topic!r}")
-        controller = self.estimator.controller
-        self._controller_data = (controller.numerator.tolist(),
-                                 controller.denominator.tolist())
-        try:
-            self.controller_subscription = self.create_subscription(
-                Float64MultiArray, topic, self.on_controller, LATCHED_QOS)
-        except Exception as error:  # rclpy's InvalidTopicNameException
-            raise ValueError(f"parameter 'controller_topic' must be a valid topic name, got "
-                             f"{topic!r}: {error}") from None
-        self.diagnostics.tasks.append(self._diagnose_controller)
-        self.get_logger().info(f'controller in the loop from {topic}')
-
-    def on_controller(self, message: Float64MultiArray) -> None:
-        """Restart the compensation at a new controller; ignore an identical republish."""
-        dims = message.layout.dim
-        try:
-            controller = controller_from_message([d.label for d in dims],
-                                                 [d.size for d in dims], message.data)
-            # the estimator's own form (b_c padded to a_c), to compare with the one in use
-            numerator, denominator = controller.message_data()
-            if self._same_controller(numerator, denominator):
-                self.controller_counts['unchanged'] += 1
-                return
-            used = self.estimator.samples
-            self.estimator.set_controller(numerator, denominator, 'negative')
-        except ValueError as error:
-            self.controller_counts['refused'] += 1
-            self._throttle.warn('controller_refused', f'controller message refused, the '
-                                f'controller in use kept: {error}')
-            return
-        self._controller_data = (numerator, denominator)
-        self.controller_counts['changes'] += 1
-        if self._valid != self.estimator.valid:
-            self._publish_valid()
-        self.get_logger().info(f'new controller in the loop {numerator} / {denominator}: '
-                               f'compensation restarted (after {used} samples)')
-
-    def _same_controller(self, numerator: list[float], denominator: list[float]) -> bool:
-        old_numerator, old_denominator = self._controller_data
-        width = max(len(numerator), len(old_numerator))
-        pad = [0.0] * width
-        return (denominator == old_denominator
-                and (pad + numerator)[-width:] == (pad + old_numerator)[-width:])
-
-    def _diagnose_controller(self, status: Any) -> None:
-        numerator, denominator = self._controller_data
-        status.add('controller in the loop', f'{numerator} / {denominator}')
-        status.add('controller changes (compensation restarted)',
-                   self.controller_counts['changes'])
-        status.add('controller republished unchanged', self.controller_counts['unchanged'])
-        status.add('controller messages refused (malformed)', self.controller_counts['refused'])
-
     @property
     def publish_period(self) -> int:
         """Return the samples between published estimates (live parameter)."""
         return self.feeder.publish_period
+
+    @property
+    def estimates_published(self) -> int:
+        """Return the estimates published so far."""
+        return self.estimates.published
+
+    @property
+    def controller_counts(self) -> dict[str, int]:
+        """Return the controller messages by outcome (zeros without ``controller_topic``)."""
+        if self.controller is None:
+            return {'changes': 0, 'unchanged': 0, 'refused': 0}
+        return self.controller.counts
 
     # ------------------------------------------------------------ parameters
     def check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -317,164 +254,33 @@ class IdentifierNode(Node):
         if result.withheld:
             self._count('nonfinite_estimates', 'the estimator returned a non-finite estimate; '
                         'not published')
-        if self._valid != self.estimator.valid:
-            self._publish_valid()
+        self.estimates.update_valid()
         if result.estimates is not None:
-            self.publish_estimates(*result.estimates)
+            self.estimates.publish(*result.estimates)
 
     def _count(self, kind: str, text: str, count: int = 1) -> None:
         self.counters[kind] += count
         self._throttle.warn(kind, text)
 
-    # -------------------------------------------------------------- output
-    def publish_estimates(self, theta: np.ndarray, uncompensated: np.ndarray,
-                          noise: np.ndarray) -> None:
-        """Publish the estimates (the feeder has checked that they are due and finite)."""
-        self._publish(interface.PARAMETERS, theta)
-        self._publish(interface.PARAMETERS_UNCOMPENSATED, uncompensated)
-        if noise.size and np.isfinite(noise).all():
-            self._publish(interface.NOISE_VARIANCE, noise)
-        self._publish_uncertainty()
-        operating_point = self.estimator.operating_point
-        if operating_point is not None:
-            self._publish(interface.OPERATING_POINT, operating_point)
-        self.estimates_published += 1
-
-    def _publish_uncertainty(self) -> None:
-        """Publish the parameter std and covariance, if the estimator has them now."""
-        covariance = self.estimator.parameter_covariance
-        if covariance is not None:
-            self._publish(interface.PARAMETER_STD, standard_deviations(covariance))
-            self._publish(interface.PARAMETER_COVARIANCE, covariance)
-
-    def _publish(self, topic: str, values: np.ndarray) -> None:
-        publisher, message = self._estimates[topic]
-        message.data = as_doubles(values)
-        publisher.publish(message)
-
-    def _publish_valid(self) -> None:
-        self._valid = bool(self.estimator.valid)
-        self.valid_publisher.publish(valid_message(self._valid))
-
+    # ---------------------------------------------------- reset and shutdown
     def on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Restart the estimator from its initial state (~/reset)."""
         used = self.estimator.samples
         self.feeder.reset()
         self._sequences.reset()
         self.pairing.reset()
-        if self._valid != self.estimator.valid:
-            self._publish_valid()
+        self.estimates.update_valid()
         response.success = True
         response.message = f'estimator reset after {used} samples'
         self.get_logger().info(response.message)
         return response
 
-    # ---------------------------------------------------------- state file
-    def _restore_state(self, settings: dict[str, Any]) -> bool:
-        """Restore the estimator and feeder from ``state_file`` if it fits; log one line."""
-        self._state_path = settings['state_file']
-        if not self._state_path:
-            return False
-        self._state_fingerprint = persistence.configuration_fingerprint(settings)
-        self._state_failing = False
-        self._state_saved = None
-        try:
-            sections = persistence.load_state(self._state_path, self._state_fingerprint)
-            if sections is None:
-                self.get_logger().info(f'state file {self._state_path} does not exist yet; '
-                                       'starting fresh')
-                return False
-            self._load_state_sections(sections)
-        except persistence.StateRefused as error:
-            self.get_logger().warning(f'{error}; starting fresh')
-            return False
-        self.get_logger().info(
-            f'state restored from {self._state_path}: {self.feeder.used} samples used, '
-            f'{self.estimator.samples} since reset, valid {self.estimator.valid}')
-        return True
-
-    def _load_state_sections(self, sections: dict[str, persistence.Section]) -> None:
-        """Restore every section, or nothing (StateRefused): a half-restored node is worse."""
-        fresh = self.feeder.get_state()
-        try:
-            persistence.restore_estimator(self.estimator, sections['estimator'])
-            self.feeder.set_state(sections['feeder'][1])
-            # a live parameter: the value the node starts with applies, as without a state
-            self.estimator.forgetting_factor = self.settings['forgetting_factor']
-        except Exception as error:  # a missing key, a shape, a value the estimator refuses
-            self.estimator.reset()
-            self.feeder.set_state(fresh)
-            raise persistence.StateRefused(
-                f'state file {self._state_path} does not fit this estimator '
-                f'({type(error).__name__}: {error})') from None
-
-    def _state_sections(self) -> dict[str, persistence.Section]:
-        """Return everything the next estimates depend on, by section."""
-        return {'estimator': persistence.estimator_section(self.estimator),
-                'feeder': ({}, self.feeder.get_state())}
-
-    def _state_signature(self) -> tuple[int, int]:
-        """Return what changes whenever the state does (messages taken, or a reset)."""
-        return self.messages, self.estimator.samples
-
-    def _keep_state(self, settings: dict[str, Any], restored: bool) -> None:
-        """Publish a restored estimate at once (latched) and save every period."""
-        if not self._state_path:
-            return
-        if restored:
-            self._state_saved = self._state_signature()  # the file holds it already
-        if restored and self.estimator.ready:
-            theta, uncompensated = self.estimator.theta, self.estimator.theta_uncompensated
-            if np.isfinite(theta).all() and np.isfinite(uncompensated).all():
-                self.publish_estimates(theta, uncompensated, self.estimator.noise)
-        self.state_timer = self.create_timer(settings['state_save_period'],
-                                             self._on_state_timer)
-
-    def _on_state_timer(self) -> None:
-        if self._state_signature() != self._state_saved:
-            self.save_state()
-
-    def save_state(self) -> bool:
-        """
-        Write ``state_file`` now (atomically); return whether it was written.
-
-        A failure is logged once (and the recovery once); the node keeps
-        running and tries again at the next period.
-        """
-        error = self._write_state()
-        if error is None and self._state_failing:
-            self.get_logger().info(f'state file {self._state_path} written again')
-        elif error is not None and not self._state_failing:
-            self.get_logger().error(error)
-        self._state_failing = error is not None
-        return error is None
-
-    def _write_state(self) -> str | None:
-        """Write ``state_file``; return None, or the line that says why it failed."""
-        signature = self._state_signature()
-        try:
-            persistence.save_state(self._state_path, self._state_fingerprint,
-                                   self._state_sections())
-        except (OSError, TypeError, ValueError) as error:
-            return (f'cannot write state file {self._state_path}: {error}; the node keeps '
-                    f'running and tries again every {self.settings["state_save_period"]:g} s')
-        self._state_saved = signature
-        return None
-
     def destroy_node(self) -> None:
         """Save the state (with ``state_file`` set) before the node goes: nothing is lost."""
-        if not getattr(self, '_state_path', ''):
+        if getattr(self, 'state_keeper', None):
+            self.state_keeper.save_and_destroy(super().destroy_node)
+        else:
             super().destroy_node()
-            return
-        error = self._write_state()
-        # logged after the node is gone, when its /rosout publisher (whose context a
-        # signal has already shut down) no longer takes the line
-        super().destroy_node()
-        if error is None:
-            self.get_logger().info(f'state saved to {self._state_path} at shutdown '
-                                   f'({self.feeder.used} samples used)')
-        elif not self._state_failing:
-            self.get_logger().error(error)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,96 @@
+"""
+The identifier's latched estimate topics (docs/nodes.md, "identifier_node").
+
+:class:`EstimatePublisher` turns one estimator's results into messages:
+``~/parameters``, ``~/parameters_uncompensated``, ``~/noise_variance``,
+``~/parameter_std`` and ``~/parameter_covariance`` (when the estimator has
+them), ``~/operating_point`` (with ``detrend: mean``) and ``~/valid`` (when
+it changes).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from rclpy.node import Node
+from std_msgs.msg import Bool, Float64MultiArray
+
+from bcid_ros.estimators import RecursiveEstimator
+from bcid_ros.estimators.base import standard_deviations
+from bcid_ros.nodes import interface
+from bcid_ros.nodes.common import LATCHED_QOS
+from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
+                                     valid_message)
+
+
+class EstimatePublisher:
+    """
+    Publish one estimator's estimates and validity on the identifier's latched topics.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The identifier node that owns the publishers.
+    estimator : RecursiveEstimator
+        The estimator whose uncertainty, operating point and validity are read.
+    detrend : str
+        The ``detrend`` parameter: ``'mean'`` adds ``~/operating_point``.
+
+    Attributes
+    ----------
+    published : int
+        Estimates published (one per call of :meth:`publish`).
+
+    """
+
+    def __init__(self, node: Node, estimator: RecursiveEstimator, detrend: str) -> None:
+        self._estimator = estimator
+        names = estimator.parameter_names
+        self._topics = {  # publisher and reusable message of each estimate topic
+            topic: (node.create_publisher(Float64MultiArray, topic, LATCHED_QOS), message)
+            for topic, message in (
+                (interface.PARAMETERS, estimate_message(names)),
+                (interface.PARAMETERS_UNCOMPENSATED, estimate_message(names)),
+                (interface.NOISE_VARIANCE, estimate_message(tuple(estimator.noise_names))),
+                (interface.PARAMETER_STD, estimate_message(names)),
+                (interface.PARAMETER_COVARIANCE, covariance_message(names)))}
+        if detrend == 'mean':
+            self._topics[interface.OPERATING_POINT] = (
+                node.create_publisher(Float64MultiArray, interface.OPERATING_POINT,
+                                      LATCHED_QOS),
+                estimate_message(estimator.operating_point_names))
+        self.published = 0
+        self.valid_publisher = node.create_publisher(Bool, interface.VALID, LATCHED_QOS)
+        self._valid = bool(estimator.valid)
+        self.valid_publisher.publish(valid_message(self._valid))
+
+    def publish(self, theta: np.ndarray, uncompensated: np.ndarray, noise: np.ndarray) -> None:
+        """Publish the estimates (the caller has checked that they are due and finite)."""
+        self._publish(interface.PARAMETERS, theta)
+        self._publish(interface.PARAMETERS_UNCOMPENSATED, uncompensated)
+        if noise.size and np.isfinite(noise).all():
+            self._publish(interface.NOISE_VARIANCE, noise)
+        covariance = self._estimator.parameter_covariance
+        if covariance is not None:  # the estimator has it now
+            self._publish(interface.PARAMETER_STD, standard_deviations(covariance))
+            self._publish(interface.PARAMETER_COVARIANCE, covariance)
+        operating_point = self._estimator.operating_point
+        if operating_point is not None:
+            self._publish(interface.OPERATING_POINT, operating_point)
+        self.published += 1
+
+    def _publish(self, topic: str, values: Any) -> None:
+        publisher, message = self._topics[topic]
+        message.data = as_doubles(values)
+        publisher.publish(message)
+
+    def update_valid(self) -> None:
+        """Publish ``~/valid`` if the estimator's validity changed since the last one."""
+        valid = bool(self._estimator.valid)
+        if valid != self._valid:
+            self._valid = valid
+            self.valid_publisher.publish(valid_message(valid))
+
+
+__all__ = ['EstimatePublisher']

@@ -1,0 +1,157 @@
+"""
+The identifier's ``state_file`` on rclpy (docs/nodes.md, "Keeping state: state_file").
+
+:class:`StateKeeper` is what the node does with a state file: restore the
+estimator and the feeder from it at start, publish the restored estimate at
+once (latched), save every ``state_save_period`` seconds when the state has
+changed, and save once more when the node goes. The file format, the
+atomic write and the fingerprint check are :mod:`bcid_ros.persistence`'s.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+from rclpy.node import Node
+
+from bcid_ros import persistence
+from bcid_ros.estimators import RecursiveEstimator
+from bcid_ros.samples import SampleFeeder
+
+
+class StateKeeper:
+    """
+    Restore an identifier's estimator and feeder from ``state_file``; save them there.
+
+    The constructor restores (or logs why it starts fresh); :meth:`start`
+    publishes a restored estimate and starts the save timer.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The identifier node: its logger, its timer.
+    settings : dict
+        The identifier's checked parameters, ``state_file`` set.
+    estimator : RecursiveEstimator
+        The node's estimator, restored in place.
+    feeder : SampleFeeder
+        The node's feeder, restored in place.
+    signature : callable
+        Returns what changes whenever the state does (messages taken, samples
+        since reset); a periodic save is skipped while it is unchanged.
+
+    Attributes
+    ----------
+    path : str
+        The state file.
+    restored : bool
+        Whether the state was restored from ``path`` at start.
+    timer : rclpy.timer.Timer
+        The save timer, once :meth:`start` has run.
+
+    """
+
+    def __init__(self, node: Node, settings: dict[str, Any], estimator: RecursiveEstimator,
+                 feeder: SampleFeeder, signature: Callable[[], Any]) -> None:
+        self._node = node
+        self._settings = settings
+        self._estimator = estimator
+        self._feeder = feeder
+        self._signature = signature
+        self.path = settings['state_file']
+        self._fingerprint = persistence.configuration_fingerprint(settings)
+        self._failing = False
+        self._saved = None
+        self.restored = self._restore()
+
+    def _restore(self) -> bool:
+        """Restore the estimator and feeder from the file if it fits; log one line."""
+        logger = self._node.get_logger()
+        try:
+            sections = persistence.load_state(self.path, self._fingerprint)
+            if sections is None:
+                logger.info(f'state file {self.path} does not exist yet; starting fresh')
+                return False
+            self._load_sections(sections)
+        except persistence.StateRefused as error:
+            logger.warning(f'{error}; starting fresh')
+            return False
+        logger.info(f'state restored from {self.path}: {self._feeder.used} samples used, '
+                    f'{self._estimator.samples} since reset, valid {self._estimator.valid}')
+        return True
+
+    def _load_sections(self, sections: dict[str, persistence.Section]) -> None:
+        """Restore every section, or nothing (StateRefused): a half-restored node is worse."""
+        fresh = self._feeder.get_state()
+        try:
+            persistence.restore_estimator(self._estimator, sections['estimator'])
+            self._feeder.set_state(sections['feeder'][1])
+            # a live parameter: the value the node starts with applies, as without a state
+            self._estimator.forgetting_factor = self._settings['forgetting_factor']
+        except Exception as error:  # a missing key, a shape, a value the estimator refuses
+            self._estimator.reset()
+            self._feeder.set_state(fresh)
+            raise persistence.StateRefused(
+                f'state file {self.path} does not fit this estimator '
+                f'({type(error).__name__}: {error})') from None
+
+    def start(self, publish_estimates: Callable[[np.ndarray, np.ndarray, np.ndarray], None]
+              ) -> None:
+        """Publish a restored estimate at once (latched); save every period from now on."""
+        estimator = self._estimator
+        if self.restored:
+            self._saved = self._signature()  # the file holds it already
+        if self.restored and estimator.ready:
+            theta, uncompensated = estimator.theta, estimator.theta_uncompensated
+            if np.isfinite(theta).all() and np.isfinite(uncompensated).all():
+                publish_estimates(theta, uncompensated, estimator.noise)
+        self.timer = self._node.create_timer(self._settings['state_save_period'],
+                                             self._on_timer)
+
+    def _on_timer(self) -> None:
+        if self._signature() != self._saved:
+            self.save()
+
+    def save(self) -> bool:
+        """
+        Write the state file now (atomically); return whether it was written.
+
+        A failure is logged once (and the recovery once); the node keeps
+        running and tries again at the next period.
+        """
+        error = self._write()
+        if error is None and self._failing:
+            self._node.get_logger().info(f'state file {self.path} written again')
+        elif error is not None and not self._failing:
+            self._node.get_logger().error(error)
+        self._failing = error is not None
+        return error is None
+
+    def _write(self) -> str | None:
+        """Write the state file; return None, or the line that says why it failed."""
+        signature = self._signature()
+        sections = {'estimator': persistence.estimator_section(self._estimator),
+                    'feeder': ({}, self._feeder.get_state())}
+        try:
+            persistence.save_state(self.path, self._fingerprint, sections)
+        except (OSError, TypeError, ValueError) as error:
+            return (f'cannot write state file {self.path}: {error}; the node keeps '
+                    f'running and tries again every {self._settings["state_save_period"]:g} s')
+        self._saved = signature
+        return None
+
+    def save_and_destroy(self, destroy: Callable[[], None]) -> None:
+        """Save the state, run ``destroy`` (the node's own destroy_node), then log the save."""
+        error = self._write()
+        # logged after the node is gone, when its /rosout publisher (whose context a
+        # signal has already shut down) no longer takes the line
+        destroy()
+        if error is None:
+            self._node.get_logger().info(f'state saved to {self.path} at shutdown '
+                                         f'({self._feeder.used} samples used)')
+        elif not self._failing:
+            self._node.get_logger().error(error)
+
+
+__all__ = ['StateKeeper']
