@@ -325,6 +325,29 @@ def test_take_messages_equals_take_rows_message_by_message(count, period, window
     assert result.used == one.used and result.nonfinite == one.nonfinite
 
 
+@pytest.mark.parametrize('count, window, nan_row', [
+    (1, 0, None), (4, 0, 13), (1, 3, 40), (3, 2, None), (5, 0, None)])
+def test_take_messages_without_publishing_feeds_as_message_by_message(count, window, nan_row):
+    # The one-loop path (publish=False, timed=False): same updates, restarts, failures, counts.
+    rows = np.column_stack([np.arange(120.0), np.repeat(np.arange(30.0), 4)])
+    if nan_row is not None:
+        rows[nan_row, 0] = np.nan
+    make = dict(fail_on={17.0, 18.0, 61.0})
+    one = SampleFeeder(Recorder(**make), window, 2)
+    expected = per_message(one, rows, count)
+    block = SampleFeeder(Recorder(**make), window, 2)
+    result = block.take_messages(rows, count, publish=False, timed=False)
+    assert block.estimator.log == one.estimator.log
+    assert result.published == [] and result.estimates == []
+    assert [index for index, _ in result.failures] == expected[2] and result.failures
+    for name in ('used', 'nonfinite', 'unexcited', 'update_count'):
+        assert getattr(block, name) == getattr(one, name), name
+    assert result.used == one.used and result.unexcited == one.unexcited
+    assert block.since_publish == block.used  # nothing was published
+    if nan_row is None:  # a block with NaN goes message by message, timed
+        assert block.update_ns_total == 0  # counted, not timed
+
+
 def test_take_messages_checks_the_shape():
     feeder = SampleFeeder(Recorder())
     with pytest.raises(ValueError, match='whole messages of count = 2'):
