@@ -233,6 +233,38 @@ def test_a_bag_of_mixed_messages_replays_as_the_node_would(tmp_path, estimator, 
     assert quiet.times_ns.shape == (0,) and quiet.theta_trajectory.shape == (0, 6)
 
 
+@pytest.mark.parametrize('name', ['ding_miso', 'ikenoue_colored'])
+def test_the_summary_reader_reads_what_mcap_reads(name):
+    from bcid_ros.bag.summary import read_header, read_summary
+
+    with mcap_of(REPO / 'bags' / name).open('rb') as stream:
+        reader = make_reader(stream)
+        header, summary = reader.get_header(), reader.get_summary()
+        ours_header, ours = read_header(stream), read_summary(stream)
+    assert (ours_header.profile, ours_header.library) == (header.profile, header.library)
+    for ours_table, table in ((ours.schemas, summary.schemas),
+                              (ours.channels, summary.channels)):
+        assert sorted(ours_table) == sorted(table)
+        for key, record in ours_table.items():
+            for field in record._fields:
+                assert getattr(record, field) == getattr(table[key], field), field
+    assert len(ours.chunk_indexes) == len(summary.chunk_indexes) > 0
+    for record, theirs in zip(ours.chunk_indexes, summary.chunk_indexes):
+        for field in record._fields:
+            assert getattr(record, field) == getattr(theirs, field), field
+    for field in ours.statistics._fields:
+        assert getattr(ours.statistics, field) == getattr(summary.statistics, field), field
+
+
+def test_the_summary_reader_refuses_a_file_without_footer(tmp_path):
+    from bcid_ros.bag.summary import read_summary
+
+    path = tmp_path / 'cut.mcap'
+    path.write_bytes(mcap_of(REPO / 'bags' / 'ikeda_closed_loop').read_bytes()[:-40])
+    with path.open('rb') as stream, pytest.raises(ValueError, match='magic'):
+        read_summary(stream)
+
+
 def test_a_corrupt_message_index_is_a_clean_error(bag, tmp_path):
     from bcid_ros.errors import BcidError
 
