@@ -37,17 +37,40 @@ ESTIMATOR_NAMES = tuple(ESTIMATORS)
 SCENARIO_NAMES = tuple(name for name in SCENARIOS if name != 'custom')
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Return the argument parser of ``bcid`` with all subcommands."""
+#: Subcommand -> its one-line help.
+SUMMARIES = {
+    'replay': "run an estimator over a bag's /samples, no ROS graph",
+    'simulate': 'write a scenario bag offline, no ROS graph',
+    'reproduce': "run a paper's Monte Carlo study, write docs/",
+    'record': 'record topics to a rosbag2 MCAP over rclpy',
+    'play': 'play a bag over rclpy',
+    'info': 'topics, counts, duration and truth of a bag',
+    'demo': 'simulator + identifier nodes, converging live',
+    'analyze': 'choose the order and delay, validate and describe the model',
+}
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """
+    Return the argument parser of ``bcid`` with all subcommands.
+
+    With ``only``, the parser has that subcommand alone: argparse formats
+    help and looks up gettext translations for every parser and argument,
+    and all eight cost a few milliseconds of every ``bcid`` start-up.
+    """
     fmt = argparse.ArgumentDefaultsHelpFormatter
     parser = argparse.ArgumentParser(
         prog='bcid', formatter_class=fmt,
         description='Online bias-compensated system identification: offline tools.')
     parser.add_argument('--debug', action='store_true', help='show tracebacks on errors')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+    for name, summary in SUMMARIES.items():
+        if only is None or only == name:
+            ARGUMENTS[name](sub.add_parser(name, formatter_class=fmt, help=summary))
+    return parser
 
-    replay = sub.add_parser('replay', formatter_class=fmt,
-                            help="run an estimator over a bag's /samples, no ROS graph")
+
+def _replay_arguments(replay: argparse.ArgumentParser) -> None:
     replay.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
     replay.add_argument('--params', type=Path, required=True,
                         help='identifier parameter YAML (bcid_identifier: ros__parameters:)')
@@ -57,8 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
                         '(.mcap in the node topic format, or .csv)')
     replay.add_argument('--json', action='store_true', help='print one JSON summary to stdout')
 
-    simulate = sub.add_parser('simulate', formatter_class=fmt,
-                              help='write a scenario bag offline, no ROS graph')
+
+def _simulate_arguments(simulate: argparse.ArgumentParser) -> None:
     simulate.add_argument('--scenario', choices=SCENARIO_NAMES, required=True)
     simulate.add_argument('--samples', type=int, required=True)
     simulate.add_argument('--seed', type=int, default=0)
@@ -66,22 +89,23 @@ def build_parser() -> argparse.ArgumentParser:
                           help='sample rate for the bag time stamps (Hz)')
     simulate.add_argument('--out', type=Path, required=True, help='output bag directory')
 
-    reproduce = sub.add_parser('reproduce', formatter_class=fmt,
-                               help="run a paper's Monte Carlo study, write docs/")
+
+def _reproduce_arguments(reproduce: argparse.ArgumentParser) -> None:
     reproduce.add_argument('paper', choices=('ding', 'ikenoue', 'ikeda', 'all'))
     reproduce.add_argument('--runs', type=int, help="Monte Carlo runs (default: the paper's)")
     reproduce.add_argument('--quick', action='store_true', help='a small, fast version')
     reproduce.add_argument('--out-dir', type=Path, default=Path('docs'),
                            help='where to write the Markdown and PNG files')
 
-    record = sub.add_parser('record', formatter_class=fmt,
-                            help='record topics to a rosbag2 MCAP over rclpy')
+
+def _record_arguments(record: argparse.ArgumentParser) -> None:
     record.add_argument('out', type=Path, help='output bag directory')
     record.add_argument('--topics', nargs='+', required=True, help='topics to record')
     record.add_argument('--duration', type=float, default=0.0,
                         help='stop after this many seconds (0: until SIGINT)')
 
-    play = sub.add_parser('play', formatter_class=fmt, help='play a bag over rclpy')
+
+def _play_arguments(play: argparse.ArgumentParser) -> None:
     play.add_argument('bag', type=Path)
     play.add_argument('--rate', type=float, default=1.0,
                       help='time scale; 0 plays as fast as possible')
@@ -92,12 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
     play.add_argument('--delay', type=float, default=0.0, metavar='SECONDS',
                       help='wait this long after creating the publishers, before playing')
 
-    info = sub.add_parser('info', formatter_class=fmt,
-                          help='topics, counts, duration and truth of a bag')
+
+def _info_arguments(info: argparse.ArgumentParser) -> None:
     info.add_argument('bag', type=Path)
 
-    demo = sub.add_parser('demo', formatter_class=fmt,
-                          help='simulator + identifier nodes, converging live')
+
+def _demo_arguments(demo: argparse.ArgumentParser) -> None:
     demo.add_argument('--scenario', choices=SCENARIO_NAMES + ('adaptive_loop',),
                       default='ding_miso', help='a paper scenario, or adaptive_loop: plant, '
                       'identifier and adaptive controller as three processes')
@@ -111,8 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument('--out-dir', type=Path, default=Path('demo_output'),
                       help='where to write the PNG of the run')
 
-    analyze = sub.add_parser('analyze', formatter_class=fmt,
-                             help='choose the order and delay, validate and describe the model')
+
+def _analyze_arguments(analyze: argparse.ArgumentParser) -> None:
     analyze.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
     analyze.add_argument('--params', type=Path, required=True,
                          help='identifier parameter YAML (its estimator and settings)')
@@ -127,7 +151,19 @@ def build_parser() -> argparse.ArgumentParser:
                          help='sample period in seconds: adds continuous-time equivalents')
     analyze.add_argument('--plot', type=Path, metavar='OUT.png', help='write the figure')
     analyze.add_argument('--json', action='store_true', help='print one JSON object to stdout')
-    return parser
+
+
+#: Subcommand -> the function that adds its arguments.
+ARGUMENTS = {
+    'replay': _replay_arguments,
+    'simulate': _simulate_arguments,
+    'reproduce': _reproduce_arguments,
+    'record': _record_arguments,
+    'play': _play_arguments,
+    'info': _info_arguments,
+    'demo': _demo_arguments,
+    'analyze': _analyze_arguments,
+}
 
 
 def reproduce(args: argparse.Namespace) -> int:
@@ -143,7 +179,10 @@ def reproduce(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``bcid``; returns the process exit code."""
-    parser = build_parser()
+    words = sys.argv[1:] if argv is None else argv
+    # The first word that is not an option names the subcommand; only it needs its arguments.
+    command = next((word for word in words if not word.startswith('-')), None)
+    parser = build_parser(command if command in SUMMARIES else None)
     args = parser.parse_args(argv)
     module, function = HANDLERS[args.command].split(':')
     try:

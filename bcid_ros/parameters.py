@@ -424,8 +424,9 @@ def load_yaml_parameters(path: str | Path, node_name: str = 'bcid_identifier') -
     import yaml
 
     text = Path(path).read_text()
+    loader = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)  # libyaml's, where it was built
     try:
-        document = yaml.safe_load(text)
+        document = yaml.load(text, Loader=loader)
     except yaml.YAMLError as error:
         raise ValueError(f'{path}: not valid YAML: {error}') from None
     if not isinstance(document, dict):

@@ -503,7 +503,8 @@ class SampleFeeder:
         self._add_estimates(result)
         return result
 
-    def take_messages(self, rows: np.ndarray, count: int, publish: bool = True) -> BlockResult:
+    def take_messages(self, rows: np.ndarray, count: int, publish: bool = True,
+                      timed: bool = True) -> BlockResult:
         """
         Feed consecutive messages of ``count`` samples each, with the rule of :meth:`take_rows`.
 
@@ -520,6 +521,11 @@ class SampleFeeder:
         publish : bool
             Whether to collect the due estimates; without, nothing is
             checked for publication (for a caller that publishes nothing).
+        timed : bool
+            Whether to time each update for :meth:`take_update_times`; without,
+            the updates of a finite block are counted but not timed (for a caller
+            that reports no update times: two clock readings cost a few per cent
+            of an update).
 
         Returns
         -------
@@ -539,7 +545,7 @@ class SampleFeeder:
                              f'1 + num_inputs = {width} values, got shape {rows.shape}')
         result = BlockResult()
         if not self.freeze_unexcited and block_is_finite(rows):
-            self._take_finite(rows, count, publish, result)
+            self._take_finite(rows, count, publish, result, timed)
         else:
             self._take_each(rows, count, publish, result)
         return result
@@ -562,7 +568,7 @@ class SampleFeeder:
                 self._collect(result, index)
 
     def _take_finite(self, rows: np.ndarray, count: int, publish: bool,
-                     result: BlockResult) -> None:
+                     result: BlockResult, timed: bool = True) -> None:
         """Feed finite samples: one loop over the samples, the excitation check vectorised."""
         messages = rows.shape[0] // count
         updates = total = 0
@@ -572,7 +578,7 @@ class SampleFeeder:
             while first < messages:
                 # Until an update fails, from message ``first`` on; then again after it.
                 first, done, elapsed = self._take_finite_from(rows, count, first, publish,
-                                                              result, largest)
+                                                              result, largest, timed)
                 updates += done
                 total += elapsed[0]
                 largest = elapsed[1]
@@ -582,17 +588,16 @@ class SampleFeeder:
             self.update_ns_max = largest
 
     def _take_finite_from(self, rows: np.ndarray, count: int, first: int, publish: bool,
-                          result: BlockResult, largest: int
+                          result: BlockResult, largest: int, timed: bool = True
                           ) -> tuple[int, int, tuple[int, int]]:
         """
         Feed messages from ``first`` on until one fails or all are done.
 
-        Returns the message to go on from, the updates made and their
-        ``(total, largest)`` time in ns.
+        Without ``publish`` nothing happens between messages, so the samples
+        of all go through one loop. Returns the message to go on from, the
+        updates made and their ``(total, largest)`` time in ns.
         """
         estimator = self.estimator
-        update = estimator.update_trusted
-        clock = time.perf_counter_ns
         period = self.publish_period
         window = self.excitation_window
         inputs = rows[first * count:, 1:]
@@ -602,40 +607,78 @@ class SampleFeeder:
         outputs = rows[first * count:, 0].tolist()
         input_rows = list(inputs)
         messages = len(outputs) // count
+        if self._restart_pending:  # only a failure sets it, and a failure ends this call
+            estimator.restart_regressor()
+            self._restart_pending = False
         updates = total = sample = 0
         failed = None
-        for index in range(messages):
-            stop = sample + count
-            try:
-                if self._restart_pending:
-                    estimator.restart_regressor()
-                    self._restart_pending = False
-                while sample < stop:
-                    start = clock()
-                    update(outputs[sample], input_rows[sample])
-                    elapsed = clock() - start
-                    updates += 1
-                    total += elapsed
-                    if elapsed > largest:
-                        largest = elapsed
-                    sample += 1
-            except Exception as error:  # as in take_rows: drop the rest, restart
+        for index in range(messages if publish else 1):
+            stop = sample + count if publish else len(outputs)
+            done, elapsed, largest, error = self._run_updates(outputs, input_rows, sample, stop,
+                                                              timed, largest)
+            updates += done
+            total += elapsed
+            sample += done
+            if publish:
+                whole, start = (1 if error is None else 0), index
+            else:
+                whole, start = (messages if error is None else sample // count), 0
+            self._count_messages(whole, count, unexcited, start, result)
+            if error is not None:  # as in take_rows: drop the rest, restart
+                failed = sample // count
                 self._restart_pending = True
-                result.failures.append((first + index, repr(error)))
-                failed = index
+                result.failures.append((first + failed, repr(error)))
                 break
-            self.used += count
-            self.since_publish += count
-            result.used += count
-            if unexcited is not None:
-                self.unexcited += unexcited[index]
-                result.unexcited += unexcited[index]
             if publish and self.since_publish >= period and estimator.ready:
                 self._collect(result, first + index)
         if runs is not None:
             self._keep_run(runs, inputs, min(sample, len(outputs) - 1))
         following = first + messages if failed is None else first + failed + 1
         return following, updates, (total, largest)
+
+    def _count_messages(self, messages: int, count: int, unexcited: list[int] | None,
+                        start: int, result: BlockResult) -> None:
+        """Count ``messages`` whole messages of ``count`` samples from ``start`` on as used."""
+        if messages <= 0:
+            return
+        used = messages * count
+        self.used += used
+        self.since_publish += used
+        result.used += used
+        if unexcited is not None:
+            quiet = sum(unexcited[start:start + messages])
+            self.unexcited += quiet
+            result.unexcited += quiet
+
+    def _run_updates(self, outputs: list[float], inputs: list[np.ndarray], begin: int,
+                     end: int, timed: bool, largest: int
+                     ) -> tuple[int, int, int, Exception | None]:
+        """
+        Update on samples ``begin`` to ``end - 1``; stop at the first that raises.
+
+        Returns the updates made, their total and largest time in ns (0 and
+        ``largest`` unless ``timed``), and the exception (None if none).
+        """
+        update = self.estimator.update_trusted
+        sample, total = begin, 0
+        try:
+            if timed:
+                clock = time.perf_counter_ns
+                while sample < end:
+                    start = clock()
+                    update(outputs[sample], inputs[sample])
+                    elapsed = clock() - start
+                    total += elapsed
+                    if elapsed > largest:
+                        largest = elapsed
+                    sample += 1
+            else:
+                for sample in range(begin, end):
+                    update(outputs[sample], inputs[sample])
+                sample = end
+        except Exception as error:  # the caller drops the rest and restarts
+            return sample - begin, total, largest, error
+        return sample - begin, total, largest, None
 
     def _collect(self, result: BlockResult, index: int) -> None:
         """Add the estimates due after message ``index`` to ``result`` (or count them withheld)."""

@@ -233,6 +233,38 @@ def test_a_bag_of_mixed_messages_replays_as_the_node_would(tmp_path, estimator, 
     assert quiet.times_ns.shape == (0,) and quiet.theta_trajectory.shape == (0, 6)
 
 
+@pytest.mark.parametrize('name', ['ding_miso', 'ikenoue_colored'])
+def test_the_summary_reader_reads_what_mcap_reads(name):
+    from bcid_ros.bag.summary import read_header, read_summary
+
+    with mcap_of(REPO / 'bags' / name).open('rb') as stream:
+        reader = make_reader(stream)
+        header, summary = reader.get_header(), reader.get_summary()
+        ours_header, ours = read_header(stream), read_summary(stream)
+    assert (ours_header.profile, ours_header.library) == (header.profile, header.library)
+    for ours_table, table in ((ours.schemas, summary.schemas),
+                              (ours.channels, summary.channels)):
+        assert sorted(ours_table) == sorted(table)
+        for key, record in ours_table.items():
+            for field in record._fields:
+                assert getattr(record, field) == getattr(table[key], field), field
+    assert len(ours.chunk_indexes) == len(summary.chunk_indexes) > 0
+    for record, theirs in zip(ours.chunk_indexes, summary.chunk_indexes):
+        for field in record._fields:
+            assert getattr(record, field) == getattr(theirs, field), field
+    for field in ours.statistics._fields:
+        assert getattr(ours.statistics, field) == getattr(summary.statistics, field), field
+
+
+def test_the_summary_reader_refuses_a_file_without_footer(tmp_path):
+    from bcid_ros.bag.summary import read_summary
+
+    path = tmp_path / 'cut.mcap'
+    path.write_bytes(mcap_of(REPO / 'bags' / 'ikeda_closed_loop').read_bytes()[:-40])
+    with path.open('rb') as stream, pytest.raises(ValueError, match='magic'):
+        read_summary(stream)
+
+
 def test_a_corrupt_message_index_is_a_clean_error(bag, tmp_path):
     from bcid_ros.errors import BcidError
 
@@ -323,6 +355,29 @@ def test_take_messages_equals_take_rows_message_by_message(count, period, window
     for name in ('used', 'nonfinite', 'unexcited', 'since_publish', 'update_count'):
         assert getattr(block, name) == getattr(one, name), name
     assert result.used == one.used and result.nonfinite == one.nonfinite
+
+
+@pytest.mark.parametrize('count, window, nan_row', [
+    (1, 0, None), (4, 0, 13), (1, 3, 40), (3, 2, None), (5, 0, None)])
+def test_take_messages_without_publishing_feeds_as_message_by_message(count, window, nan_row):
+    # The one-loop path (publish=False, timed=False): same updates, restarts, failures, counts.
+    rows = np.column_stack([np.arange(120.0), np.repeat(np.arange(30.0), 4)])
+    if nan_row is not None:
+        rows[nan_row, 0] = np.nan
+    make = dict(fail_on={17.0, 18.0, 61.0})
+    one = SampleFeeder(Recorder(**make), window, 2)
+    expected = per_message(one, rows, count)
+    block = SampleFeeder(Recorder(**make), window, 2)
+    result = block.take_messages(rows, count, publish=False, timed=False)
+    assert block.estimator.log == one.estimator.log
+    assert result.published == [] and result.estimates == []
+    assert [index for index, _ in result.failures] == expected[2] and result.failures
+    for name in ('used', 'nonfinite', 'unexcited', 'update_count'):
+        assert getattr(block, name) == getattr(one, name), name
+    assert result.used == one.used and result.unexcited == one.unexcited
+    assert block.since_publish == block.used  # nothing was published
+    if nan_row is None:  # a block with NaN goes message by message, timed
+        assert block.update_ns_total == 0  # counted, not timed
 
 
 def test_take_messages_checks_the_shape():

@@ -106,7 +106,7 @@ def topic_blocks(stream: Any, summary: Any, channel_ids: set[int],
     ----------
     stream : binary file
         The MCAP file, seekable.
-    summary : mcap.records.Summary
+    summary : bcid_ros.bag.summary.Summary
         Its summary (chunk indexes with message index offsets).
     channel_ids : set of int
         The topic's channels.

@@ -8,7 +8,6 @@ The bag subcommands of ``bcid``: replay, simulate, record, play, info.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from bcid_ros.errors import BcidError
@@ -30,6 +29,8 @@ def replay(args: argparse.Namespace) -> int:
     if args.output is not None:
         write_output(result, args.output)
     if args.json:
+        import json
+
         print(json.dumps(result.summary()))
         return 0
     rate = result.samples / result.elapsed_s if result.elapsed_s > 0 else float('inf')

@@ -1,5 +1,5 @@
 """
-Read rosbag2 MCAP bags with ``mcap`` and ``mcap_ros2`` (no rclpy).
+Read rosbag2 MCAP bags (no rclpy).
 
 :class:`BagReader` opens a bag directory (``metadata.yaml`` + ``*.mcap``) or
 a single ``.mcap`` file, checks that it is a ROS 2 MCAP (profile ``ros2``,
@@ -9,8 +9,10 @@ truncated, corrupt, not MCAP, a topic missing or of the wrong type) into a
 
 The samples are read by :meth:`BagReader.blocks` (:mod:`bcid_ros.bag.blocks`):
 chunks in file order, checked to be in log-time order, and runs of messages
-decoded at once. Only what that needs is imported up front; ``rosbags`` (for
-the QoS) and ``mcap_ros2`` (for messages of another form) are imported when
+decoded at once; the header and summary are read by :mod:`bcid_ros.bag.summary`.
+Only what that needs is imported up front; ``mcap`` (for :meth:`BagReader.messages`
+and bags without chunk indexes), ``mcap_ros2`` (for messages of another form),
+``rosbags`` (for the QoS) and ``yaml`` (for ``metadata.yaml``) are imported when
 used, which keeps ``bcid replay``'s start-up short.
 """
 
@@ -19,23 +21,36 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 import struct
+import sys
 from typing import Any, Iterator, Sequence
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 import numpy as np
-import yaml
 import zstandard
 
 from bcid_ros.bag.blocks import MessageBlock, ordered_blocks, OrderReport, topic_blocks
+from bcid_ros.bag.summary import read_header, read_summary
 from bcid_ros.errors import BcidError
 from bcid_ros.nodes.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
                                       TRUE_PARAMETERS)
 from bcid_ros.samples import parse_names_label
 
-#: Failures of the MCAP and CDR layers that mean "this file is broken".
-READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError,
+#: Failures of the MCAP and CDR layers that mean "this file is broken" (and ``mcap``'s
+#: McapError where ``mcap`` reads: :func:`read_errors`).
+READ_ERRORS = (struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError,
                IndexError, UnicodeDecodeError, TypeError)
+
+
+def read_errors() -> tuple[type[Exception], ...]:
+    """Return :data:`READ_ERRORS`, with ``mcap``'s McapError once ``mcap`` was imported."""
+    mcap = sys.modules.get('mcap.exceptions')
+    return READ_ERRORS if mcap is None else READ_ERRORS + (mcap.McapError,)
+
+
+def make_reader(stream: Any, **options: Any) -> Any:
+    """Return ``mcap``'s reader of ``stream`` (imported here: summaries and blocks need none)."""
+    from mcap.reader import make_reader as make
+
+    return make(stream, **options)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,8 +114,11 @@ def bag_files(path: Path) -> list[Path]:
         return [path]
     metadata = path / 'metadata.yaml'
     if metadata.is_file():
+        import yaml
+
+        loader = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)  # libyaml's, where built
         try:
-            info = yaml.safe_load(metadata.read_text())['rosbag2_bagfile_information']
+            info = yaml.load(metadata.read_text(), Loader=loader)['rosbag2_bagfile_information']
             names = list(info['relative_file_paths'])
             storage = info.get('storage_identifier', 'mcap')
         except (yaml.YAMLError, TypeError, KeyError) as error:
@@ -150,10 +168,9 @@ class BagReader:
     def _read_summary(self, file: Path) -> None:
         try:
             with file.open('rb') as stream:
-                reader = make_reader(stream)
-                header = reader.get_header()
-                summary = reader.get_summary()
-        except READ_ERRORS as error:
+                header = read_header(stream)
+                summary = read_summary(stream)
+        except read_errors() as error:
             raise BcidError(f'{file}: not a readable MCAP file, truncated or corrupt '
                             f'({type(error).__name__}: {error})') from None
         if header.profile != 'ros2':
@@ -249,7 +266,7 @@ class BagReader:
                         yield from topic_blocks(stream, summary, channels, fallback, order)
                     else:
                         yield from self._unindexed_blocks(stream, topic, fallback, order)
-            except READ_ERRORS as error:
+            except read_errors() as error:
                 raise BcidError(f'{file}: corrupt MCAP data or CDR message '
                                 f'({type(error).__name__}: {error})') from None
 
@@ -299,7 +316,7 @@ class BagReader:
                     reader = make_reader(stream)
                     for _, channel, message in reader.iter_messages(topics=topics):
                         yield channel.topic, message.log_time, message.data
-            except READ_ERRORS as error:
+            except read_errors() as error:
                 raise BcidError(f'{file}: corrupt MCAP data ({type(error).__name__}: '
                                 f'{error})') from None
 
@@ -323,7 +340,7 @@ class BagReader:
                     reader = make_reader(stream, decoder_factories=[DecoderFactory()])
                     for item in reader.iter_decoded_messages(topics=topics):
                         yield item.channel.topic, item.message.log_time, item.decoded_message
-            except READ_ERRORS as error:
+            except read_errors() as error:
                 raise BcidError(f'{file}: corrupt MCAP data or CDR message '
                                 f'({type(error).__name__}: {error})') from None
 

@@ -187,7 +187,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
             failures += failures_here
             continue
         # The node's per-message rule, for the whole block in one loop.
-        result = feeder.take_messages(rows, count, publish=trajectory)
+        result = feeder.take_messages(rows, count, publish=trajectory, timed=False)
         failures += len(result.failures)
         for index, used, estimates in zip(result.published, result.used_totals,
                                           result.estimates):
