@@ -4,8 +4,8 @@ The identifier's latched estimate topics (docs/nodes.md, "identifier_node").
 :class:`EstimatePublisher` turns one estimator's results into messages:
 ``~/parameters``, ``~/parameters_uncompensated``, ``~/noise_variance``,
 ``~/parameter_std`` and ``~/parameter_covariance`` (when the estimator has
-them), ``~/operating_point`` (with ``detrend: mean``) and ``~/valid`` (when
-it changes).
+them and someone subscribes to them), ``~/operating_point`` (with
+``detrend: mean``) and ``~/valid`` (when it changes).
 """
 
 from __future__ import annotations
@@ -71,14 +71,33 @@ class EstimatePublisher:
         self._publish(interface.PARAMETERS_UNCOMPENSATED, uncompensated)
         if noise.size and np.isfinite(noise).all():
             self._publish(interface.NOISE_VARIANCE, noise)
-        covariance = self._estimator.parameter_covariance
-        if covariance is not None:  # the estimator has it now
-            self._publish(interface.PARAMETER_STD, standard_deviations(covariance))
-            self._publish(interface.PARAMETER_COVARIANCE, covariance)
+        self._publish_uncertainty()
         operating_point = self._estimator.operating_point
         if operating_point is not None:
             self._publish(interface.OPERATING_POINT, operating_point)
         self.published += 1
+
+    def _publish_uncertainty(self) -> None:
+        """
+        Publish the std and covariance to whichever of the two has subscribers.
+
+        Computing them (bcrls's sandwich, bciv's delta method) costs more than
+        the rest of a frame's publishing, so it is done only when read; a
+        subscriber that joins gets the next estimate's.
+        """
+        std, covariance = (self._topics[interface.PARAMETER_STD][0],
+                           self._topics[interface.PARAMETER_COVARIANCE][0])
+        wanted_std, wanted_covariance = (std.get_subscription_count() > 0,
+                                         covariance.get_subscription_count() > 0)
+        if not (wanted_std or wanted_covariance):
+            return
+        values = self._estimator.parameter_covariance
+        if values is None:  # the estimator has none (yet)
+            return
+        if wanted_std:
+            self._publish(interface.PARAMETER_STD, standard_deviations(values))
+        if wanted_covariance:
+            self._publish(interface.PARAMETER_COVARIANCE, values)
 
     def _publish(self, topic: str, values: Any) -> None:
         publisher, message = self._topics[topic]
