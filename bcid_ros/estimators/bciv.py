@@ -764,6 +764,7 @@ class Bciv(RecursiveEstimator):
     #: Extra constructor keywords that are ROS parameters (docs/nodes.md).
     options: tuple[str, ...] = ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
                                 'bciv_update', 'allow_underdetermined')
+    _guarded_update = RecursiveEstimator._step_transaction
 
     def __init__(self, *, iv_lag: int = 5, input_noise: str = 'colored',
                  idle_samples: int = 100, bciv_iterations: int = 20,
@@ -816,6 +817,14 @@ class Bciv(RecursiveEstimator):
                                       + [2 * (k - 1) + 1 for k in lags], dtype=np.intp)
         self._error_theta = np.array(list(range(self.order)) + [
             self.order + i for i, k in enumerate(solver.lags) if k > 0], dtype=np.intp)
+        # what a step may change, for the transaction; not the history window, which the
+        # undo's restart empties
+        self._name_step_state(
+            ('_theta_iv', '_theta_bciv', '_gamma', '_filled', '_tau', '_decay', '_line_position',
+             '_line_filled', '_updates', '_iterations_used', '_signal_count', '_error_count',
+             '_input_power', '_output_power', '_error_power', '_next_check', '_last_power',
+             '_fallbacks_checked', '_reasons', '_last_status', '_signal_scale'),
+            ('_moments', '_line') if self._delay else ('_moments',))
         self._reset()
 
     # ------------------------------------------------------------- the step
@@ -975,9 +984,11 @@ class Bciv(RecursiveEstimator):
     def _choose_scales(self) -> None:
         """Give z and w, if still without a scale, the power of two of the window's peak."""
         peaks = np.abs(self._history).max(axis=0)
+        scales = self._signal_scale.copy()
         for channel in (0, 1):
-            if self._signal_scale[channel] == 0.0 and peaks[channel] > 0.0:
-                self._signal_scale[channel] = power_of_two_at_least(float(peaks[channel]))
+            if scales[channel] == 0.0 and peaks[channel] > 0.0:
+                scales[channel] = power_of_two_at_least(float(peaks[channel]))
+        self._signal_scale = scales
         self._set_scale_dependents()
 
     def _set_scale_dependents(self) -> None:
@@ -1134,6 +1145,12 @@ class Bciv(RecursiveEstimator):
                    'last_power': self._last_power, 'fallbacks_checked': self._fallbacks_checked,
                    'reasons': self._reasons, 'last_status': self._last_status}
         return arrays, scalars
+
+    def _step_restored(self) -> None:
+        self._set_scale_dependents()
+        if self._updates > 0:  # M_N^-1 for covariance_trace
+            self._solver.estimate(self._moments, self._regularisation(),
+                                  mode='idle', iterations=0, tolerance=self.tolerance)
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._moments[...] = arrays['moments']
