@@ -377,6 +377,8 @@ class ClosedLoopBcls(RecursiveEstimator):
         self.max_iterations = check_int('max_iterations', max_iterations, 1)
         self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
         self._gate_from = GATE_WARMUP * self.num_parameters
+        # psi = D phi, D = diag(-I_n, I_n) (eq. 13)
+        self._psi_signs = np.repeat([-1.0, 1.0], self.order)
         # what a step may change, for the transaction; not the window's rows, the
         # excitation meter's lags and the pending sample, which the undo's restart empties
         in_place = ('_theta_ls', '_p', '_excitation.sums')
@@ -604,8 +606,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         lam = self._forgetting_factor
         # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
         target = y - self._prefilter[1:].dot(phi[:n])
-        psi = phi.copy()
-        psi[:n] = -psi[:n]
+        psi = phi * self._psi_signs
         theta = self._theta_ls
         g = self._p.dot(psi)
         s = lam + psi.dot(g)
@@ -627,7 +628,7 @@ class ClosedLoopBcls(RecursiveEstimator):
             self._cross *= lam
             self._energy *= lam
             self._epoch_weights *= lam
-        self._information += np.outer(psi, psi)
+        self._information += psi[:, None] * psi
         self._cross += psi * target
         self._energy += target * target
         self._epoch_weights[-1] += 1.0
