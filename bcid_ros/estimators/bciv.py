@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 from scipy.linalg.blas import dger
@@ -545,7 +545,7 @@ class BcivSolver:
         scale = math.sqrt(direction.dot(direction))
         tolerance_sigma = tolerance / scale if scale > 0.0 else math.inf
 
-        def f(sigma: float) -> tuple[float | None, np.ndarray | None]:
+        def by_lapack(sigma: float) -> tuple[float | None, Any]:
             """Return the value of f and [b; 1] at sigma, or None if either is undefined."""
             _, _, u, info = dgesv(identity - sigma * gain_b, b_iv)
             if info != 0:
@@ -555,6 +555,10 @@ class BcivSolver:
                 return None, None
             return (linear + sigma * curvature) / denominator, u
 
+        # for n <= 2 the same f on Python floats: there the calls cost more than the sums
+        f = by_lapack if nb > 2 else _small_white_function(
+            gain_b[:nb, :nb].tolist(), b_iv[:nb].tolist(), forms[0, :nb, :nb].tolist(),
+            forms[1, :nb, :nb].tolist(), forms[2, nb, :nb].tolist())
         # secant steps on phi(sigma) = sigma - f(sigma)
         s_0 = float(start)
         f_1, u = f(s_0)
@@ -614,6 +618,46 @@ class BcivSolver:
         columns += [w[t - (lag - 1 + j)] for j in self.lags]
         columns.append(-z[t - (lag - 1)])
         return eta, np.stack(columns, axis=1)
+
+
+def _small_white_function(gain: list[list[float]], b_iv: list[float], gram: list[list[float]],
+                          curvature_form: list[list[float]], linear_form: list[float]
+                          ) -> Callable[[float], tuple[float | None, list[float] | None]]:
+    r"""
+    Return f(sigma) of :meth:`BcivSolver._white_fixed_point` for nb <= 2, on Python floats.
+
+    The same function as there: b solves :math:`(I - \sigma [GE]_b)\,b = \hat b_{IV}`,
+    here by Cramer's rule (an n x n system with n <= 2), and the three forms are
+    written out; LAPACK and numpy calls cost more than this arithmetic. Returns
+    (None, None) where the system is singular or the denominator not positive.
+    """
+    size = len(b_iv)
+
+    def f(sigma: float) -> tuple[float | None, list[float] | None]:
+        if size == 1:
+            determinant = 1.0 - sigma * gain[0][0]
+            if determinant == 0.0:
+                return None, None
+            b = [b_iv[0] / determinant]
+        else:
+            (g00, g01), (g10, g11) = gain
+            a00, a01, a10, a11 = 1.0 - sigma * g00, -sigma * g01, -sigma * g10, 1.0 - sigma * g11
+            determinant = a00 * a11 - a01 * a10
+            if determinant == 0.0:
+                return None, None
+            b = [(a11 * b_iv[0] - a01 * b_iv[1]) / determinant,
+                 (a00 * b_iv[1] - a10 * b_iv[0]) / determinant]
+        denominator = curvature = linear = 0.0
+        for i in range(size):
+            linear += linear_form[i] * b[i]
+            for j in range(size):
+                product = b[i] * b[j]
+                denominator += gram[i][j] * product
+                curvature += curvature_form[i][j] * product
+        if not denominator > 0.0:
+            return None, None
+        return (linear + sigma * curvature) / denominator, b
+    return f
 
 
 @functools.lru_cache(maxsize=None)
