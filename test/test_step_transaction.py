@@ -14,7 +14,9 @@ import pytest
 
 from bcid_ros.estimators import cl_bcls as cl_bcls_module
 from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.base import all_finite
 from bcid_ros.estimators.bciv import Bciv
+from bcid_ros.estimators.cl_bcls import update_is_safe
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
 
@@ -148,3 +150,23 @@ def test_a_plain_cl_bcls_step_checks_its_update_before_committing_it(settings):
     make = make_cl_bcls(**settings)
     at = first_redesign_after(make, y, u, 300) + 50
     undo_against_restart(make, y, u, at, non_finite_update_once, skip=('samples',), settle=1)
+
+
+# ------------------------------------------------------------------- the checks
+def test_all_finite_tells_nan_and_inf_from_an_overflowing_sum():
+    assert all_finite(np.array([1.0, -2.0]), np.zeros(0), np.array([3.0]))
+    # finite values whose sum overflows are finite: the exact test decides
+    assert all_finite(np.array([1.7e308, 1.7e308]), np.array([-1.7e308]))
+    for bad in (np.nan, np.inf, -np.inf):
+        assert not all_finite(np.array([1.0, bad]), np.array([2.0]))
+        assert not all_finite(np.array([1.0]), np.array([bad, -bad]))
+
+
+def test_update_is_safe_is_conservative():
+    theta, step = np.array([1.0, -2.0]), np.array([3.0, 4.0])
+    assert update_is_safe(theta, step, 1e100)
+    assert not update_is_safe(theta, step, 1e160)  # |step| 5e160: it might overflow
+    with np.errstate(over='ignore'):  # (theta' theta overflows: that is why it says no)
+        assert not update_is_safe(np.array([1e160, 0.0]), step, 1.0)
+    assert not update_is_safe(theta, np.array([np.nan, 0.0]), 1.0)
+    assert not update_is_safe(theta, step, np.inf)
