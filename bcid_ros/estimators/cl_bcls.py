@@ -814,7 +814,9 @@ class ClosedLoopBcls(RecursiveEstimator):
         if pos == self._buffer.shape[0]:
             self._buffer[:self.window] = self._buffer[self.window:]
             pos = self.window
-        self._buffer[pos] = (y, u0)
+        buffer = self._buffer
+        buffer[pos, 0] = y
+        buffer[pos, 1] = u0
         self._pos = pos + 1
         if self._filled < self.window:
             self._filled += 1
@@ -974,6 +976,11 @@ class ClosedLoopBcls(RecursiveEstimator):
         return tuple(reasons)
 
     # --------------------------------------------------------- the accessors
+    @property
+    def valid(self) -> bool:
+        """Whether the estimate can be trusted (the base class's, asked at every sample)."""
+        return self._direction is not None and not self._validity_reasons()
+
     @property
     def ready(self) -> bool:
         """Whether a compensation (redesign) has succeeded since the last reset or change."""
