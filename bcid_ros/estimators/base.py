@@ -27,6 +27,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
+import operator
 from typing import Any, ClassVar
 
 import numpy as np
@@ -77,6 +78,20 @@ def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
     if covariance is None:
         return None
     return np.sqrt(np.maximum(np.diagonal(covariance), 0.0))
+
+
+def all_finite(*vectors: np.ndarray) -> bool:
+    """
+    Return whether every value of the 1-D float arrays ``vectors`` is finite.
+
+    The sum of all the values is finite when they are, which one cheap sum of
+    Python floats tells in the usual case; a non-finite sum is a NaN, an Inf
+    or an overflow of finite values, which the exact test then tells apart.
+    """
+    total = 0.0
+    for vector in vectors:
+        total += sum(vector.tolist())
+    return math.isfinite(total) or all(bool(np.isfinite(vector).all()) for vector in vectors)
 
 
 def weighted_square_ratio(tau: float, forgetting_factor: float) -> float:
@@ -697,7 +712,8 @@ class RecursiveEstimator(abc.ABC):
         counted as ``update_undone`` and restarts the regressor, so the suspect
         sample does not enter the next regressors either. Estimators that can
         tell before committing whether a step is sound override this with an
-        exact and cheaper form (:class:`~bcid_ros.estimators.rls.Rls`).
+        exact and cheaper form (:class:`~bcid_ros.estimators.rls.Rls`);
+        those that name what a step changes take :meth:`_step_transaction`.
         """
         if self._checkpoint is None or self._since_checkpoint >= self._checkpoint_period:
             arrays, scalars = self._state_items()
@@ -714,11 +730,56 @@ class RecursiveEstimator(abc.ABC):
                              dict(scalars))
             self._undo('update_undone')
 
+    def _name_step_state(self, attributes: tuple[str, ...], arrays: tuple[str, ...]) -> None:
+        """
+        Name what one step may change, for :meth:`_step_transaction`.
+
+        ``attributes`` are those a step may rebind (kept by reference: the
+        objects they refer to must not be changed in place), ``arrays`` the
+        arrays or lists it may change in place (copied; dotted paths
+        allowed). An array that a step may also rebind is named in both.
+        """
+        self._step_attributes = attributes
+        self._step_split = len(attributes)
+        # one C-level call reads them all (it returns a tuple from two names on)
+        read = operator.attrgetter(*attributes, *arrays)
+        self._read_step_state = read if len(attributes + arrays) > 1 else (
+            lambda obj: (read(obj),))
+
+    def _step_transaction(self, y: float, u: np.ndarray) -> None:
+        """
+        Do one step as an exact transaction that saves only what the step may change.
+
+        The light form of :meth:`_guarded_update`, for estimators that name
+        what one step may change (:meth:`_name_step_state`): before every
+        sample it keeps references to those attributes and copies of those
+        arrays (a few dozen numbers, where the generic checkpoint copies the
+        whole state), steps, and checks with :meth:`_is_sound`. An unsound
+        step puts them back, calls :meth:`_step_restored`, is counted as
+        ``update_undone`` and restarts the regressor: the state is exactly the
+        one before the sample with the regressor restarted (what the restart
+        clears need not be saved; the flags and the gate's change score count
+        on, as with the generic form).
+        """
+        saved = self._read_step_state(self)
+        arrays = saved[self._step_split:]
+        copies = [array.copy() for array in arrays]
+        self._update(y, u)
+        if self._is_sound():
+            return
+        for name, value in zip(self._step_attributes, saved):
+            setattr(self, name, value)
+        for array, copy in zip(arrays, copies):
+            array[:] = copy
+        self._step_restored()
+        self._undo('update_undone')
+
+    def _step_restored(self) -> None:
+        """Recompute what derives from the state put back by :meth:`_step_transaction`."""
+
     def _is_sound(self) -> bool:
         """Whether the estimates and noise statistics are all finite."""
-        return bool(np.isfinite(self._theta()).all()
-                    and np.isfinite(self._theta_uncompensated()).all()
-                    and np.isfinite(self._noise()).all())
+        return all_finite(self._theta(), self._theta_uncompensated(), self._noise())
 
     def _undo(self, flag: str) -> None:
         """Count a refused step and restart the regressor."""

@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 from scipy.linalg.blas import dger
@@ -545,7 +545,7 @@ class BcivSolver:
         scale = math.sqrt(direction.dot(direction))
         tolerance_sigma = tolerance / scale if scale > 0.0 else math.inf
 
-        def f(sigma: float) -> tuple[float | None, np.ndarray | None]:
+        def by_lapack(sigma: float) -> tuple[float | None, Any]:
             """Return the value of f and [b; 1] at sigma, or None if either is undefined."""
             _, _, u, info = dgesv(identity - sigma * gain_b, b_iv)
             if info != 0:
@@ -555,6 +555,10 @@ class BcivSolver:
                 return None, None
             return (linear + sigma * curvature) / denominator, u
 
+        # for n <= 2 the same f on Python floats: there the calls cost more than the sums
+        f = by_lapack if nb > 2 else _small_white_function(
+            gain_b[:nb, :nb].tolist(), b_iv[:nb].tolist(), forms[0, :nb, :nb].tolist(),
+            forms[1, :nb, :nb].tolist(), forms[2, nb, :nb].tolist())
         # secant steps on phi(sigma) = sigma - f(sigma)
         s_0 = float(start)
         f_1, u = f(s_0)
@@ -614,6 +618,46 @@ class BcivSolver:
         columns += [w[t - (lag - 1 + j)] for j in self.lags]
         columns.append(-z[t - (lag - 1)])
         return eta, np.stack(columns, axis=1)
+
+
+def _small_white_function(gain: list[list[float]], b_iv: list[float], gram: list[list[float]],
+                          curvature_form: list[list[float]], linear_form: list[float]
+                          ) -> Callable[[float], tuple[float | None, list[float] | None]]:
+    r"""
+    Return f(sigma) of :meth:`BcivSolver._white_fixed_point` for nb <= 2, on Python floats.
+
+    The same function as there: b solves :math:`(I - \sigma [GE]_b)\,b = \hat b_{IV}`,
+    here by Cramer's rule (an n x n system with n <= 2), and the three forms are
+    written out; LAPACK and numpy calls cost more than this arithmetic. Returns
+    (None, None) where the system is singular or the denominator not positive.
+    """
+    size = len(b_iv)
+
+    def f(sigma: float) -> tuple[float | None, list[float] | None]:
+        if size == 1:
+            determinant = 1.0 - sigma * gain[0][0]
+            if determinant == 0.0:
+                return None, None
+            b = [b_iv[0] / determinant]
+        else:
+            (g00, g01), (g10, g11) = gain
+            a00, a01, a10, a11 = 1.0 - sigma * g00, -sigma * g01, -sigma * g10, 1.0 - sigma * g11
+            determinant = a00 * a11 - a01 * a10
+            if determinant == 0.0:
+                return None, None
+            b = [(a11 * b_iv[0] - a01 * b_iv[1]) / determinant,
+                 (a00 * b_iv[1] - a10 * b_iv[0]) / determinant]
+        denominator = curvature = linear = 0.0
+        for i in range(size):
+            linear += linear_form[i] * b[i]
+            for j in range(size):
+                product = b[i] * b[j]
+                denominator += gram[i][j] * product
+                curvature += curvature_form[i][j] * product
+        if not denominator > 0.0:
+            return None, None
+        return (linear + sigma * curvature) / denominator, b
+    return f
 
 
 @functools.lru_cache(maxsize=None)
@@ -764,6 +808,7 @@ class Bciv(RecursiveEstimator):
     #: Extra constructor keywords that are ROS parameters (docs/nodes.md).
     options: tuple[str, ...] = ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
                                 'bciv_update', 'allow_underdetermined')
+    _guarded_update = RecursiveEstimator._step_transaction
 
     def __init__(self, *, iv_lag: int = 5, input_noise: str = 'colored',
                  idle_samples: int = 100, bciv_iterations: int = 20,
@@ -816,6 +861,14 @@ class Bciv(RecursiveEstimator):
                                       + [2 * (k - 1) + 1 for k in lags], dtype=np.intp)
         self._error_theta = np.array(list(range(self.order)) + [
             self.order + i for i, k in enumerate(solver.lags) if k > 0], dtype=np.intp)
+        # what a step may change, for the transaction; not the history window, which the
+        # undo's restart empties
+        self._name_step_state(
+            ('_theta_iv', '_theta_bciv', '_gamma', '_filled', '_tau', '_decay', '_line_position',
+             '_line_filled', '_updates', '_iterations_used', '_signal_count', '_error_count',
+             '_input_power', '_output_power', '_error_power', '_next_check', '_last_power',
+             '_fallbacks_checked', '_reasons', '_last_status', '_signal_scale'),
+            ('_moments', '_line') if self._delay else ('_moments',))
         self._reset()
 
     # ------------------------------------------------------------- the step
@@ -975,9 +1028,11 @@ class Bciv(RecursiveEstimator):
     def _choose_scales(self) -> None:
         """Give z and w, if still without a scale, the power of two of the window's peak."""
         peaks = np.abs(self._history).max(axis=0)
+        scales = self._signal_scale.copy()
         for channel in (0, 1):
-            if self._signal_scale[channel] == 0.0 and peaks[channel] > 0.0:
-                self._signal_scale[channel] = power_of_two_at_least(float(peaks[channel]))
+            if scales[channel] == 0.0 and peaks[channel] > 0.0:
+                scales[channel] = power_of_two_at_least(float(peaks[channel]))
+        self._signal_scale = scales
         self._set_scale_dependents()
 
     def _set_scale_dependents(self) -> None:
@@ -1134,6 +1189,20 @@ class Bciv(RecursiveEstimator):
                    'last_power': self._last_power, 'fallbacks_checked': self._fallbacks_checked,
                    'reasons': self._reasons, 'last_status': self._last_status}
         return arrays, scalars
+
+    def _is_sound(self) -> bool:
+        # the base class's test, without its calls in the usual case: a finite sum means
+        # that every raw value is finite, the published noise then too
+        if math.isfinite(sum(self._theta_bciv.tolist()) + sum(self._theta_iv.tolist())
+                         + sum(self._gamma.tolist())):
+            return True
+        return super()._is_sound()
+
+    def _step_restored(self) -> None:
+        self._set_scale_dependents()
+        if self._updates > 0:  # M_N^-1 for covariance_trace
+            self._solver.estimate(self._moments, self._regularisation(),
+                                  mode='idle', iterations=0, tolerance=self.tolerance)
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._moments[...] = arrays['moments']

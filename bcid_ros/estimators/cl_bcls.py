@@ -16,12 +16,13 @@ docs/cl_bcls.md explains the settings, the safety rules and their reasons.
 from __future__ import annotations
 
 import math
+import operator
 from typing import Any, Sequence
 
 import numpy as np
 
-from bcid_ros.estimators.base import (check_forgetting_factor, check_int, check_range,
-                                      IMPLAUSIBLE_ERROR, power_of_two_at_least,
+from bcid_ros.estimators.base import (all_finite, check_forgetting_factor, check_int,
+                                      check_range, IMPLAUSIBLE_ERROR, power_of_two_at_least,
                                       RecursiveEstimator)
 from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, CompensationFailure,
                                                DEFAULT_TOLERANCE, is_contracting,
@@ -63,6 +64,8 @@ MAX_CONDITION = 1e8
 REFUSAL_SCORE = 3.0
 #: See REFUSAL_SCORE.
 REFUSAL_DECAY = 0.99
+#: Squared 2-norm below which an update cannot overflow (see update_is_safe).
+SAFE_SQUARE = 2.0 ** 1022
 #: Rows after a new prefilter (``window`` 0) during which only the gate's hard limit
 #: applies: the filters' transient and the new epoch's bias are not outliers.
 PREFILTER_SETTLE = 100
@@ -82,46 +85,51 @@ class _ExcitationMeter:
     """
 
     def __init__(self, controller: Controller) -> None:
-        # coefficients on [x[k], x[k-1], ..., x[k-m]] (q^-m times the polynomials)
-        self.a_c = controller.denominator.copy()
-        self.b_c = controller.feedback_numerator.copy()
-        size = self.a_c.size
-        self.y = np.zeros(size)
-        self.u = np.zeros(size)
+        # coefficients on [x[k], x[k-1], ..., x[k-m]] (q^-m times the polynomials); the
+        # meter works on Python floats: at these sizes numpy calls cost more than the sums
+        self.a_c = controller.denominator.tolist()
+        self.b_c = controller.feedback_numerator.tolist()
+        size = len(self.a_c)
+        self.y = [0.0] * size
+        self.u = [0.0] * size
         self.lags = 0
-        self.sums = np.zeros(5)  # weight, sum w, sum w^2, sum v, sum v^2
-        self.pending = np.zeros(3)  # y, u, 1 if held
+        self.sums = [0.0] * 5  # weight, sum w, sum w^2, sum v, sum v^2 (changed in place)
+        self.pending = [0.0] * 3  # y, u, 1 if held
 
     def restart(self) -> None:
         """Forget the lags and the pending sample (after a gap), keep the sums."""
-        self.y[:] = 0.0
-        self.u[:] = 0.0
+        size = len(self.a_c)
+        self.y = [0.0] * size
+        self.u = [0.0] * size
         self.lags = 0
         self.pending[2] = 0.0
 
     def update(self, y: float, u: float, forgetting: float) -> None:
         """Hold this sample and take the one held before it."""
         pending = self.pending
-        held, last_y, last_u = pending[2], pending[0], pending[1]
-        pending[:] = (y, u, 1.0)
-        if held:
-            self._take(last_y, last_u, forgetting)
-
-    def _take(self, y: float, u: float, forgetting: float) -> None:
-        self.y[1:] = self.y[:-1]
-        self.u[1:] = self.u[:-1]
-        self.y[0] = y
-        self.u[0] = u
-        if self.lags < self.a_c.size - 1:
+        if not pending[2]:
+            self.pending = [y, u, 1.0]
+            return
+        ys, us = self.y, self.u
+        ys.pop()
+        ys.insert(0, pending[0])
+        us.pop()
+        us.insert(0, pending[1])
+        self.pending = [y, u, 1.0]
+        if self.lags < len(ys) - 1:
             self.lags += 1
             return
-        v = self.b_c.dot(self.y)
+        v = sum(map(operator.mul, self.b_c, ys))
         # w = a_c(q) u + b_c(q) y = b_c(q) r
-        w = self.a_c.dot(self.u) + v
+        w = sum(map(operator.mul, self.a_c, us)) + v
         sums = self.sums
         if forgetting != 1.0:
-            sums *= forgetting
-        sums += (1.0, w, w * w, v, v * v)
+            sums[:] = [value * forgetting for value in sums]
+        sums[0] += 1.0
+        sums[1] += w
+        sums[2] += w * w
+        sums[3] += v
+        sums[4] += v * v
 
     def ratio(self) -> float:
         """Return var(w) / var(v) over the samples so far (0 if none, inf if v is constant)."""
@@ -136,18 +144,30 @@ class _ExcitationMeter:
 
     def state(self) -> np.ndarray:
         """Return the state as one flat array."""
-        return np.concatenate((self.y, self.u, self.sums, self.pending, [self.lags]))
+        return np.array(self.y + self.u + self.sums + self.pending + [self.lags], dtype=float)
 
     def load(self, flat: np.ndarray) -> None:
         """Load a state made by :meth:`state` (same controller order)."""
-        size = self.a_c.size
-        self.y = np.array(flat[:size])
-        self.u = np.array(flat[size:2 * size])
-        self.sums = np.array(flat[2 * size:2 * size + 5])
+        size = len(self.a_c)
+        values = np.asarray(flat, dtype=float).tolist()
+        self.y = values[:size]
+        self.u = values[size:2 * size]
+        self.sums = values[2 * size:2 * size + 5]
         # a state saved before the pending sample existed has none
-        self.pending = (np.array(flat[2 * size + 5:2 * size + 8])
-                        if flat.size == 2 * size + 9 else np.zeros(3))
-        self.lags = int(flat[-1])
+        self.pending = (values[2 * size + 5:2 * size + 8]
+                        if len(values) == 2 * size + 9 else [0.0] * 3)
+        self.lags = int(values[-1])
+
+
+def update_is_safe(theta: np.ndarray, direction: np.ndarray, ratio: float) -> bool:
+    """
+    Return True if theta + ratio * direction is surely finite (False: it may not be).
+
+    Entries below 2^511 in size sum to less than 2^512: one test of two dot
+    products for the usual case, conservative (NaN and overflow give False).
+    """
+    return (ratio * ratio * direction.dot(direction) < SAFE_SQUARE
+            and theta.dot(theta) < SAFE_SQUARE)
 
 
 def scaled_condition(matrix: np.ndarray) -> float:
@@ -357,6 +377,21 @@ class ClosedLoopBcls(RecursiveEstimator):
         self.max_iterations = check_int('max_iterations', max_iterations, 1)
         self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
         self._gate_from = GATE_WARMUP * self.num_parameters
+        # psi = D phi, D = diag(-I_n, I_n) (eq. 13)
+        self._psi_signs = np.repeat([-1.0, 1.0], self.order)
+        # what a step may change, for the transaction; not the window's rows, the
+        # excitation meter's lags and the pending sample, which the undo's restart empties
+        in_place = ('_theta_ls', '_p', '_excitation.sums')
+        if self.all_data:  # (with a window the moments stay zero)
+            in_place += ('_information', '_cross', '_epoch_weights', '_epoch_prefilters')
+        self._name_step_state(
+            ('_prefilter', '_shift', '_phi', '_lags', '_theta_ls', '_p', '_loss', '_count',
+             '_direction', '_beta', '_theta_bc', '_sigma2', '_holding', '_discriminant_ratio',
+             '_samples', '_scales', '_peaks', '_variance_floor', '_pos', '_filled',
+             '_since_redesign', '_redesigns', '_last_iterations', '_rows', '_next_redesign',
+             '_epoch_prefilters', '_epoch_weights', '_epoch_directions', '_epoch_betas',
+             '_energy', '_model_reasons', '_refusals', '_gate_resume', '_information',
+             '_cross'), in_place)
         self._reset()
 
     def _check_forgetting(self, value: float) -> None:
@@ -418,6 +453,27 @@ class ClosedLoopBcls(RecursiveEstimator):
         return True
 
     # ------------------------------------------------------------- the step
+    def _guarded_update(self, y: float, u: np.ndarray) -> None:
+        """
+        Do one step as an exact transaction (see the base class's ``_guarded_update``).
+
+        Between redesigns the only way to an unsound state is the RLS update
+        of theta_LS (:meth:`_compensate` keeps the last good theta_BC and
+        sigma2), and the steps check it before committing it: a sample whose
+        update is not finite is refused (``update_undone``) like one with a
+        non-finite error or gain. A step that may change more runs as the base
+        class's ``_step_transaction``, which saves what it may change: while
+        the signal scales are unset, while the gate's change scores are
+        pending (a plant change cuts the memory before the update) and when a
+        redesign may be due.
+        """
+        if (self._change_score or self._refusals or self._scales[0] == 0.0
+                or (self._rows + 1 >= self._next_redesign if self.all_data
+                    else self._since_redesign + 1 >= self.redesign_period)):
+            self._step_transaction(y, u)
+        else:
+            self._update(y, u)
+
     def _update(self, y: float, u: np.ndarray) -> None:
         u0 = float(u[0])
         self._samples += 1
@@ -430,9 +486,8 @@ class ClosedLoopBcls(RecursiveEstimator):
 
     def _watch_scales(self, y: float, u0: float) -> None:
         """Keep the peaks of |y|, |u| until the first LS step, then fix the scales."""
-        peaks = self._peaks
-        peaks[0] = max(peaks[0], abs(y))
-        peaks[1] = max(peaks[1], abs(u0))
+        peaks = self._peaks = np.array((max(self._peaks[0], abs(y)),
+                                        max(self._peaks[1], abs(u0))))
         if self._lags >= self.order:
             self._scales = np.array([power_of_two_at_least(peak) for peak in peaks])
             self._p = self._initial_p()
@@ -551,8 +606,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         lam = self._forgetting_factor
         # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
         target = y - self._prefilter[1:].dot(phi[:n])
-        psi = phi.copy()
-        psi[:n] = -psi[:n]
+        psi = phi * self._psi_signs
         theta = self._theta_ls
         g = self._p.dot(psi)
         s = lam + psi.dot(g)
@@ -564,12 +618,17 @@ class ClosedLoopBcls(RecursiveEstimator):
             # a plant change cut the memory (P grew): redo the a-priori part
             g = self._p.dot(psi)
             s = lam + psi.dot(g)
+        if s > 0.0:
+            update = g * (e / s)
+            if not (update_is_safe(theta, update, 1.0) or all_finite(theta + update)):
+                self._undo('update_undone')
+                return False
         if lam != 1.0:
             self._information *= lam
             self._cross *= lam
             self._energy *= lam
             self._epoch_weights *= lam
-        self._information += np.outer(psi, psi)
+        self._information += psi[:, None] * psi
         self._cross += psi * target
         self._energy += target * target
         self._epoch_weights[-1] += 1.0
@@ -577,7 +636,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         if not s > 0.0:
             self._repair_covariance()
             return True
-        theta += g * (e / s)
+        theta += update
         h = g * (1.0 / math.sqrt(s))
         self._p -= h[:, None] * h
         if lam != 1.0:
@@ -755,7 +814,9 @@ class ClosedLoopBcls(RecursiveEstimator):
         if pos == self._buffer.shape[0]:
             self._buffer[:self.window] = self._buffer[self.window:]
             pos = self.window
-        self._buffer[pos] = (y, u0)
+        buffer = self._buffer
+        buffer[pos, 0] = y
+        buffer[pos, 1] = u0
         self._pos = pos + 1
         if self._filled < self.window:
             self._filled += 1
@@ -780,8 +841,15 @@ class ClosedLoopBcls(RecursiveEstimator):
         if not s > 0.0:
             self._repair_covariance()
             return True
+        safe = update_is_safe(theta, g, e / s)
+        if not safe:  # (rare) keep what the step changes, to check it after
+            saved = theta.copy(), self._p.copy()
         # theta_LS += g e / s ; P -= g g' / s
         self._p = rls_step(theta, self._p, g, s, e)
+        if not safe and not all_finite(theta):
+            theta[:], self._p = saved
+            self._undo('update_undone')
+            return False
         # J += e^2 / s ; N += 1
         self._loss += e * e / s
         self._count += 1.0
@@ -891,6 +959,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         The model checks run at each redesign; the excitation and the
         discriminant at each sample.
         """
+        if (not self._model_reasons and self._direction is not None and not self._holding
+                and self._discriminant_ratio >= MIN_DISCRIMINANT_RATIO
+                and self._excitation.ratio() >= MIN_EXCITATION_RATIO):
+            return ()  # (the usual case, asked at every sample, without building a list)
         if self._direction is None:
             reasons = ['not_compensated']
         else:
@@ -904,6 +976,11 @@ class ClosedLoopBcls(RecursiveEstimator):
         return tuple(reasons)
 
     # --------------------------------------------------------- the accessors
+    @property
+    def valid(self) -> bool:
+        """Whether the estimate can be trusted (the base class's, asked at every sample)."""
+        return self._direction is not None and not self._validity_reasons()
+
     @property
     def ready(self) -> bool:
         """Whether a compensation (redesign) has succeeded since the last reset or change."""
@@ -968,6 +1045,12 @@ class ClosedLoopBcls(RecursiveEstimator):
     def covariance_trace(self) -> float:
         """Return tr P."""
         return float(np.trace(self._p))
+
+    def _is_sound(self) -> bool:
+        # _theta and _theta_uncompensated map these with the prefilter's bounded f_i
+        # (eq. 13): they are finite exactly when these are
+        compensated = self._theta_bc if self._direction is not None else self._theta_ls
+        return math.isfinite(self._sigma2) and all_finite(self._theta_ls, compensated)
 
     def _theta(self) -> np.ndarray:
         if self._direction is None:
