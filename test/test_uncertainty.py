@@ -307,3 +307,38 @@ def test_block_covariance_skips_a_block_whose_sums_are_not_its_own():
     # without the cut the block over it is added; with it, that block is skipped
     assert starts[0][0] < 1989 < starts[0][1]
     assert starts[1][0] == starts[0][1]
+
+
+def single_coverage(name, data, count, runs, seed, settings):
+    """Return the per-run, per-parameter indicator of |theta_hat - theta| <= 2 std (no std: out)."""
+    scenario = 'ikenoue_colored' if data is ikenoue else 'ikeda_closed_loop'
+    truth = make_scenario(scenario).truth().parameters
+    inside = np.zeros((runs, truth.shape[0]), dtype=bool)
+    for r in range(runs):
+        y, u = data(count, seed + r)
+        estimator = run_single(name, y, u, **settings)
+        std = estimator.parameter_std
+        if std is not None:
+            inside[r] = np.abs(estimator.theta - truth) <= 2.0 * std
+    return inside
+
+
+REDUCED_RUNS = 60
+
+
+@pytest.mark.parametrize('name, data, settings', [
+    ('bciv', ikenoue, IKENOUE_COLORED), ('cl_bcls', ikeda, IKEDA)], ids=['bciv', 'cl_bcls'])
+def test_block_covariance_calibrated_at_reduced_size(name, data, settings):
+    inside = single_coverage(name, data, 1000, REDUCED_RUNS, 60_000, settings)
+    # a share over R runs has the binomial standard error sqrt(q (1 - q) / R), 2.7 % at 60
+    # runs (the parameters of one run counted as one draw); 4 of them bound a chance miss
+    bound = 4.0 * math.sqrt(NOMINAL * (1.0 - NOMINAL) / REDUCED_RUNS)
+    assert abs(inside.mean() - NOMINAL) <= bound, inside.mean(axis=0)
+    assert np.all(np.abs(inside.mean(axis=0) - NOMINAL) <= bound), inside.mean(axis=0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('name, data, settings', [
+    ('bciv', ikenoue, IKENOUE_COLORED), ('cl_bcls', ikeda, IKEDA)], ids=['bciv', 'cl_bcls'])
+def test_block_covariance_calibrated_at_10000_samples(name, data, settings):
+    check_calibrated(single_coverage(name, data, 10_000, RUNS, 70_000, settings))

@@ -28,10 +28,10 @@ from bcid_ros.estimators.cl_bcls_batch import (algorithm1, bias_terms, Compensat
                                                DEFAULT_TOLERANCE, is_contracting,
                                                plant_from_regression, prefilter_polynomial,
                                                regression_from_plant)
-from bcid_ros.estimators.moment_covariance import (fixed_point_system, implicit_step,
-                                                   MomentBlocks)
 from bcid_ros.estimators.lti import (closed_loop_polynomial, Controller, controller_canonical,
                                      is_stable, make_controller, stable_reflection)
+from bcid_ros.estimators.moment_covariance import (fixed_point_system, implicit_step,
+                                                   MomentBlocks)
 from bcid_ros.estimators.rls import (CHANGE_MEMORY, GATE_WARMUP, repair_covariance,
                                      rls_innovation, rls_step, VARIANCE_FLOOR)
 
