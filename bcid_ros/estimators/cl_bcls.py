@@ -1101,8 +1101,12 @@ class ClosedLoopBcls(RecursiveEstimator):
         (:mod:`bcid_ros.estimators.moment_covariance`). None before
         :attr:`ready`, while :attr:`holding`, before 16 blocks (512 samples)
         since the last reset or controller change, and after a restored
-        state until 16 new blocks. Measured coverage in docs/estimators.md
-        ("Uncertainty").
+        state until 16 new blocks.
+
+        Not exact: the share of true parameters within +-2 std, measured over
+        200 runs on Ikeda's loop (docs/estimators.md, "Uncertainty"), is
+        93-94 % per parameter with ``window`` 0 (N = 1000 and 10000) and
+        91-92 % with ``window`` 4096 (N = 10000; the std of b about 15 % small).
         """
         if self._direction is None or self._holding:
             return None
