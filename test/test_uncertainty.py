@@ -316,7 +316,7 @@ def test_block_covariance_skips_a_block_whose_sums_are_not_its_own():
 
 
 def single_coverage(name, data, count, runs, seed, settings):
-    """Return the per-run, per-parameter indicator of |theta_hat - theta| <= 2 std (no std: out)."""
+    """Return the per-run, per-parameter indicator of |theta_hat - theta| <= 2 std (None: out)."""
     scenario = {ikenoue: 'ikenoue_colored', ikenoue_white: 'ikenoue_white_input',
                 ikeda: 'ikeda_closed_loop'}[data]
     truth = make_scenario(scenario).truth().parameters
