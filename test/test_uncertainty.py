@@ -376,3 +376,19 @@ def test_block_covariance_restarts_after_a_restored_state():
     np.testing.assert_array_equal(second.theta, run_single(
         'bciv', y, u, **IKENOUE_COLORED).theta)
     check_covariance_matrix(second.parameter_covariance)
+
+
+def test_moment_blocks_give_none_when_the_function_fails_and_do_not_retry_at_every_read():
+    blocks, sums, calls = MomentBlocks(), np.zeros(2), []
+
+    def failing(means):
+        calls.append(1)
+        raise ArithmeticError('no fixed point')
+    terms = np.random.default_rng(12).standard_normal((1000, 2))
+    for t in range(terms.shape[0]):
+        sums += terms[t]
+        if t + 1 >= blocks.next_boundary:
+            blocks.close(t + 1, sums, float(t + 1), 1.0, 0, lambda: failing)
+    assert blocks.blocks >= 16
+    assert blocks.covariance(1000.0, 1.0) is None and blocks.covariance(1000.0, 1.0) is None
+    assert len(calls) == 1

@@ -214,9 +214,11 @@ class MomentBlocks:
             return None
         if self._jacobian is None:
             spread = np.sqrt((residuals * residuals).sum(axis=0) / denominator)
-            self._jacobian = central_jacobian(self._function, self._point,
-                                              STEP * (np.abs(self._point) + spread))
-        if self._jacobian is None:
+            jacobian = central_jacobian(self._function, self._point,
+                                        STEP * (np.abs(self._point) + spread))
+            # a failed F is not retried at every read: no covariance until the next Jacobian
+            self._jacobian = np.zeros((0, 0)) if jacobian is None else jacobian
+        if self._jacobian.size == 0:
             return None
         projected = residuals @ self._jacobian.T
         covariance = projected.T @ projected / denominator
