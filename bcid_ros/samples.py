@@ -14,11 +14,12 @@ both use it, so they give the same estimates on the same messages.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+
+from bcid_ros.estimators.base import all_finite
 
 #: ``layout.dim[0].label`` of a frame (a message holding k samples).
 FRAME_LABEL = 'samples'
@@ -249,19 +250,14 @@ class BlockResult:
         default_factory=list)
 
 
-def all_finite(*arrays: np.ndarray) -> bool:
-    """Return whether every value of the 1-D float arrays is finite (one dot product each)."""
-    total = 0.0
-    for values in arrays:
-        total += values.dot(values)
-    if math.isfinite(total):
-        return True  # a NaN or Inf would have made a square, and so the sum, non-finite
-    return all(bool(np.isfinite(values).all()) for values in arrays)  # or it overflowed
-
-
 def block_is_finite(rows: np.ndarray) -> bool:
-    """Return whether every value of ``rows`` is finite (one sum, exact if that overflows)."""
-    return math.isfinite(rows.sum()) or bool(np.isfinite(rows).all())
+    """
+    Return whether every value of ``rows`` is finite.
+
+    One sum in Python floats, exact if that overflows; numpy's sum would warn
+    about the overflow of huge finite samples, which the estimators handle.
+    """
+    return all_finite(rows.reshape(-1))
 
 
 class SampleFeeder:
@@ -769,6 +765,6 @@ class SampleFeeder:
          self._constant_run, self._restart_pending) = values
 
 
-__all__ = ['BlockResult', 'FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'all_finite',
-           'block_is_finite', 'decode_samples', 'estimate_layout', 'names_label',
-           'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']
+__all__ = ['BlockResult', 'FRAME_LABEL', 'FeedResult', 'SampleFeeder', 'block_is_finite',
+           'decode_samples', 'estimate_layout', 'names_label', 'parse_names_label',
+           'sample_label', 'samples_data', 'samples_layout']
