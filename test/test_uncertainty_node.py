@@ -100,3 +100,43 @@ def test_node_publishes_std_and_covariance_equal_to_replay(estimator, ros_contex
     assert spin_until(executor, lambda: len(late) == 2)
     np.testing.assert_array_equal(np.array(late['parameter_std'].data), offline.std)
     np.testing.assert_array_equal(np.array(late['parameter_covariance'].data), matrix.ravel())
+
+
+def test_uncertainty_is_computed_only_while_subscribed(ros_context, executor, tmp_path):
+    bag = simulate_bag('ding_miso', 400, 8, 1000.0, tmp_path / 'bag')
+    parameters = dict(load_yaml_parameters(CONFIG, 'bcid_identifier'), estimator='bcrls')
+    identifier = IdentifierNode(context=ros_context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in parameters.items()])
+    estimator = identifier.estimator
+    reads = []
+    computed = estimator._parameter_covariance
+    estimator._parameter_covariance = lambda: reads.append(1) or computed()
+    feeder = rclpy.create_node('feeder', context=ros_context)
+    executor.add_node(identifier)
+    executor.add_node(feeder)
+    estimates, std = [], []
+    feeder.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
+                               estimates.append, DEEP)
+    publisher = feeder.create_publisher(Float64MultiArray, '/samples', SAMPLES_QOS)
+    assert spin_until(executor, lambda: publisher.get_subscription_count() >= 1
+                      and identifier.count_subscribers('/bcid_identifier/parameters'))
+    rows = [decode_samples(message, 2)
+            for _, message in BagReader(bag).float64_multi_arrays(SAMPLES_TOPIC)]
+
+    def feed(part):
+        for row in part:
+            publisher.publish(samples_message(row))
+        target = identifier.feeder.used + len(part)
+        assert spin_until(executor, lambda: identifier.feeder.used >= target)
+
+    feed(rows[:200])
+    # estimates went out, past bcrls's first block of moments, and no one asked for a std
+    assert spin_until(executor, lambda: len(estimates) >= 100)
+    assert estimator.parameter_covariance is not None and len(reads) == 1
+    feeder.create_subscription(Float64MultiArray, '/bcid_identifier/parameter_std',
+                               std.append, DEEP)
+    assert spin_until(executor, lambda: identifier.count_subscribers(
+        '/bcid_identifier/parameter_std') >= 1)
+    feed(rows[200:])
+    assert spin_until(executor, lambda: len(std) >= 150)
+    assert len(reads) > 150
