@@ -15,6 +15,7 @@ from scipy.signal import lfilter
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.base import standard_deviations, weighted_square_ratio
+from bcid_ros.estimators.bcrls import add_lagged_moments
 from bcid_ros.estimators.moment_covariance import MAX_BLOCKS, MomentBlocks
 from bcid_ros.estimators.rls import ls_batch
 from bcid_ros.simulation import make_scenario
@@ -111,7 +112,9 @@ def test_not_ready_estimators_have_no_covariance():
 def test_bcrls_lagged_moments_equal_the_batch_sums_and_survive_a_state_round_trip():
     y, u = ding_data(np.random.default_rng(3), 1000)
     estimator = run('bcrls', y, u)
-    sums, weight = estimator._new_moments(estimator._pending_moments())
+    sums, weight = add_lagged_moments(estimator._moment_sums, estimator._moment_weight,
+                                      estimator._pending_moments(), estimator.order,
+                                      estimator.forgetting_factor)
     phi = np.column_stack([-y[1:-1], -y[:-2], u[1:-1, 0], u[:-2, 0], u[1:-1, 1], u[:-2, 1]])
     z = np.column_stack([phi, y[2:]])
     assert weight == z.shape[0]

@@ -94,7 +94,7 @@ def all_finite(*vectors: np.ndarray) -> bool:
     return math.isfinite(total) or all(bool(np.isfinite(vector).all()) for vector in vectors)
 
 
-def weighted_square_ratio(tau: float, forgetting_factor: float) -> float:
+def weighted_square_ratio(tau: Any, forgetting_factor: float) -> Any:
     r"""
     Return :math:`\tau_2/\tau`, the sum of the squared weights over the sum of the weights.
 
@@ -106,10 +106,10 @@ def weighted_square_ratio(tau: float, forgetting_factor: float) -> float:
     estimate from :math:`\tau` samples has the variance of one from
     :math:`\tau^2/\tau_2` (its effective sample size). :math:`(1-\lambda)\tau`
     is clipped to 1 (its steady state), which also covers a factor lowered
-    while running.
+    while running. ``tau`` may be an array (one per plant).
     """
     lam = forgetting_factor
-    return (2.0 - min((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
+    return (2.0 - np.minimum((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
 
 
 def parameter_names(order: int, num_inputs: int, feedthrough: bool,

@@ -39,9 +39,10 @@ import numpy as np
 
 from bcid_ros.estimators.base import (CHANGE_DECAY, CHANGE_SCORE, check_int, check_range,
                                       EstimatorState, HUGE_SCREEN, IMPLAUSIBLE_ERROR,
-                                      parameter_names)
-from bcid_ros.estimators.bcrls import (block_sandwich, COMPENSATION_MAX, CONTRACTION_MAX,
-                                       DENOMINATOR_MIN, MOMENT_BLOCK, RUNAWAY)
+                                      parameter_names, weighted_square_ratio)
+from bcid_ros.estimators.bcrls import (add_lagged_moments, block_sandwich, COMPENSATION_MAX,
+                                       CONTRACTION_MAX, DENOMINATOR_MIN, MOMENT_BLOCK,
+                                       RUNAWAY)
 from bcid_ros.estimators.rls import (CAREFUL_GAIN, CHANGE_MEMORY, GATE_WARMUP, GROWTH,
                                      HEALTH_CHECK_PERIOD, repair_covariance, rls_step,
                                      UNSTABLE_RADIUS, VALIDITY_PERIOD, VARIANCE_FLOOR)
@@ -399,9 +400,8 @@ class BatchedRls:
 
     def _parameter_covariance(self) -> np.ndarray:
         """Return sigma_e^2 P_k tau_2 / tau per plant (``Rls._parameter_covariance``)."""
-        p, lam, tau = self.num_parameters, self._forgetting_factor, self._tau
-        # weighted_square_ratio, per plant
-        ratio = (2.0 - np.minimum((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
+        p, tau = self.num_parameters, self._tau
+        ratio = weighted_square_ratio(tau, self._forgetting_factor)
         dof = tau - p * ratio
         known = (self._updates >= p) & (tau > 0.0) & (dof > 0.0)
         factor = np.full(self.num_plants, np.nan)
@@ -1084,19 +1084,13 @@ class BatchedBcrls(BatchedRls):
 
     def _flush_moments(self, plants: np.ndarray) -> None:
         """Add full blocks to the lagged moment sums (``Bcrls._flush_moments``), per plant."""
-        n, block, lam = self.order, MOMENT_BLOCK, self._forgetting_factor
+        n = self.order
         ring = self._moment_ring[plants]
-        decay = lam ** block
-        # w = lambda^(age): the newest row has weight 1
-        weights = lam ** np.arange(block - 1, -1, -1, dtype=float)
-        newest = (ring[:, n:] * weights[:, None]).transpose(0, 2, 1)
-        sums = self._moment_sums[plants] * decay
-        for k in range(n + 1):
-            sums[:, k] += newest @ ring[:, n - k:n - k + block]
-        self._moment_sums[plants] = sums
-        self._moment_weight[plants] = self._moment_weight[plants] * decay + float(weights.sum())
+        self._moment_sums[plants], self._moment_weight[plants] = add_lagged_moments(
+            self._moment_sums[plants], self._moment_weight[plants], ring, n,
+            self._forgetting_factor)
         # the last n rows are the lag context of the next block
-        self._moment_ring[plants, :n] = ring[:, block:]
+        self._moment_ring[plants, :n] = ring[:, MOMENT_BLOCK:]
         self._moment_pending[plants] = 0
         p = self.num_parameters
         snapshot = self._moment_snapshot
@@ -1122,8 +1116,8 @@ class BatchedBcrls(BatchedRls):
                 for plant in due.tolist():
                     self._sandwich[plant] = self._plant_sandwich(plant)
             self._sandwich_due[due] = False
-        lam, tau = self._forgetting_factor, self._tau
-        ratio = (2.0 - np.minimum((1.0 - lam) * tau, 1.0)) / (1.0 + lam)
+        tau = self._tau
+        ratio = weighted_square_ratio(tau, self._forgetting_factor)
         factor = np.full(self.num_plants, np.nan)
         factor[known] = ratio[known] / tau[known]
         return factor[:, None, None] * self._sandwich

@@ -209,27 +209,11 @@ class Bcrls(Rls):
         rows[:, -1] = self._moment_y
         return np.concatenate((self._moment_context, rows))
 
-    def _new_moments(self, ring: np.ndarray) -> tuple[np.ndarray, float]:
-        """Return the moment sums and weight with the rows after the context of ``ring`` added."""
-        n = self.order
-        count = ring.shape[0] - n
-        lam = self._forgetting_factor
-        decay = lam ** count
-        sums = self._moment_sums * decay
-        weight = self._moment_weight * decay
-        if count:
-            # w = lambda^(age): the newest row has weight 1
-            weights = lam ** np.arange(count - 1, -1, -1, dtype=float)
-            newest = ring[n:] * weights[:, None]
-            for k in range(n + 1):
-                sums[k] += newest.T @ ring[n - k:n - k + count]
-            weight += float(weights.sum())
-        return sums, weight
-
     def _flush_moments(self) -> None:
         """Add the pending rows to the moment sums; keep the last n rows as lag context."""
         ring = self._pending_moments()
-        self._moment_sums, self._moment_weight = self._new_moments(ring)
+        self._moment_sums, self._moment_weight = add_lagged_moments(
+            self._moment_sums, self._moment_weight, ring, self.order, self._forgetting_factor)
         self._moment_context = ring[ring.shape[0] - self.order:].copy()
         self._moment_phi = []
         self._moment_y = []
@@ -303,6 +287,33 @@ class Bcrls(Rls):
                 self._sandwich = np.full((self.num_parameters,) * 2, np.nan)
         ratio = weighted_square_ratio(self._tau, self._forgetting_factor)
         return self._sandwich * (ratio / self._tau)
+
+
+def add_lagged_moments(sums: np.ndarray, weight: Any, ring: np.ndarray, order: int,
+                       forgetting_factor: float) -> tuple[np.ndarray, Any]:
+    """
+    Return the lagged moment sums and their weight with the new rows of ``ring`` added.
+
+    ``ring`` ``(..., n + m, p + 1)`` holds the lag context (the last n rows z
+    already summed) then m new rows z = [phi; y], oldest first; ``sums``
+    ``(..., n + 1, p + 1, p + 1)`` are the sums of w_t z_t z_{t-k}' (k = 0..n)
+    and ``weight`` ``(...)`` the sum of w_t. Old sums decay by lambda^m, the
+    newest row has weight 1. Leading dimensions are plants (the batched
+    estimators).
+    """
+    n, lam = order, forgetting_factor
+    count = ring.shape[-2] - n
+    decay = lam ** count
+    sums = sums * decay
+    weight = weight * decay
+    if count:
+        # w = lambda^(age): the newest row has weight 1
+        weights = lam ** np.arange(count - 1, -1, -1, dtype=float)
+        newest = np.swapaxes(ring[..., n:, :] * weights[:, None], -1, -2)
+        for k in range(n + 1):
+            sums[..., k, :, :] += newest @ ring[..., n - k:n - k + count, :]
+        weight = weight + float(weights.sum())
+    return sums, weight
 
 
 def block_sandwich(sums: np.ndarray, weight: Any, snapshot: np.ndarray,
