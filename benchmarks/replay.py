@@ -5,10 +5,9 @@ Three figures, each the fastest of the repeats (another process on this shared m
 ever makes a run slower):
 
 * start-up: `bcid replay --json` of a 20-sample bag, which is the interpreter, the imports and
-  opening a bag; `python -c "import numpy"` in the same run for scale; the same replay with
-  rls's BLAS kernels replaced by numpy stand-ins (so without `scipy.linalg`, to show what the
-  rest costs); and the replay's imports from `python -X importtime`, grouped by what the
-  process imports itself (a module's figure includes what it imports first);
+  opening a bag; `python -c "import numpy"` in the same run for scale; and the replay's
+  imports from `python -X importtime`, grouped by what the process imports itself (a module's
+  figure includes what it imports first);
 * every committed bag with its scenario's estimator (and rls, bcrls on Ding's);
 * a 10⁶-sample Ding MISO bag written by `bcid simulate` into a temporary directory (one sample
   per message, as the simulator node publishes), with rls and bcrls.
@@ -40,34 +39,6 @@ ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / 'config' / 'ding_miso.yaml'
 #: Samples of the large bag (and of the quick run's).
 LARGE, LARGE_QUICK = 1_000_000, 100_000
-
-
-#: rls's BLAS kernels as numpy stand-ins, filled in before the estimator loads scipy's: a
-#: replay that never imports scipy.linalg, for the start-up it leaves (not for its results).
-WITHOUT_SCIPY = """
-import sys
-import numpy as np
-from bcid_ros.estimators import rls
-
-
-def daxpy(x, y, n, a):
-    y += a * x
-    return y
-
-
-def dger(alpha, x, y, incx, incy, a, overwrite_x, overwrite_y, overwrite_a):
-    a += alpha * np.outer(x, y)
-    return a
-
-
-def dgemv(alpha, a, x, beta, y, offx=0, incx=1, offy=0, incy=1, trans=0):
-    return alpha * ((a.T if trans else a) @ x) + beta * y
-
-
-rls._BLAS.update(daxpy=daxpy, dgemv=dgemv, dger=dger)
-from bcid_ros.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
 
 
 def timed(command: list[str], repeats: int) -> tuple[float, float, subprocess.CompletedProcess]:
@@ -159,25 +130,17 @@ def import_profile(command: list[str], repeats: int, top: int = 10) -> tuple[flo
 
 
 def startup_rows(bcid: str, tiny: Path, repeats: int) -> list[Result]:
-    """Start-up with and without scipy.linalg, numpy for scale, and the import profile."""
+    """Start-up, numpy's import for scale, and the import profile."""
     replay = ['replay', str(tiny), '--params', str(CONFIG), '--json']
     startup, cpu, _ = timed([bcid] + replay, repeats)
     numpy_startup, numpy_cpu, _ = timed([sys.executable, '-c', 'import numpy'], repeats)
-    bare, bare_cpu, done = timed([sys.executable, '-c', WITHOUT_SCIPY] + replay, repeats)
     rows = [Result(SECTION, 'start-up: `bcid replay --json` of a 20-sample bag', startup, 's',
                    '≤ 0.25 s', startup <= 0.25,
                    note=f'CPU {cpu:.3f} s; `python -c "import numpy"` {numpy_startup:.3f} s '
                    f'(CPU {numpy_cpu:.3f} s)')]
-    rows.append(Result(SECTION, 'start-up without scipy.linalg (numpy BLAS stand-ins)',
-                       bare if done.returncode == 0 else float('nan'), 's', '≤ 0.25 s',
-                       bare <= 0.25 if done.returncode == 0 else None,
-                       note=f'CPU {bare_cpu:.3f} s' if done.returncode == 0 else
-                       f'FAILED: {done.stderr.strip()[-200:]}'))
     code = 'import sys; from bcid_ros.cli import main; sys.exit(main(sys.argv[1:]))'
-    for label, program in (('with', code), ('without', WITHOUT_SCIPY)):
-        total, words = import_profile([sys.executable, '-c', program] + replay, repeats + 2)
-        rows.append(Result(SECTION, f'imports of that replay, {label} scipy.linalg', total, 's',
-                           note=words))
+    total, words = import_profile([sys.executable, '-c', code] + replay, repeats + 2)
+    rows.append(Result(SECTION, 'imports of that replay', total, 's', note=words))
     return rows
 
 

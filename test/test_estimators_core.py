@@ -1,5 +1,8 @@
 """Unit and property tests of the estimator core: interface, regressor, RLS and BCRLS."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -78,6 +81,47 @@ def test_bad_samples_are_refused_and_leave_the_state_alone(name):
     for key, value in before.arrays.items():
         np.testing.assert_array_equal(value, after.arrays[key])
     assert before.scalars == after.scalars
+
+
+BLAS_CHECK = """
+import sys
+import numpy as np
+from bcid_ros.estimators.rls import load_blas
+kernels = load_blas()
+assert 'scipy.linalg' not in sys.modules, 'the kernels imported all of scipy.linalg'
+from scipy.linalg import blas
+rng = np.random.default_rng(0)
+a, x, y = rng.standard_normal((3, 3)), rng.standard_normal(3), rng.standard_normal(3)
+calls = {'daxpy': (x, y.copy(), 3, 0.5), 'dscal': (0.5, x.copy()),
+         'dger': (-1.0, x, y, 1, 1, a.T.copy(order='F'), 0, 0, 1),
+         'dgemv': (0.5, a, x, 1.0, y, 0, 1, 0, 1, 1)}
+for name, arguments in calls.items():
+    mine = kernels[name](*[v.copy() if isinstance(v, np.ndarray) else v for v in arguments])
+    theirs = getattr(blas, name)(*[v.copy() if isinstance(v, np.ndarray) else v
+                                   for v in arguments])
+    assert np.array_equal(mine, theirs), name
+print('ok')
+"""
+
+
+def test_blas_kernels_load_without_scipy_linalg_and_equal_its_own():
+    # A fresh process: this one imported scipy.linalg long ago (then the normal import is used).
+    done = subprocess.run([sys.executable, '-c', BLAS_CHECK], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr
+
+
+def test_blas_kernels_fall_back_to_scipy_linalg(monkeypatch):
+    from scipy.linalg import blas
+
+    from bcid_ros.estimators import rls
+
+    def missing():
+        raise ImportError('no extension file')
+
+    assert rls.fblas_module() is sys.modules['scipy.linalg._fblas']
+    monkeypatch.setattr(rls, '_fblas_from_file', missing)
+    assert rls.fblas_module() is blas
 
 
 def test_rls_recovers_a_noise_free_arx_plant_with_feedthrough():

@@ -9,7 +9,11 @@ exciting.
 
 from __future__ import annotations
 
+import importlib.machinery
+import importlib.util
 import math
+import os
+import sys
 from typing import Any
 
 import numpy as np
@@ -53,9 +57,47 @@ def load_blas() -> dict[str, Any]:
     kernel at p = 6.
     """
     if not _BLAS:
-        from scipy.linalg.blas import daxpy, dgemv, dger, dscal
-        _BLAS.update(daxpy=daxpy, dgemv=dgemv, dger=dger, dscal=dscal)
+        blas = fblas_module()
+        _BLAS.update((name, getattr(blas, name)) for name in ('daxpy', 'dgemv', 'dger', 'dscal'))
     return _BLAS
+
+
+def fblas_module() -> Any:
+    """
+    Return scipy's compiled BLAS wrappers, loaded without all of ``scipy.linalg`` if possible.
+
+    ``scipy.linalg.blas`` re-exports the f2py extension ``scipy/linalg/_fblas``,
+    but importing it runs ``scipy/linalg/__init__.py``, which imports the whole
+    of ``scipy.linalg`` and, through scipy's array-API layer, ``numpy.testing``
+    and ``numpy.f2py``: 0.17 s, half of a replay's start-up. The extension needs
+    only numpy, so until something imports ``scipy.linalg`` it is loaded from
+    its file (the same functions, a few ms). A scipy laid out otherwise, or one
+    whose extension does not load that way, gets the normal import.
+    """
+    try:
+        return _fblas_from_file()
+    except (ImportError, OSError):
+        from scipy.linalg import blas
+        return blas
+
+
+def _fblas_from_file() -> Any:
+    """Load ``scipy.linalg._fblas`` from its file, without importing ``scipy.linalg``."""
+    name = 'scipy.linalg._fblas'
+    if name in sys.modules:  # scipy.linalg was imported: take its own
+        return sys.modules[name]
+    import scipy  # its __init__ prepares the shared libraries where a platform needs it
+
+    for folder in scipy.__path__:
+        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+            path = os.path.join(folder, 'linalg', '_fblas' + suffix)
+            if os.path.isfile(path):
+                loader = importlib.machinery.ExtensionFileLoader(name, path)
+                spec = importlib.util.spec_from_file_location(name, path, loader=loader)
+                module = importlib.util.module_from_spec(spec)
+                loader.exec_module(module)
+                return module
+    raise ImportError(f'no {name} extension file in {list(scipy.__path__)}')
 
 
 def rls_innovation(theta: np.ndarray, p: np.ndarray, phi: np.ndarray, y: float,
