@@ -185,6 +185,8 @@ def test_each_joint_equals_its_single_plant_estimate_in_any_order(executor, ros_
     replayed, expected = replay(messages, publish_period=5)
     total = sum(len(estimates) for estimates in expected.values())
     assert spin_until(executor, lambda: recorder.count() >= total)
+    # each topic arrives on its own: wait for every one of them
+    assert spin_until(executor, lambda: sum(map(len, recorder.noise.values())) >= total)
     std_total = sum(len(std) for std in replayed.published_std.values())
     assert spin_until(executor, lambda: sum(map(len, recorder.std.values())) >= std_total)
     assert node.joint_state.estimates_published == total

@@ -32,6 +32,43 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
+#: A samples callback goes on taking the messages already queued for at most this long
+#: before it returns to the executor (see :func:`create_draining_subscription`).
+DRAIN_SECONDS = 0.02
+
+
+def create_draining_subscription(node: Node, message_type: type, topic: str,
+                                 callback: Callable[[Any, dict], None],
+                                 qos: QoSProfile) -> Any:
+    """
+    Subscribe ``callback(message, info)``; each call also takes the messages already waiting.
+
+    rclpy's executor rebuilds its wait set and waits on it before every
+    callback, which costs about 0.3 ms of the node's thread per message on a
+    2-core machine with the identifier's dozen entities: a third of the thread
+    at 1,000 frames/s. When messages are queued, the callback takes them too,
+    in order and with their message info, until none is left or
+    :data:`DRAIN_SECONDS` have passed; then timers, services and parameter
+    changes get their turn as before. A node that keeps up never has a queue,
+    and its callbacks go one by one as with a plain subscription.
+    """
+    subscription = None
+
+    def take_waiting(message: Any, info: dict) -> None:
+        callback(message, info)
+        handle = subscription.handle
+        deadline = time.perf_counter() + DRAIN_SECONDS
+        while time.perf_counter() < deadline:
+            with handle:
+                taken = handle.take_message(message_type, False)
+            if taken is None:
+                return
+            callback(*taken)
+
+    subscription = node.create_subscription(message_type, topic, take_waiting, qos)
+    return subscription
+
+
 _ROS_TYPES = {
     'bool': Parameter.Type.BOOL,
     'integer': Parameter.Type.INTEGER,

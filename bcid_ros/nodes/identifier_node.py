@@ -32,8 +32,9 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from bcid_ros.nodes import interface
-from bcid_ros.nodes.common import (declare_table, make_parameter_check, run_node, SAMPLES_QOS,
-                                   Throttle, usage)
+from bcid_ros.nodes.common import (create_draining_subscription, declare_table,
+                                   make_parameter_check, run_node, SAMPLES_QOS, Throttle,
+                                   usage)
 from bcid_ros.nodes.controller_input import ControllerInput
 from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, EstimatorTask,
                                         SampleRateTask)
@@ -136,8 +137,8 @@ class IdentifierNode(Node):
 
     def _subscribe(self, settings: dict[str, Any]) -> None:
         if settings['input_mode'] == 'combined':
-            self.create_subscription(Float64MultiArray, interface.SAMPLES, self.on_samples,
-                                     SAMPLES_QOS)
+            create_draining_subscription(self, Float64MultiArray, interface.SAMPLES,
+                                         self.on_samples, SAMPLES_QOS)
             return
         for side, topic in (('input', interface.INPUT), ('output', interface.OUTPUT)):
             read = interface.reader(side, settings)

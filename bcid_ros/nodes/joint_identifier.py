@@ -23,7 +23,8 @@ from std_srvs.srv import Trigger
 from bcid_ros.joint_feeder import (joint_feeder_from_parameters, JOINT_STATES, JointFeedResult,
                                    joint_topic)
 from bcid_ros.nodes import interface
-from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS, Throttle
+from bcid_ros.nodes.common import (create_draining_subscription, LATCHED_QOS, SAMPLES_QOS,
+                                   Throttle)
 from bcid_ros.nodes.diagnostics import CounterTask, SampleRateTask
 from bcid_ros.nodes.joint_diagnostics import JointDiagnosticsUpdater, JointStatuses, JointsTask
 from bcid_ros.nodes.messages import as_doubles, estimate_message, valid_message
@@ -79,8 +80,8 @@ class JointStateIdentifier:
         self._noise_message = estimate_message(estimator.noise_names)
         for publisher in self._valid:
             publisher.publish(valid_message(False))
-        self.subscription = node.create_subscription(JointState, JOINT_STATES,
-                                                     self.on_joint_state, SAMPLES_QOS)
+        self.subscription = create_draining_subscription(node, JointState, JOINT_STATES,
+                                                         self.on_joint_state, SAMPLES_QOS)
         self.reset_service = node.create_service(Trigger, interface.RESET, self.on_reset)
         self.diagnostics = JointDiagnosticsUpdater(
             node, interface.status_name(node.get_name()), [
