@@ -234,3 +234,22 @@ def test_a_backlog_is_taken_in_one_callback_in_order(ros_context, executor):
     reference.run(y, u)
     np.testing.assert_array_equal(identifier.estimator.theta, reference.theta)
 
+
+@pytest.mark.parametrize('count', [0, 1, 2, 6, 7, 36])
+def test_serialized_estimates_are_rclpy_serialization(count):
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
+                                         SerializedArray)
+
+    names = [f'p{k}' for k in range(max(count, 1))]
+    values = np.random.default_rng(count).standard_normal(count) * 1e3
+    for message in (estimate_message(names), estimate_message(names[:1] * 3),
+                    covariance_message(names[:2])):
+        serialized = SerializedArray(message).serialize(values)
+        expected = type(message)()
+        expected.layout = message.layout
+        expected.data = as_doubles(values)
+        assert serialized == serialize_message(expected)
+        decoded = deserialize_message(serialized, type(message))
+        assert decoded.layout == message.layout and list(decoded.data) == values.tolist()

@@ -20,7 +20,7 @@ from bcid_ros.estimators import RecursiveEstimator
 from bcid_ros.estimators.base import standard_deviations
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.common import LATCHED_QOS
-from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
+from bcid_ros.nodes.messages import (covariance_message, estimate_message, SerializedArray,
                                      valid_message)
 
 
@@ -47,8 +47,9 @@ class EstimatePublisher:
     def __init__(self, node: Node, estimator: RecursiveEstimator, detrend: str) -> None:
         self._estimator = estimator
         names = estimator.parameter_names
-        self._topics = {  # publisher and reusable message of each estimate topic
-            topic: (node.create_publisher(Float64MultiArray, topic, LATCHED_QOS), message)
+        self._topics = {  # publisher and serialised layout of each estimate topic
+            topic: (node.create_publisher(Float64MultiArray, topic, LATCHED_QOS),
+                    SerializedArray(message))
             for topic, message in (
                 (interface.PARAMETERS, estimate_message(names)),
                 (interface.PARAMETERS_UNCOMPENSATED, estimate_message(names)),
@@ -59,7 +60,7 @@ class EstimatePublisher:
             self._topics[interface.OPERATING_POINT] = (
                 node.create_publisher(Float64MultiArray, interface.OPERATING_POINT,
                                       LATCHED_QOS),
-                estimate_message(estimator.operating_point_names))
+                SerializedArray(estimate_message(estimator.operating_point_names)))
         self.published = 0
         self.valid_publisher = node.create_publisher(Bool, interface.VALID, LATCHED_QOS)
         self._valid = bool(estimator.valid)
@@ -100,9 +101,8 @@ class EstimatePublisher:
             self._publish(interface.PARAMETER_COVARIANCE, values)
 
     def _publish(self, topic: str, values: Any) -> None:
-        publisher, message = self._topics[topic]
-        message.data = as_doubles(values)
-        publisher.publish(message)
+        publisher, serialized = self._topics[topic]
+        publisher.publish(serialized.serialize(values))
 
     def update_valid(self) -> None:
         """Publish ``~/valid`` if the estimator's validity changed since the last one."""

@@ -13,6 +13,7 @@ import importlib
 from typing import Any, Sequence
 
 import numpy as np
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
 
 from bcid_ros.nodes.interface import covariance_layout, MESSAGE_TYPES
@@ -73,6 +74,46 @@ def valid_message(valid: bool) -> Bool:
     return Bool(data=bool(valid))
 
 
+class SerializedArray:
+    """
+    The CDR bytes of a Float64MultiArray whose layout stays the same, for ``Publisher.publish``.
+
+    rclpy converts every field of a message into its C structure on each
+    publish, about 10 µs for an estimate of six values on a 2-core machine,
+    three times what publishing the serialised bytes costs. An estimate topic
+    changes only its values, so rclpy serialises the message once per number
+    of values, and the values' bytes are appended to that head afterwards.
+    ``test/test_nodes.py`` checks the bytes against rclpy's serialisation.
+
+    Parameters
+    ----------
+    message : std_msgs.msg.Float64MultiArray
+        The message with its layout; its data are replaced.
+
+    """
+
+    def __init__(self, message: Float64MultiArray) -> None:
+        self._message = message
+        self._heads: dict[int, bytes] = {}
+
+    def serialize(self, values: Any) -> bytes:
+        """Return the serialised message with ``values`` (float64, flattened) as its data."""
+        data = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+        head = self._heads.get(data.shape[0])
+        if head is None:
+            head = self._heads[data.shape[0]] = self._head(data.shape[0])
+        return head + data.tobytes()
+
+    def _head(self, count: int) -> bytes:
+        """Serialise the message with ``count`` values and cut them off (they come last)."""
+        marker = np.arange(1.0, count + 1.0)
+        self._message.data = as_doubles(marker)
+        whole = serialize_message(self._message)
+        if not whole.endswith(marker.tobytes()):
+            raise RuntimeError('the serialised Float64MultiArray does not end with its data')
+        return whole[:len(whole) - marker.nbytes]
+
+
 class SamplesLayouts:
     """The ``layout.dim`` of samples messages, built once per sample count."""
 
@@ -91,5 +132,6 @@ class SamplesLayouts:
         return message
 
 
-__all__ = ['SamplesLayouts', 'as_doubles', 'covariance_message', 'estimate_message',
-           'message_class', 'samples_message', 'topic_class', 'valid_message']
+__all__ = ['SamplesLayouts', 'SerializedArray', 'as_doubles', 'covariance_message',
+           'estimate_message', 'message_class', 'samples_message', 'topic_class',
+           'valid_message']
