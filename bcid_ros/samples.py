@@ -369,7 +369,6 @@ class SampleFeeder:
         inputs = rows[:, 1:]
         runs = self._constant_runs(inputs)
         estimator = self.estimator
-        update = estimator.update_trusted
         clock = time.perf_counter_ns
         count = total = 0
         largest = self.update_ns_max
@@ -377,6 +376,7 @@ class SampleFeeder:
             if self._restart_pending:
                 estimator.restart_regressor()
                 self._restart_pending = False
+            update = estimator.trusted_block_update(rows)
             for y, u in zip(rows[:, 0].tolist(), inputs):
                 start = clock()
                 update(y, u)

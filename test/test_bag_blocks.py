@@ -315,6 +315,10 @@ class Recorder:
             raise FloatingPointError('boom')
         self.log.append(y)
 
+    def trusted_block_update(self, rows):
+        """Return the per-row update of a checked block."""
+        return self.update_trusted
+
     def restart_regressor(self):
         """Record a restart."""
         self.log.append('restart')

@@ -191,6 +191,31 @@ def test_not_centred_data_are_reported():
     np.testing.assert_array_equal(plain.theta, raw.theta)
 
 
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_blocks_fed_with_the_monitor_equal_sample_by_sample(name):
+    # SampleFeeder hands the centring monitor a block's rows at once
+    # (trusted_block_update): the same monitor state and estimate as sample by sample.
+    y, u = offset_plant(1).simulate(3000, 7)
+    rows = np.column_stack([y, u])
+    single, fed = make_estimator(name, order=2), make_estimator(name, order=2)
+    single.monitor_centring()
+    fed.monitor_centring()
+    for k in range(len(y)):
+        single.update_trusted(float(y[k]), rows[k, 1:])
+    feeder, start = SampleFeeder(fed), 0
+    for size in [1, 5, 15, 16, 17, 31, 33, 100, 7] * 20:
+        feeder.feed(rows[start:start + size])
+        start += size
+    feeder.feed(rows[start:])
+    assert fed.samples == single.samples
+    np.testing.assert_array_equal(fed.theta, single.theta)
+    np.testing.assert_array_equal(fed.covariance, single.covariance)
+    for attribute in ('mean', 'square', 'weight', '_skip'):
+        np.testing.assert_array_equal(getattr(fed._centring, attribute),
+                                      getattr(single._centring, attribute))
+    assert fed.centring_problem == single.centring_problem != ''
+
+
 # ----------------------------------------------------------------------- adapt
 @pytest.mark.parametrize('name', ['rls', 'bcrls', 'bciv'])
 def test_frozen_estimator_holds_theta_and_p_and_continues(name):

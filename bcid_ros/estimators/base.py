@@ -28,7 +28,7 @@ import abc
 import dataclasses
 import math
 import operator
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
@@ -373,6 +373,32 @@ class RecursiveEstimator(abc.ABC):
         if self._operated:
             self._operated_update(y, u)
         elif self._quiet_left:
+            self._quiet_update(y, u)
+        else:
+            self._guarded_update(y, u)
+
+    def trusted_block_update(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
+        """
+        Return the update to call instead of :meth:`update_trusted` on each of these rows.
+
+        For a caller that feeds a checked block ``rows`` (shape ``(k, 1 + r)``,
+        finite) row by row, in order. The centring monitor takes its share of
+        the block here, at once (one row in ``CENTRING_STRIDE``, the same rows
+        as sample by sample), so that the rows then skip the operating-point
+        step; the estimate is the same as :meth:`update_trusted` on each row,
+        for about 2 µs a sample less. If a row's update raises, the monitor has
+        already seen the rows after it (it only ever gives a warning).
+        """
+        if self._centring is None or self._means is not None or not self._adapting:
+            return self.update_trusted
+        self._centring.take_rows(rows)
+        return self._update_trusted_plain
+
+    def _update_trusted_plain(self, y: float, u: np.ndarray) -> None:
+        # update_trusted without the operating-point step (see trusted_block_update)
+        if not abs(y) + sum(map(abs, u.tolist())) < HUGE_VALUE:
+            self._quiet_left = self.order + 2
+        if self._quiet_left:
             self._quiet_update(y, u)
         else:
             self._guarded_update(y, u)

@@ -118,7 +118,20 @@ class CentringMonitor:
             self._skip -= 1
             return
         self._skip = CENTRING_STRIDE - 1
-        row = np.concatenate(([y], u))
+        self._take_row(np.concatenate(([y], u)))
+
+    def take_rows(self, rows: np.ndarray) -> None:
+        """Account for consecutive samples ``[y, u1, ..., ur]``: :meth:`take` on each, at once."""
+        count, first = rows.shape[0], self._skip
+        if first >= count:
+            self._skip -= count
+            return
+        for row in rows[first::CENTRING_STRIDE]:
+            self._take_row(row)
+        last = first + (count - 1 - first) // CENTRING_STRIDE * CENTRING_STRIDE
+        self._skip = CENTRING_STRIDE - 1 - (count - 1 - last)
+
+    def _take_row(self, row: np.ndarray) -> None:
         if not (np.abs(row) < HUGE).all():
             return  # its square would overflow; the gate refuses such a sample anyway
         self.weight = min(self.weight + 1.0, CENTRING_MEMORY / CENTRING_STRIDE)
