@@ -204,10 +204,12 @@ class Bcrls(Rls):
         """Return the lag context and the rows z not yet summed, oldest first."""
         if not self._moment_y:
             return self._moment_context
-        rows = np.empty((len(self._moment_y), self.num_parameters + 1))
-        rows[:, :-1] = self._moment_phi
-        rows[:, -1] = self._moment_y
-        return np.concatenate((self._moment_context, rows))
+        n = self.order
+        ring = np.empty((n + len(self._moment_y), self.num_parameters + 1))
+        ring[:n] = self._moment_context
+        ring[n:, :-1] = np.array(self._moment_phi)  # one copy (a list of rows converts slowly)
+        ring[n:, -1] = self._moment_y
+        return ring
 
     def _flush_moments(self) -> None:
         """Add the pending rows to the moment sums; keep the last n rows as lag context."""
@@ -218,8 +220,11 @@ class Bcrls(Rls):
         self._moment_phi = []
         self._moment_y = []
         y_scale = self._signal_scale[0] if self._signal_scale[0] > 0.0 else 1.0
-        self._moment_snapshot = np.array([np.append(self._theta_c, self._sigma2),
-                                          np.append(self._component_scale, y_scale)])
+        snapshot = self._moment_snapshot = np.empty((2, self.num_parameters + 1))
+        snapshot[0, :-1] = self._theta_c
+        snapshot[0, -1] = self._sigma2
+        snapshot[1, :-1] = self._component_scale
+        snapshot[1, -1] = y_scale
         self._sandwich = None
 
     def _moment_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -307,12 +312,17 @@ def add_lagged_moments(sums: np.ndarray, weight: Any, ring: np.ndarray, order: i
     sums = sums * decay
     weight = weight * decay
     if count:
-        # w = lambda^(age): the newest row has weight 1
-        weights = lam ** np.arange(count - 1, -1, -1, dtype=float)
-        newest = np.swapaxes(ring[..., n:, :] * weights[:, None], -1, -2)
+        newest = ring[..., n:, :]
+        if lam == 1.0:  # all weights 1: no product to form
+            weight = weight + float(count)
+        else:
+            # w = lambda^(age): the newest row has weight 1
+            weights = lam ** np.arange(count - 1, -1, -1, dtype=float)
+            newest = newest * weights[:, None]
+            weight = weight + float(weights.sum())
+        newest = np.swapaxes(newest, -1, -2)
         for k in range(n + 1):
             sums[..., k, :, :] += newest @ ring[..., n - k:n - k + count, :]
-        weight = weight + float(weights.sum())
     return sums, weight
 
 

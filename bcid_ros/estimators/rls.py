@@ -605,6 +605,14 @@ def spectral_radius(a: np.ndarray) -> float:
     """Return the largest pole magnitude of A(q) = 1 + a_1 q^-1 + ... + a_n q^-n."""
     if a.shape[0] == 1:
         return abs(float(a[0]))
+    if a.shape[0] == 2:  # the quadratic's roots: a twentieth of eigvals' cost
+        a1, a2 = float(a[0]), float(a[1])
+        discriminant = a1 * a1 - 4.0 * a2
+        if 0.0 <= discriminant < math.inf:  # real poles (-a1 +- sqrt(d)) / 2
+            return 0.5 * (abs(a1) + math.sqrt(discriminant))
+        if discriminant < 0.0:  # a complex pair, |z|^2 = a2
+            return math.sqrt(a2)
+        # NaN or an overflow: the general way
     companion = np.zeros((a.shape[0], a.shape[0]))
     companion[0] = -a
     companion[1:, :-1] = np.eye(a.shape[0] - 1)
