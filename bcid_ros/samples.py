@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -606,12 +606,13 @@ class SampleFeeder:
         if self._restart_pending:  # only a failure sets it, and a failure ends this call
             estimator.restart_regressor()
             self._restart_pending = False
+        update = estimator.trusted_block_update(rows[first * count:])
         updates = total = sample = 0
         failed = None
         for index in range(messages if publish else 1):
             stop = sample + count if publish else len(outputs)
-            done, elapsed, largest, error = self._run_updates(outputs, input_rows, sample, stop,
-                                                              timed, largest)
+            done, elapsed, largest, error = self._run_updates(update, outputs, input_rows, sample,
+                                                              stop, timed, largest)
             updates += done
             total += elapsed
             sample += done
@@ -646,16 +647,17 @@ class SampleFeeder:
             self.unexcited += quiet
             result.unexcited += quiet
 
-    def _run_updates(self, outputs: list[float], inputs: list[np.ndarray], begin: int,
-                     end: int, timed: bool, largest: int
-                     ) -> tuple[int, int, int, Exception | None]:
+    @staticmethod
+    def _run_updates(update: Callable[[float, np.ndarray], None], outputs: list[float],
+                     inputs: list[np.ndarray], begin: int, end: int, timed: bool,
+                     largest: int) -> tuple[int, int, int, Exception | None]:
         """
-        Update on samples ``begin`` to ``end - 1``; stop at the first that raises.
+        Update on samples ``begin`` to ``end - 1`` with ``update``; stop at the first that raises.
 
+        ``update`` is the estimator's ``trusted_block_update`` of the block.
         Returns the updates made, their total and largest time in ns (0 and
         ``largest`` unless ``timed``), and the exception (None if none).
         """
-        update = self.estimator.update_trusted
         sample, total = begin, 0
         try:
             if timed:

@@ -47,6 +47,24 @@ def test_regressor_batch_form_equals_push():
         np.testing.assert_array_equal(np.array(pushed), reg.regressors(y, u))
 
 
+@pytest.mark.parametrize('feedthrough,delay',
+                         [(False, None), (True, None), (False, (2, 0)), (True, (1, 3))])
+def test_regressor_push_rows_equals_push(feedthrough, delay):
+    rng = np.random.default_rng(1)
+    rows = rng.standard_normal((300, 3))
+    one, block = (ArxRegressor(2, 2, feedthrough, delay) for _ in range(2))
+    expected = np.array([one.push(row[0], row[1:]) for row in rows])
+    start, phis = 0, []
+    for size in [1, 2, 3, 7, 1, 50, 4, 5, 9] * 10:
+        phis.extend(block.push_rows(rows[start:start + size]))
+        start = min(start + size, len(rows))
+    np.testing.assert_array_equal(np.array(phis), expected[:len(phis)])
+    assert len(phis) == start == len(rows)
+    # the same state after: the next push gives the same phi
+    np.testing.assert_array_equal(block.push(0.5, np.array([1.0, 2.0])),
+                                  one.push(0.5, np.array([1.0, 2.0])))
+
+
 def test_registry_refuses_unknown_estimator():
     with pytest.raises(ValueError, match="estimator must be one of rls, bcrls.*got 'lms'"):
         estimator_class('lms')

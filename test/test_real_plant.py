@@ -216,6 +216,37 @@ def test_blocks_fed_with_the_monitor_equal_sample_by_sample(name):
     assert fed.centring_problem == single.centring_problem != ''
 
 
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+@pytest.mark.parametrize('case,block', [('outliers', 50), ('outliers', 5), ('rescale', 5)])
+def test_blocks_with_refused_samples_equal_sample_by_sample(name, case, block):
+    # A refused sample restarts the regressor in the middle of a block, three undone in a
+    # row rescale from the regressor's samples: the block path (regressors formed for the
+    # block at once) must go on as sample by sample does.
+    y, u = make_scenario('ding_miso').simulate(4000, 8)
+    if case == 'outliers':
+        for k in (700, 1401, 1402, 2999):
+            y[k] += 50.0
+        expected = {'outlier_rejected'}
+    else:  # the first samples set scales a million times too small
+        y[:3] *= 1e-6
+        u[:3] *= 1e-6
+        expected = {'update_undone', 'rescaled'}
+    rows = np.column_stack([y, u])
+    single, fed = (make_estimator(name, order=2, num_inputs=2, outlier_threshold=5.0)
+                   for _ in range(2))
+    for k in range(len(y)):
+        single.update_trusted(float(y[k]), rows[k, 1:])
+    feeder, start = SampleFeeder(fed), 0
+    while start < len(y):
+        feeder.feed(rows[start:start + block])
+        start += block
+    assert expected <= set(single.flags)
+    assert fed.flags == single.flags and fed.samples == single.samples
+    np.testing.assert_array_equal(fed.theta, single.theta)
+    np.testing.assert_array_equal(fed.covariance, single.covariance)
+    np.testing.assert_array_equal(fed.noise, single.noise)
+
+
 # ----------------------------------------------------------------------- adapt
 @pytest.mark.parametrize('name', ['rls', 'bcrls', 'bciv'])
 def test_frozen_estimator_holds_theta_and_p_and_continues(name):

@@ -88,6 +88,36 @@ class ArxRegressor:
             self.filled += 1
         return self._flat[self._index[position]]
 
+    def push_rows(self, rows: np.ndarray) -> np.ndarray:
+        """
+        Add samples ``rows`` (``[y, u1, ..., ur]`` each, oldest first); return phi(t) of each.
+
+        The same as :meth:`push` on each row in turn, with one gather for the
+        block: the history in time order and the new rows are laid end to end,
+        where every phi(t) sits at the same offsets from its sample's row.
+
+        Returns
+        -------
+        numpy.ndarray, shape ``(k, p)``
+            Row j is phi of ``rows[j]``.
+
+        """
+        rows_kept, width = self.span + 1, 1 + self.num_inputs
+        position = self.position
+        laid = np.empty((rows_kept + rows.shape[0], width))
+        laid[:rows_kept - position] = self.history[position:]
+        laid[rows_kept - position:rows_kept] = self.history[:position]
+        laid[rows_kept:, 0] = -rows[:, 0]
+        laid[rows_kept:, 1:] = rows[:, 1:]
+        # the gather of the newest row without wrapping, as offsets from that row
+        offsets = self._gather_index(self.span) - self.span * width
+        starts = np.arange(rows_kept, laid.shape[0]) * width
+        phis = laid.reshape(-1)[starts[:, None] + offsets]
+        self.history[:] = laid[laid.shape[0] - rows_kept:]
+        self.position = 0
+        self.filled = min(self.filled + rows.shape[0], rows_kept)
+        return phis
+
     def peaks(self) -> np.ndarray:
         """
         Return the largest magnitude per channel (y, u_1 ... u_r) over the lags phi uses.

@@ -14,7 +14,7 @@ import importlib.util
 import math
 import os
 import sys
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -282,6 +282,40 @@ class Rls(RecursiveEstimator):
 
     #: _ls_step checks before it commits: the cheap form of the transaction.
     _guarded_update = _update
+
+    def trusted_block_update(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
+        """
+        Return the update for each row of a checked block (see the base class).
+
+        When the rows would go straight to the step with a filled regressor
+        and chosen scales, their regressors are formed for the block at once
+        (:meth:`ArxRegressor.push_rows`) and each row takes only the step: the
+        same phi(t), so the same estimate, for about 1.5 µs a sample less. The
+        regressor is then ahead of the rows until the block is done, which no
+        step reads: a refused step only clears it (:meth:`_undo`), and the rows
+        after that go sample by sample into the empty regressor, as they would
+        have; the rescaling that reads it needs two undone steps in a row
+        before it, so a block that starts after one goes sample by sample. A
+        row that raises ends the block, and its caller restarts the regressor.
+        """
+        update = super().trusted_block_update(rows)
+        regressor = self._regressor
+        if (update != self._guarded_update or self._scales_pending or not regressor.ready
+                or self._undone_in_row):
+            return update
+        regressors = iter(regressor.push_rows(rows))
+        restarts = [self._refused]  # the count of refused steps when the block began
+
+        def step(y: float, u: np.ndarray) -> None:
+            phi = next(regressors)
+            if self._refused != restarts[0]:  # a refusal restarted the regressor
+                self._update(y, u)
+            elif self._ls_step(y, phi):
+                self._after_ls_step(y, phi)
+                if self._updates >= self._next_check:
+                    self._check_validity()
+
+        return step
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the regressor on without a step: theta, P, J and tau stay as they are."""
