@@ -16,9 +16,9 @@ The package is byte-compiled first, as an installed one is: where `PYTHONDONTWRI
 is set, every process would otherwise compile our modules from source (about 40 ms).
 Throughput is samples / wall time of the process. The note gives the process's CPU time (user +
 system) and the estimator's bare update rate (a Python loop of `update_trusted` over the same
-samples in this process, in the same run): the replay is not expected to beat it (on a
-loaded machine the two are measured at different moments), and the CPU figure shows what the
-wall time hides.
+samples in this process, in the same run); a replay of rls or bcrls can beat it, because its
+blocks take the estimator's block path (the regressors of a block formed at once). The CPU
+figure shows what the wall time hides.
 """
 
 from __future__ import annotations
