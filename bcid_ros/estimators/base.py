@@ -403,10 +403,7 @@ class RecursiveEstimator(abc.ABC):
         # update_trusted without the operating-point step (see trusted_block_update)
         if not abs(y) + sum(map(abs, u.tolist())) < HUGE_VALUE:
             self._quiet_left = self.order + 2
-        if self._quiet_left:
-            self._quiet_update(y, u)
-        else:
-            self._guarded_update(y, u)
+        self._learn(y, u)
 
     def _quiet_update(self, y: float, u: np.ndarray) -> None:
         """

@@ -42,7 +42,7 @@ from bcid_ros.estimators.base import (CHANGE_DECAY, CHANGE_SCORE, check_int, che
                                       parameter_names, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (add_lagged_moments, block_sandwich, COMPENSATION_MAX,
                                        CONTRACTION_MAX, DENOMINATOR_MIN, MOMENT_BLOCK,
-                                       RUNAWAY)
+                                       RUNAWAY, sandwich_or_nan)
 from bcid_ros.estimators.rls import (CAREFUL_GAIN, CHANGE_MEMORY, GATE_WARMUP, GROWTH,
                                      HEALTH_CHECK_PERIOD, repair_covariance, rls_step,
                                      UNSTABLE_RADIUS, VALIDITY_PERIOD, VARIANCE_FLOOR)
@@ -1114,21 +1114,15 @@ class BatchedBcrls(BatchedRls):
                     self._moment_snapshot[due], self.order)
             except np.linalg.LinAlgError:
                 for plant in due.tolist():
-                    self._sandwich[plant] = self._plant_sandwich(plant)
+                    self._sandwich[plant] = sandwich_or_nan(
+                        self._moment_sums[plant], self._moment_weight[plant],
+                        self._moment_snapshot[plant], self.order)
             self._sandwich_due[due] = False
         tau = self._tau
         ratio = weighted_square_ratio(tau, self._forgetting_factor)
         factor = np.full(self.num_plants, np.nan)
         factor[known] = ratio[known] / tau[known]
         return factor[:, None, None] * self._sandwich
-
-    def _plant_sandwich(self, plant: int) -> np.ndarray:
-        """Return plant k's sandwich, or NaN if its bread is singular."""
-        try:
-            return block_sandwich(self._moment_sums[plant], self._moment_weight[plant],
-                                  self._moment_snapshot[plant], self.order)
-        except np.linalg.LinAlgError:
-            return np.full((self.num_parameters,) * 2, np.nan)
 
     def _allocate(self) -> None:
         super()._allocate()

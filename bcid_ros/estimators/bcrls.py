@@ -284,12 +284,8 @@ class Bcrls(Rls):
         if self._updates < self.num_parameters or not self._moment_weight > 0.0:
             return None
         if self._sandwich is None:
-            try:
-                self._sandwich = block_sandwich(self._moment_sums, self._moment_weight,
-                                                self._moment_snapshot, self.order)
-            except np.linalg.LinAlgError:
-                # a singular bread: no covariance for this block
-                self._sandwich = np.full((self.num_parameters,) * 2, np.nan)
+            self._sandwich = sandwich_or_nan(self._moment_sums, self._moment_weight,
+                                             self._moment_snapshot, self.order)
         ratio = weighted_square_ratio(self._tau, self._forgetting_factor)
         return self._sandwich * (ratio / self._tau)
 
@@ -349,6 +345,15 @@ def block_sandwich(sums: np.ndarray, weight: Any, snapshot: np.ndarray,
     back = y_scale / scale[..., :p]
     return (bcls_sandwich(gamma_z, theta, sigma2, order)
             * (back[..., :, None] * back[..., None, :]))
+
+
+def sandwich_or_nan(sums: np.ndarray, weight: float, snapshot: np.ndarray,
+                    order: int) -> np.ndarray:
+    """Return one plant's :func:`block_sandwich`, or NaN where its bread is singular."""
+    try:
+        return block_sandwich(sums, weight, snapshot, order)
+    except np.linalg.LinAlgError:  # no covariance for this block
+        return np.full((snapshot.shape[-1] - 1,) * 2, np.nan)
 
 
 def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: Any,
