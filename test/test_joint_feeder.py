@@ -13,9 +13,7 @@ from bcid_ros.joint_feeder import (check_joint_names, joint_feeder_from_paramete
 from bcid_ros.parameters import check_identifier_parameters, check_simulator_parameters
 from bcid_ros.samples import SampleFeeder
 from bcid_ros.simulation import make_scenario
-
-# The contract of the batched estimator against one plant (see test_batched.py).
-TOLERANCE = 1e-12
+from equivalence import assert_paths_agree, rounding_spread
 
 
 def joint_state(names, velocity, effort, position=()):
@@ -26,12 +24,17 @@ def joint_state(names, velocity, effort, position=()):
 
 
 def messages(scenario, samples, seed):
-    """Return JointState-like messages: joints shuffled, some left out, some NaN."""
+    """Return JointState-like messages: joints shuffled, some left out, some NaN; and y, u."""
     y, u = scenario.simulate(samples, seed)
+    return messages_of(scenario.joint_names, y, u, seed), y, u
+
+
+def messages_of(joint_names, y, u, seed):
+    """Return the messages of :func:`messages` for samples y, u ``(N, K)``."""
     rng = np.random.default_rng(seed + 1)
-    names = np.array(scenario.joint_names)
+    names = np.array(joint_names)
     result = []
-    for t in range(samples):
+    for t in range(y.shape[0]):
         order = rng.permutation(len(names))
         order = order[rng.random(len(order)) >= 0.02]
         velocity, effort = y[t, order].copy(), u[t, order].copy()
@@ -76,37 +79,101 @@ def test_the_name_rule_agrees_with_ros():
         assert accepted == ros_accepts, name
 
 
+def single_feeders(name, joints, messages, publish_period):
+    """
+    Feed each joint's samples to its own single-plant SampleFeeder.
+
+    Return the feeders, the joints due per message, each joint's published
+    parameters and noise as float arrays, and the validity after each message.
+    """
+    singles = [SampleFeeder(make_estimator(name, order=2), 0, publish_period) for _ in joints]
+    due, theta, noise = [], [[] for _ in joints], [[] for _ in joints]
+    valid = []
+    for message in messages:
+        samples = message_samples(message, joints)
+        due.append([])
+        for k, single in enumerate(singles):
+            if k not in samples:
+                single.gap()
+                continue
+            estimates = single.take_rows(np.array([samples[k]])).estimates
+            if estimates is not None:
+                due[-1].append(k)
+                theta[k].append(estimates[0])
+                noise[k].append(estimates[2])
+        valid.append([single.estimator.valid for single in singles])
+    figures = {(k, 'theta'): np.array(theta[k]) for k in range(len(joints))}
+    figures.update(((k, 'noise'), np.array(noise[k])) for k in range(len(joints)))
+    return singles, due, figures, valid
+
+
+def joint_figures(feeder, messages):
+    """Feed the messages to a JointFeeder; return the joints due per message and the figures."""
+    count = len(feeder.estimator.theta)
+    due, theta, noise = [], [[] for _ in range(count)], [[] for _ in range(count)]
+    valid = []
+    for message in messages:
+        result = feeder.take(message)
+        due.append(result.due.tolist())
+        for row, k in enumerate(result.due):
+            theta[k].append(result.theta[row])
+            noise[k].append(result.noise[row])
+        valid.append(feeder.valid.tolist())
+    figures = {(k, 'theta'): np.array(theta[k]) for k in range(count)}
+    figures.update(((k, 'noise'), np.array(noise[k])) for k in range(count))
+    return due, figures, valid
+
+
+def assert_joints_follow_their_singles(name, scenario, y, u, seed, publish_period, figures):
+    """
+    Assert each joint's published figures equal its single-plant feeder's on the same samples.
+
+    The batched estimator is another arithmetic path than the single plant's:
+    within the rounding spread of the singles (test/equivalence.py).
+    """
+    def compute(y, u):
+        messages = messages_of(scenario.joint_names, y, u, seed)
+        return single_feeders(name, scenario.joint_names, messages, publish_period)[2]
+
+    spread = rounding_spread(compute, y, u)
+    expected = compute(y, u)
+    for k in range(len(scenario.joint_names)):
+        keys = [(k, 'theta'), (k, 'noise')]
+        assert_paths_agree({key[1]: figures[key] for key in keys},
+                           {key[1]: expected[key] for key in keys},
+                           {key[1]: spread[key] for key in keys}, len(y), f'joint {k}')
+
+
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
 @pytest.mark.parametrize('publish_period', [1, 7])
 def test_each_joint_is_published_as_the_single_plant_feeder_would(name, publish_period):
     scenario = make_scenario('joints', num_joints=5, seed=2)
     feeder = JointFeeder(scenario.joint_names, make_batched_estimator(name, 5, order=2),
                          publish_period=publish_period)
-    singles = [SampleFeeder(make_estimator(name, order=2), 0, publish_period) for _ in range(5)]
-    published = [0] * 5
-    for message in messages(scenario, 1200, 3):
-        result = feeder.take(message)
-        samples = message_samples(message, scenario.joint_names)
-        due = {}
-        for k, single in enumerate(singles):
-            if k in samples:
-                estimates = single.take_rows(np.array([samples[k]])).estimates
-                if estimates is not None:
-                    due[k] = estimates
-            else:
-                single.gap()
-        assert result.due.tolist() == sorted(due)
-        for row, k in enumerate(result.due):
-            np.testing.assert_allclose(result.theta[row], due[k][0], rtol=TOLERANCE,
-                                       atol=TOLERANCE)
-            np.testing.assert_allclose(result.noise[row], due[k][2], rtol=TOLERANCE,
-                                       atol=TOLERANCE)
-            published[k] += 1
-        np.testing.assert_array_equal(feeder.valid, [s.estimator.valid for s in singles])
-    assert min(published) > 1000 // publish_period // 2
+    messages_in, y, u = messages(scenario, 1200, 3)
+    due, figures, valid = joint_figures(feeder, messages_in)
+    singles, single_due, _, single_valid = single_feeders(name, scenario.joint_names,
+                                                          messages_in, publish_period)
+    assert due == single_due
+    assert valid == single_valid
+    assert_joints_follow_their_singles(name, scenario, y, u, 3, publish_period, figures)
+    np.testing.assert_array_equal(feeder.valid, [s.estimator.valid for s in singles])
+    assert min(len(figures[k, 'theta']) for k in range(5)) > 1000 // publish_period // 2
     assert feeder.used == sum(single.used for single in singles)
     np.testing.assert_array_equal(feeder.demux.nonfinite, [s.nonfinite for s in singles])
     assert feeder.demux.missing.min() > 0 and feeder.demux.nonfinite.min() > 0
+
+
+def test_the_joint_bound_catches_one_changed_sample():
+    scenario = make_scenario('joints', num_joints=5, seed=2)
+    feeder = JointFeeder(scenario.joint_names, make_batched_estimator('bcrls', 5, order=2))
+    messages_in, y, u = messages(scenario, 1200, 3)
+    # joint 3's effort in one message changed by a ten-thousandth
+    message = next(m for m in messages_in[600:] if scenario.joint_names[3] in m.name)
+    message.effort[list(message.name).index(scenario.joint_names[3])] *= 1.0 + 1e-4
+    _, figures, _ = joint_figures(feeder, messages_in)
+    with pytest.raises(AssertionError, match='joint 3 .*the paths differ by'):
+        assert_joints_follow_their_singles('bcrls', scenario, y, u, 3, 1, figures)
 
 
 def message_samples(message, joints):

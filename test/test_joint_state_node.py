@@ -32,11 +32,10 @@ from bcid_ros.nodes.messages import as_doubles  # noqa: E402
 from bcid_ros.nodes.simulator_node import SimulatorNode  # noqa: E402
 from bcid_ros.samples import SampleFeeder  # noqa: E402
 from bcid_ros.simulation import make_scenario  # noqa: E402
+from equivalence import assert_paths_agree, rounding_spread  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-# The contract of the batched estimator against one plant (see test_batched.py).
-TOLERANCE = 1e-12
 #: Keeps every message of a topic, late joiners included.
 RECORDER_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -175,6 +174,32 @@ def single_plant(y, u, k, present=None, publish_period=1):
     return feeder, published
 
 
+def single_plant_figures(y, u, k, present=None, publish_period=1):
+    """Return joint k's single-plant published estimates and final state, as float arrays."""
+    feeder, published = single_plant(y, u, k, present, publish_period)
+    return {'parameters': np.array([theta for theta, _, _ in published]),
+            'noise': np.array([noise for _, _, noise in published]),
+            'final theta': feeder.estimator.theta}
+
+
+def assert_joint_follows_its_single_plant(figures, y, u, k, present=None, publish_period=1):
+    """
+    Assert that joint k's ``figures`` are its single-plant run's, within the rounding spread.
+
+    The batched estimator is another arithmetic path than the single plant's
+    (test/equivalence.py); their counts of estimates must agree exactly.
+    """
+    def compute(y, u):
+        return single_plant_figures(y, u, k, present, publish_period)
+
+    expected = compute(y, u)
+    assert {key: np.shape(value) for key, value in figures.items()} == {
+        key: np.shape(expected[key]) for key in figures}
+    spread = rounding_spread(compute, y, u)
+    assert_paths_agree(figures, {key: expected[key] for key in figures}, spread, len(y),
+                       JOINTS[k])
+
+
 def test_each_joint_equals_its_single_plant_estimate_in_any_order(executor, ros_context):
     messages, y, u = joint_messages(800, seed=3)
     node = identifier(executor, ros_context, publish_period=5)
@@ -205,15 +230,25 @@ def test_each_joint_equals_its_single_plant_estimate_in_any_order(executor, ros_
         flags = recorder.valid[joint]
         assert flags[0] is False and all(a != b for a, b in zip(flags, flags[1:]))
         assert flags[-1] == bool(node.feeder.valid[k])
-        _, single = single_plant(y, u, k, publish_period=5)
-        assert len(single) == len(recorder.parameters[joint]) > 100
-        np.testing.assert_allclose(np.array(recorder.parameters[joint]),
-                                   np.array([theta for theta, _, _ in single]),
-                                   rtol=TOLERANCE, atol=TOLERANCE)
-        np.testing.assert_allclose(np.array(recorder.noise[joint]),
-                                   np.array([noise for _, _, noise in single]),
-                                   rtol=TOLERANCE, atol=TOLERANCE)
+        assert len(recorder.parameters[joint]) > 100
+        assert_joint_follows_its_single_plant(
+            {'parameters': np.array(recorder.parameters[joint]),
+             'noise': np.array(recorder.noise[joint])}, y, u, k, publish_period=5)
     assert not any(counts.any() for counts in node.feeder.counters().values())
+
+
+def test_the_joint_bound_catches_one_changed_sample():
+    # the offline JointFeeder path of the test above, with one velocity of joint 2 changed
+    # by a ten-thousandth: the comparison with joint 2's single-plant run must fail
+    messages, y, u = joint_messages(800, seed=3)
+    changed = list(messages[400].name).index(JOINTS[2])
+    messages[400].velocity[changed] *= 1.0 + 1e-4
+    _, published = replay(messages, publish_period=5)
+    assert_joint_follows_its_single_plant({'parameters': np.array(published[JOINTS[1]])},
+                                          y, u, 1, publish_period=5)
+    with pytest.raises(AssertionError, match='joint_3 parameters: the paths differ by'):
+        assert_joint_follows_its_single_plant({'parameters': np.array(published[JOINTS[2]])},
+                                              y, u, 2, publish_period=5)
 
 
 def test_a_missing_joint_and_a_nan_touch_only_their_joint(executor, ros_context):
@@ -235,8 +270,8 @@ def test_a_missing_joint_and_a_nan_touch_only_their_joint(executor, ros_context)
     present = np.arange(600) % 40 != 0
     for k in range(len(JOINTS)):
         single, _ = single_plant(with_nan, u, k, present if k == 2 else None)
-        np.testing.assert_allclose(estimator.theta[k], single.estimator.theta, rtol=TOLERANCE,
-                                   atol=TOLERANCE)
+        assert_joint_follows_its_single_plant({'final theta': estimator.theta[k]}, with_nan, u, k,
+                                              present if k == 2 else None)
         assert estimator.samples[k] == single.estimator.samples
     assert estimator.samples.tolist()[:2] == [598, 595]  # the NaN, then n = 2 to refill
     # the period's statuses: the two joints warn, the others do not
