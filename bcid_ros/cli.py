@@ -17,7 +17,7 @@ import sys
 import traceback
 
 from bcid_ros.errors import BcidError
-from bcid_ros.estimators import ESTIMATORS
+from bcid_ros.estimators.registry import ESTIMATOR_NAMES
 from bcid_ros.simulation import SCENARIOS
 
 #: Subcommand -> 'module:function(args) -> int'.
@@ -32,7 +32,6 @@ HANDLERS = {
     'analyze': 'bcid_ros.analysis.command:run',
 }
 
-ESTIMATOR_NAMES = tuple(ESTIMATORS)
 #: The papers' scenarios; ``custom`` takes its plant from ROS parameters, which the CLI lacks.
 SCENARIO_NAMES = tuple(name for name in SCENARIOS if name != 'custom')
 

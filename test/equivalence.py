@@ -117,7 +117,10 @@ def assert_paths_agree(actual: dict[str, Any], expected: dict[str, Any],
         assert mine.shape == theirs.shape, f'{what} {key}: shape {mine.shape} {theirs.shape}'
         np.testing.assert_array_equal(np.isnan(mine), np.isnan(theirs),
                                       err_msg=f'{what} {key}: NaN entries')
-        excess = row_deviation(mine, theirs) / path_bound(theirs, spread[key], steps)
+        deviation, bound = row_deviation(mine, theirs), path_bound(theirs, spread[key], steps)
+        # where the bound is 0 (exact zeros both), any deviation is too much
+        excess = np.divide(deviation, bound, out=np.where(deviation > 0.0, np.inf, 0.0),
+                           where=bound > 0.0)
         worst = int(np.argmax(excess))
         assert not excess[worst] > 1.0, (
             f'{what} {key}: the paths differ by {excess[worst]:.3g} times the bound '

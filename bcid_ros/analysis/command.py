@@ -20,7 +20,7 @@ def _progress(line: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``bcid analyze`` and print the table (or the JSON object)."""
-    from bcid_ros.parameters import load_yaml_parameters
+    from bcid_ros.parameter_spec import load_yaml_parameters
 
     if not args.params.is_file():
         raise BcidError(f'--params {args.params}: no such file')

@@ -16,7 +16,7 @@ from bcid_ros.errors import BcidError
 def replay(args: argparse.Namespace) -> int:
     """Run ``bcid replay``: the estimator over a bag, a summary, an optional trajectory."""
     from bcid_ros.bag.replay import replay as run, write_output
-    from bcid_ros.parameters import load_yaml_parameters
+    from bcid_ros.parameter_spec import load_yaml_parameters
 
     if not args.params.is_file():
         raise BcidError(f'--params {args.params}: no such file')

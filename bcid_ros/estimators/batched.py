@@ -1190,24 +1190,11 @@ class BatchedBcrls(BatchedRls):
         self._sandwich_due[plant] = self._moment_weight[plant] > 0.0
 
 
-#: Registry name of the single-plant estimator -> its batched form.
-BATCHED_ESTIMATORS: dict[str, type[BatchedRls]] = {'rls': BatchedRls, 'bcrls': BatchedBcrls}
-
-
 def make_batched_estimator(name: str, num_plants: int, **settings: Any) -> BatchedRls:
-    """
-    Build the batched form of estimator ``name`` over ``num_plants`` plants.
+    """Build the batched form of estimator ``name`` (see :mod:`bcid_ros.estimators`)."""
+    from bcid_ros.estimators import make_batched_estimator as make
 
-    Raises
-    ------
-    ValueError
-        If ``name`` has no batched form (only rls and bcrls have one).
-
-    """
-    if name not in BATCHED_ESTIMATORS:
-        raise ValueError(f'estimator must be one of {", ".join(BATCHED_ESTIMATORS)} for '
-                         f'many plants; got {name!r}')
-    return BATCHED_ESTIMATORS[name](num_plants, **settings)
+    return make(name, num_plants, **settings)
 
 
-__all__ = ['BATCHED_ESTIMATORS', 'BatchedBcrls', 'BatchedRls', 'make_batched_estimator']
+__all__ = ['BatchedBcrls', 'BatchedRls', 'make_batched_estimator']
