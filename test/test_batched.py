@@ -5,7 +5,8 @@ import pytest
 from scipy import signal
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.batched import BatchedBcrls, BatchedRls, make_batched_estimator
+from bcid_ros.estimators import make_batched_estimator
+from bcid_ros.estimators.batched import BatchedBcrls, BatchedRls
 from equivalence import assert_paths_agree, rounding_spread
 
 # Stable second-order plants (a1, a2, b1, b2), one per row: different poles and gains.
@@ -392,10 +393,10 @@ def test_bad_shapes_and_names_are_refused_and_change_nothing():
 def test_state_bytes_count_each_plant_array_once():
     p, history, channels = 4, 3 * 2, 2
     # rls, in 8-byte numbers per plant: theta (p), P (p x p), history ((n + 1)(1 + r)),
-    # signal scales (1 + r), component scales and trace weights (2 p), and eleven scalars
+    # signal scales (1 + r), component scales (p), and eleven scalars
     # (J, tau, updates, cleared_at, missing, nonfinite, variance floor, undone in a row,
     # change score, next check, last power); plus two bools (scales pending, has reasons)
-    rls = 8 * (p + p * p + history + channels + 2 * p + 11) + 2
+    rls = 8 * (p + p * p + history + channels + p + 11) + 2
     assert BatchedRls(7, order=2).nbytes == 7 * rls
     # bcrls adds theta_c, Lambda theta_c, sigma2 and the compensation resets checked, and
     # for its covariance the moment ring ((n + 64) x (p + 1)), the rows pending, the sums
