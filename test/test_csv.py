@@ -66,9 +66,10 @@ def test_default_columns_time_column_and_gaps(ding_csv, ding):
     np.testing.assert_array_equal(samples.rows, expected)
     np.testing.assert_array_equal(samples.times_ns, np.rint(np.arange(1500) / 250 * 1e9))
     assert samples.nonfinite_rows == 2
-    block = samples.block()
-    assert block.layout.dim[0].label == 'y,u1,u2'
-    np.testing.assert_array_equal(decode_samples(block.message(5), 2), ding[5:6])
+    blocks = list(samples.blocks())
+    assert {block.layout.dim[0].label for block in blocks} == {'y,u1,u2'}
+    assert sum(len(block) for block in blocks) == 1500
+    np.testing.assert_array_equal(decode_samples(blocks[0].message(5), 2), ding[5:6])
 
 
 def test_without_a_time_column_rows_are_stamped_at_the_rate(ding_csv):
@@ -214,7 +215,9 @@ def test_a_missing_file_and_a_non_utf8_file(tmp_path, capsys):
 # ------------------------------------------------------------------ import, replay, analyze
 @pytest.mark.parametrize('estimator', ['rls', 'bcrls'])
 def test_replay_of_a_csv_equals_replay_of_its_imported_bag(estimator, ding_csv, tmp_path,
-                                                           capsys):
+                                                           capsys, monkeypatch):
+    # the CSV in blocks of 250 rows (two of them with a gap), the bag in one chunk
+    monkeypatch.setattr(csv_samples, 'BLOCK_ROWS', 250)
     bag = tmp_path / 'imported'
     code, out, err = run_cli(capsys, 'import', ding_csv, '--out', bag, '--time-column', 'time')
     assert code == 0, err

@@ -9,7 +9,7 @@ holds the sample times in seconds; without one, row k (from 0) is stamped
 k / rate, at :data:`DEFAULT_RATE_HZ` unless a rate is given.
 
 :func:`read_csv_samples` returns :class:`CsvSamples`: the rows
-``[y, u1, ..., ur]`` and their time stamps, and as :meth:`CsvSamples.block`
+``[y, u1, ..., ur]`` and their time stamps, and as :meth:`CsvSamples.blocks`
 the one-sample messages a bag of the same samples holds, so ``bcid replay``
 feeds a CSV through the same per-message rule as a bag
 (:meth:`bcid_ros.samples.SampleFeeder.take_messages`), and
@@ -63,6 +63,10 @@ CHUNK_BYTES = 1 << 22
 #: stamps' end (9.22e9 s).
 LARGEST_TIME_S = 9e9
 
+#: Rows per block of :meth:`CsvSamples.blocks`. A block is fed at once, but one with a NaN
+#: message by message: a bag's chunk holds about 11,000 one-sample messages.
+BLOCK_ROWS = 4096
+
 _COUNT_COMMAS = methodcaller('count', ',')
 
 
@@ -105,19 +109,23 @@ class CsvSamples:
         """Return the number of rows with an empty, NaN or infinite sample value."""
         return int(np.count_nonzero(~np.isfinite(self.rows).all(axis=1)))
 
-    def block(self) -> MessageBlock:
+    def blocks(self) -> Iterator[MessageBlock]:
         """
-        Return the rows as one-sample ``samples`` messages, as a bag of them is read.
+        Yield the rows as one-sample ``samples`` messages, as a bag of them is read.
 
         The layout is that of a one-sample message, ``dim[0] = {label:
         'y,u1,...,ur', size: 1 + r, stride: 1 + r}``
         (:func:`bcid_ros.samples.samples_layout`), the time stamps are
-        :attr:`times_ns`: what :meth:`bcid_ros.bag.reader.BagReader.blocks`
-        yields for the bag that :func:`write_samples_bag` writes.
+        :attr:`times_ns`: the messages that
+        :meth:`bcid_ros.bag.reader.BagReader.blocks` yields for the bag that
+        :func:`write_samples_bag` writes, in blocks of :data:`BLOCK_ROWS`
+        (a block with a NaN goes message by message, as the bag's chunk would).
         """
         width = self.rows.shape[1]
         layout = Layout((Dimension(sample_label(self.num_inputs), width, width),), 0)
-        return MessageBlock(self.times_ns, layout, self.rows)
+        for start in range(0, self.rows.shape[0], BLOCK_ROWS):
+            end = start + BLOCK_ROWS
+            yield MessageBlock(self.times_ns[start:end], layout, self.rows[start:end])
 
 
 def is_csv(path: str | Path) -> bool:

@@ -14,8 +14,8 @@ runs of messages with the same layout, in log-time order, fed with
 per-message rule to a whole block in one loop. A block whose layout is
 wrong goes message by message through
 :meth:`~bcid_ros.samples.SampleFeeder.take_message`, as the node would. A CSV
-log (:mod:`bcid_ros.bag.csv_samples`) is one block of one-sample messages, the
-messages of the bag that ``bcid import`` writes from it.
+log (:mod:`bcid_ros.bag.csv_samples`) comes in blocks of one-sample messages,
+the messages of the bag that ``bcid import`` writes from it.
 """
 
 from __future__ import annotations
@@ -141,8 +141,8 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
 
     A CSV log (:class:`~bcid_ros.bag.csv_samples.CsvSamples`, or a path
     ending in ``.csv``, read with the default columns) goes through the same
-    per-message rule as the bag that ``bcid import`` writes from it: one
-    block of one-sample messages.
+    per-message rule as the bag that ``bcid import`` writes from it: blocks
+    of one-sample messages.
 
     Parameters
     ----------
@@ -186,7 +186,7 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
             raise BcidError(f'{bag.path} has {bag.num_inputs} input column(s) '
                             f'({",".join(bag.columns[1:])}) but the parameter file sets '
                             f"num_inputs = {values['num_inputs']}")
-        blocks, truth = iter([bag.block()]), None
+        blocks, truth = bag.blocks(), None
     else:
         bag.require(topic, FLOAT64_MULTI_ARRAY)
         blocks, truth = bag.blocks(topic), bag.truth()
