@@ -3,8 +3,10 @@
 import json
 from pathlib import Path
 import re
+import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -328,3 +330,57 @@ def test_csv_commands_import_no_rclpy_and_replay_no_bag_library(tmp_path, ding_c
                           timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines()[1] == '[]'
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_the_imported_bag_played_into_identifier_node_gives_the_csv_replay(tmp_path, ding):
+    rclpy = pytest.importorskip('rclpy')
+    from conftest import fresh_domain_id
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64MultiArray
+
+    rows = ding[:1000].tolist()
+    rows[400][2] = None  # a gap: the node skips the NaN sample as the replay does
+    path = write_csv(tmp_path / 'log.csv', ['y', 'u1', 'u2'], rows)
+    offline = replay(read_csv_samples(path), {'estimator': 'rls', 'order': 2, 'num_inputs': 2})
+    bag = write_samples_bag(read_csv_samples(path, rate_hz=1000.0), tmp_path / 'bag')
+    domain = fresh_domain_id()
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node('csv_test', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    received = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
+                             lambda message: received.append(np.array(message.data)), latched)
+    bin_dir = Path(sys.executable).parent
+    identifier = subprocess.Popen(
+        [str(bin_dir / 'identifier_node'), '--ros-args', '-p', 'estimator:=rls',
+         '-p', 'order:=2', '-p', 'num_inputs:=2'], env=env, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        play = subprocess.run([str(bin_dir / 'bcid'), 'play', str(bag),
+                               '--wait-for-subscribers', '30'], env=env, capture_output=True,
+                              text=True, timeout=120)
+        assert play.returncode == 0, play.stderr
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not (
+                received and np.array_equal(received[-1], offline.theta)):
+            executor.spin_once(timeout_sec=0.02)
+    finally:
+        identifier.terminate()
+        identifier.wait(timeout=10)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    assert received, identifier.stderr.read()[-2000:]
+    assert offline.nonfinite == 1
+    # the node's per-message rule on the same messages: the same bits
+    np.testing.assert_array_equal(received[-1], offline.theta)
