@@ -445,7 +445,8 @@ def _time_problem(value: float, before: float) -> str:
     if value < 0:
         return f'time {value!r} s is negative; bag time stamps start at 0'
     if value >= LARGEST_TIME_S:
-        return f'time {value!r} s is past the last bag time stamp ({LARGEST_TIME_S:.4g} s)'
+        return (f'time {value!r} s is too large (at most {LARGEST_TIME_S:.4g} s, the year 2255 '
+                'as Unix time)')
     return (f'time {value!r} s is before the row above ({before!r} s); the rows must be in '
             'time order')
 
