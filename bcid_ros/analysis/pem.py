@@ -16,10 +16,11 @@ feedthrough):
   the one-step prediction error with C kept minimum-phase.
 
 The methods are those of Ljung, *System Identification: Theory for the User*
-(2nd ed., 1999): the prediction-error criterion (7.12), its gradient (10.42),
-the asymptotic covariance (9.17) and (9.29), and for the start the
-instrumental-variable refinement of Section 7.6 in Young's simplified refined
-IV form (Young, *Recursive Estimation and Time-Series Analysis*, 2011, ch. 7).
+(2nd ed., 1999): the model structures of ch. 4, the prediction-error criterion
+of ch. 7, the asymptotic covariance of ch. 9 and the gradients and
+Gauss-Newton search of ch. 10; for the start, the instrumental-variable
+refinement (ch. 7) in Young's simplified refined IV form (Young, *Recursive
+Estimation and Time-Series Analysis*, 2011, ch. 7).
 The data must be centred by the caller (remove the operating point first).
 """
 
@@ -293,9 +294,9 @@ def oe_jacobian(theta: Any, u: Any, structure: Structure) -> np.ndarray:
         \partial\hat y/\partial a_k = -q^{-k}\hat y/F,\quad
         \partial\hat y/\partial b_{ik} = q^{-(d_i+k)}u_i/F
 
-    (Ljung 1999, eq. (10.42)), from rest, shape ``(N, p)``. With white v of
+    (Ljung 1999, ch. 10), from rest, shape ``(N, p)``. With white v of
     variance :math:`\sigma^2`, :math:`\sigma^2(\psi^T\psi)^{-1}` is the
-    asymptotic covariance of the OE estimate (eq. (9.17)).
+    asymptotic covariance of the OE estimate (Ljung 1999, ch. 9).
 
     Raises
     ------
@@ -573,8 +574,8 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
     r"""
     Fit the MISO output-error model ``y = sum_i B_i/F u_i + v`` by prediction-error minimisation.
 
-    Minimises the simulation error (Ljung 1999, eq. (7.12) with the OE
-    predictor (4.21))
+    Minimises the simulation error (the prediction-error criterion with the
+    OE predictor, Ljung 1999, chs. 4 and 7)
 
     .. math::
 
@@ -603,10 +604,10 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
     losses; the lowest end wins (an over-parametrised OE model has several
     minima, and the lowest start does not always lead to the lowest).
 
-    Covariance (Ljung 1999, (9.17) and (9.29) with the noise spectrum left
-    free): the sandwich :math:`B^{-1}\,(\hat\sigma_w^2\,G^TG)\,B^{-1}` with
-    :math:`B = \psi^T\psi`, ψ the Jacobian of theta with the w columns
-    projected out, and :math:`G = L^T\psi`, L the Toeplitz matrix of the AR
+    Covariance (Ljung 1999, ch. 9: an OE estimate under coloured noise):
+    the sandwich :math:`B^{-1}\,(\hat\sigma_w^2\,G^TG)\,B^{-1}` with
+    :math:`B = \psi^T\psi`, ψ the Jacobian of theta with the w (and offset)
+    columns projected out, and :math:`G = L^T\psi`, L the Toeplitz matrix of the AR
     model 1/D(q) of the residual chosen by AIC (order <= 30). It assumes open
     loop (v independent of u), the plant in the model set and a stationary v
     that an AR model of that order describes; with D = 1 it is the white-noise
@@ -823,7 +824,7 @@ def ar_noise_model(residual: np.ndarray, max_order: int) -> tuple[np.ndarray, fl
     Return (D, sigma_w^2): the AR model D(q) v = w of ``residual`` chosen by AIC.
 
     Levinson-Durbin on the biased sample autocorrelation (Ljung 1999,
-    Sec. 10.1) for orders 0 ... ``max_order``; the order minimises
+    ch. 10) for orders 0 ... ``max_order``; the order minimises
     :math:`N\ln\sigma_k^2 + 2k` (Akaike 1974). D is monic and stable (the
     biased autocorrelation is positive definite).
     """
@@ -856,7 +857,7 @@ class _Armax:
 
     With :math:`\varepsilon(t) = y(t) - \varphi^T(t)\theta_{ab}` (the ARX
     equation error) the innovation is :math:`e = \varepsilon/C`, from rest at
-    t = n + max(d_i), and (Ljung 1999, (10.52))
+    t = n + max(d_i), and (Ljung 1999, ch. 10)
 
     .. math::
 
@@ -905,13 +906,13 @@ def fit_armax(y: Any, u: Any, structure: Structure, *,
     Fit the ARMAX model ``A y = sum_i B_i u_i + C e`` by prediction-error minimisation.
 
     Minimises :math:`\frac1{N'}\sum e^2(t)`, :math:`e = (A y - \sum_i B_i u_i)/C`
-    (Ljung 1999, eqs. (4.15), (7.12)), over t >= n + max(d_i), with
+    (Ljung 1999, chs. 4 and 7), over t >= n + max(d_i), with
     :func:`scipy.optimize.least_squares` and the analytic Jacobian of
     :class:`_Armax`; a step to a C with a root on or outside the unit circle
     is refused. Starts: Hannan-Rissanen (the residual of a long ARX model as
     the lagged innovations in a least-squares fit, C reflected to minimum
     phase) and the ARX estimate with C = 1; the lower end wins. The
-    covariance :math:`\hat\sigma^2(\psi^T\psi)^{-1}` (Ljung 1999, (9.17)), ψ
+    covariance :math:`\hat\sigma^2(\psi^T\psi)^{-1}` (Ljung 1999, ch. 9), ψ
     the gradient of e, assumes a white innovation independent of past u (the
     model true).
 

@@ -210,7 +210,7 @@ def _predicted_error(theta: np.ndarray, u: np.ndarray, structure: Structure,
     Return :math:`\sqrt{\mathrm{tr}\,\sigma_v^2(\psi^T\psi)^{-1}}/\|\theta\|` at the truth.
 
     The relative error an efficient OE estimate would have with white noise
-    of the same variance (Ljung 1999, eq. (9.17)); inf when the gradient is
+    of the same variance (Ljung 1999, ch. 9); inf when the gradient is
     singular.
     """
     psi = oe_jacobian(theta, u, structure)
