@@ -24,8 +24,9 @@ operating point). Per estimator:
   parameter within 3 std of the truth;
 * **diverged**: theta not finite, delta > 10, or the estimator raised.
 
-The default estimators are every registered one but those for other settings
-(:data:`OTHER_SETTINGS`); an estimator registered later (``rpem``) is included by itself.
+The default estimators are the registered ones for open-loop input/output data (the
+registry's ``open_loop``: not errors in variables, not closed loop); an estimator registered
+later (``rpem``) is included by itself.
 """
 
 from __future__ import annotations
@@ -43,12 +44,10 @@ import numpy as np
 
 from bcid_ros.analysis.pem import fit_arx, fit_oe, Structure
 from bcid_ros.estimators import ESTIMATORS, make_estimator
+from bcid_ros.estimators.registry import names_where
 from bcid_ros.reproduction.common import markdown_table, relative_error
 from bcid_ros.simulation.realistic import realistic_family, RealisticCase
 
-#: Registered estimators for other settings than an open-loop plant with a
-#: noise-free input (errors in variables, closed loop): run only with --all-estimators.
-OTHER_SETTINGS = ('bciv', 'cl_bcls')
 #: delta at or below this counts as accurate whatever delta_ref is.
 ACCURATE_FLOOR = 0.01
 #: delta at or below this many times delta_ref counts as accurate.
@@ -62,8 +61,8 @@ COVERAGE_STD = 3.0
 
 
 def default_estimators() -> list[str]:
-    """Return the registered estimators for open-loop plants, in registry order."""
-    return [name for name in ESTIMATORS if name not in OTHER_SETTINGS]
+    """Return the registered estimators for open-loop input/output data, in registry order."""
+    return list(names_where(open_loop=True))
 
 
 def centred(case: RealisticCase) -> tuple[np.ndarray, np.ndarray]:
@@ -208,7 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--estimators', default=None,
                         help='comma-separated registry names (default: the open-loop ones)')
     parser.add_argument('--all-estimators', action='store_true',
-                        help=f'also run {", ".join(OTHER_SETTINGS)} (other settings)')
+                        help='also run the estimators for other settings (errors in '
+                        'variables, closed loop)')
     parser.add_argument('--json', type=Path, default=None, help='write the per-case rows here')
     args = parser.parse_args(argv)
     names = (args.estimators.split(',') if args.estimators else
