@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from bcid_ros.estimators.adequacy import (AdequacyMonitor, chi2_quantile, chi2_survival,
+from bcid_ros.estimators.adequacy import (AdequacyMonitor, BLOCK, chi2_quantile, chi2_survival,
                                           default_window, levinson, MAX_WINDOW, MIN_WINDOW)
-from bcid_ros.estimators.lagged import BLOCK
 
 PLANTS = 600
 SAMPLES = 3000
@@ -87,11 +86,12 @@ def test_the_naive_cross_test_of_white_inputs_would_fail_here():
     residual = rng.standard_normal((SAMPLES, PLANTS))
     inputs = held_prbs(rng, SAMPLES, PLANTS, 1)
     monitor = monitor_run(residual, inputs)
-    products = monitor._products
-    moments = products.sums / products.weight
-    r = moments[:, 0, 1, 1:monitor.lags + 1]
-    naive = monitor.effective_samples * (r * r).sum(axis=-1) / (
-        moments[:, 0, 0, 0] * moments[:, 1, 1, 0])
+    # the sums of e(t) [e(t) ... e(t - E), u(t - 1) ... u(t - U)] and of u(t - a) u(t - b)
+    first = 1 + monitor._residual_lags
+    r = monitor._residual_sums[:, 0, first:first + monitor.lags] / monitor._weight
+    power = monitor._residual_sums[:, 0, 0] * monitor._input_sums[:, 0, 0, 0] / (
+        monitor._weight ** 2)
+    naive = monitor.effective_samples * (r * r).sum(axis=-1) / power
     threshold = stats.chi2.ppf(0.99, monitor.lags)
     assert (naive > threshold).mean() > 0.01 + 4.0 * math.sqrt(0.01 * 0.99 / PLANTS)
     assert within((monitor.statistics[:, 1] > threshold).mean(), 0.01, PLANTS)
@@ -249,7 +249,7 @@ def test_not_ready_before_the_window_holds_enough_samples():
     rng = np.random.default_rng(1)
     for _ in range(190):
         monitor.record(float(rng.standard_normal()), rng.standard_normal(1))
-    # N = 128 after two blocks, under 20 per lag
+    # N = 128 after one block, under 20 per lag
     assert not monitor.ready and monitor.checks == 0
     for _ in range(100):
         monitor.record(float(rng.standard_normal()), rng.standard_normal(1))

@@ -20,9 +20,8 @@ import math
 from typing import Any
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
-from bcid_ros.estimators.lagged import BLOCK, LaggedProducts
+from bcid_ros.estimators.lagged import decayed_weights
 
 #: The tests of each kind of model (docs/trust.md): (whiteness, residual may be coloured).
 MODEL_TESTS = {
@@ -45,8 +44,9 @@ HYSTERESIS = 4.0
 PREWHITENING_ORDER = 2
 #: Lags of the prewhitened residual's own colour kept in the cross test's variance ('oe').
 COLOUR_LAGS = 3
-#: The tests run every this many samples (a multiple of BLOCK).
-CHECK_PERIOD = 2 * BLOCK
+#: Samples are kept in lists and added to the moments this many at a time; the
+#: tests run after each block (their cost, about 150 numpy calls, is shared by it).
+BLOCK = 128
 
 
 def chi2_survival(x: float, dof: int) -> float:
@@ -101,8 +101,10 @@ def default_window(forgetting_factor: float) -> float:
 class MonitorState:
     """A copy of an :class:`AdequacyMonitor`'s state (:meth:`AdequacyMonitor.get_state`)."""
 
-    products: dict[str, Any]
-    context: np.ndarray
+    residual_sums: np.ndarray
+    input_sums: np.ndarray
+    weights: tuple[float, float]
+    ring: np.ndarray
     pending_residuals: np.ndarray
     pending_inputs: np.ndarray
     alarms: np.ndarray
@@ -122,7 +124,7 @@ class AdequacyMonitor:
     :math:`\hat R_{xy}(k) = \sum_t w_t x_t y_{t-k} / \tau`,
     :math:`\tau = \sum w_t`, whose variance is that of a mean over the
     effective sample size :math:`N = \tau^2 / \sum w_t^2` (about 2W). Every
-    ``CHECK_PERIOD`` samples, once :math:`N \ge` ``SAMPLES_PER_LAG`` M:
+    ``BLOCK`` samples, once :math:`N \ge` ``SAMPLES_PER_LAG`` M:
 
     * **whiteness** (models 'arx', 'oe_white', 'armax'): with
       :math:`\hat\rho_k = \hat R_\varepsilon(k) / \hat R_\varepsilon(0)`,
@@ -147,10 +149,16 @@ class AdequacyMonitor:
       'oe') both series are first filtered by the AR(``PREWHITENING_ORDER``)
       whitening filter of the residual, fitted from its autocovariances,
       and J = ``COLOUR_LAGS`` lags of the whitened residual's remaining colour
-      enter P with Bartlett weights :math:`\kappa_j = 1 - |j|/(J + 1)`. The
-      stored rows carry q lags of each signal, so that the moments of the
-      filtered series are exact quadratic forms :math:`f^T B(k) f` of the
-      stored ones.
+      enter P with Bartlett weights :math:`\kappa_j = 1 - |j|/(J + 1)`.
+
+    **Storage.** Each sample is kept as the row
+    :math:`z(t) = [e(t) \ldots e(t-E), u_1(t-1) \ldots u_1(t-U), \ldots]` with
+    the lags the tests need, and the monitor keeps :math:`\sum_t w_t z z^T`:
+    every product of a test, and every product of the filtered series (a
+    quadratic form in f), is then exact. Lagged moments
+    :math:`\hat R(k)` would shift the weights by k between two lags; a smooth
+    input's nearly singular :math:`R_u` and a strongly coloured residual's
+    cancelling filter amplify that into false alarms (docs/trust.md).
 
     The worst lag of a test is the one with the largest standardised
     correlation (:math:`|\hat\rho_k|`, or :math:`|r_k|/\sqrt{P_{kk}}`); the reason
@@ -231,13 +239,26 @@ class AdequacyMonitor:
         #: the statistic's thresholds: the alarm goes off below the first, on above the second
         self.thresholds = (chi2_quantile(per_test, lags),
                            chi2_quantile(per_test / HYSTERESIS, lags))
-        # each stored row is [e(t) ... e(t-q), u1(t) ... u1(t-q), ...]: the moments of the
-        # filtered series are then exact quadratic forms (docs/trust.md)
-        self._span = self._filter_order + 1
-        stored = lags + max(self._colour_lags - 1, 0)
-        self._products = LaggedProducts(width=(1 + num_inputs) * self._span, lags=stored,
-                                        decay=1.0 - 1.0 / window, plants=plants)
+        # each stored row is z(t) = [e(t) ... e(t - E), u1(t - 1) ... u1(t - U), u2(t - 1) ...]
+        # and the monitor keeps sum_t w_t z(t) z(t)': every product the tests need, exactly
+        # (docs/trust.md: the shift of the weights between lags, which lagged moments
+        # R(k) ignore, is amplified by a smooth input's R_u^-1 and a whitening filter)
+        q, colour = self._filter_order, self._colour_lags
+        self._residual_lags = max(lags if self.whiteness else 0, colour + q)
+        self._input_lags = lags + colour + q
+        self._decay = 1.0 - 1.0 / window
         self._plants = 1 if plants is None else plants
+        self._history = max(self._residual_lags, self._input_lags)
+        # z(t)[j] = channel _channels[j] at t - _lags[j]: e at lags 0..E, then each u_i at 1..U
+        self._lags = np.concatenate([np.arange(self._residual_lags + 1)] + [
+            np.arange(1, self._input_lags + 1)] * num_inputs)
+        self._channels = np.repeat(np.arange(1 + num_inputs),
+                                   [self._residual_lags + 1] + [self._input_lags] * num_inputs)
+        # where z(t)[j] is in a plant's ring (history rows, then the block), flattened
+        self._gather = ((self._history + np.arange(BLOCK)[:, None] - self._lags[None, :])
+                        * (1 + num_inputs) + self._channels[None, :]).ravel()
+        # w = mu^(age) of the rows of a block: the newest has weight 1
+        self._block_weights = self._decay ** np.arange(BLOCK - 1, -1, -1, dtype=float)
         self.reset()
 
     def __repr__(self) -> str:
@@ -248,11 +269,19 @@ class AdequacyMonitor:
     # ------------------------------------------------------------ the stream
     def reset(self) -> None:
         """Forget the data and clear the alarms."""
-        self._products.reset()
-        # the last q rows [e, u] before the pending ones (zeros at the start)
-        self._context = np.zeros((self._plants, self._filter_order, 1 + self.num_inputs))
+        width, q = self._lags.shape[0], self._filter_order
+        # the products the tests read, summed with the weights over the blocks added:
+        # e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b), a, b = 1..U
+        self._residual_sums = np.zeros((self._plants, q + 1, width))
+        self._input_sums = np.zeros((self._plants, self.num_inputs, self._input_lags,
+                                     self._input_lags))
+        self._weight = 0.0
+        self._squared_weight = 0.0
+        # the last rows [e, u] (zeros at the start), then room for a block
+        self._ring = np.zeros((self._plants, self._history + BLOCK, 1 + self.num_inputs))
         self._residuals: list[Any] = []
-        self._inputs: list[Any] = []
+        # the inputs of the pending samples
+        self._inputs = np.zeros((BLOCK, self._plants, self.num_inputs))
         shape = (self._plants, self.num_tests)
         self._alarms = np.zeros(shape, dtype=bool)
         self._statistics = np.full(shape, np.nan)
@@ -266,39 +295,49 @@ class AdequacyMonitor:
         Add one sample: the residual the model says is white, and the inputs at the same time.
 
         ``residual`` is a float (one plant) or ``(K,)``; ``inputs`` ``(r,)`` or
-        ``(K, r)``. The arrays are kept by reference until the next block:
-        do not change them afterwards. Every ``BLOCK`` samples the block is
-        added, every ``CHECK_PERIOD`` samples the tests run.
+        ``(K, r)`` (copied). Every ``BLOCK`` samples the block is added and the
+        tests run.
         """
-        self._residuals.append(residual)
-        self._inputs.append(inputs)
-        if len(self._residuals) == BLOCK:
+        residuals = self._residuals
+        self._inputs[len(residuals)] = inputs
+        residuals.append(residual)
+        if len(residuals) == BLOCK:
             self._add_block()
-            if self._products.count % CHECK_PERIOD == 0:
-                self._check()
+            self._check()
 
     def _add_block(self) -> None:
-        """Add the pending samples, as rows with their q lags, to the moments."""
-        count, width = len(self._residuals), 1 + self.num_inputs
-        rows = np.empty((self._plants, count, width))
-        rows[:, :, 0] = np.reshape(self._residuals, (count, self._plants)).T
-        rows[:, :, 1:] = np.swapaxes(np.reshape(self._inputs, (count, self._plants,
-                                                               self.num_inputs)), 0, 1)
-        self._residuals, self._inputs = [], []
-        if self._filter_order:
-            ring = np.concatenate((self._context, rows), axis=1)
-            self._context = ring[:, count:].copy()
-            # lagged[k, t, c, a] = channel c at t - a
-            lagged = sliding_window_view(ring, self._span, axis=1)[..., ::-1]
-            rows = lagged.reshape(self._plants, count, width * self._span)
-        self._products.add(np.swapaxes(rows, 0, 1) if self.plants is not None else rows[0])
+        """Add the BLOCK pending samples, as rows z(t) with their lags, to the sums."""
+        history, ring, plants = self._history, self._ring, self._plants
+        ring[:, history:, 0] = np.reshape(self._residuals, (BLOCK, plants)).T
+        ring[:, history:, 1:] = np.swapaxes(self._inputs, 0, 1)
+        self._residuals = []
+        z = ring.reshape(plants, -1).take(self._gather, axis=1).reshape(plants, BLOCK, -1)
+        if not np.isfinite(z).all():  # a non-finite sample counts as zero
+            z = np.where(np.isfinite(z), z, 0.0)
+        weighted = z * self._block_weights[:, None]
+        first, q = 1 + self._residual_lags, self._filter_order
+        decay = self._decay ** BLOCK
+        # S <- mu^BLOCK S + sum_t w_t x(t) y(t)'
+        self._residual_sums *= decay
+        self._residual_sums += np.swapaxes(weighted[:, :, :q + 1], -1, -2) @ z
+        if self.num_inputs:
+            # (K, r, BLOCK, U): the lags of each input
+            lagged = np.moveaxis(z[:, :, first:].reshape(plants, BLOCK, self.num_inputs, -1),
+                                 2, 1)
+            weighted = np.moveaxis(weighted[:, :, first:].reshape(lagged.shape[:1] + (
+                BLOCK, self.num_inputs, -1)), 2, 1)
+            self._input_sums *= decay
+            self._input_sums += np.swapaxes(weighted, -1, -2) @ lagged
+        self._weight, self._squared_weight = decayed_weights(
+            self._weight, self._squared_weight, BLOCK, self._decay)
+        ring[:, :history] = ring[:, BLOCK:]
 
     # ------------------------------------------------------------ the tests
     @property
     def effective_samples(self) -> float:
         """Return N = (sum w)^2 / sum w^2 over the samples in the tests so far."""
-        squared = self._products.squared_weight
-        return self._products.weight ** 2 / squared if squared > 0.0 else 0.0
+        squared = self._squared_weight
+        return self._weight ** 2 / squared if squared > 0.0 else 0.0
 
     @property
     def ready(self) -> bool:
@@ -319,23 +358,21 @@ class AdequacyMonitor:
 
     def _statistics_now(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return Q, the worst lag and its correlation of every test, each ``(K, T)``."""
-        span, inputs = self._span, self.num_inputs
-        sums = self._products.sums.reshape((self._plants,) + self._products.sums.shape[-3:])
-        # blocks[k, c, a, d, b, l] = sum w_t c(t - a) d(t - l - b) / tau
-        blocks = (sums / self._products.weight).reshape(
-            (self._plants, 1 + inputs, span, 1 + inputs, span, sums.shape[-1]))
+        inputs, first, q = self.num_inputs, 1 + self._residual_lags, self._filter_order
+        # means: e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b)
+        residual = self._residual_sums / self._weight
         size = self.effective_samples
         results = []
-        residual = blocks[:, 0, :, 0]                                  # (K, q+1, q+1, L+1)
         if self.whiteness:
-            results.append(whiteness_statistic(residual[:, 0, 0], self.lags, size))
+            results.append(whiteness_statistic(residual[:, 0, :first], self.lags, size))
         if inputs:
-            whitening = (prewhitening_filter(residual[:, 0, 0], self._filter_order)
-                         if self._filter_order else np.ones((self._plants, 1)))
-            signals = np.stack([blocks[:, i, :, i] for i in range(1, 1 + inputs)], axis=1)
-            cross = blocks[:, 0, :, 1:].swapaxes(1, 2)                 # (K, r, q+1, q+1, L+1)
-            results.append(cross_statistics(residual, signals, cross, whitening, self.lags,
-                                            size, self._colour_lags))
+            whitening = (prewhitening_filter(residual[:, 0, :q + 1], q) if q
+                         else np.ones((self._plants, 1)))
+            # e(t - a) u_i(t - b): (K, r, q + 1, U)
+            cross = np.moveaxis(residual[:, :, first:].reshape(self._plants, q + 1, inputs, -1),
+                                2, 1)
+            results.append(cross_statistics(residual[:, :, :first], self._input_sums / (
+                self._weight), cross, whitening, self.lags, size, self._colour_lags))
         statistics, worst, values = (np.concatenate([np.reshape(result[i], (self._plants, -1))
                                                      for result in results], axis=1)
                                      for i in range(3))
@@ -373,7 +410,7 @@ class AdequacyMonitor:
 
     @property
     def checks(self) -> int:
-        """Count the checks made (one per CHECK_PERIOD samples once ready)."""
+        """Count the checks made (one per BLOCK samples once ready)."""
         return self._checks
 
     # ------------------------------------------------------------ the state
@@ -381,20 +418,23 @@ class AdequacyMonitor:
         """Return a copy of the state."""
         lead = (len(self._residuals), self._plants)
         return MonitorState(
-            products=self._products.state(), context=self._context.copy(),
+            residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
+            weights=(self._weight, self._squared_weight),
+            ring=self._ring.copy(),
             pending_residuals=np.array(self._residuals, dtype=float).reshape(lead),
-            pending_inputs=np.array(self._inputs, dtype=float).reshape(
-                lead + (self.num_inputs,)),
+            pending_inputs=self._inputs[:lead[0]].copy(),
             alarms=self._alarms.copy(), statistics=self._statistics.copy(),
             worst=self._worst.copy(), values=self._values.copy(), checks=self._checks)
 
     def set_state(self, state: MonitorState) -> None:
         """Continue from a :meth:`get_state` of a monitor with the same settings."""
-        self._products.load(state.products)
-        self._context = state.context.copy()
+        self._residual_sums = state.residual_sums.copy()
+        self._input_sums = state.input_sums.copy()
+        self._weight, self._squared_weight = state.weights
+        self._ring = state.ring.copy()
         squeeze = self.plants is None
         self._residuals = [float(r[0]) if squeeze else r.copy() for r in state.pending_residuals]
-        self._inputs = [r[0].copy() if squeeze else r.copy() for r in state.pending_inputs]
+        self._inputs[:len(self._residuals)] = state.pending_inputs
         self._alarms = state.alarms.copy()
         self._statistics = state.statistics.copy()
         self._worst = state.worst.copy()
@@ -458,38 +498,68 @@ def levinson(autocovariance: np.ndarray) -> np.ndarray | None:
     return a
 
 
+def filter_rows(whitening: np.ndarray, rows: int, columns: int) -> np.ndarray:
+    r"""
+    Return :math:`\Phi` ``(K, rows, columns)`` with :math:`\Phi_{a, a + l} = f_l`.
+
+    For x the stored lags of a signal, ``[x(t - s), x(t - s - 1), ...]``,
+    row a of :math:`\Phi x` is the filtered
+    :math:`\tilde x(t - s - a) = \sum_l f_l x(t - s - a - l)`.
+    """
+    count, order = whitening.shape[0], whitening.shape[1] - 1
+    result = np.zeros((count, rows, columns))
+    for a in range(rows):
+        result[:, a, a:a + order + 1] = whitening
+    return result
+
+
 def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarray,
                      whitening: np.ndarray, lags: int, size: float, colour_lags: int
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r"""
     Return :math:`Q_i = N r^T P^{-1} r` of each input, its worst lag and correlation, ``(K, r)``.
 
-    The lag blocks :math:`B(l)_{ab} = \sum_t w_t x(t-a) y(t-l-b) / \tau`
-    are ``residual`` (e, e) ``(K, q + 1, q + 1, L + 1)``, ``signals`` (u_i, u_i)
-    and ``cross`` (e, u_i), both ``(K, r, q + 1, q + 1, L + 1)``; ``whitening``
-    is the filter f ``(K, q + 1)`` applied to both series (``[1]``: none), so
-    that :math:`\hat R_{\tilde x\tilde y}(l) = f^T B(l) f` exactly (no shift of
-    the weights, which the cancelling filter of a strongly coloured residual
-    would amplify); ``colour_lags`` J (see :class:`AdequacyMonitor`).
+    The weighted means are ``residual`` ``(K, q + 1, E + 1)``, of
+    :math:`e(t-a)e(t-b)`, ``signals`` ``(K, r, U, U)`` of
+    :math:`u_i(t-a)u_i(t-b)` and ``cross`` ``(K, r, q + 1, U)`` of
+    :math:`e(t-a)u_i(t-b)` (u from lag 1); ``whitening`` is the filter f
+    ``(K, q + 1)`` of both series (``[1]``: none), so that every filtered
+    moment is an exact quadratic form; ``colour_lags`` J (see
+    :class:`AdequacyMonitor`).
     """
-    count, inputs = signals.shape[:2]
-    tests = np.arange(1, lags + 1)
-    # R~(l) = f' B(l) f
-    r = np.einsum('ka,kiabl,kb->kil', whitening, cross[..., 1:lags + 1], whitening)
-    colour = np.einsum('ka,kabl,kb->kl', whitening, residual[..., :colour_lags + 1], whitening)
-    input_moment = np.einsum('ka,kiabl,kb->kil', whitening, signals, whitening)
-    # P_ab = sum_{|j| <= J} kappa_j R_e~(j) R_u~(j - a + b), both even in their lag
-    difference = tests[None, :] - tests[:, None]                          # b - a
-    variance = np.zeros((count, inputs, lags, lags))
-    for j in range(-colour_lags, colour_lags + 1):
-        kappa = 1.0 - abs(j) / (colour_lags + 1)
-        variance += (kappa * colour[:, abs(j)])[:, None, None, None] * input_moment[
-            :, :, np.abs(j + difference)]
+    count, inputs, stored = signals.shape[0], signals.shape[1], signals.shape[-1]
+    span = lags + colour_lags
+    if whitening.shape[1] == 1 and colour_lags == 0:  # a white residual: no filter
+        colour = residual[:, 0, :1]
+        r = cross[:, :, 0, :lags]
+        products = signals[:, :, :lags, :lags]
+    else:
+        # e~(t - j), j = 0..J, and u~(t - a), a = 1..M + J: rows of filters on the stored lags
+        residual_filter = filter_rows(whitening, colour_lags + 1, residual.shape[-1])
+        input_filter = filter_rows(whitening, span, stored)
+        # R_e~(j) = mean e~(t) e~(t - j) = f' [e(t - a) e(t - j - b)] f
+        colour = np.einsum('ka,kab,kjb->kj', whitening, residual, residual_filter)
+        # r_k = mean e~(t) u~(t - k), k = 1..M
+        r = np.einsum('ka,kiac,kjc->kij', whitening, cross, input_filter[:, :lags])
+        # V(a, c) = mean u~(t - a) u~(t - c), a, c = 1..M + J
+        products = input_filter[:, None] @ signals @ np.swapaxes(input_filter, -1, -2)[:, None]
+    # P_ab = sum_{|j| <= J} kappa_j R_e~(j) V(a, b + j), V(a, c) for c < 1 from V(a + d, c + d)
+    if colour_lags == 0:
+        variance = colour[:, :1, None, None] * products[:, :, :lags, :lags]
+    else:
+        variance = np.zeros((count, inputs, lags, lags))
+        tests = np.arange(lags)
+        for j in range(-colour_lags, colour_lags + 1):
+            kappa = 1.0 - abs(j) / (colour_lags + 1)
+            column = tests[None, :] + j
+            shift = np.maximum(0, -column)
+            variance += (kappa * colour[:, abs(j)])[:, None, None, None] * products[
+                :, :, tests[:, None] + shift, column + shift]
     statistic, standardised = quadratic_forms(variance.reshape(-1, lags, lags),
                                               r.reshape(-1, lags))
     worst = np.argmax(np.abs(standardised), axis=-1)
     flat = r.reshape(-1, lags)[np.arange(count * inputs), worst].reshape(count, inputs)
-    scale = np.sqrt(np.maximum(colour[:, :1] * input_moment[:, :, 0], 0.0))
+    scale = np.sqrt(np.maximum(colour[:, :1] * np.einsum('kiaa->kia', products)[:, :, 0], 0.0))
     value = np.where(scale > 0.0, flat / np.where(scale > 0.0, scale, 1.0), 0.0)
     return size * statistic.reshape(count, inputs), worst.reshape(count, inputs) + 1, value
 
@@ -498,36 +568,24 @@ def quadratic_forms(variance: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np
     r"""
     Return :math:`r^T P^{-1} r` and the standardised correlations :math:`r_k/\sqrt{P_{kk}}`.
 
-    ``variance`` P ``(n, M, M)`` and r ``(n, M)``. One Cholesky factorisation
-    of the stack; where it fails, one per P: a P that is not positive
-    definite (an input without power) gives 0 and zeros, its test cannot see
-    anything. (The t-values of the lags in a joint regression,
-    :math:`(P^{-1}r)_k/\sqrt{(P^{-1})_{kk}}`, were tried for the worst lag and
-    name it less often: a held input makes the lags nearly collinear.)
+    ``variance`` P ``(n, M, M)`` and r ``(n, M)``: one solve of the stack;
+    where it fails, one per P. A singular P (an input without power) gives 0
+    and zeros: its test cannot see anything. (The t-values of the lags in a
+    joint regression, :math:`(P^{-1}r)_k/\sqrt{(P^{-1})_{kk}}`, were tried for
+    the worst lag and name it less often: a held input makes the lags nearly
+    collinear.)
     """
-    count, size = r.shape
-    diagonal = np.einsum('kii->ki', variance)
-    usable = (diagonal > 0.0).all(axis=-1) & np.isfinite(variance).all(axis=(-1, -2)) & (
-        np.isfinite(r).all(axis=-1))
-    statistic = np.zeros(count)
-    standardised = np.zeros((count, size))
-    if not usable.any():
-        return statistic, standardised
-    chosen = np.flatnonzero(usable)
     try:
-        factors = np.linalg.cholesky(variance[chosen])
+        solved = np.linalg.solve(variance, r[..., None])[..., 0]
     except np.linalg.LinAlgError:
-        factors = np.full((len(chosen), size, size), np.nan)
-        for n, k in enumerate(chosen):
+        solved = np.full(r.shape, np.nan)
+        for k in range(r.shape[0]):
             try:
-                factors[n] = np.linalg.cholesky(variance[k])
-            except np.linalg.LinAlgError:
-                usable[k] = False
-        chosen = np.flatnonzero(usable)
-        factors = factors[np.isfinite(factors).all(axis=(-1, -2))]
-    if not len(chosen):
-        return statistic, standardised
-    solved = np.linalg.solve(factors, r[chosen][..., None])[..., 0]
-    statistic[chosen] = np.einsum('ki,ki->k', solved, solved)
-    standardised[chosen] = r[chosen] / np.sqrt(diagonal[chosen])
-    return statistic, standardised
+                solved[k] = np.linalg.solve(variance[k], r[k])
+            except np.linalg.LinAlgError:  # singular: this test sees nothing
+                continue
+    statistic = np.einsum('ki,ki->k', r, solved)
+    diagonal = np.einsum('kii->ki', variance)
+    good = np.isfinite(statistic) & (statistic >= 0.0) & (diagonal > 0.0).all(axis=-1)
+    standardised = r / np.sqrt(np.where(good[:, None], diagonal, 1.0))
+    return np.where(good, statistic, 0.0), np.where(good[:, None], standardised, 0.0)
