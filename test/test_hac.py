@@ -143,6 +143,33 @@ def test_whitened_moments_are_those_of_the_whitened_series():
     assert np.abs(formula - gamma[:lags + 1]).max() > 10 * difference  # whitening changed them
 
 
+def test_whitened_moments_carry_the_weights_of_forgetting():
+    """Weights w_t = lambda^(N-t); rows at both ends zero, so the formula is exact."""
+    rng = np.random.default_rng(9)
+    samples, lags, lam = 400, 3, 0.9
+    scores = rng.standard_normal((samples, 2))
+    scores[:lags + 3] = 0.0
+    scores[-2:] = 0.0
+    weights = lam ** np.arange(samples - 1, -1, -1, dtype=float)
+    a = np.diag([0.8, -0.5])
+
+    def moments(series, count):
+        # sum_t w_t w_{t-k} s_t s_{t-k}'
+        return np.stack([(series[k:] * (weights[k:] * weights[:samples - k])[:, None]).T
+                         @ series[:samples - k] for k in range(count)])
+
+    whitened = np.zeros_like(scores)
+    whitened[1:] = scores[1:] - scores[:-1] @ a.T
+    direct = moments(whitened, lags + 1)
+    gamma = moments(scores, lags + 2)
+    formula = whitened_moments(gamma[None], a[None], lam)[0]
+    # the same sums in another order: rounding of a few ulp of the largest term
+    np.testing.assert_allclose(formula, direct, atol=1e-12 * np.abs(direct).max())
+    # without the factors lambda^-1, lambda^-2 they are off by about 10 %
+    assert np.abs(whitened_moments(gamma[None], a[None])[0] - direct).max() > 0.02 * np.abs(
+        direct).max()
+
+
 def test_one_plant_and_a_batch_agree():
     rng = np.random.default_rng(7)
     scores = signal.lfilter([1.0], [1.0, -0.8], rng.standard_normal((1500, 3, 4)), axis=0)

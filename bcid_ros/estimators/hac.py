@@ -197,8 +197,8 @@ class HacCovariance:
             gamma = m[:, None] @ gamma @ np.swapaxes(m, -1, -2)[:, None]
         squared = products.squared_weight
         size = products.weight ** 2 / squared if squared > 0.0 else 0.0
-        long_run, self._bandwidths = long_run_covariance(gamma, size, self.prewhitening,
-                                                         self.kernel, self.bandwidth)
+        long_run, self._bandwidths = long_run_covariance(
+            gamma, size, self.prewhitening, self.kernel, self.bandwidth, lam)
         return long_run[0] if self.plants is None else long_run
 
     @property
@@ -248,12 +248,15 @@ class HacCovariance:
 
 
 def long_run_covariance(gamma: np.ndarray, size: float, prewhitening: str, kernel: str,
-                        bandwidth: float | None) -> tuple[np.ndarray, np.ndarray]:
+                        bandwidth: float | None, forgetting_factor: float = 1.0
+                        ) -> tuple[np.ndarray, np.ndarray]:
     r"""
     Return :math:`\hat\Omega` ``(K, p, p)`` and the bandwidths ``(K,)`` from the lagged moments.
 
     ``gamma`` ``(K, L + 2, p, p)`` holds :math:`\hat\Gamma(k)`, k = 0..L+1; ``size``
-    is the effective sample size T. See :class:`HacCovariance` for the steps.
+    is the effective sample size T; the forgetting factor :math:`\lambda` of
+    the weights (see :func:`whitened_moments`). See :class:`HacCovariance` for
+    the steps.
     """
     count, lags = gamma.shape[0], gamma.shape[1] - 2
     # normalised units: unit variance per component (zero-power components keep scale 1)
@@ -261,7 +264,7 @@ def long_run_covariance(gamma: np.ndarray, size: float, prewhitening: str, kerne
     scale = np.sqrt(np.where(diagonal > 0.0, diagonal, 1.0))
     gamma = gamma / (scale[:, None, :, None] * scale[:, None, None, :])
     a = prewhitening_matrix(gamma, prewhitening)
-    whitened = whitened_moments(gamma, a)                              # (K, L+1, p, p)
+    whitened = whitened_moments(gamma, a, forgetting_factor)           # (K, L+1, p, p)
     if bandwidth is None:
         widths = np.minimum(andrews_bandwidth(whitened, size, kernel), float(lags))
     else:
@@ -289,21 +292,33 @@ def prewhitening_matrix(gamma: np.ndarray, prewhitening: str) -> np.ndarray:
     return rho[:, :, None] * np.eye(p)
 
 
-def whitened_moments(gamma: np.ndarray, a: np.ndarray) -> np.ndarray:
+def whitened_moments(gamma: np.ndarray, a: np.ndarray, forgetting_factor: float = 1.0
+                     ) -> np.ndarray:
     r"""
     Return the moments :math:`\Gamma^*(k)` (k = 0..L) of :math:`s_t - A s_{t-1}` from those of s.
 
-    ``gamma`` ``(K, L + 2, p, p)`` holds :math:`\Gamma(k)`, k = 0..L+1, and ``a``
-    ``(K, p, p)`` the prewhitening matrices.
+    ``gamma`` ``(K, L + 2, p, p)`` holds :math:`\Gamma(k) \propto \sum_t w_t w_{t-k}
+    s_t s_{t-k}^T`, k = 0..L+1, and ``a`` ``(K, p, p)`` the prewhitening matrices.
+    A product with :math:`s_{t-1}` in place of :math:`s_t` has its weights one
+    sample older, :math:`w_{t-1} = \lambda w_t`, so that, exactly but for one
+    row at the ends,
 
-    :math:`\Gamma^*(k) = \Gamma(k) - A\Gamma(k-1) - \Gamma(k+1)A^T + A\Gamma(k)A^T`.
+    .. math::
+
+        \Gamma^*(k) = \Gamma(k) - \lambda^{-1}[A\Gamma(k-1) + \Gamma(k+1)A^T]
+            + \lambda^{-2}A\Gamma(k)A^T, \qquad \Gamma(-1) = \Gamma(1)^T.
+
+    The factors matter: prewhitening cancels most of :math:`\Gamma(k)`, and
+    recolouring multiplies what is left by up to :math:`(1 - 0.97)^{-2}`.
     """
     lags = gamma.shape[1] - 2
     previous = np.concatenate((np.swapaxes(gamma[:, 1:2], -1, -2), gamma[:, :lags]), axis=1)
     a_row = a[:, None]
     a_t = np.swapaxes(a_row, -1, -2)
     current = gamma[:, :lags + 1]
-    return current - a_row @ previous - gamma[:, 1:lags + 2] @ a_t + a_row @ current @ a_t
+    older = 1.0 / forgetting_factor
+    return (current - older * (a_row @ previous + gamma[:, 1:lags + 2] @ a_t)
+            + (older * older) * (a_row @ current @ a_t))
 
 
 def andrews_bandwidth(whitened: np.ndarray, size: float, kernel: str) -> np.ndarray:
