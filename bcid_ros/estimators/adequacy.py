@@ -362,20 +362,22 @@ class AdequacyMonitor:
         # means: e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b)
         residual = self._residual_sums / self._weight
         size = self.effective_samples
-        results = []
+        shape = (self._plants, self.num_tests)
+        statistics, worst, values = np.empty(shape), np.empty(shape, dtype=np.intp), np.empty(
+            shape)
         if self.whiteness:
-            results.append(whiteness_statistic(residual[:, 0, :first], self.lags, size))
+            statistics[:, 0], worst[:, 0], values[:, 0] = whiteness_statistic(
+                residual[:, 0, :first], self.lags, size)
         if inputs:
             whitening = (prewhitening_filter(residual[:, 0, :q + 1], q) if q
                          else np.ones((self._plants, 1)))
             # e(t - a) u_i(t - b): (K, r, q + 1, U)
             cross = np.moveaxis(residual[:, :, first:].reshape(self._plants, q + 1, inputs, -1),
                                 2, 1)
-            results.append(cross_statistics(residual[:, :, :first], self._input_sums / (
-                self._weight), cross, whitening, self.lags, size, self._colour_lags))
-        statistics, worst, values = (np.concatenate([np.reshape(result[i], (self._plants, -1))
-                                                     for result in results], axis=1)
-                                     for i in range(3))
+            tests = slice(int(self.whiteness), None)
+            statistics[:, tests], worst[:, tests], values[:, tests] = cross_statistics(
+                residual[:, :, :first], self._input_sums / self._weight, cross, whitening,
+                self.lags, size, self._colour_lags)
         return statistics, worst, values
 
     # ------------------------------------------------------------ the results
