@@ -45,7 +45,7 @@ PREWHITENING_ORDER = 2
 #: Lags of the prewhitened residual's own colour kept in the cross test's variance ('oe').
 COLOUR_LAGS = 3
 #: Samples are kept in lists and added to the moments this many at a time; the
-#: tests run after each block (their cost, about 150 numpy calls, is shared by it).
+#: tests run after each block (their cost, about 150 function calls, is shared by it).
 BLOCK = 128
 
 
