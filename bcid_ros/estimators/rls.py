@@ -19,8 +19,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bcid_ros.estimators import rules
+from bcid_ros.estimators import adequacy, lagged, rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor, MonitorState
 from bcid_ros.estimators.base import RecursiveEstimator, weighted_square_ratio
+from bcid_ros.estimators.hac import HacCovariance, HacState
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 # the names bciv and cl_bcls still take from here
 from bcid_ros.estimators.rules import (CHANGE_MEMORY, GATE_WARMUP, GROWTH,  # noqa: F401
@@ -396,6 +398,10 @@ def repair_rows(plants: LsPlants, rows: np.ndarray, initial_covariance: float) -
         plants.p[rows], fallback[:, :, None] * np.eye(scale.shape[1]), scale)
 
 
+#: No event (a mask of one False).
+_NO = np.zeros(1, dtype=bool)
+
+
 def scale_dependents(scales: np.ndarray,
                      channel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
@@ -509,6 +515,9 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     name = 'rls'
     noise_names = ('residual_variance',)
+    #: The residual the model says is white, for the residual tests
+    #: (:data:`~bcid_ros.estimators.adequacy.MODEL_TESTS`): the equation error.
+    adequacy_model = 'arx'
 
     def __init__(self, **settings: Any) -> None:
         super().__init__(**settings)
@@ -525,6 +534,8 @@ class Rls(LsAccessors, RecursiveEstimator):
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step(y, phi)
+            if self._tau >= self._gate_from:
+                self._record_residual(y, phi, u)
             if self._updates >= self._next_check:
                 self._check_validity()
 
@@ -560,6 +571,8 @@ class Rls(LsAccessors, RecursiveEstimator):
                 self._update(y, u)
             elif self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
+                if self._tau >= self._gate_from:
+                    self._record_residual(y, phi, u)
                 if self._updates >= self._next_check:
                     self._check_validity()
 
@@ -571,6 +584,19 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _after_ls_step(self, y: float, phi: np.ndarray) -> None:
         """Extend the LS step on (y, phi) (the bias compensation of subclasses); nothing here."""
+
+    def _record_residual(self, y: float, phi: np.ndarray, u: np.ndarray) -> None:
+        """
+        Give the residual tests and the HAC covariance this step's equation error.
+
+        From the gate's warm-up on (tau >= GATE_WARMUP p), as the gate: the
+        a-priori errors of the first, converging steps are correlated with the
+        inputs by design (docs/trust.md).
+        """
+        error = self._error
+        self._monitor.record(error, u)
+        # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
+        self._hac.record(phi * error)
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
@@ -586,6 +612,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         if tau >= self._gate_from and (self._change_score or not e * e / (
                 (self._loss / tau + self._variance_floor) * (s + 1.0 - lam)) <= self._gate_limit2):
             return self._rare_step(y, phi)
+        self._error = e
         self._p = rls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
@@ -600,6 +627,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _rare_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the step by :func:`ls_step_rows` (this plant as K = 1); return whether it did."""
+        self._error = y - float(phi.dot(self._theta_ls))
         plants = self._as_plants()
         outcome = ls_step_rows(plants, np.zeros(1, dtype=np.intp), np.array([y]), phi[None],
                                self._ls_settings())
@@ -607,6 +635,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         for key, where in outcome.events.items():
             if where[0]:
                 self._flag(key)
+        if outcome.events.get('plant_change', _NO)[0]:
+            self._forget_residuals()
         if outcome.restart[0]:
             self._refused += 1
             self._restart_regressor()
@@ -688,7 +718,11 @@ class Rls(LsAccessors, RecursiveEstimator):
         reasons = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
         self._last_power = float(power[0])
-        return reasons
+        monitor = self._monitor
+        if not monitor.ready:
+            reasons.append(f'residual tests not ready ({monitor.effective_samples:.0f} of '
+                           f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)')
+        return reasons + list(monitor.reasons)
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -727,27 +761,21 @@ class Rls(LsAccessors, RecursiveEstimator):
     # ------------------------------------------------------- the uncertainty
     def _parameter_covariance(self) -> np.ndarray | None:
         r"""
-        Return the LS covariance :math:`\hat\sigma_e^2 P \tau_2/\tau` (None before ready).
+        Return the HAC sandwich covariance of the LS estimate (None before its first block).
 
-        For an ARX plant (white equation error of variance :math:`\sigma_e^2`),
-        the weighted LS estimate has the sandwich covariance
-        :math:`\sigma_e^2 P (\sum w_i^2\varphi\varphi^T) P`, which is
-        :math:`\sigma_e^2 P\,\tau_2/\tau` for stationary data
-        (:func:`~bcid_ros.estimators.base.weighted_square_ratio`; 1 without
-        forgetting). :math:`\hat\sigma_e^2 = J / (\tau - p\,\tau_2/\tau)`,
-        the weighted residual sum over its expected value per unit variance
-        (:math:`J/(N - p)` without forgetting). Not calibrated for coloured
-        equation error (output-error data): use bcrls there.
+        The LS estimate solves :math:`\sum_t w_t\varphi_t(y_t - \varphi_t^T\theta) = 0`,
+        so :math:`\hat\theta - \theta \approx P\sum_t w_t\varphi_t e_t` and its
+        covariance is :math:`P\,\mathrm{var}(\sum_t w_t s_t)\,P` with the scores
+        :math:`s_t = \varphi_t e_t`. :class:`~bcid_ros.estimators.hac.HacCovariance`
+        estimates the middle from the scores' lagged products, prewhitened and
+        windowed (Andrews 1991; Andrews and Monahan 1992): calibrated whether
+        the equation error is white (an ARX plant) or coloured (docs/trust.md).
+        The scores count from the gate's warm-up on; the first block of 64
+        gives the first covariance.
         """
-        tau = self._tau
-        p = self.num_parameters
-        if self._updates < p or not tau > 0.0:
+        if self._updates < self.num_parameters:
             return None
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
-        dof = tau - p * ratio
-        if not dof > 0.0:
-            return None
-        return (self._loss / dof * ratio) * self._p
+        return self._hac.covariance(self._p)
 
     def _theta(self) -> np.ndarray:
         return self._theta_ls
@@ -774,6 +802,15 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = p
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
+        self._error = 0.0
+        self._forget_residuals()
+
+    def _forget_residuals(self) -> None:
+        """Start the residual tests and the HAC afresh (at a reset and after a plant change)."""
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor)
+        self._hac = HacCovariance(dimension=self.num_parameters,
+                                  forgetting_factor=self._forgetting_factor)
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
@@ -786,8 +823,10 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
-                   'last_power': self._last_power, 'reasons': self._reasons}
-        return arrays, scalars
+                   'last_power': self._last_power, 'reasons': self._reasons,
+                   'error': self._error}
+        residual_arrays, residual_scalars = residual_state(self._monitor, self._hac)
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -805,6 +844,59 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = int(scalars['next_check'])
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
+        self._error = float(scalars['error'])
+        load_residual_state(self._monitor, self._hac, arrays, scalars)
+
+
+def residual_state(monitor: AdequacyMonitor,
+                   hac: HacCovariance) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """
+    Return the state of the residual tests and of the HAC as snapshot (arrays, scalars).
+
+    Their pending rows are padded to a block, so that the snapshot's arrays
+    have the same shapes whatever the moment (a state file is checked by shape).
+    """
+    state = monitor.get_state()
+    arrays = {f'adequacy_{field.name}': getattr(state, field.name)
+              for field in dataclasses.fields(state)
+              if isinstance(getattr(state, field.name), np.ndarray)}
+    pending = state.pending_residuals.shape[0]
+    arrays['adequacy_pending_residuals'] = _padded(state.pending_residuals, adequacy.BLOCK)
+    arrays['adequacy_pending_inputs'] = _padded(state.pending_inputs, adequacy.BLOCK)
+    products = hac.get_state().products
+    arrays.update((f'hac_{key}', value) for key, value in products.items()
+                  if isinstance(value, np.ndarray))
+    arrays['hac_pending'] = _padded(products['pending'], lagged.BLOCK)
+    scalars = {'adequacy_pending': pending, 'adequacy_weights': list(state.weights),
+               'adequacy_checks': state.checks, 'hac_pending': products['pending'].shape[0],
+               'hac_weight': products['weight'], 'hac_squared_weight': products['squared_weight'],
+               'hac_count': products['count']}
+    return arrays, scalars
+
+
+def load_residual_state(monitor: AdequacyMonitor, hac: HacCovariance,
+                        arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+    """Continue the residual tests and the HAC from a :func:`residual_state`."""
+    pending = int(scalars['adequacy_pending'])
+    fields = {field.name: arrays.get(f'adequacy_{field.name}')
+              for field in dataclasses.fields(MonitorState)}
+    fields.update(pending_residuals=arrays['adequacy_pending_residuals'][:pending],
+                  pending_inputs=arrays['adequacy_pending_inputs'][:pending],
+                  weights=tuple(scalars['adequacy_weights']),
+                  checks=int(scalars['adequacy_checks']))
+    monitor.set_state(MonitorState(**fields))
+    hac.set_state(HacState(products={
+        'sums': arrays['hac_sums'], 'context': arrays['hac_context'],
+        'pending': arrays['hac_pending'][:int(scalars['hac_pending'])],
+        'weight': scalars['hac_weight'], 'squared_weight': scalars['hac_squared_weight'],
+        'count': scalars['hac_count']}))
+
+
+def _padded(rows: np.ndarray, count: int) -> np.ndarray:
+    """Return ``rows`` ``(m, ...)`` with zero rows added up to ``count``."""
+    padded = np.zeros((count,) + rows.shape[1:])
+    padded[:rows.shape[0]] = rows
+    return padded
 
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
