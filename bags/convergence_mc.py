@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from bcid_ros.parameters import estimator_from_parameters, load_yaml_parameters
+from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
 from bcid_ros.reproduction.common import markdown_table
 from bcid_ros.simulation import make_scenario
 

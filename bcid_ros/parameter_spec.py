@@ -4,7 +4,7 @@ The parameter-spec machinery: one declared parameter, its checks, and parameter 
 A :class:`ParameterSpec` says everything about one ROS parameter: type,
 default, description, allowed values or range, and whether it may change
 while a node runs. The tables built from it (the identifier's and the
-simulator's in :mod:`bcid_ros.parameters`, the estimators' options in the
+simulator's in :mod:`bcid_ros.identifier.parameters`, the estimators' options in the
 estimator registry) declare the nodes' ROS parameters, check values offline
 and online with the same messages, and generate the docs' tables. Pure
 Python, no ROS, and nothing above it in the package: every layer may use it.

@@ -27,9 +27,9 @@ from std_msgs.msg import (Bool, Float64, Float64MultiArray,  # noqa: E402
 
 from bcid_ros.control import AdaptiveController, closed_loop_poles, Controller  # noqa: E402
 from bcid_ros.control.design import ModelStructure, Plant  # noqa: E402
+from bcid_ros.identifier.parameters import load_yaml_parameters  # noqa: E402
 from bcid_ros.nodes.adaptive_controller_node import AdaptiveControllerNode  # noqa: E402
 from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS  # noqa: E402
-from bcid_ros.parameters import load_yaml_parameters  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -87,8 +87,8 @@ def test_the_config_file_holds_the_three_nodes():
 
     from bcid_ros.cli import build_parser
     from bcid_ros.control.parameters import check_controller_parameters
-    from bcid_ros.parameters import (check_simulator_parameters, estimator_from_parameters,
-                                     load_yaml_parameters)
+    from bcid_ros.identifier.parameters import (check_simulator_parameters,
+                                                estimator_from_parameters, load_yaml_parameters)
 
     path = Path(__file__).resolve().parent.parent / 'config' / 'adaptive_loop.yaml'
     simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))

@@ -20,8 +20,9 @@ from bcid_ros.bag.replay import replay
 from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.cli import main as bcid
-from bcid_ros.parameters import estimator_from_parameters, load_yaml_parameters
-from bcid_ros.samples import samples_layout, SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.layouts import samples_layout
+from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
 from bcid_ros.simulation import make_scenario
 
 REPO = Path(__file__).resolve().parent.parent

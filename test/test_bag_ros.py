@@ -24,7 +24,7 @@ from bcid_ros.bag.reader import BagReader
 from bcid_ros.bag.replay import replay
 from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.bag.writer import BagWriter
-from bcid_ros.parameters import load_yaml_parameters
+from bcid_ros.identifier.parameters import load_yaml_parameters
 
 rclpy = pytest.importorskip('rclpy')
 from rclpy.context import Context  # noqa: E402

@@ -10,8 +10,8 @@ from scipy import signal
 from bcid_ros.estimators import cl_bcls as cl
 from bcid_ros.estimators import cl_bcls_batch as batch
 from bcid_ros.estimators import estimator_class, lti, make_estimator
-from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 load_yaml_parameters)
+from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                            load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
 from test_lti import random_stable_polynomial

@@ -11,9 +11,9 @@ import pytest
 
 pytest.importorskip('diagnostic_msgs')
 
+from bcid_ros.identifier.interface import COUNTERS, DiagnosticKey  # noqa: E402
 from bcid_ros.nodes.diagnostics import (CounterTask, ERROR, EstimatorTask, OK,  # noqa: E402
                                         SampleRateTask, Status, WARN)
-from bcid_ros.nodes.interface import COUNTERS, DiagnosticKey  # noqa: E402
 
 
 class FakeFeeder:

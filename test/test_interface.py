@@ -13,11 +13,11 @@ from types import SimpleNamespace
 import pytest
 
 from bcid_ros.estimators.registry import ESTIMATOR_NAMES
-from bcid_ros.nodes import interface
-from bcid_ros.nodes.interface import (check_input_width, INPUT_TYPES, MESSAGE_TYPES,
-                                      OUTPUT_TYPES, resolve)
-from bcid_ros.parameters import (check_identifier_parameters, IDENTIFIER_PARAMETERS,
-                                 markdown_table, SIMULATOR_PARAMETERS, spec_by_name)
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.interface import (check_input_width, INPUT_TYPES, MESSAGE_TYPES,
+                                           OUTPUT_TYPES, resolve)
+from bcid_ros.identifier.parameters import (check_identifier_parameters, IDENTIFIER_PARAMETERS,
+                                            markdown_table, SIMULATOR_PARAMETERS, spec_by_name)
 
 
 def test_names_resolve_as_ros_resolves_them():
@@ -112,8 +112,8 @@ def test_builders_make_real_messages_the_readers_read_back():
 
 def test_the_offline_modules_do_not_import_rclpy():
     code = ('import sys\n'
-            'import bcid_ros.nodes.interface, bcid_ros.nodes.pairing, bcid_ros.bag.replay\n'
-            'import bcid_ros.bag.simulate, bcid_ros.parameters\n'
+            'import bcid_ros.identifier.interface, bcid_ros.identifier.pairing\n'
+            'import bcid_ros.bag.replay, bcid_ros.bag.simulate, bcid_ros.identifier.parameters\n'
             'assert "rclpy" not in sys.modules\n')
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           timeout=60)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from bcid_ros.nodes.diagnostics_cdr import DiagnosticArrayEncoder
+from bcid_ros.identifier.cdr import DiagnosticArrayEncoder
 
 pytest.importorskip('rclpy')
 

@@ -8,10 +8,10 @@ import pytest
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators import make_batched_estimator
-from bcid_ros.joint_feeder import (check_joint_names, joint_feeder_from_parameters, JointFeeder,
-                                   joint_topic)
-from bcid_ros.parameters import check_identifier_parameters, check_simulator_parameters
-from bcid_ros.samples import SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.joint_feeder import (check_joint_names, joint_feeder_from_parameters,
+                                              joint_topic, JointFeeder)
+from bcid_ros.identifier.parameters import check_identifier_parameters, check_simulator_parameters
 from bcid_ros.simulation import make_scenario
 from equivalence import assert_paths_agree, rounding_spread
 
@@ -254,7 +254,7 @@ def test_simulator_parameters_of_the_joints_scenario():
 def test_the_joints_config_builds_what_it_says():
     from pathlib import Path
 
-    from bcid_ros.parameters import load_yaml_parameters
+    from bcid_ros.identifier.parameters import load_yaml_parameters
 
     path = Path(__file__).resolve().parent.parent / 'config' / 'joints.yaml'
     simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))

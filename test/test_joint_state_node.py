@@ -25,12 +25,12 @@ from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 
 from bcid_ros.estimators import make_estimator  # noqa: E402
 from bcid_ros.estimators import make_batched_estimator  # noqa: E402
-from bcid_ros.joint_feeder import JointFeeder  # noqa: E402
+from bcid_ros.identifier.feeder import SampleFeeder  # noqa: E402
+from bcid_ros.identifier.joint_feeder import JointFeeder  # noqa: E402
 from bcid_ros.nodes.common import SAMPLES_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402
 from bcid_ros.nodes.messages import as_doubles  # noqa: E402
 from bcid_ros.nodes.simulator_node import SimulatorNode  # noqa: E402
-from bcid_ros.samples import SampleFeeder  # noqa: E402
 from bcid_ros.simulation import make_scenario  # noqa: E402
 from equivalence import assert_paths_agree, rounding_spread  # noqa: E402
 

@@ -6,7 +6,7 @@ import types
 import numpy as np
 import pytest
 
-from bcid_ros.joints import JointStateDemux
+from bcid_ros.identifier.joint_demux import JointStateDemux
 
 
 def joint_state(names, position=(), velocity=(), effort=()):

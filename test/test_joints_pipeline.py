@@ -8,8 +8,8 @@ import pytest
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators import make_batched_estimator
-from bcid_ros.joints import JointStateDemux
-from bcid_ros.samples import SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.joint_demux import JointStateDemux
 from bcid_ros.simulation import make_scenario
 
 # The contract of the batched estimator against one plant (see test_batched.py).

@@ -26,12 +26,12 @@ rclpy = pytest.importorskip('rclpy')
 
 from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 
-from bcid_ros import persistence  # noqa: E402
+from bcid_ros.identifier import persistence  # noqa: E402
+from bcid_ros.identifier.feeder import SampleFeeder  # noqa: E402
+from bcid_ros.identifier.parameters import (  # noqa: E402
+    check_identifier_parameters, estimator_from_parameters, load_yaml_parameters)
 from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS  # noqa: E402
 from bcid_ros.nodes.messages import samples_message  # noqa: E402
-from bcid_ros.parameters import (  # noqa: E402
-    check_identifier_parameters, estimator_from_parameters, load_yaml_parameters)
-from bcid_ros.samples import SampleFeeder  # noqa: E402
 from bcid_ros.simulation import make_scenario  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

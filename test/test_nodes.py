@@ -22,10 +22,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from bcid_ros.identifier.parameters import (  # noqa: E402
+    estimator_from_parameters, load_yaml_parameters)
 from bcid_ros.nodes.common import LATCHED_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402
 from bcid_ros.nodes.simulator_node import SimulatorNode  # noqa: E402
-from bcid_ros.parameters import estimator_from_parameters, load_yaml_parameters  # noqa: E402
 from bcid_ros.simulation import make_scenario  # noqa: E402
 
 pytestmark = pytest.mark.ros

@@ -24,10 +24,11 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension  # noqa: E402
 
+from bcid_ros.identifier.feeder import SampleFeeder  # noqa: E402
+from bcid_ros.identifier.layouts import samples_layout  # noqa: E402
+from bcid_ros.identifier.parameters import estimator_from_parameters  # noqa: E402
 from bcid_ros.nodes.common import SAMPLES_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402
-from bcid_ros.parameters import estimator_from_parameters  # noqa: E402
-from bcid_ros.samples import SampleFeeder, samples_layout  # noqa: E402
 from bcid_ros.simulation import make_scenario  # noqa: E402
 from test_nodes import overrides, Recorder  # noqa: E402
 

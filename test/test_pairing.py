@@ -1,5 +1,5 @@
 """
-Unit tests of the separate-topic pairing (bcid_ros.nodes.pairing), without ROS.
+Unit tests of the separate-topic pairing (bcid_ros.identifier.pairing), without ROS.
 
 The node test test_nodes_robustness.py runs the same rules through a live
 node; here each rule is checked on its own, message by message.
@@ -7,8 +7,8 @@ node; here each rule is checked on its own, message by message.
 
 import pytest
 
-from bcid_ros.nodes.pairing import (GAP, GAP_FACTOR, PERIOD_LEARNING_INTERVALS, Pairing,
-                                    SequenceTracker)
+from bcid_ros.identifier.pairing import (GAP, GAP_FACTOR, Pairing, PERIOD_LEARNING_INTERVALS,
+                                         SequenceTracker)
 
 MS = 1_000_000  # ns
 

@@ -1,5 +1,5 @@
 """
-The state file (bcid_ros.persistence): exact continuation, and every refusal.
+The state file (bcid_ros.identifier.persistence): exact continuation, and every refusal.
 
 Each estimator is fed part of a scenario through the node's SampleFeeder,
 saved, restored into a fresh estimator and feeder, and both are continued
@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bcid_ros import persistence
-from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 load_yaml_parameters)
-from bcid_ros.samples import SampleFeeder
+from bcid_ros.identifier import persistence
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                            load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 
 CONFIG = Path(__file__).resolve().parent.parent / 'config'
@@ -48,22 +48,17 @@ def feeder_of(settings):
                         publish_period=7)
 
 
-def sections_of(feeder):
-    return {'estimator': persistence.estimator_section(feeder.estimator),
-            'feeder': ({}, feeder.get_state())}
-
-
 def restore(settings, path):
     feeder = feeder_of(settings)
     sections = persistence.load_state(path, persistence.configuration_fingerprint(settings))
-    persistence.restore_estimator(feeder.estimator, sections['estimator'])
-    feeder.set_state(sections['feeder'][1])
+    persistence.restore_identifier(feeder.estimator, feeder, sections,
+                                   settings['forgetting_factor'], path)
     return feeder
 
 
 def save(settings, feeder, path):
     persistence.save_state(path, persistence.configuration_fingerprint(settings),
-                           sections_of(feeder))
+                           persistence.identifier_sections(feeder.estimator, feeder))
 
 
 @pytest.mark.parametrize('scenario,estimator,before,after', CASES,
@@ -244,3 +239,18 @@ def test_restore_refuses_a_section_of_other_dimensions(tmp_path):
     other = estimator_from_parameters(settings_of('ding_miso', estimator='rls', order=3))
     with pytest.raises(ValueError, match='does not match'):
         persistence.restore_estimator(other, section)
+
+
+def test_a_section_that_does_not_fit_restores_neither_estimator_nor_feeder(tmp_path):
+    settings = settings_of('ding_miso', estimator='rls')
+    saved = feeder_of(settings)
+    saved.feed(sample_rows('ding_miso', 100))
+    sections = persistence.identifier_sections(saved.estimator, saved)
+    sections['feeder'] = ({}, {'no such counter': 1})
+    feeder = feeder_of(settings)
+    feeder.feed(sample_rows('ding_miso', 30, seed=4))
+    before = feeder.get_state()
+    with pytest.raises(persistence.StateRefused, match='state file s.npz does not fit'):
+        persistence.restore_identifier(feeder.estimator, feeder, sections, 1.0, 's.npz')
+    assert feeder.get_state() == before
+    assert feeder.estimator.samples == 0  # the estimator went back to its reset

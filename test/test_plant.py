@@ -6,8 +6,8 @@ from scipy import signal
 
 from bcid_ros.control import AdaptiveController, closed_loop_poles
 from bcid_ros.control.design import ModelStructure, Plant
-from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
-                                 OPERATING_POINT_SETTINGS)
+from bcid_ros.identifier.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
+                                            OPERATING_POINT_SETTINGS)
 from bcid_ros.simulation.custom import CustomScenario
 from bcid_ros.simulation.plant import HeldInputPlant, plant_pair
 

@@ -15,9 +15,10 @@ from bcid_ros.bag.replay import replay
 from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.bciv import Bciv
-from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 IDENTIFIER_PARAMETERS, load_yaml_parameters, spec_by_name)
-from bcid_ros.samples import SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                            IDENTIFIER_PARAMETERS, load_yaml_parameters,
+                                            spec_by_name)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.custom import CustomScenario
 

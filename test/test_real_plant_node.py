@@ -15,10 +15,10 @@ rclpy = pytest.importorskip('rclpy')
 from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
+from bcid_ros.identifier.parameters import estimator_from_parameters  # noqa: E402
 from bcid_ros.nodes.common import LATCHED_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402
 from bcid_ros.nodes.messages import samples_message  # noqa: E402
-from bcid_ros.parameters import estimator_from_parameters  # noqa: E402
 from bcid_ros.simulation.custom import CustomScenario  # noqa: E402
 
 pytestmark = pytest.mark.ros

@@ -9,8 +9,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from bcid_ros.parameters import estimator_from_parameters
-from bcid_ros.samples import FeedResult, SampleFeeder, samples_layout
+from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
+from bcid_ros.identifier.layouts import samples_layout
+from bcid_ros.identifier.parameters import estimator_from_parameters
 from bcid_ros.simulation import make_scenario
 
 

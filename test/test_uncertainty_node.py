@@ -23,11 +23,11 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 from bcid_ros.bag.reader import BagReader  # noqa: E402
 from bcid_ros.bag.replay import replay, SAMPLES_TOPIC  # noqa: E402
 from bcid_ros.bag.simulate import simulate_bag  # noqa: E402
+from bcid_ros.identifier.layouts import decode_samples  # noqa: E402
+from bcid_ros.identifier.parameters import load_yaml_parameters  # noqa: E402
 from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402
 from bcid_ros.nodes.messages import samples_message  # noqa: E402
-from bcid_ros.parameters import load_yaml_parameters  # noqa: E402
-from bcid_ros.samples import decode_samples  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -30,7 +30,7 @@ from scipy import signal
 
 from bcid_ros.bag.qos import LATCHED
 from bcid_ros.bag.writer import BagWriter, FLOAT64_MULTI_ARRAY, float64_multi_array
-from bcid_ros.samples import estimate_layout, samples_layout
+from bcid_ros.identifier.layouts import estimate_layout, samples_layout
 from bcid_ros.simulation.custom import CustomScenario
 
 #: Pole magnitudes are drawn in this range: slower poles need longer records,

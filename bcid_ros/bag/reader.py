@@ -30,9 +30,9 @@ import zstandard
 from bcid_ros.bag.blocks import MessageBlock, ordered_blocks, OrderReport, topic_blocks
 from bcid_ros.bag.summary import read_header, read_summary
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
-                                      TRUE_PARAMETERS)
-from bcid_ros.samples import parse_names_label
+from bcid_ros.identifier.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
+                                           TRUE_PARAMETERS)
+from bcid_ros.identifier.layouts import parse_names_label
 
 #: Failures of the MCAP and CDR layers that mean "this file is broken" (and ``mcap``'s
 #: McapError where ``mcap`` reads: :func:`read_errors`).

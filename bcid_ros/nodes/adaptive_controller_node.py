@@ -22,12 +22,12 @@ from std_msgs.msg import Bool, Float64, Float64MultiArray, MultiArrayDimension
 
 from bcid_ros.control.loop import AdaptiveController, EVENTS, Outcome, REFUSALS
 from bcid_ros.control.parameters import CONTROLLER_PARAMETERS
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.layouts import parse_names_label
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
                                    SAMPLES_QOS, Throttle, usage)
-from bcid_ros.nodes import interface
 from bcid_ros.nodes.diagnostics import DiagnosticsUpdater, OK, Status, WARN
 from bcid_ros.parameter_spec import spec_by_name
-from bcid_ros.samples import parse_names_label
 
 
 def controller_message(numerator: list[float], denominator: list[float]) -> Float64MultiArray:

@@ -30,8 +30,8 @@ from typing import Any, Iterator
 import numpy as np
 
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes import interface
-from bcid_ros.nodes.interface import COUNTERS, DiagnosticKey as Key
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.interface import COUNTERS, DiagnosticKey as Key
 from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
@@ -152,7 +152,7 @@ class Monitor:
 
     def on_parameters(self, message: Any) -> None:
         """Keep the compensated estimate and its trajectory."""
-        from bcid_ros.samples import parse_names_label
+        from bcid_ros.identifier.layouts import parse_names_label
 
         self.names = parse_names_label(message.layout.dim[0].label)
         self.theta = np.array(message.data)
@@ -174,7 +174,7 @@ class Monitor:
 
     def on_true_noise(self, message: Any) -> None:
         """Keep the true noise figures and their names."""
-        from bcid_ros.samples import parse_names_label
+        from bcid_ros.identifier.layouts import parse_names_label
 
         self.true_noise = np.array(message.data)
         self.noise_names = parse_names_label(message.layout.dim[0].label)

@@ -27,7 +27,7 @@ from bcid_ros.control.design import (closed_loop_poles, Controller, ModelStructu
                                      pole_distance)
 from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes import interface
+from bcid_ros.identifier import interface
 from bcid_ros.nodes.demo import (Child, demo_graph, DEMO_DEFAULTS, executable,
                                  START_TIMEOUT)
 from bcid_ros.reproduction.common import relative_error

@@ -1,7 +1,7 @@
 """
 The rclpy side of the nodes' messages: classes by type name, and building messages.
 
-The names and the message type table are in :mod:`bcid_ros.nodes.interface`
+The names and the message type table are in :mod:`bcid_ros.identifier.interface`
 (free of ROS); this module turns them into rclpy message classes and builds
 the messages both nodes publish.
 """
@@ -16,8 +16,8 @@ import numpy as np
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
 
-from bcid_ros.nodes.interface import covariance_layout, MESSAGE_TYPES
-from bcid_ros.samples import estimate_layout, samples_layout
+from bcid_ros.identifier.interface import MESSAGE_TYPES
+from bcid_ros.identifier.layouts import covariance_layout, estimate_layout, samples_layout
 
 
 def message_class(ros_type: str) -> type:

@@ -24,7 +24,8 @@ from typing import Any
 from bcid_ros.estimators import RecursiveEstimator
 from bcid_ros.estimators.registry import (entry, ESTIMATOR_NAMES, estimator_class, INPUT_MODES,
                                           names_where, option_specs)
-from bcid_ros.nodes.interface import check_input_width, INPUT_TYPES, MESSAGE_TYPES, OUTPUT_TYPES
+from bcid_ros.identifier.interface import (check_input_width, INPUT_TYPES, MESSAGE_TYPES,
+                                           OUTPUT_TYPES)
 from bcid_ros.parameter_spec import (check_parameters, load_yaml_parameters, markdown_table,
                                      parameter as _p, ParameterSpec, spec_by_name)
 from bcid_ros.simulation import SCENARIOS
@@ -259,7 +260,7 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
 
 def _check_joint_state_parameters(checked: dict[str, Any]) -> None:
     """Check what ``input_mode: joint_state`` needs: names, a batched estimator, one input."""
-    from bcid_ros.joint_feeder import check_joint_names
+    from bcid_ros.identifier.joint_feeder import check_joint_names
 
     check_joint_names(checked['joints'])
     batched = names_where(input_modes='joint_state')
@@ -366,7 +367,7 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
     """
     checked = check_parameters(values, SIMULATOR_PARAMETERS)
     if checked['scenario'] == 'joints':
-        from bcid_ros.joint_feeder import check_joint_names
+        from bcid_ros.identifier.joint_feeder import check_joint_names
 
         if checked['joints']:
             check_joint_names(checked['joints'])

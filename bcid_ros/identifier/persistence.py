@@ -6,7 +6,7 @@ A state file lets ``identifier_node`` restart where it stopped (the
 every number that the next estimates depend on, in named *sections*: the
 estimator's snapshot (:meth:`~bcid_ros.estimators.base.RecursiveEstimator.get_state`,
 regressor contents, signal scales and flags included) and the
-:class:`~bcid_ros.samples.SampleFeeder`'s own counters and input history.
+:class:`~bcid_ros.identifier.feeder.SampleFeeder`'s own counters and input history.
 Restored into an estimator and a feeder of the same configuration, the
 next samples give the same estimates as if there had been no restart.
 
@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators import estimator_class, EstimatorState, RecursiveEstimator
+from bcid_ros.identifier.feeder import SampleFeeder
 
 #: The ``format`` field of the header.
 FORMAT = 'bcid_ros identifier state'
@@ -81,7 +82,7 @@ def configuration_fingerprint(settings: dict[str, Any]) -> dict[str, Any]:
     ----------
     settings : dict
         Checked identifier parameters
-        (:func:`bcid_ros.parameters.check_identifier_parameters`).
+        (:func:`bcid_ros.identifier.parameters.check_identifier_parameters`).
 
     Returns
     -------
@@ -124,6 +125,53 @@ def restore_estimator(estimator: RecursiveEstimator, section: Section) -> None:
     scalars = dict(scalars)
     name = scalars.pop('estimator', None)
     estimator.set_state(EstimatorState(name, arrays, scalars))
+
+
+def identifier_sections(estimator: RecursiveEstimator, feeder: SampleFeeder
+                        ) -> dict[str, Section]:
+    """Return an identifier's state as sections: its estimator's and its feeder's."""
+    return {'estimator': estimator_section(estimator), 'feeder': ({}, feeder.get_state())}
+
+
+def restore_identifier(estimator: RecursiveEstimator, feeder: SampleFeeder,
+                       sections: dict[str, Section], forgetting_factor: float,
+                       path: str | os.PathLike) -> None:
+    """
+    Restore an estimator and its feeder from :func:`identifier_sections`, or neither.
+
+    A half-restored identifier is worse than a fresh one: if any section does
+    not fit, both go back to where they were (the estimator to its reset).
+
+    Parameters
+    ----------
+    estimator : RecursiveEstimator
+        Restored in place.
+    feeder : SampleFeeder
+        Restored in place.
+    sections : dict
+        As :func:`load_state` returns them.
+    forgetting_factor : float
+        The value the node starts with: a live parameter, so it applies to
+        the restored state as it would without one.
+    path : str or os.PathLike
+        The state file, for the message.
+
+    Raises
+    ------
+    StateRefused
+        If a section is missing or does not fit this estimator or feeder.
+
+    """
+    fresh = feeder.get_state()
+    try:
+        restore_estimator(estimator, sections['estimator'])
+        feeder.set_state(sections['feeder'][1])
+        estimator.forgetting_factor = forgetting_factor
+    except Exception as error:  # a missing key, a shape, a value the estimator refuses
+        estimator.reset()
+        feeder.set_state(fresh)
+        raise StateRefused(f'state file {path} does not fit this estimator '
+                           f'({type(error).__name__}: {error})') from None
 
 
 def save_state(path: str | os.PathLike, fingerprint: dict[str, Any],
@@ -268,5 +316,5 @@ def _to_json(value: Any) -> str:
 
 
 __all__ = ['FORMAT', 'STRUCTURAL', 'Section', 'StateRefused', 'VERSION',
-           'configuration_fingerprint', 'estimator_section', 'load_state',
-           'restore_estimator', 'save_state']
+           'configuration_fingerprint', 'estimator_section', 'identifier_sections',
+           'load_state', 'restore_estimator', 'restore_identifier', 'save_state']

@@ -6,7 +6,8 @@ names, the type names written into bags, the table of the message types the
 separate input and output topics take, and the keys of the identifier's
 ``/diagnostics`` values. The module imports nothing from ROS, so the offline
 tools (``bcid replay``, ``bcid simulate``, the bag reader) share the names
-with the nodes. The rclpy side (message classes, building messages) is
+with the nodes. The messages' layouts are :mod:`bcid_ros.identifier.layouts`'s,
+the rclpy side (message classes, building messages) is
 :mod:`bcid_ros.nodes.messages`; docs/nodes.md describes the interface.
 """
 
@@ -66,20 +67,6 @@ def resolve(topic: str, node: str, namespace: str = '/') -> str:
     if topic.startswith('~/'):
         return f'{prefix}/{node}/{topic[2:]}'
     return f'{prefix}/{topic}'
-
-
-def covariance_layout(names: Sequence[str]) -> list[tuple[str, int, int]]:
-    """
-    Return the ``(label, size, stride)`` dimensions of ``~/parameter_covariance``.
-
-    A row-major p x p matrix: both dimensions carry the comma-separated
-    parameter names of ``~/parameters``.
-
-    >>> covariance_layout(('a1', 'b1_1'))
-    [('a1,b1_1', 2, 4), ('a1,b1_1', 2, 2)]
-    """
-    label, size = ','.join(names), len(names)
-    return [(label, size, size * size), (label, size, size)]
 
 
 def basename(topic: str) -> str:
@@ -308,5 +295,5 @@ __all__ = ['BAD', 'BOOL', 'COUNTERS', 'DIAGNOSTICS', 'DROPPED', 'DiagnosticKey',
            'OUTPUT', 'OUTPUT_TYPES', 'PARAMETER_COVARIANCE', 'PARAMETER_STD', 'PARAMETERS',
            'PARAMETERS_UNCOMPENSATED', 'RESET',
            'SAMPLES', 'SIMULATOR_NODE', 'TRUE_NOISE_VARIANCE', 'TRUE_PARAMETERS', 'VALID',
-           'basename', 'check_input_width', 'covariance_layout', 'reader', 'resolve',
+           'basename', 'check_input_width', 'reader', 'resolve',
            'stamp_ns', 'status_name']

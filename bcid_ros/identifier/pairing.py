@@ -51,7 +51,7 @@ class Paired:
         samples are missing (restart the regressor before the next row).
     problems : list of tuple of str
         ``(counter, text)`` of every message dropped or gap found; the
-        counter is a key of :data:`bcid_ros.nodes.interface.COUNTERS`.
+        counter is a key of :data:`bcid_ros.identifier.interface.COUNTERS`.
     notes : list of str
         Things worth logging that are not problems (the learnt period).
 

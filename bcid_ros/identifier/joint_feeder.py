@@ -1,11 +1,11 @@
 """
 The identifier's ``input_mode: joint_state`` without ROS: JointState in, estimates per joint out.
 
-:class:`JointFeeder` is to many joints what :class:`bcid_ros.samples.SampleFeeder`
+:class:`JointFeeder` is to many joints what :class:`bcid_ros.identifier.feeder.SampleFeeder`
 is to one plant. It takes one ``sensor_msgs/JointState`` message at a time
 (duck-typed: anything with ``name``, ``position``, ``velocity`` and
 ``effort``), splits it into one ``(y, u)`` sample per configured joint with
-:class:`~bcid_ros.joints.JointStateDemux` (matched by name, in any order),
+:class:`~bcid_ros.identifier.joint_demux.JointStateDemux` (matched by name, in any order),
 feeds all joints in one update of a batched estimator
 (:mod:`bcid_ros.estimators.batched`), and says in a :class:`JointFeedResult`
 which joints' estimates are due for publication and whose validity changed.
@@ -25,8 +25,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bcid_ros.joints import JointStateDemux
-from bcid_ros.nodes.interface import JOINT_STATES
+from bcid_ros.identifier.interface import JOINT_STATES
+from bcid_ros.identifier.joint_demux import JointStateDemux
 
 #: A joint name becomes one token of its topic names (``~/<joint>/parameters``):
 #: letters, digits and underscores, not starting with a digit, as ROS requires.
@@ -310,7 +310,7 @@ def joint_feeder_from_parameters(values: dict[str, Any]) -> JointFeeder:
     ----------
     values : dict
         Identifier parameters checked by
-        :func:`bcid_ros.parameters.check_identifier_parameters`.
+        :func:`bcid_ros.identifier.parameters.check_identifier_parameters`.
 
     Raises
     ------
