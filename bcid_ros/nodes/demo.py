@@ -146,7 +146,7 @@ def live_line(monitor: Monitor, total: int, elapsed: float) -> str:
 
 def summary(monitor: Monitor) -> str:
     """Return the final table: estimate and uncompensated estimate against the truth."""
-    from bcid_ros.reproduction.common import markdown_table
+    from bcid_ros.markdown import markdown_table
 
     rows = []
     for k, name in enumerate(monitor.names):

@@ -180,7 +180,7 @@ def live_line(record: LoopRecord, total: int, elapsed: float, switches: int) -> 
 
 def summary(record: LoopRecord, rate: float) -> str:
     """Return the per-phase table: final estimate, delta, pole error, convergence time."""
-    from bcid_ros.reproduction.common import markdown_table
+    from bcid_ros.markdown import markdown_table
 
     rows = []
     for name, start, stop in record.phases():
