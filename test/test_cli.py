@@ -26,3 +26,27 @@ def test_a_subcommand_parsed_alone_parses_as_in_the_full_parser(name):
     alone = build_parser(name)
     assert vars(alone.parse_args(ARGV[name])) == vars(full)
     assert list(alone._subparsers._group_actions[0].choices) == [name]
+
+
+def test_every_handler_is_a_function_of_its_module():
+    import importlib
+
+    from bcid_ros.cli import HANDLERS
+
+    assert list(HANDLERS) == list(SUMMARIES)
+    for location in HANDLERS.values():
+        module, function = location.split(':')
+        assert callable(getattr(importlib.import_module(module), function)), location
+
+
+@pytest.mark.parametrize('scenario, module, function', [
+    ('adaptive_loop', 'bcid_ros.nodes.demo_loop', 'run_adaptive_loop'),
+    ('ding_miso', 'bcid_ros.nodes.demo', 'run'),
+])
+def test_demo_runs_the_adaptive_loop_or_a_scenario_demo(monkeypatch, scenario, module, function):
+    import importlib
+
+    from bcid_ros import cli
+
+    monkeypatch.setattr(importlib.import_module(module), function, lambda args: 7)
+    assert cli.demo(build_parser().parse_args(['demo', '--scenario', scenario])) == 7
