@@ -83,7 +83,7 @@ class SerializedArray:
     three times what publishing the serialised bytes costs. An estimate topic
     changes only its values, so rclpy serialises the message once per number
     of values, and the values' bytes are appended to that head afterwards.
-    ``test/test_nodes.py`` checks that rclpy reads the bytes back as the message.
+    ``test/ros/test_nodes.py`` checks that rclpy reads the bytes back as the message.
 
     Parameters
     ----------

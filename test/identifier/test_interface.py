@@ -121,7 +121,7 @@ def test_the_offline_modules_do_not_import_rclpy():
 
 
 def test_docs_parameter_tables_are_the_tables():
-    docs = (Path(__file__).resolve().parent.parent / 'docs' / 'nodes.md').read_text()
+    docs = (Path(__file__).resolve().parents[2] / 'docs' / 'nodes.md').read_text()
     for table in (IDENTIFIER_PARAMETERS, SIMULATOR_PARAMETERS):
         assert markdown_table(table) in docs
 

@@ -90,7 +90,7 @@ def test_the_config_file_holds_the_three_nodes():
     from bcid_ros.identifier.parameters import (check_simulator_parameters,
                                                 estimator_from_parameters, load_yaml_parameters)
 
-    path = Path(__file__).resolve().parent.parent / 'config' / 'adaptive_loop.yaml'
+    path = Path(__file__).resolve().parents[2] / 'config' / 'adaptive_loop.yaml'
     simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))
     assert simulator['mode'] == 'plant' and simulator['change_after_samples'] > 0
     assert simulator['plant_denominator_after'] == [1.0, -0.9]

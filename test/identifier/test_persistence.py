@@ -20,7 +20,7 @@ from bcid_ros.identifier.parameters import (check_identifier_parameters, estimat
                                             load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 
-CONFIG = Path(__file__).resolve().parent.parent / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 # (config, estimator override, samples before the save, samples after it). The
 # cl_bcls save lies between two redesigns (period 1000), bciv's after its idle phase.

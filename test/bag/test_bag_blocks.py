@@ -25,7 +25,7 @@ from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
 from bcid_ros.simulation import make_scenario
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / 'config' / 'ding_miso.yaml'
 F64MA = 'std_msgs/msg/Float64MultiArray'
 

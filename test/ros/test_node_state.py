@@ -36,7 +36,7 @@ from bcid_ros.simulation import make_scenario  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-CONFIG = Path(__file__).resolve().parent.parent / 'config' / 'ding_miso.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'ding_miso.yaml'
 SETTINGS = check_identifier_parameters(load_yaml_parameters(CONFIG))
 ROWS = np.column_stack(make_scenario('ding_miso').simulate(2000, 11))
 

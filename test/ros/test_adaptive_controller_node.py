@@ -33,7 +33,7 @@ from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TRUE_THETA = [-0.8, 0.5]
 NAMES = ['a1', 'b1_1']
 SETTINGS = dict(identifier='/fake_identifier', order=1, closed_loop_poles=[0.5, 0.5],

@@ -31,7 +31,7 @@ from bcid_ros.nodes.messages import samples_message  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-CONFIG = Path(__file__).resolve().parent.parent / 'config' / 'ding_miso.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'ding_miso.yaml'
 DEEP = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE,
                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SAMPLES = 600

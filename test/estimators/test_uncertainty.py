@@ -1,76 +1,24 @@
 """
-The parameter covariance of the estimators: its formulas, its bookkeeping and its calibration.
+The parameter covariance of the estimators: its formulas and its bookkeeping.
 
-Calibration is the test that matters: over Monte Carlo runs, the share of
-true parameters inside the estimate +- 2 std must be close to the 95.4 % of
-a Gaussian. The N = 1000 cases run in the default suite, N = 10000 is
-``slow``; docs/estimators.md ("Uncertainty") has the full table.
+Single runs against the formulas (rls: sigma^2 P; bcrls: the sandwich of the
+BCLS fixed point; bciv and cl_bcls: block means of their moments). Whether the
+std is calibrated over Monte Carlo runs is
+test/statistical/test_uncertainty_calibration.py.
 """
 
 import math
 
 import numpy as np
 import pytest
-from scipy.signal import lfilter
+from uncertainty_cases import (arx_data, ding_data, IKEDA, ikeda, IKENOUE_COLORED, ikenoue,
+                               run, run_single)
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.base import standard_deviations, weighted_square_ratio
 from bcid_ros.estimators.bcrls import add_lagged_moments
 from bcid_ros.estimators.moment_covariance import MAX_BLOCKS, MomentBlocks
 from bcid_ros.estimators.rls import ls_batch
-from bcid_ros.simulation import make_scenario
-
-#: Ding's plant, used with ARX noise for rls and with output-error noise for bcrls.
-ALPHA = [1.0, -0.84, 0.16]
-B1 = [0.0, 0.12, 0.324]
-B2 = [0.0, 0.25, 0.186]
-TRUTH = np.array([ALPHA[1], ALPHA[2], B1[1], B1[2], B2[1], B2[2]])
-#: P(|z| <= 2) for a standard normal z.
-NOMINAL = math.erf(2.0 / math.sqrt(2.0))
-
-
-def arx_data(rng, count, noise_std=0.1):
-    """Return (y, u) of Ding's plant with white equation error: A y = B1 u1 + B2 u2 + e."""
-    u = rng.standard_normal((count, 2))
-    e = noise_std * rng.standard_normal(count)
-    y = lfilter(B1, ALPHA, u[:, 0]) + lfilter(B2, ALPHA, u[:, 1]) + lfilter([1.0], ALPHA, e)
-    return y, u
-
-
-def ding_data(rng, count):
-    """Return (y, u) of Ding's output-error scenario."""
-    return make_scenario('ding_miso').stream(rng).take(count)
-
-
-def run(name, y, u, **settings):
-    """Return the estimator ``name`` (n = 2, r = 2) after the samples."""
-    estimator = make_estimator(name, order=2, num_inputs=2, **settings)
-    update = estimator.update
-    for k in range(y.shape[0]):
-        update(y[k], u[k])
-    return estimator
-
-
-def coverage(name, data, count, runs, seed, **settings):
-    """Return the per-run, per-parameter indicator of |theta_hat - theta| <= 2 std."""
-    inside = np.empty((runs, TRUTH.shape[0]), dtype=bool)
-    for r in range(runs):
-        y, u = data(np.random.default_rng(seed + r), count)
-        estimator = run(name, y, u, **settings)
-        inside[r] = np.abs(estimator.theta - TRUTH) <= 2.0 * estimator.parameter_std
-    return inside
-
-
-def check_calibrated(inside):
-    """Assert the pooled share in [90 %, 98 %] and each parameter's within 4 MC std errors."""
-    runs = inside.shape[0]
-    pooled = inside.mean()
-    per_parameter = inside.mean(axis=0)
-    assert 0.90 <= pooled <= 0.98, f'pooled coverage {pooled:.3f}'
-    # one parameter's share over `runs` runs has the binomial standard error
-    # sqrt(q (1 - q) / runs), 1.5 % at 200 runs; 4 of them bound a chance miss
-    bound = 4.0 * math.sqrt(NOMINAL * (1.0 - NOMINAL) / runs)
-    assert np.all(np.abs(per_parameter - NOMINAL) <= bound), per_parameter
 
 
 # ------------------------------------------------------------------ formulas
@@ -142,60 +90,6 @@ def test_bcrls_covariance_is_unit_free():
     covariance = base.parameter_covariance
     np.testing.assert_allclose(covariance, covariance.T, rtol=0, atol=0)
     assert np.linalg.eigvalsh(covariance).min() > 0
-
-
-# --------------------------------------------------------------- calibration
-RUNS = 200
-
-
-def test_rls_calibrated_on_an_arx_plant():
-    check_calibrated(coverage('rls', arx_data, 1000, RUNS, seed=10_000))
-
-
-def test_bcrls_calibrated_on_ding():
-    check_calibrated(coverage('bcrls', ding_data, 1000, RUNS, seed=20_000))
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize('name, data', [('rls', arx_data), ('bcrls', ding_data)],
-                         ids=['rls-arx', 'bcrls-ding'])
-def test_calibrated_at_10000_samples(name, data):
-    check_calibrated(coverage(name, data, 10_000, RUNS, seed=30_000))
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize('name, data', [('rls', arx_data), ('bcrls', ding_data)],
-                         ids=['rls-arx', 'bcrls-ding'])
-def test_calibrated_with_forgetting(name, data):
-    check_calibrated(coverage(name, data, 3000, RUNS, seed=40_000, forgetting_factor=0.995))
-
-
-# ------------------------------------------------- bciv and cl_bcls (block means)
-IKENOUE_COLORED = dict(order=2, iv_lag=5, input_noise='colored')
-IKENOUE_WHITE = dict(order=2, iv_lag=4, input_noise='white')
-IKEDA = dict(order=1, controller_numerator=[0.2289], controller_denominator=[1.0, -0.09004])
-
-
-def ikenoue(count, seed):
-    """Return (y, u) of Ikenoue's section 5.1 (colored input noise)."""
-    return make_scenario('ikenoue_colored').simulate(count, seed)
-
-
-def ikenoue_white(count, seed):
-    """Return (y, u) of Ikenoue's section 5.2 (white input noise)."""
-    return make_scenario('ikenoue_white_input').simulate(count, seed)
-
-
-def ikeda(count, seed):
-    """Return (y, u) of Ikeda's closed loop."""
-    return make_scenario('ikeda_closed_loop').simulate(count, seed)
-
-
-def run_single(name, y, u, **settings):
-    """Return the single-input estimator ``name`` after the samples."""
-    estimator = make_estimator(name, **settings)
-    estimator.run(y, u)
-    return estimator
 
 
 def check_covariance_matrix(covariance):
@@ -316,55 +210,6 @@ def test_block_covariance_skips_a_block_whose_sums_are_not_its_own():
     # without the cut the block over it is added; with it, that block is skipped
     assert starts[0][0] < 1989 < starts[0][1]
     assert starts[1][0] == starts[0][1]
-
-
-def single_coverage(name, data, count, runs, seed, settings):
-    """Return the per-run, per-parameter indicator of |theta_hat - theta| <= 2 std (None: out)."""
-    scenario = {ikenoue: 'ikenoue_colored', ikenoue_white: 'ikenoue_white_input',
-                ikeda: 'ikeda_closed_loop'}[data]
-    truth = make_scenario(scenario).truth().parameters
-    inside = np.zeros((runs, truth.shape[0]), dtype=bool)
-    for r in range(runs):
-        y, u = data(count, seed + r)
-        estimator = run_single(name, y, u, **settings)
-        std = estimator.parameter_std
-        if std is not None:
-            inside[r] = np.abs(estimator.theta - truth) <= 2.0 * std
-    return inside
-
-
-REDUCED_RUNS = 60
-
-
-@pytest.mark.parametrize('name, data, settings', [
-    ('bciv', ikenoue, IKENOUE_COLORED), ('cl_bcls', ikeda, IKEDA)], ids=['bciv', 'cl_bcls'])
-def test_block_covariance_calibrated_at_reduced_size(name, data, settings):
-    inside = single_coverage(name, data, 1000, REDUCED_RUNS, 60_000, settings)
-    # a share over R runs has the binomial standard error sqrt(q (1 - q) / R), 2.7 % at 60
-    # runs (the parameters of one run counted as one draw); 4 of them bound a chance miss
-    bound = 4.0 * math.sqrt(NOMINAL * (1.0 - NOMINAL) / REDUCED_RUNS)
-    assert abs(inside.mean() - NOMINAL) <= bound, inside.mean(axis=0)
-    assert np.all(np.abs(inside.mean(axis=0) - NOMINAL) <= bound), inside.mean(axis=0)
-
-
-#: Runs of the slow checks at N = 10000 (bciv takes about 1 s a run).
-SLOW_RUNS = 100
-#: The pooled shares at N = 10000 that docs/estimators.md ("Measured coverage") documents.
-DOCUMENTED_10000 = {'bciv-colored': 0.909, 'bciv-white': 0.952, 'cl_bcls': 0.930}
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize('case, name, data, settings', [
-    ('bciv-colored', 'bciv', ikenoue, IKENOUE_COLORED),
-    ('bciv-white', 'bciv', ikenoue_white, IKENOUE_WHITE),
-    ('cl_bcls', 'cl_bcls', ikeda, IKEDA)], ids=['bciv-colored', 'bciv-white', 'cl_bcls'])
-def test_block_covariance_coverage_at_10000_samples_as_documented(case, name, data, settings):
-    inside = single_coverage(name, data, 10_000, SLOW_RUNS, 70_000, settings)
-    # the documented pooled share, within 4 binomial standard errors of 100 runs (2.1 % each);
-    # a std 1.5 times too small moves the share under 82 %, 1.5 times too large over 99 %
-    bound = 4.0 * math.sqrt(NOMINAL * (1.0 - NOMINAL) / SLOW_RUNS)
-    assert abs(inside.mean() - DOCUMENTED_10000[case]) <= bound, inside.mean(axis=0)
-    assert 0.88 <= inside.mean() <= 0.98
 
 
 def test_block_covariance_restarts_after_a_restored_state():

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parent.parent / 'bcid_ros'
+PACKAGE = Path(__file__).resolve().parents[2] / 'bcid_ros'
 
 #: The layers, lowest first. A package imports only from layers below its own.
 LAYERS = (

@@ -495,7 +495,7 @@ def test_is_contracting_compares_the_last_step_with_the_first():
 
 def config_estimator(**overrides):
     """Build the estimator the node builds from config/ikeda_closed_loop.yaml."""
-    path = Path(__file__).resolve().parent.parent / 'config' / 'ikeda_closed_loop.yaml'
+    path = Path(__file__).resolve().parents[2] / 'config' / 'ikeda_closed_loop.yaml'
     values = check_identifier_parameters(load_yaml_parameters(str(path)))
     return estimator_from_parameters({**values, **overrides})
 

@@ -31,7 +31,7 @@ from bcid_ros.simulation import make_scenario  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-CONFIG = Path(__file__).resolve().parent.parent / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def overrides(values):

@@ -23,7 +23,7 @@ from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.custom import CustomScenario
 
 A = [1.0, -1.5, 0.7]
-CONFIG = Path(__file__).resolve().parent.parent / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def relative_error(estimator, scenario):

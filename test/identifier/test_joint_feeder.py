@@ -256,7 +256,7 @@ def test_the_joints_config_builds_what_it_says():
 
     from bcid_ros.identifier.parameters import load_yaml_parameters
 
-    path = Path(__file__).resolve().parent.parent / 'config' / 'joints.yaml'
+    path = Path(__file__).resolve().parents[2] / 'config' / 'joints.yaml'
     simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))
     feeder = joint_feeder_from_parameters(
         check_identifier_parameters(load_yaml_parameters(path)))

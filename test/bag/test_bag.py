@@ -33,7 +33,7 @@ from bcid_ros.identifier.layouts import decode_samples
 from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
 from bcid_ros.simulation import make_scenario
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 BAGS = REPO / 'bags'
 SEED = 1  # bags/record_all.sh
 SAMPLES = {'ding_miso': 10000, 'ding_miso_nonstationary': 10000, 'ikenoue_colored': 10000,
