@@ -1,4 +1,4 @@
-"""``bcid analyze``: order and delay search, validation and model properties of a bag."""
+"""``bcid analyze``: order and delay search, validation and model properties of the samples."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     parameters = load_yaml_parameters(args.params)
     orders = parse_orders(args.orders)
     delays = parse_delays(args.delays)
-    y, u, dropped = read_samples(args.bag, _progress)
+    y, u, dropped = read_samples(args.bag, _progress, args.columns, args.time_column)
     _progress(f'{y.size} samples, {u.shape[1]} input(s)'
               + (f', {dropped} dropped (malformed or NaN/Inf)' if dropped else ''))
     analysis = analyze(y, u, parameters, orders=orders, delays=delays,
