@@ -30,9 +30,9 @@ from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators import make_batched_estimator
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
-from bcid_ros.joints import JointStateDemux
-from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 load_yaml_parameters)
+from bcid_ros.identifier.joint_demux import JointStateDemux
+from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                            load_yaml_parameters)
 from bcid_ros.resources import config_file
 from bcid_ros.simulation import make_scenario
 

@@ -8,7 +8,8 @@ mean statistic, and where a residual is correlated with an input, the share that
 ``python -m benchmarks.trust hac --noise ar0.9 --samples 1000`` runs the coverage of
 :class:`~bcid_ros.estimators.hac.HacCovariance` against the plain LS covariance and Newey-West
 on an output-error regression. ``python -m benchmarks.trust cost`` measures the per-sample cost
-against an rls update in the same process. Run them under ``nice -n 10``.
+against an rls update in the same process, for one plant and per plant of K plants that record
+together or apart. Run them under ``nice -n 10``.
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ def monitor_study(args: argparse.Namespace) -> dict[str, Any]:
     for t in range(samples):
         checks = monitor.checks
         monitor.record(residual[t], inputs[t])
-        if monitor.checks > checks:
+        if (monitor.checks > checks).any():  # every plant records: they check together
             alarms.append(monitor.alarm.copy())
             times.append(t + 1)
     alarms, times = np.array(alarms), np.array(times)
@@ -187,8 +188,46 @@ def cost_study(args: argparse.Namespace) -> dict[str, Any]:
         for _ in range(100):
             hac.covariance(np.eye(6))
         row['hac_read_us'] = 1e6 * (time.perf_counter() - start) / 100
+        row.update(plants_cost(args.samples // 4, args.plants, rls))
         rows.append({key: round(value, 3) for key, value in row.items()})
-    return {'study': 'cost', 'samples': args.samples, 'runs': rows}
+    return {'study': 'cost', 'samples': args.samples, 'plants': args.plants, 'runs': rows}
+
+
+def plants_cost(samples: int, plants: int, rls: float) -> dict[str, float]:
+    """
+    Return the cost per plant and sample of K-plant monitors and HACs over an rls update.
+
+    ``together``: every plant records every sample (:meth:`record`, one shared cursor).
+    ``apart``: plant k skipped its first k samples, then all record every sample (cursors that
+    differ: the blocks complete at K different times). ``skipping``: one plant at random skips
+    each sample (``record_rows`` with the others). ``rls`` is the time of 4 x ``samples`` rls
+    updates.
+    """
+    rng = np.random.default_rng(4)
+    residual = rng.standard_normal((samples, plants))
+    inputs = rng.standard_normal((samples, plants, 2))
+    scores = rng.standard_normal((samples, plants, 6))
+    every = np.arange(plants)
+    skipping = [np.delete(every, k) for k in rng.integers(plants, size=samples).tolist()]
+    apart = [every[every < t] if t < plants else slice(None) for t in range(samples)]
+    per_update = rls / (4 * samples)
+    result = {}
+    for mode, rows in (('together', [slice(None)] * samples), ('apart', apart),
+                       ('skipping', skipping)):
+        monitor = AdequacyMonitor(num_inputs=2, plants=plants)
+        hac = HacCovariance(dimension=6, plants=plants)
+        start = time.perf_counter()
+        for t in range(samples):
+            monitor.record_rows(rows[t], residual[t, rows[t]], inputs[t, rows[t]])
+        middle = time.perf_counter()
+        for t in range(samples):
+            hac.record_rows(rows[t], scores[t, rows[t]])
+        end = time.perf_counter()
+        result[f'monitor_arx_k{plants}_{mode}_per_plant_over_rls'] = (
+            (middle - start) / (samples * plants) / per_update)
+        result[f'hac_p6_k{plants}_{mode}_per_plant_over_rls'] = (
+            (end - middle) / (samples * plants) / per_update)
+    return result
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -219,6 +258,7 @@ def main(argv: list[str] | None = None) -> None:
     cost = studies.add_parser('cost')
     cost.add_argument('--samples', type=int, default=25600)
     cost.add_argument('--repeats', type=int, default=5)
+    cost.add_argument('--plants', type=int, default=8)
     args = parser.parse_args(argv)
     study = {'monitor': monitor_study, 'hac': hac_study, 'cost': cost_study}[args.study]
     start = time.perf_counter()

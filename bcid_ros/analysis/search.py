@@ -22,7 +22,7 @@ from bcid_ros.analysis import metrics
 from bcid_ros.analysis.model import complex_list, DiscreteModel
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import entry
-from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
+from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: A candidate is "as good as the best" when its validation RMS error is at
 #: most (1 + FIT_MARGIN) times the best one's (docs/analyze.md).

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.lagged import decayed_weights
+from bcid_ros.estimators.lagged import decayed_weights, effective_size, PlantCursors
 
 #: The tests of each kind of model (docs/trust.md): (whiteness, residual may be coloured).
 MODEL_TESTS = {
@@ -103,7 +103,7 @@ class MonitorState:
 
     residual_sums: np.ndarray
     input_sums: np.ndarray
-    weights: tuple[float, float]
+    weights: tuple[Any, Any]
     ring: np.ndarray
     pending_residuals: np.ndarray
     pending_inputs: np.ndarray
@@ -111,7 +111,11 @@ class MonitorState:
     statistics: np.ndarray
     worst: np.ndarray
     values: np.ndarray
-    checks: int
+    checks: Any
+    #: K plants: each plant's pending samples, which sit in ``ring`` after the history
+    #: rows (``pending_residuals`` and ``pending_inputs`` are then empty). None: one
+    #: plant, whose pending samples are ``pending_residuals`` and ``pending_inputs``.
+    pending: np.ndarray | None = None
 
 
 class AdequacyMonitor:
@@ -173,6 +177,20 @@ class AdequacyMonitor:
     probability at most :math:`\alpha` (docs/trust.md measures it). An alarm
     clears when the window has forgotten the data that raised it.
 
+    **Plants.** With ``plants=K`` every result has a leading plant axis and
+    each plant keeps its own cursor: :meth:`record_rows` takes the samples
+    of the plants that step now (in a batched estimator a plant whose sample
+    is missing or refused, whose regressor refills, or which is still in its
+    warm-up does not), and a plant's block is added and its tests run when
+    its own ``BLOCK`` samples are in. Plant k's decisions (alarms, reasons,
+    ``ready``, ``checks``) are those of one monitor fed plant k's samples,
+    exactly, and its statistics equal them within rounding
+    (test/test_trust_plants.py). The plants whose blocks complete together
+    (in the common case all of them) are added and tested in one batched
+    call. :meth:`plant_state` and :meth:`load_plant` move one plant to and
+    from a single-plant monitor's :meth:`get_state`; :meth:`clear` restarts
+    plants.
+
     Parameters
     ----------
     num_inputs : int
@@ -190,8 +208,9 @@ class AdequacyMonitor:
         :math:`\alpha` in (0, 0.5): the largest probability, under the null,
         that the monitor is in alarm at a given moment.
     plants : int, optional
-        K: residuals ``(K,)`` and inputs ``(K, r)``, results per plant. None:
-        one plant, a float residual and inputs ``(r,)``.
+        K: residuals ``(K,)`` and inputs ``(K, r)`` (:meth:`record`, every
+        plant) or ``(R,)`` and ``(R, r)`` (:meth:`record_rows`), results per
+        plant. None: one plant, a float residual and inputs ``(r,)``.
     input_names : sequence of str, optional
         Names of the inputs in the reasons (default u1, u2, ...).
 
@@ -268,120 +287,204 @@ class AdequacyMonitor:
 
     # ------------------------------------------------------------ the stream
     def reset(self) -> None:
-        """Forget the data and clear the alarms."""
+        """Forget the data and clear the alarms (of every plant)."""
         width, q = self._lags.shape[0], self._filter_order
         # the products the tests read, summed with the weights over the blocks added:
         # e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b), a, b = 1..U
         self._residual_sums = np.zeros((self._plants, q + 1, width))
         self._input_sums = np.zeros((self._plants, self.num_inputs, self._input_lags,
                                      self._input_lags))
-        self._weight = 0.0
-        self._squared_weight = 0.0
         # the last rows [e, u] (zeros at the start), then room for a block
         self._ring = np.zeros((self._plants, self._history + BLOCK, 1 + self.num_inputs))
-        self._residuals: list[Any] = []
-        # the inputs of the pending samples
-        self._inputs = np.zeros((BLOCK, self._plants, self.num_inputs))
+        if self.plants is None:
+            # sum w and sum w^2 over the blocks added
+            self._weight: Any = 0.0
+            self._squared_weight: Any = 0.0
+            # the pending samples: residuals in a list, inputs in a buffer
+            self._residuals: list[Any] = []
+            self._inputs = np.zeros((BLOCK, 1, self.num_inputs))
+        else:
+            self._weight = np.zeros(self._plants)
+            self._squared_weight = np.zeros(self._plants)
+            # each plant's pending samples sit in its ring after the history rows
+            self._cursors = PlantCursors(self._plants, BLOCK)
         shape = (self._plants, self.num_tests)
         self._alarms = np.zeros(shape, dtype=bool)
         self._statistics = np.full(shape, np.nan)
         # the worst lag of each test and its correlation, at the last check
         self._worst = np.zeros(shape, dtype=np.intp)
         self._values = np.zeros(shape)
-        self._checks = 0
+        self._checks = np.zeros(self._plants, dtype=np.int64)
+
+    def clear(self, rows: Any) -> None:
+        """Forget the data and clear the alarms of the plants ``rows``: a restart of those."""
+        if self.plants is None:
+            self.reset()
+            return
+        for array in (self._residual_sums, self._input_sums, self._ring, self._weight,
+                      self._squared_weight, self._alarms, self._worst, self._values,
+                      self._checks):
+            array[rows] = 0
+        self._statistics[rows] = np.nan
+        self._cursors.set(rows, 0)
 
     def record(self, residual: Any, inputs: Any) -> None:
         """
-        Add one sample: the residual the model says is white, and the inputs at the same time.
+        Add one sample of every plant: the residual the model says is white, and the inputs.
 
         ``residual`` is a float (one plant) or ``(K,)``; ``inputs`` ``(r,)`` or
         ``(K, r)`` (copied). Every ``BLOCK`` samples the block is added and the
-        tests run.
+        tests run. K plants: :meth:`record_rows` of every plant.
         """
+        if self.plants is not None:
+            self.record_rows(_ALL, residual, inputs)
+            return
         residuals = self._residuals
         self._inputs[len(residuals)] = inputs
         residuals.append(residual)
         if len(residuals) == BLOCK:
-            self._add_block()
-            self._check()
+            ring = self._ring
+            ring[:, self._history:, 0] = np.reshape(residuals, (BLOCK, 1)).T
+            ring[:, self._history:, 1:] = np.swapaxes(self._inputs, 0, 1)
+            self._residuals = []
+            self._add_blocks(_ALL)
+            self._check(_ALL)
 
-    def _add_block(self) -> None:
-        """Add the BLOCK pending samples, as rows z(t) with their lags, to the sums."""
-        history, ring, plants = self._history, self._ring, self._plants
-        ring[:, history:, 0] = np.reshape(self._residuals, (BLOCK, plants)).T
-        ring[:, history:, 1:] = np.swapaxes(self._inputs, 0, 1)
-        self._residuals = []
-        z = ring.reshape(plants, -1).take(self._gather, axis=1).reshape(plants, BLOCK, -1)
+    def record_rows(self, rows: Any, residual: Any, inputs: Any) -> None:
+        """
+        Add one sample of each plant in ``rows`` (K plants); the others do not step now.
+
+        Each plant keeps its own blocks: a plant's block is added and its tests
+        run when its own ``BLOCK`` samples are in, as for one plant fed that
+        plant's samples. The plants whose blocks fill together are added and
+        tested in one batched call.
+
+        Parameters
+        ----------
+        rows : numpy.ndarray or slice
+            The plants that record now: distinct indices, or a slice.
+        residual : numpy.ndarray, shape ``(R,)``
+            Their residuals, in the order of ``rows``.
+        inputs : numpy.ndarray, shape ``(R, r)``
+            Their inputs at the same time (copied).
+
+        Raises
+        ------
+        ValueError
+            If the monitor is of one plant (``plants=None``).
+
+        """
+        if self.plants is None:
+            raise ValueError('record_rows needs plants=K; one plant records with record()')
+        cursors, ring = self._cursors, self._ring
+        plants, positions = cursors.place(rows)
+        slots = self._history + positions
+        ring[plants, slots, 0] = residual
+        ring[plants, slots, 1:] = inputs
+        full = cursors.advance(plants)
+        if full is not None:
+            self._add_blocks(full)
+            self._check(full)
+
+    def _add_blocks(self, plants: Any) -> None:
+        """Add the full blocks of ``plants``, as rows z(t) with their lags, to their sums."""
+        history = self._history
+        ring = self._ring[plants]
+        count = ring.shape[0]
+        z = ring.reshape(count, -1).take(self._gather, axis=1).reshape(count, BLOCK, -1)
         if not np.isfinite(z).all():  # a non-finite sample counts as zero
             z = np.where(np.isfinite(z), z, 0.0)
         weighted = z * self._block_weights[:, None]
         first, q = 1 + self._residual_lags, self._filter_order
         decay = self._decay ** BLOCK
         # S <- mu^BLOCK S + sum_t w_t x(t) y(t)'
-        self._residual_sums *= decay
-        self._residual_sums += np.swapaxes(weighted[:, :, :q + 1], -1, -2) @ z
+        sums = self._residual_sums[plants]
+        sums *= decay
+        sums += np.swapaxes(weighted[:, :, :q + 1], -1, -2) @ z
+        self._residual_sums[plants] = sums
         if self.num_inputs:
             # (K, r, BLOCK, U): the lags of each input
-            lagged = np.moveaxis(z[:, :, first:].reshape(plants, BLOCK, self.num_inputs, -1),
+            lagged = np.moveaxis(z[:, :, first:].reshape(count, BLOCK, self.num_inputs, -1),
                                  2, 1)
             weighted = np.moveaxis(weighted[:, :, first:].reshape(lagged.shape[:1] + (
                 BLOCK, self.num_inputs, -1)), 2, 1)
-            self._input_sums *= decay
-            self._input_sums += np.swapaxes(weighted, -1, -2) @ lagged
-        self._weight, self._squared_weight = decayed_weights(
-            self._weight, self._squared_weight, BLOCK, self._decay)
-        ring[:, :history] = ring[:, BLOCK:]
+            sums = self._input_sums[plants]
+            sums *= decay
+            sums += np.swapaxes(weighted, -1, -2) @ lagged
+            self._input_sums[plants] = sums
+        if self.plants is None:
+            self._weight, self._squared_weight = decayed_weights(
+                self._weight, self._squared_weight, BLOCK, self._decay)
+        else:  # element-wise with one plant's scalar factors: its weights bit for bit
+            self._weight[plants], self._squared_weight[plants] = decayed_weights(
+                self._weight[plants], self._squared_weight[plants], BLOCK, self._decay)
+        self._ring[plants, :history] = ring[:, BLOCK:]
 
     # ------------------------------------------------------------ the tests
     @property
-    def effective_samples(self) -> float:
-        """Return N = (sum w)^2 / sum w^2 over the samples in the tests so far."""
-        squared = self._squared_weight
-        return self._weight ** 2 / squared if squared > 0.0 else 0.0
+    def effective_samples(self) -> Any:
+        """Return N = (sum w)^2 / sum w^2 over the samples in the tests so far (per plant)."""
+        return effective_size(self._weight, self._squared_weight)
 
     @property
-    def ready(self) -> bool:
+    def ready(self) -> Any:
         """Whether the window holds enough samples for the tests (N >= SAMPLES_PER_LAG M)."""
         return self.effective_samples >= SAMPLES_PER_LAG * self.lags
 
-    def _check(self) -> None:
-        """Run the tests on the moments of the window and move the alarms."""
-        if not self.ready:
-            return
-        self._checks += 1
-        statistics, self._worst, self._values = self._statistics_now()
+    def _sizes(self, plants: Any) -> np.ndarray:
+        """Return the effective sample sizes N of ``plants``, ``(R,)``."""
+        if self.plants is None:
+            return np.array([effective_size(self._weight, self._squared_weight)])
+        return effective_size(self._weight[plants], self._squared_weight[plants])
+
+    def _check(self, plants: Any) -> None:
+        """Run the tests of the ready ``plants`` on the moments of their windows; move alarms."""
+        sizes = self._sizes(plants)
+        ready = sizes >= SAMPLES_PER_LAG * self.lags
+        if not ready.all():
+            if not ready.any():
+                return
+            plants, sizes = np.arange(self._plants)[plants][ready], sizes[ready]
+        self._checks[plants] += 1
+        statistics, worst, values = self._statistics_now(plants, sizes)
         low, high = self.thresholds
         # hysteresis: on above the high threshold, off below the low one
-        self._alarms = np.where(statistics > high, True,
-                                np.where(statistics < low, False, self._alarms))
-        self._statistics = statistics
+        self._alarms[plants] = np.where(statistics > high, True,
+                                        np.where(statistics < low, False, self._alarms[plants]))
+        self._statistics[plants] = statistics
+        self._worst[plants] = worst
+        self._values[plants] = values
 
-    def _statistics_now(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return Q, the worst lag and its correlation of every test, each ``(K, T)``."""
+    def _statistics_now(self, plants: Any, sizes: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return Q, the worst lag and its correlation of every test of ``plants``, ``(R, T)``."""
         inputs, first, q = self.num_inputs, 1 + self._residual_lags, self._filter_order
+        weight = self._weight if self.plants is None else self._weight[plants]
+        scale = np.reshape(weight, (-1, 1, 1))
         # means: e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b)
-        residual = self._residual_sums / self._weight
-        size = self.effective_samples
-        shape = (self._plants, self.num_tests)
+        residual = self._residual_sums[plants] / scale
+        count = residual.shape[0]
+        shape = (count, self.num_tests)
         statistics, worst, values = np.empty(shape), np.empty(shape, dtype=np.intp), np.empty(
             shape)
         if self.whiteness:
             statistics[:, 0], worst[:, 0], values[:, 0] = whiteness_statistic(
-                residual[:, 0, :first], self.lags, size)
+                residual[:, 0, :first], self.lags, sizes)
         if inputs:
             whitening = (prewhitening_filter(residual[:, 0, :q + 1], q) if q
-                         else np.ones((self._plants, 1)))
+                         else np.ones((count, 1)))
             # e(t - a) u_i(t - b): (K, r, q + 1, U)
-            cross = np.moveaxis(residual[:, :, first:].reshape(self._plants, q + 1, inputs, -1),
+            cross = np.moveaxis(residual[:, :, first:].reshape(count, q + 1, inputs, -1),
                                 2, 1)
             tests = slice(int(self.whiteness), None)
             statistics[:, tests], worst[:, tests], values[:, tests] = cross_statistics(
-                residual[:, :, :first], self._input_sums / self._weight, cross, whitening,
-                self.lags, size, self._colour_lags)
+                residual[:, :, :first], self._input_sums[plants] / scale[..., None], cross,
+                whitening, self.lags, sizes, self._colour_lags)
         return statistics, worst, values
 
     # ------------------------------------------------------------ the results
-    def _plant_reasons(self, plant: int) -> tuple[str, ...]:
+    def reasons_of(self, plant: int) -> tuple[str, ...]:
+        """Return the reasons of plant k's alarms now (one plant: k = 0)."""
         reasons = []
         for test in np.flatnonzero(self._alarms[plant]):
             lag, value = int(self._worst[plant, test]), float(self._values[plant, test])
@@ -396,8 +499,8 @@ class AdequacyMonitor:
     def reasons(self) -> Any:
         """Return the reasons of the alarms now: a tuple of str, or one per plant (a list)."""
         if self.plants is None:
-            return self._plant_reasons(0)
-        return [self._plant_reasons(k) for k in range(self._plants)]
+            return self.reasons_of(0)
+        return [self.reasons_of(k) for k in range(self._plants)]
 
     @property
     def alarm(self) -> Any:
@@ -411,13 +514,22 @@ class AdequacyMonitor:
         return self._statistics[0].copy() if self.plants is None else self._statistics.copy()
 
     @property
-    def checks(self) -> int:
-        """Count the checks made (one per BLOCK samples once ready)."""
-        return self._checks
+    def checks(self) -> Any:
+        """Count the checks made (one per BLOCK samples once ready): an int, or ``(K,)``."""
+        return int(self._checks[0]) if self.plants is None else self._checks.copy()
 
     # ------------------------------------------------------------ the state
     def get_state(self) -> MonitorState:
-        """Return a copy of the state."""
+        """Return a copy of the state (K plants: :meth:`plant_state` gives one plant's)."""
+        if self.plants is not None:
+            return MonitorState(
+                residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
+                weights=(self._weight.copy(), self._squared_weight.copy()),
+                ring=self._ring.copy(), pending_residuals=np.zeros((0, self._plants)),
+                pending_inputs=np.zeros((0, self._plants, self.num_inputs)),
+                alarms=self._alarms.copy(), statistics=self._statistics.copy(),
+                worst=self._worst.copy(), values=self._values.copy(),
+                checks=self._checks.copy(), pending=self._cursors.counts().copy())
         lead = (len(self._residuals), self._plants)
         return MonitorState(
             residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
@@ -426,32 +538,84 @@ class AdequacyMonitor:
             pending_residuals=np.array(self._residuals, dtype=float).reshape(lead),
             pending_inputs=self._inputs[:lead[0]].copy(),
             alarms=self._alarms.copy(), statistics=self._statistics.copy(),
-            worst=self._worst.copy(), values=self._values.copy(), checks=self._checks)
+            worst=self._worst.copy(), values=self._values.copy(), checks=int(self._checks[0]))
 
     def set_state(self, state: MonitorState) -> None:
         """Continue from a :meth:`get_state` of a monitor with the same settings."""
         self._residual_sums = state.residual_sums.copy()
         self._input_sums = state.input_sums.copy()
-        self._weight, self._squared_weight = state.weights
         self._ring = state.ring.copy()
-        squeeze = self.plants is None
-        self._residuals = [float(r[0]) if squeeze else r.copy() for r in state.pending_residuals]
-        self._inputs[:len(self._residuals)] = state.pending_inputs
         self._alarms = state.alarms.copy()
         self._statistics = state.statistics.copy()
         self._worst = state.worst.copy()
         self._values = state.values.copy()
-        self._checks = int(state.checks)
+        lead = (self._plants,)
+        self._checks = np.broadcast_to(np.asarray(state.checks, dtype=np.int64), lead).copy()
+        if self.plants is None:
+            self._weight, self._squared_weight = state.weights
+            self._residuals = [float(r[0]) for r in state.pending_residuals]
+            self._inputs[:len(self._residuals)] = state.pending_inputs
+            return
+        weight, squared = state.weights
+        self._weight = np.broadcast_to(np.asarray(weight, dtype=float), lead).copy()
+        self._squared_weight = np.broadcast_to(np.asarray(squared, dtype=float), lead).copy()
+        if state.pending is not None:
+            self._cursors.set(_ALL, state.pending)
+        else:  # pending samples (m, K) that all plants shared before the cursors
+            count = state.pending_residuals.shape[0]
+            slots = slice(self._history, self._history + count)
+            self._ring[:, slots, 0] = state.pending_residuals.T
+            self._ring[:, slots, 1:] = np.swapaxes(state.pending_inputs, 0, 1)
+            self._cursors.set(_ALL, count)
+
+    def plant_state(self, plant: int) -> MonitorState:
+        """Return plant k's state in the form of a single plant's :meth:`get_state` (K plants)."""
+        count = int(self._cursors.counts()[plant])
+        ring = self._ring[plant:plant + 1].copy()
+        pending = ring[0, self._history:self._history + count]
+        state = MonitorState(
+            residual_sums=self._residual_sums[plant:plant + 1].copy(),
+            input_sums=self._input_sums[plant:plant + 1].copy(),
+            weights=(float(self._weight[plant]), float(self._squared_weight[plant])),
+            ring=ring, pending_residuals=pending[:, :1].copy(),
+            pending_inputs=pending[:, None, 1:].copy(),
+            alarms=self._alarms[plant:plant + 1].copy(),
+            statistics=self._statistics[plant:plant + 1].copy(),
+            worst=self._worst[plant:plant + 1].copy(),
+            values=self._values[plant:plant + 1].copy(), checks=int(self._checks[plant]))
+        ring[0, self._history:] = 0.0  # one plant keeps its pending samples in lists
+        return state
+
+    def load_plant(self, plant: int, state: MonitorState) -> None:
+        """Take over plant k from a single plant's :meth:`get_state` (K plants)."""
+        self._residual_sums[plant] = state.residual_sums[0]
+        self._input_sums[plant] = state.input_sums[0]
+        self._weight[plant], self._squared_weight[plant] = state.weights
+        count = state.pending_residuals.shape[0]
+        ring = self._ring[plant]
+        ring[:] = state.ring[0]
+        ring[self._history:self._history + count, 0] = state.pending_residuals[:, 0]
+        ring[self._history:self._history + count, 1:] = state.pending_inputs[:, 0]
+        self._cursors.set(plant, count)
+        self._alarms[plant] = state.alarms[0]
+        self._statistics[plant] = state.statistics[0]
+        self._worst[plant] = state.worst[0]
+        self._values[plant] = state.values[0]
+        self._checks[plant] = int(state.checks)
+
+
+#: Every plant, as rows (a slice: views, not copies).
+_ALL = slice(None)
 
 
 def whiteness_statistic(autocovariance: np.ndarray, lags: int,
-                        size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        size: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r"""
     Return :math:`Q = N\sum_{k=1}^M \hat\rho_k^2`, the worst lag and its :math:`\hat\rho`.
 
     ``autocovariance`` ``(K, L + 1)`` holds :math:`\hat R_\varepsilon(k)`,
-    k = 0..L >= M; N is the effective sample size. A residual with zero
-    power gives Q = 0.
+    k = 0..L >= M; N is the effective sample size, a float or one per
+    plant ``(K,)``. A residual with zero power gives Q = 0.
     """
     power = autocovariance[:, 0]
     positive = power > 0.0
@@ -516,7 +680,7 @@ def filter_rows(whitening: np.ndarray, rows: int, columns: int) -> np.ndarray:
 
 
 def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarray,
-                     whitening: np.ndarray, lags: int, size: float, colour_lags: int
+                     whitening: np.ndarray, lags: int, size: Any, colour_lags: int
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r"""
     Return :math:`Q_i = N r^T P^{-1} r` of each input, its worst lag and correlation, ``(K, r)``.
@@ -526,8 +690,8 @@ def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarra
     :math:`u_i(t-a)u_i(t-b)` and ``cross`` ``(K, r, q + 1, U)`` of
     :math:`e(t-a)u_i(t-b)` (u from lag 1); ``whitening`` is the filter f
     ``(K, q + 1)`` of both series (``[1]``: none), so that every filtered
-    moment is an exact quadratic form; ``colour_lags`` J (see
-    :class:`AdequacyMonitor`).
+    moment is an exact quadratic form; ``size`` N, a float or ``(K,)``;
+    ``colour_lags`` J (see :class:`AdequacyMonitor`).
     """
     count, inputs, stored = signals.shape[0], signals.shape[1], signals.shape[-1]
     span = lags + colour_lags
@@ -563,7 +727,8 @@ def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarra
     flat = r.reshape(-1, lags)[np.arange(count * inputs), worst].reshape(count, inputs)
     scale = np.sqrt(np.maximum(colour[:, :1] * np.einsum('kiaa->kia', products)[:, :, 0], 0.0))
     value = np.where(scale > 0.0, flat / np.where(scale > 0.0, scale, 1.0), 0.0)
-    return size * statistic.reshape(count, inputs), worst.reshape(count, inputs) + 1, value
+    return (np.reshape(size, (-1, 1)) * statistic.reshape(count, inputs),
+            worst.reshape(count, inputs) + 1, value)
 
 
 def quadratic_forms(variance: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.lagged import decayed_weights, LaggedProducts
+from bcid_ros.estimators.lagged import effective_size, LaggedProducts, weights_of_counts
 
 #: Prewhitening: none (plain Newey-West) or an AR(1) per component (docs/trust.md).
 PREWHITENINGS = ('none', 'diagonal')
@@ -107,7 +107,13 @@ class HacCovariance:
     max_lag : int
         L >= 1.
     plants : int, optional
-        K: scores ``(K, p)`` and results per plant; None: one plant, ``(p,)``.
+        K: scores ``(K, p)`` (:meth:`record`, every plant) or ``(R, p)``
+        (:meth:`record_rows`, the plants that step) and results per plant,
+        each plant with its own blocks, counts and weights; plant k's
+        covariance is that of one HAC fed plant k's scores, within rounding
+        (test/test_trust_plants.py), NaN where that one gives None.
+        :meth:`plant_state` and :meth:`load_plant` move a plant to and from a
+        single HAC's :meth:`get_state`. None: one plant, ``(p,)``.
 
     Raises
     ------
@@ -150,60 +156,117 @@ class HacCovariance:
                 f'plants={self.plants})')
 
     def reset(self) -> None:
-        """Forget every score."""
+        """Forget every score (of every plant)."""
         self._products.reset()
         self._bandwidths: np.ndarray | None = None
 
+    def clear(self, rows: Any) -> None:
+        """Forget the scores of the plants ``rows`` (indices or a slice): a restart of those."""
+        if self.plants is None:
+            self.reset()
+            return
+        self._products.clear(rows)
+        if self._bandwidths is not None:
+            self._bandwidths[rows] = np.nan
+
     def record(self, score: Any) -> None:
         r"""
-        Add one score :math:`s_t = \psi_t\varepsilon_t`, ``(p,)`` or ``(K, p)``.
+        Add one score :math:`s_t = \psi_t\varepsilon_t`, ``(p,)`` or ``(K, p)`` (every plant).
 
-        Kept by reference until the next block of 64: do not change it
-        afterwards. :math:`\varepsilon_t` may be the a-priori or the
+        One plant keeps it by reference until the next block of 64: do not
+        change it afterwards. :math:`\varepsilon_t` may be the a-priori or the
         a-posteriori error of a recursive estimator: on stationary data both
         give the coverage of the batch residual (docs/trust.md).
         """
         self._products.append(score)
 
+    def record_rows(self, rows: Any, scores: Any) -> None:
+        """
+        Add one score of each plant in ``rows`` (K plants); the others do not step now.
+
+        Parameters
+        ----------
+        rows : numpy.ndarray or slice
+            The plants that record: distinct indices, or a slice.
+        scores : numpy.ndarray, shape ``(R, p)``
+            Their scores, in the order of ``rows`` (copied).
+
+        Raises
+        ------
+        ValueError
+            If the covariance is of one plant (``plants=None``).
+
+        """
+        if self.plants is None:
+            raise ValueError('record_rows needs plants=K; one plant records with record()')
+        self._products.record(rows, scores)
+
     # ------------------------------------------------------------ the results
     @property
-    def samples(self) -> int:
-        """Count the recorded scores."""
-        return self._products.count + len(self._products.pending)
+    def samples(self) -> Any:
+        """Count the recorded scores: an int, or ``(K,)``."""
+        return self._products.samples
 
-    def _weights_now(self) -> tuple[float, float]:
-        """Return tau = sum w and tau_2 = sum w^2 over every recorded score."""
-        return decayed_weights(0.0, 0.0, self.samples, self.forgetting_factor)
+    def _weights_now(self) -> tuple[Any, Any]:
+        """Return tau = sum w and tau_2 = sum w^2 over every recorded score (per plant)."""
+        return weights_of_counts(self.samples, self.forgetting_factor)
 
     def long_run(self, transform: np.ndarray | None = None) -> np.ndarray | None:
         r"""
-        Return :math:`\hat\Omega`, ``(p, p)`` or ``(K, p, p)``, at the last block (None before).
+        Return :math:`\hat\Omega`, ``(p, p)`` or ``(K, p, p)``, at the last block.
 
         It is per unit of :math:`\tau_2`: :math:`\tau_2\hat\Omega` estimates
         :math:`\mathrm{var}\sum_t w_t s_t`. With a ``transform`` M ``(p, p)``
         or ``(K, p, p)`` it is that of :math:`M s_t` instead, prewhitened and
-        windowed in those coordinates.
+        windowed in those coordinates. One plant: None before its first block;
+        K plants: NaN in the plants before their first block.
         """
         products = self._products
-        if products.count == 0 or not products.weight > 0.0:
-            return None
+        if self.plants is None:
+            if products.count == 0 or not products.weight > 0.0:
+                return None
+            m = None if transform is None else np.asarray(transform, dtype=float)[None]
+            long_run, self._bandwidths = self._long_run_of(
+                products.sums[None], products.weight, products.squared_weight, m)
+            return long_run[0]
+        return self._long_run_rows(np.ones(self.plants, dtype=bool), transform)
+
+    def _long_run_rows(self, wanted: np.ndarray, transform: np.ndarray | None) -> np.ndarray:
+        """Return the long run ``(K, p, p)`` of the ``wanted`` plants with a block (NaN else)."""
+        products, p, plants = self._products, self.dimension, self.plants
+        long_run, self._bandwidths = np.full((plants, p, p), np.nan), np.full(plants, np.nan)
+        known = wanted & (products.count > 0) & (products.weight > 0.0)
+        if known.any():
+            rows = _ALL if known.all() else np.flatnonzero(known)
+            m = None if transform is None else np.broadcast_to(
+                np.asarray(transform, dtype=float), (plants, p, p))[rows]
+            long_run[rows], self._bandwidths[rows] = self._long_run_of(
+                products.sums[rows], products.weight[rows], products.squared_weight[rows], m)
+        return long_run
+
+    def _long_run_of(self, sums: np.ndarray, weight: Any, squared: Any,
+                     transform: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return Omega ``(R, p, p)`` and the bandwidths ``(R,)`` of R plants' sums.
+
+        ``sums`` ``(R, p, p, L + 2)``; ``weight`` and ``squared`` the sums of the
+        weights and of their squares, floats (one plant) or ``(R,)``.
+        """
         lam = self.forgetting_factor
-        sums = products.sums.reshape(self._lead + products.sums.shape[-3:])
         lag_weights = lam ** np.arange(self.max_lag + 2, dtype=float)
-        gamma = np.moveaxis(sums * lag_weights, -1, 1) / products.weight  # (K, L + 2, p, p)
+        # (R, L + 2, p, p)
+        gamma = np.moveaxis(sums * lag_weights, -1, 1) / np.reshape(weight, (-1, 1, 1, 1))
         if transform is not None:
-            m = np.asarray(transform, dtype=float).reshape(self._lead + (self.dimension,) * 2)
             # Gamma_h(k) = M Gamma(k) M'
-            gamma = m[:, None] @ gamma @ np.swapaxes(m, -1, -2)[:, None]
-        squared = products.squared_weight
-        size = products.weight ** 2 / squared if squared > 0.0 else 0.0
-        long_run, self._bandwidths = long_run_covariance(
-            gamma, size, self.prewhitening, self.kernel, self.bandwidth, lam)
-        return long_run[0] if self.plants is None else long_run
+            gamma = transform[:, None] @ gamma @ np.swapaxes(transform, -1, -2)[:, None]
+        # the effective sample size T = tau^2 / tau_2 at the last block (tau_2 > 0 here)
+        size = effective_size(weight, squared)
+        return long_run_covariance(gamma, size, self.prewhitening, self.kernel, self.bandwidth,
+                                   lam)
 
     @property
     def bandwidths(self) -> Any:
-        """Return the bandwidth b of the last :meth:`long_run` (per plant), None before."""
+        """Return the bandwidth b of the last :meth:`long_run` (per plant, NaN where none)."""
         if self._bandwidths is None:
             return None
         return float(self._bandwidths[0]) if self.plants is None else self._bandwidths.copy()
@@ -220,21 +283,29 @@ class HacCovariance:
         Returns
         -------
         numpy.ndarray or None
-            Shape of ``bread_inverse``; None before the first block or while
-            :math:`T \le p`.
+            Shape of ``bread_inverse``. One plant: None before the first block
+            or while :math:`T \le p`; K plants: NaN in those plants.
 
         """
-        p = np.asarray(bread_inverse, dtype=float)
         tau, tau2 = self._weights_now()
-        size = tau * tau / tau2 if tau2 > 0.0 else 0.0
-        if not size > self.dimension:
-            return None
-        # the long-run covariance of the influences P s_t is P Omega P
-        covariance = self.long_run(transform=p)
-        if covariance is None:
-            return None
+        if self.plants is None:
+            size = tau * tau / tau2 if tau2 > 0.0 else 0.0
+            if not size > self.dimension:
+                return None
+            # the long-run covariance of the influences P s_t is P Omega P
+            covariance = self.long_run(transform=np.asarray(bread_inverse, dtype=float))
+            if covariance is None:
+                return None
+            covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
+            return covariance * (tau2 * size / (size - self.dimension))
+        size = np.where(tau2 > 0.0, tau * tau / np.where(tau2 > 0.0, tau2, 1.0), 0.0)
+        enough = size > self.dimension
+        # the plants with too few samples are left out (their P may not be finite yet)
+        covariance = self._long_run_rows(enough, bread_inverse)
         covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
-        return covariance * (tau2 * size / (size - self.dimension))
+        factor = np.where(enough, tau2 * size / np.where(enough, size - self.dimension, 1.0),
+                          np.nan)
+        return covariance * factor[:, None, None]
 
     # ------------------------------------------------------------ the state
     def get_state(self) -> HacState:
@@ -245,6 +316,20 @@ class HacCovariance:
         """Continue from a :meth:`get_state` of a covariance with the same settings."""
         self._products.load(state.products)
         self._bandwidths = None
+
+    def plant_state(self, plant: int) -> HacState:
+        """Return plant k's state in the form of a single plant's :meth:`get_state` (K plants)."""
+        return HacState(products=self._products.plant_state(plant))
+
+    def load_plant(self, plant: int, state: HacState) -> None:
+        """Take over plant k from a single plant's :meth:`get_state` (K plants)."""
+        self._products.load_plant(plant, state.products)
+        if self._bandwidths is not None:
+            self._bandwidths[plant] = np.nan
+
+
+#: Every plant, as rows (a slice: views, not copies).
+_ALL = slice(None)
 
 
 def long_run_covariance(gamma: np.ndarray, size: float, prewhitening: str, kernel: str,

@@ -21,7 +21,8 @@ import numpy as np
 
 from bcid_ros.estimators.bciv import Bciv, bciv_batch
 from bcid_ros.estimators.regressor import ArxRegressor
-from bcid_ros.reproduction.common import markdown_table, mean_and_stderr, pyplot
+from bcid_ros.markdown import markdown_table
+from bcid_ros.reproduction.common import mean_and_stderr, pyplot
 from bcid_ros.simulation import make_scenario
 
 SAMPLES = 10000

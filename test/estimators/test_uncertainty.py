@@ -1,0 +1,244 @@
+"""
+The parameter covariance of the estimators: its formulas and its bookkeeping.
+
+Single runs against the formulas (rls: sigma^2 P; bcrls: the sandwich of the
+BCLS fixed point; bciv and cl_bcls: block means of their moments). Whether the
+std is calibrated over Monte Carlo runs is
+test/statistical/test_uncertainty_calibration.py.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from uncertainty_cases import (arx_data, ding_data, IKEDA, ikeda, IKENOUE_COLORED, ikenoue,
+                               run, run_single)
+
+from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.base import standard_deviations, weighted_square_ratio
+from bcid_ros.estimators.bcrls import add_lagged_moments
+from bcid_ros.estimators.moment_covariance import MAX_BLOCKS, MomentBlocks
+from bcid_ros.estimators.rls import ls_batch
+
+
+# ------------------------------------------------------------------ formulas
+def test_rls_covariance_is_residual_variance_times_p():
+    y, u = arx_data(np.random.default_rng(1), 800)
+    estimator = run('rls', y, u)
+    theta, p, loss, _ = ls_batch(y, u, order=2, num_inputs=2,
+                                 initial_covariance=estimator.initial_covariance_diagonal)
+    updates = y.shape[0] - 2
+    expected = loss / (updates - 6) * p
+    np.testing.assert_allclose(estimator.parameter_covariance, expected, rtol=1e-7)
+    np.testing.assert_allclose(estimator.parameter_std, np.sqrt(np.diag(expected)), rtol=1e-7)
+
+
+def test_rls_covariance_with_forgetting_uses_the_effective_sample_size():
+    lam = 0.99
+    y, u = arx_data(np.random.default_rng(2), 1500)
+    estimator = run('rls', y, u, forgetting_factor=lam)
+    tau = estimator.weighted_count
+    updates = y.shape[0] - 2
+    weights = lam ** np.arange(updates)
+    # the closed form equals sum(w^2) / sum(w) over the weights of the updates
+    assert weighted_square_ratio(tau, lam) == pytest.approx(
+        (weights ** 2).sum() / weights.sum(), rel=1e-9)
+    ratio = weighted_square_ratio(tau, lam)
+    expected = estimator.loss / (tau - 6 * ratio) * ratio * estimator.covariance
+    np.testing.assert_allclose(estimator.parameter_covariance, expected, rtol=1e-12)
+    assert weighted_square_ratio(10.0, 1.0) == 1.0
+    assert weighted_square_ratio(1e9, 0.5) == pytest.approx(1.0 / 1.5)
+
+
+def test_not_ready_estimators_have_no_covariance():
+    for name in ('rls', 'bcrls'):
+        estimator = make_estimator(name, order=2, num_inputs=2)
+        assert estimator.parameter_covariance is None and estimator.parameter_std is None
+    assert standard_deviations(None) is None
+
+
+def test_bcrls_lagged_moments_equal_the_batch_sums_and_survive_a_state_round_trip():
+    y, u = ding_data(np.random.default_rng(3), 1000)
+    estimator = run('bcrls', y, u)
+    # the snapshot's moments: the sums so far, and the ring of the lag context and pending rows
+    state = estimator.get_state()
+    ring = state.arrays['moment_ring'][:estimator.order + state.scalars['moment_pending']]
+    sums, weight = add_lagged_moments(state.arrays['moment_sums'], state.scalars['moment_weight'],
+                                      ring, estimator.order, estimator.forgetting_factor)
+    phi = np.column_stack([-y[1:-1], -y[:-2], u[1:-1, 0], u[:-2, 0], u[1:-1, 1], u[:-2, 1]])
+    z = np.column_stack([phi, y[2:]])
+    assert weight == z.shape[0]
+    for k in range(3):
+        np.testing.assert_allclose(sums[k], z[k:].T @ z[:z.shape[0] - k], rtol=1e-12,
+                                   atol=1e-10)
+    # a snapshot in the middle of a block continues to the same covariance, bit for bit
+    first = run('bcrls', y[:537], u[:537])
+    second = make_estimator('bcrls', order=2, num_inputs=2)
+    second.set_state(first.get_state())
+    for k in range(537, 1000):
+        first.update(y[k], u[k])
+        second.update(y[k], u[k])
+    np.testing.assert_array_equal(first.parameter_covariance, second.parameter_covariance)
+    np.testing.assert_array_equal(first.parameter_covariance, estimator.parameter_covariance)
+
+
+def test_bcrls_covariance_is_unit_free():
+    y, u = ding_data(np.random.default_rng(4), 1500)
+    base = run('bcrls', y, u)
+    scaled = run('bcrls', y * 1e-3, u * 1e4)
+    # theta: a -> a, b -> b s_y / s_u; so std of b scales by 1e-7
+    factor = np.array([1.0, 1.0, 1e-7, 1e-7, 1e-7, 1e-7])
+    np.testing.assert_allclose(scaled.parameter_std, base.parameter_std * factor, rtol=1e-6)
+    covariance = base.parameter_covariance
+    np.testing.assert_allclose(covariance, covariance.T, rtol=0, atol=0)
+    assert np.linalg.eigvalsh(covariance).min() > 0
+
+
+def check_covariance_matrix(covariance):
+    """Assert a finite, exactly symmetric, positive definite matrix."""
+    assert np.isfinite(covariance).all()
+    np.testing.assert_array_equal(covariance, covariance.T)
+    assert np.linalg.eigvalsh(covariance).min() > 0
+
+
+@pytest.mark.parametrize('name, data, settings', [
+    ('bciv', ikenoue, IKENOUE_COLORED), ('cl_bcls', ikeda, IKEDA)], ids=['bciv', 'cl_bcls'])
+def test_block_covariance_none_before_ready_and_16_blocks_then_psd(name, data, settings):
+    y, u = data(3000, 5)
+    estimator = make_estimator(name, **settings)
+    assert estimator.parameter_covariance is None
+    # 16 blocks of 32 updates (samples for cl_bcls) after the first boundary
+    for k in range(400):
+        estimator.update(y[k], u[k])
+    assert estimator.ready and estimator.parameter_std is None
+    for k in range(400, 3000):
+        estimator.update(y[k], u[k])
+    covariance = estimator.parameter_covariance
+    check_covariance_matrix(covariance)
+    np.testing.assert_array_equal(estimator.parameter_std, np.sqrt(np.diag(covariance)))
+    # a reset forgets the blocks
+    estimator.reset()
+    assert estimator.parameter_covariance is None
+
+
+def test_bciv_printed_update_publishes_no_covariance():
+    y, u = ikenoue(1500, 6)
+    estimator = run_single('bciv', y, u, bciv_update='printed', **IKENOUE_COLORED)
+    assert estimator.ready and estimator.parameter_covariance is None
+
+
+@pytest.mark.parametrize('name, data, settings', [
+    ('bciv', ikenoue, IKENOUE_COLORED), ('cl_bcls', ikeda, IKEDA)], ids=['bciv', 'cl_bcls'])
+def test_block_covariance_scales_with_the_units(name, data, settings):
+    y, u = data(2000, 7)
+    base = run_single(name, y, u, **settings)
+    if name == 'cl_bcls':
+        # the controller maps the scaled y to the scaled u: its gain times 1e4 / 1e-3
+        settings = dict(settings, controller_numerator=[0.2289e7])
+    scaled = run_single(name, y * 1e-3, u * 1e4, **settings)
+    # theta: a -> a, b -> b s_y / s_u = 1e-7 b, so the std of b scales by 1e-7
+    factor = np.repeat([1.0, 1e-7], settings['order'])
+    np.testing.assert_allclose(scaled.theta, base.theta * factor, rtol=1e-7)
+    np.testing.assert_allclose(scaled.parameter_std, base.parameter_std * factor, rtol=1e-4)
+    check_covariance_matrix(scaled.parameter_covariance)
+
+
+def test_moment_blocks_sum_each_block_exactly_with_forgetting():
+    lam = 0.999
+    rng = np.random.default_rng(8)
+    terms = rng.standard_normal((5000, 3))
+    blocks = MomentBlocks()
+    sums, tau = np.zeros(3), 0.0
+    boundaries = []
+    for t in range(terms.shape[0]):
+        sums = lam * sums + terms[t]
+        tau = lam * tau + 1.0
+        if t + 1 >= blocks.next_boundary:
+            boundaries.append(t + 1)
+            blocks.close(t + 1, sums, tau, lam, 0, lambda: lambda v: v)
+    # 1 / (16 (1 - lambda)) = 62.5: the blocks stop doubling at 32 rows, the oldest go
+    assert blocks.block_length == 32 and blocks.blocks == MAX_BLOCKS - 1
+    for index, block in enumerate(blocks._sums):
+        end = boundaries[len(boundaries) - blocks.blocks + index]
+        rows = terms[end - 32:end]
+        weights = lam ** np.arange(31, -1, -1)
+        np.testing.assert_allclose(block, weights @ rows, rtol=1e-9, atol=1e-9)
+        assert blocks._weights[index][1] == pytest.approx(weights.sum(), rel=1e-12)
+        assert blocks._weights[index][2] == pytest.approx((weights ** 2).sum(), rel=1e-12)
+
+
+def test_moment_blocks_long_run_covariance_of_a_mean():
+    # white terms with covariance diag(1, 4): the mean of N has covariance diag(1, 4) / N
+    rng = np.random.default_rng(9)
+    count = 4096
+    terms = rng.standard_normal((count, 2)) * [1.0, 2.0]
+    blocks = MomentBlocks()
+    sums = np.zeros(2)
+    for t in range(count):
+        sums += terms[t]
+        if t + 1 >= blocks.next_boundary:
+            blocks.close(t + 1, sums, float(t + 1), 1.0, 0, lambda: lambda v: v)
+    covariance = blocks.covariance(float(count), 1.0) * count
+    # about 64 blocks: a variance from them has a relative standard error sqrt(2 / 63) = 18 %
+    np.testing.assert_allclose(np.diag(covariance), [1.0, 4.0], rtol=4 * math.sqrt(2 / 63))
+    # a second group with another mean (from the boundary at 2049 = 1 + 64 * 32 on) does
+    # not inflate the spread
+    shifted = MomentBlocks()
+    sums = np.zeros(2)
+    for t in range(count):
+        sums += terms[t] + (10.0 if t >= 2049 else 0.0)
+        if t + 1 >= shifted.next_boundary:
+            shifted.close(t + 1, sums, float(t + 1), 1.0, t >= 2049, lambda: lambda v: v)
+    assert shifted.covariance(float(count), 1.0)[0, 0] * count < 1.0 + 4 * math.sqrt(2 / 60)
+
+
+def test_block_covariance_skips_a_block_whose_sums_are_not_its_own():
+    y, u = ikenoue(2500, 10)
+    starts = []
+    for cut in (False, True):
+        estimator = run_single('bciv', y[:2000], u[:2000], **IKENOUE_COLORED)
+        blocks = estimator._blocks
+        add, calls = blocks._add, []
+        # record where each added block starts (the previous boundary)
+        blocks._add = lambda *args, add=add, calls=calls, blocks=blocks: (
+            calls.append(blocks._base_count), add(*args))
+        if cut:
+            # a memory cut (a detected plant change) scales the moments
+            estimator._accept_change()
+        for k in range(2000, 2500):
+            estimator.update(y[k], u[k])
+        starts.append(calls)
+        check_covariance_matrix(estimator.parameter_covariance)
+    # without the cut the block over it is added; with it, that block is skipped
+    assert starts[0][0] < 1989 < starts[0][1]
+    assert starts[1][0] == starts[0][1]
+
+
+def test_block_covariance_restarts_after_a_restored_state():
+    y, u = ikenoue(1800, 11)
+    first = run_single('bciv', y[:1000], u[:1000], **IKENOUE_COLORED)
+    assert first.parameter_covariance is not None
+    second = make_estimator('bciv', **IKENOUE_COLORED)
+    second.set_state(first.get_state())
+    # the blocks are not saved: none until 16 new blocks of 32 updates
+    assert second.parameter_covariance is None
+    second.run(y[1000:1800], u[1000:1800])
+    np.testing.assert_array_equal(second.theta, run_single(
+        'bciv', y, u, **IKENOUE_COLORED).theta)
+    check_covariance_matrix(second.parameter_covariance)
+
+
+def test_moment_blocks_give_none_when_the_function_fails_and_do_not_retry_at_every_read():
+    blocks, sums, calls = MomentBlocks(), np.zeros(2), []
+
+    def failing(means):
+        calls.append(1)
+        raise ArithmeticError('no fixed point')
+    terms = np.random.default_rng(12).standard_normal((1000, 2))
+    for t in range(terms.shape[0]):
+        sums += terms[t]
+        if t + 1 >= blocks.next_boundary:
+            blocks.close(t + 1, sums, float(t + 1), 1.0, 0, lambda: failing)
+    assert blocks.blocks >= 16
+    assert blocks.covariance(1000.0, 1.0) is None and blocks.covariance(1000.0, 1.0) is None
+    assert len(calls) == 1
