@@ -44,9 +44,11 @@ HYSTERESIS = 4.0
 PREWHITENING_ORDER = 2
 #: Lags of the prewhitened residual's own colour kept in the cross test's variance ('oe').
 COLOUR_LAGS = 3
-#: Samples are kept in lists and added to the moments this many at a time; the
-#: tests run after each block (their cost, about 150 function calls, is shared by it).
+#: Samples are kept in lists and added to the moments this many at a time.
 BLOCK = 128
+#: The tests (about 150 function calls) run every so many blocks: as many as fit in
+#: half a window (at least one), and at the first block with a full enough window.
+CHECKS_PER_WINDOW = 2
 
 
 def chi2_survival(x: float, dof: int) -> float:
@@ -116,6 +118,8 @@ class MonitorState:
     #: rows (``pending_residuals`` and ``pending_inputs`` are then empty). None: one
     #: plant, whose pending samples are ``pending_residuals`` and ``pending_inputs``.
     pending: np.ndarray | None = None
+    #: The blocks added (an int, or ``(K,)``): the tests run every ``check_period``.
+    blocks: Any = 0
 
 
 class AdequacyMonitor:
@@ -266,6 +270,8 @@ class AdequacyMonitor:
         self._residual_lags = max(lags if self.whiteness else 0, colour + q)
         self._input_lags = lags + colour + q
         self._decay = 1.0 - 1.0 / window
+        #: blocks between two runs of the tests (see CHECKS_PER_WINDOW)
+        self.check_period = max(1, int(window / (CHECKS_PER_WINDOW * BLOCK)))
         self._plants = 1 if plants is None else plants
         self._history = max(self._residual_lags, self._input_lags)
         # z(t)[j] = channel _channels[j] at t - _lags[j]: e at lags 0..E, then each u_i at 1..U
@@ -315,6 +321,7 @@ class AdequacyMonitor:
         self._worst = np.zeros(shape, dtype=np.intp)
         self._values = np.zeros(shape)
         self._checks = np.zeros(self._plants, dtype=np.int64)
+        self._blocks = np.zeros(self._plants, dtype=np.int64)
 
     def clear(self, rows: Any) -> None:
         """Forget the data and clear the alarms of the plants ``rows``: a restart of those."""
@@ -323,7 +330,7 @@ class AdequacyMonitor:
             return
         for array in (self._residual_sums, self._input_sums, self._ring, self._weight,
                       self._squared_weight, self._alarms, self._worst, self._values,
-                      self._checks):
+                      self._checks, self._blocks):
             array[rows] = 0
         self._statistics[rows] = np.nan
         self._cursors.set(rows, 0)
@@ -439,6 +446,14 @@ class AdequacyMonitor:
 
     def _check(self, plants: Any) -> None:
         """Run the tests of the ready ``plants`` on the moments of their windows; move alarms."""
+        self._blocks[plants] += 1
+        if self.check_period > 1:
+            # every check_period blocks, and at the first block a plant is ready
+            due = (self._blocks[plants] % self.check_period == 0) | (self._checks[plants] == 0)
+            if not due.all():
+                if not due.any():
+                    return
+                plants = np.arange(self._plants)[plants][due]
         sizes = self._sizes(plants)
         ready = sizes >= SAMPLES_PER_LAG * self.lags
         if not ready.all():
@@ -529,7 +544,8 @@ class AdequacyMonitor:
                 pending_inputs=np.zeros((0, self._plants, self.num_inputs)),
                 alarms=self._alarms.copy(), statistics=self._statistics.copy(),
                 worst=self._worst.copy(), values=self._values.copy(),
-                checks=self._checks.copy(), pending=self._cursors.counts().copy())
+                checks=self._checks.copy(), pending=self._cursors.counts().copy(),
+                blocks=self._blocks.copy())
         lead = (len(self._residuals), self._plants)
         return MonitorState(
             residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
@@ -538,7 +554,8 @@ class AdequacyMonitor:
             pending_residuals=np.array(self._residuals, dtype=float).reshape(lead),
             pending_inputs=self._inputs[:lead[0]].copy(),
             alarms=self._alarms.copy(), statistics=self._statistics.copy(),
-            worst=self._worst.copy(), values=self._values.copy(), checks=int(self._checks[0]))
+            worst=self._worst.copy(), values=self._values.copy(), checks=int(self._checks[0]),
+            blocks=int(self._blocks[0]))
 
     def set_state(self, state: MonitorState) -> None:
         """Continue from a :meth:`get_state` of a monitor with the same settings."""
@@ -551,6 +568,7 @@ class AdequacyMonitor:
         self._values = state.values.copy()
         lead = (self._plants,)
         self._checks = np.broadcast_to(np.asarray(state.checks, dtype=np.int64), lead).copy()
+        self._blocks = np.broadcast_to(np.asarray(state.blocks, dtype=np.int64), lead).copy()
         if self.plants is None:
             self._weight, self._squared_weight = state.weights
             self._residuals = [float(r[0]) for r in state.pending_residuals]
@@ -582,7 +600,8 @@ class AdequacyMonitor:
             alarms=self._alarms[plant:plant + 1].copy(),
             statistics=self._statistics[plant:plant + 1].copy(),
             worst=self._worst[plant:plant + 1].copy(),
-            values=self._values[plant:plant + 1].copy(), checks=int(self._checks[plant]))
+            values=self._values[plant:plant + 1].copy(), checks=int(self._checks[plant]),
+            blocks=int(self._blocks[plant]))
         ring[0, self._history:] = 0.0  # one plant keeps its pending samples in lists
         return state
 
@@ -602,6 +621,7 @@ class AdequacyMonitor:
         self._worst[plant] = state.worst[0]
         self._values[plant] = state.values[0]
         self._checks[plant] = int(state.checks)
+        self._blocks[plant] = int(state.blocks)
 
 
 #: Every plant, as rows (a slice: views, not copies).

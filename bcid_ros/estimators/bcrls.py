@@ -103,6 +103,8 @@ class Bcrls(Rls):
     noise_names = ('sigma2',)
     #: The residual tests take the output error, which Ding et al.'s model says is white.
     adequacy_model = 'oe_white'
+    #: The std is bcrls's own sandwich (white output noise, which the residual tests check).
+    hac_std = False
 
     def __init__(self, **settings: Any) -> None:
         # scipy's BLAS loads with the first estimator, not with the module
@@ -173,15 +175,28 @@ class Bcrls(Rls):
         return np.array([self._sigma2])
 
     def _find_problems(self) -> list[str]:
-        """Add the conditioning and the size of the compensation to the RLS reasons."""
+        """Add the conditioning and the convergence of the compensation to the RLS reasons."""
         reasons = super()._find_problems()
         resets = self.flags.get('compensation_reset', 0)
-        reasons += compensation_problems(
+        found, diverging = compensation_problems(
             np.array([self._tau]), np.array([self._sigma2]), self._p[None],
             self._theta_c[None], self._theta_ls[None], self._component_scale[None],
-            np.array([resets > self._resets_checked]), self.order)[0]
+            np.array([resets > self._resets_checked]), self.order, self._covariances)
         self._resets_checked = resets
-        return reasons
+        if diverging[0]:
+            # (46) does not contract: restart it from theta_LS rather than follow it away
+            self._flag('compensation_reset')
+            self._resets_checked += 1
+            self._theta_c = self._theta_ls.copy()
+            self._lambda_theta_c = self._theta_c * self._lambda_diagonal
+        return reasons + found[0]
+
+    def _covariances(self, rows: np.ndarray) -> np.ndarray:
+        """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""
+        covariance = self.parameter_covariance
+        if covariance is None:
+            return np.full((1, self.num_parameters, self.num_parameters), np.nan)
+        return covariance[None]
 
     def _forget_residuals(self) -> None:
         super()._forget_residuals()
@@ -202,13 +217,14 @@ class Bcrls(Rls):
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._state_items()
         moment_arrays, moment_scalars = self._moment_state()
-        return {**arrays, 'theta_c': self._theta_c, **moment_arrays}, {
+        return {**arrays, 'theta_c': self._theta_c, 'output_errors': np.array(
+            self._output_errors), **moment_arrays}, {
             **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked,
-            'output_errors': list(self._output_errors), **moment_scalars}
+            **moment_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
-        self._output_errors = [float(value) for value in scalars['output_errors']]
+        self._output_errors = arrays['output_errors'].tolist()
         self._theta_c = arrays['theta_c']
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
@@ -369,12 +385,12 @@ def compensation_problems(tau: np.ndarray, sigma2: np.ndarray, p: np.ndarray,
         reasons[k].append(f'compensation diverges (contraction {contraction[k]:.3g})')
     if doubtful.size:
         covariance = covariance_of(doubtful)
+        a_columns = _a_columns(p.shape[1], order)
         for k, matrix in zip(doubtful.tolist(), covariance):
-            reasons[k] += _uncertain_compensation(
-                matrix, theta_c[k], component_scale[k], large[k],
-                np.eye(theta_c.shape[1]) - tau[k] * sigma2[k] * p[k] * _a_columns(p.shape[1],
-                                                                                 order),
-                theta_ls[k])
+            # I - M, M = tau sigma2 P Lambda: its solve is the fixed point
+            iteration = np.eye(p.shape[1]) - tau[k] * sigma2[k] * p[k] * a_columns
+            reasons[k] += _uncertain_compensation(matrix, theta_c[k], component_scale[k],
+                                                  large[k], iteration, theta_ls[k])
     for k in np.flatnonzero(reset):
         reasons[k].append('compensation reset')
     return reasons, diverging

@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-#: Rows kept in lists before they are added to the sums in one product.
-BLOCK = 64
+#: Rows kept in lists before they are added to the sums in one product (a block's
+#: dozen numpy calls cost about as much as two hundred rows' list appends).
+BLOCK = 256
 
 
 def add_lagged_products(sums: np.ndarray, context: np.ndarray, rows: np.ndarray,
@@ -248,6 +249,9 @@ class LaggedProducts:
         if self.plants is None:
             #: the rows not yet added (one plant)
             self.pending: list[Any] = []
+            # the factor of each pending row (1.0 from append): the products are formed
+            # for a block at once (append_product)
+            self.factors: list[float] = []
             #: sum of the weights and of their squares over the rows in the sums
             self.weight: Any = 0.0
             self.squared_weight: Any = 0.0
@@ -281,6 +285,21 @@ class LaggedProducts:
         """
         if self.plants is not None:
             return self.record(_ALL, row) > 0
+        self.factors.append(1.0)
+        pending = self.pending
+        pending.append(row)
+        if len(pending) < BLOCK:
+            return False
+        self.flush()
+        return True
+
+    def append_product(self, row: Any, factor: float) -> bool:
+        """
+        Keep ``row`` times ``factor`` (one plant), the product formed with the block's.
+
+        ``row`` is kept by reference (do not change it); return whether a block was added.
+        """
+        self.factors.append(factor)
         pending = self.pending
         pending.append(row)
         if len(pending) < BLOCK:
@@ -325,8 +344,8 @@ class LaggedProducts:
         if self.plants is None:
             if not self.pending:
                 return
-            rows = np.array(self.pending, dtype=float)  # (m, d)
-            self.pending = []
+            rows = self._pending_rows()
+            self.pending, self.factors = [], []
             self.add(rows)
             return
         counts = self.cursors.counts()
@@ -377,11 +396,15 @@ class LaggedProducts:
         return self.count + self.cursors.counts()
 
     # ------------------------------------------------------------ the state
+    def _pending_rows(self) -> np.ndarray:
+        """Return the pending rows of one plant times their factors, ``(m, d)``."""
+        rows = np.array(self.pending, dtype=float).reshape((len(self.pending), self.width))
+        return rows * np.array(self.factors)[:, None]
+
     def state(self) -> dict[str, Any]:
         """Return copies of everything that defines the sums and the pending rows."""
         if self.plants is None:
-            pending = np.array(self.pending, dtype=float).reshape(
-                (len(self.pending), self.width))
+            pending = self._pending_rows()
             return {'sums': self.sums.copy(), 'context': self.context.copy(),
                     'pending': pending, 'weight': self.weight,
                     'squared_weight': self.squared_weight, 'count': self.count}
@@ -396,6 +419,7 @@ class LaggedProducts:
         self.context = np.array(state['context'], dtype=float)
         if self.plants is None:
             self.pending = list(np.array(state['pending'], dtype=float))
+            self.factors = [1.0] * len(self.pending)
             self.weight = float(state['weight'])
             self.squared_weight = float(state['squared_weight'])
             self.count = int(state['count'])

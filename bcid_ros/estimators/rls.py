@@ -21,7 +21,7 @@ import numpy as np
 
 from bcid_ros.estimators import adequacy, lagged, rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor, MonitorState
-from bcid_ros.estimators.base import RecursiveEstimator, weighted_square_ratio
+from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance, HacState
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 # the names bciv and cl_bcls still take from here
@@ -251,13 +251,15 @@ class StepOutcome:
 
     ``stepped``: the LS step was made; ``events``: flag name -> where it
     occurred; ``restart``: the regressor must restart (a step undone or a
-    sample refused); ``relearn``: the plant starts afresh with new scales.
+    sample refused); ``relearn``: the plant starts afresh with new scales;
+    ``errors``: the a-priori prediction errors (the equation errors).
     """
 
     stepped: np.ndarray
     events: dict[str, np.ndarray]
     restart: np.ndarray
     relearn: np.ndarray
+    errors: np.ndarray
 
 
 def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
@@ -335,7 +337,7 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
         events['update_undone'] = undone
     if refused.any():
         events['outlier_rejected'] = refused
-    return StepOutcome(stepped, events, undone | refused, relearn)
+    return StepOutcome(stepped, events, undone | refused, relearn, e)
 
 
 def _mask(count: int, where: np.ndarray) -> np.ndarray:
@@ -518,6 +520,8 @@ class Rls(LsAccessors, RecursiveEstimator):
     #: The residual the model says is white, for the residual tests
     #: (:data:`~bcid_ros.estimators.adequacy.MODEL_TESTS`): the equation error.
     adequacy_model = 'arx'
+    #: Whether the published std is the HAC sandwich of the equation error's scores.
+    hac_std = True
 
     def __init__(self, **settings: Any) -> None:
         super().__init__(**settings)
@@ -534,7 +538,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step(y, phi)
-            if self._tau >= self._gate_from:
+            if self._tau >= self._gate_from and not self._quiet_left:
                 self._record_residual(y, phi, u)
             if self._updates >= self._next_check:
                 self._check_validity()
@@ -571,7 +575,7 @@ class Rls(LsAccessors, RecursiveEstimator):
                 self._update(y, u)
             elif self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
-                if self._tau >= self._gate_from:
+                if self._tau >= self._gate_from and not self._quiet_left:
                     self._record_residual(y, phi, u)
                 if self._updates >= self._next_check:
                     self._check_validity()
@@ -591,12 +595,13 @@ class Rls(LsAccessors, RecursiveEstimator):
 
         From the gate's warm-up on (tau >= GATE_WARMUP p), as the gate: the
         a-priori errors of the first, converging steps are correlated with the
-        inputs by design (docs/trust.md).
+        inputs by design (docs/trust.md). Not while a huge value (beyond
+        2^450) is in the regressor: its products would overflow the tests' sums.
         """
         error = self._error
         self._monitor.record(error, u)
         # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
-        self._hac.record(phi * error)
+        self._hac.record_product(phi, error)
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
@@ -627,11 +632,11 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _rare_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the step by :func:`ls_step_rows` (this plant as K = 1); return whether it did."""
-        self._error = y - float(phi.dot(self._theta_ls))
         plants = self._as_plants()
         outcome = ls_step_rows(plants, np.zeros(1, dtype=np.intp), np.array([y]), phi[None],
                                self._ls_settings())
         self._take_scalars(plants)
+        self._error = float(outcome.errors[0])
         for key, where in outcome.events.items():
             if where[0]:
                 self._flag(key)
@@ -718,11 +723,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         reasons = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
         self._last_power = float(power[0])
-        monitor = self._monitor
-        if not monitor.ready:
-            reasons.append(f'residual tests not ready ({monitor.effective_samples:.0f} of '
-                           f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)')
-        return reasons + list(monitor.reasons)
+        return reasons + residual_reasons(self._monitor)
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -809,8 +810,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         """Start the residual tests and the HAC afresh (at a reset and after a plant change)."""
         self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
                                         forgetting_factor=self._forgetting_factor)
-        self._hac = HacCovariance(dimension=self.num_parameters,
-                                  forgetting_factor=self._forgetting_factor)
+        self._hac = (HacCovariance(dimension=self.num_parameters,
+                                   forgetting_factor=self._forgetting_factor)
+                     if self.hac_std else None)
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
@@ -823,9 +825,9 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
-                   'last_power': self._last_power, 'reasons': self._reasons,
-                   'error': self._error}
-        residual_arrays, residual_scalars = residual_state(self._monitor, self._hac)
+                   'last_power': self._last_power, 'reasons': self._reasons}
+        residual_arrays, residual_scalars = residual_items(
+            self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
         return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -844,52 +846,77 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = int(scalars['next_check'])
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
-        self._error = float(scalars['error'])
-        load_residual_state(self._monitor, self._hac, arrays, scalars)
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.set_state(monitor)
+        if self._hac is not None:
+            self._hac.set_state(hac)
 
 
-def residual_state(monitor: AdequacyMonitor,
-                   hac: HacCovariance) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list[str]:
     """
-    Return the state of the residual tests and of the HAC as snapshot (arrays, scalars).
+    Return the reasons of the residual tests of one plant (``plant`` None: a one-plant monitor).
+
+    Until the tests have a window of SAMPLES_PER_LAG samples per lag, that is a
+    reason itself: a model the data have not yet been able to contradict is
+    not yet trusted.
+    """
+    ready = monitor.ready if plant is None else monitor.ready[plant]
+    if not ready:
+        size = monitor.effective_samples if plant is None else monitor.effective_samples[plant]
+        return [f'residual tests not ready ({size:.0f} of '
+                f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)']
+    return list(monitor.reasons if plant is None else monitor.reasons_of(plant))
+
+
+def residual_items(monitor: MonitorState, hac: HacState | None,
+                   ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """
+    Return the state of the residual tests (and of the HAC) as snapshot (arrays, scalars).
 
     Their pending rows are padded to a block, so that the snapshot's arrays
     have the same shapes whatever the moment (a state file is checked by shape).
     """
-    state = monitor.get_state()
-    arrays = {f'adequacy_{field.name}': getattr(state, field.name)
-              for field in dataclasses.fields(state)
-              if isinstance(getattr(state, field.name), np.ndarray)}
-    pending = state.pending_residuals.shape[0]
-    arrays['adequacy_pending_residuals'] = _padded(state.pending_residuals, adequacy.BLOCK)
-    arrays['adequacy_pending_inputs'] = _padded(state.pending_inputs, adequacy.BLOCK)
-    products = hac.get_state().products
-    arrays.update((f'hac_{key}', value) for key, value in products.items()
-                  if isinstance(value, np.ndarray))
-    arrays['hac_pending'] = _padded(products['pending'], lagged.BLOCK)
-    scalars = {'adequacy_pending': pending, 'adequacy_weights': list(state.weights),
-               'adequacy_checks': state.checks, 'hac_pending': products['pending'].shape[0],
-               'hac_weight': products['weight'], 'hac_squared_weight': products['squared_weight'],
-               'hac_count': products['count']}
+    arrays = {f'adequacy_{field.name}': getattr(monitor, field.name)
+              for field in dataclasses.fields(monitor)
+              if isinstance(getattr(monitor, field.name), np.ndarray)}
+    # the ring's last block is scratch space (the pending samples are apart): zeros
+    arrays['adequacy_ring'] = monitor.ring.copy()
+    arrays['adequacy_ring'][:, -adequacy.BLOCK:] = 0.0
+    arrays['adequacy_pending_residuals'] = _padded(monitor.pending_residuals, adequacy.BLOCK)
+    arrays['adequacy_pending_inputs'] = _padded(monitor.pending_inputs, adequacy.BLOCK)
+    scalars = {'adequacy_pending': monitor.pending_residuals.shape[0],
+               'adequacy_weights': [float(value) for value in monitor.weights],
+               'adequacy_checks': int(monitor.checks), 'adequacy_blocks': int(monitor.blocks)}
+    if hac is not None:
+        products = hac.products
+        arrays.update((f'hac_{key}', value) for key, value in products.items()
+                      if isinstance(value, np.ndarray))
+        arrays['hac_pending'] = _padded(products['pending'], lagged.BLOCK)
+        scalars.update(hac_pending=products['pending'].shape[0],
+                       hac_weight=float(products['weight']),
+                       hac_squared_weight=float(products['squared_weight']),
+                       hac_count=int(products['count']))
     return arrays, scalars
 
 
-def load_residual_state(monitor: AdequacyMonitor, hac: HacCovariance,
-                        arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
-    """Continue the residual tests and the HAC from a :func:`residual_state`."""
+def residual_states(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
+                    ) -> tuple[MonitorState, HacState | None]:
+    """Return the states of the residual tests and of the HAC in a :func:`residual_items`."""
     pending = int(scalars['adequacy_pending'])
     fields = {field.name: arrays.get(f'adequacy_{field.name}')
               for field in dataclasses.fields(MonitorState)}
     fields.update(pending_residuals=arrays['adequacy_pending_residuals'][:pending],
                   pending_inputs=arrays['adequacy_pending_inputs'][:pending],
                   weights=tuple(scalars['adequacy_weights']),
-                  checks=int(scalars['adequacy_checks']))
-    monitor.set_state(MonitorState(**fields))
-    hac.set_state(HacState(products={
-        'sums': arrays['hac_sums'], 'context': arrays['hac_context'],
-        'pending': arrays['hac_pending'][:int(scalars['hac_pending'])],
-        'weight': scalars['hac_weight'], 'squared_weight': scalars['hac_squared_weight'],
-        'count': scalars['hac_count']}))
+                  checks=int(scalars['adequacy_checks']), blocks=int(scalars['adequacy_blocks']))
+    hac = None
+    if 'hac_sums' in arrays:
+        hac = HacState(products={
+            'sums': arrays['hac_sums'], 'context': arrays['hac_context'],
+            'pending': arrays['hac_pending'][:int(scalars['hac_pending'])],
+            'weight': scalars['hac_weight'], 'squared_weight': scalars['hac_squared_weight'],
+            'count': scalars['hac_count']})
+    return MonitorState(**fields), hac
 
 
 def _padded(rows: np.ndarray, count: int) -> np.ndarray:

@@ -319,19 +319,29 @@ def test_set_state_refuses_a_foreign_snapshot():
         other.set_state(rls.get_state())
 
 
-def test_validity_waits_for_the_regressor_and_p_updates():
+def test_validity_waits_for_the_regressor_p_updates_and_the_residual_tests():
     est = make_estimator('bcrls', order=2, num_inputs=2)
-    y, u, _ = ding_data(20)
-    valid = [est.update(y[t], u[t]) for t in range(20)]
-    # 2 samples fill the lags, then p = 6 updates are needed: valid from sample 8 on.
-    assert valid == [False] * 7 + [True] * 13
+    y, u, _ = ding_data(1000)
+    valid, ready, reasons = [], [], []
+    for t in range(1000):
+        valid.append(est.update(y[t], u[t]))
+        ready.append(est.ready)
+        reasons.append(est.validity_reasons)
+    # 2 samples fill the lags, then p = 6 updates: ready from sample 8 on; the residual
+    # tests start at the gate's warm-up (60 updates) and need 200 effective samples and a
+    # block of 128: until then that is the reason
+    assert ready == [False] * 7 + [True] * 993
+    first = valid.index(True)
+    assert 7 + 60 + 200 <= first < 7 + 60 + 2 * 128 + 100 and all(valid[first:])
+    assert reasons[7][0].startswith('residual tests not ready')
+    assert all(r and r[0].startswith('residual tests not ready') for r in reasons[7:first])
     est.restart_regressor()
-    assert est.samples == 6 + 12
+    assert est.samples == 998
     est.update(y[0], u[0])
     est.update(y[1], u[1])
-    assert est.samples == 18  # no regression over the gap
+    assert est.samples == 998  # no regression over the gap
     est.update(y[2], u[2])
-    assert est.samples == 19
+    assert est.samples == 999
 
 
 @pytest.mark.parametrize('seed', range(12))

@@ -185,16 +185,25 @@ def message_samples(message, joints):
 
 def test_validity_changes_and_reset():
     feeder = JointFeeder(['a', 'b'], make_batched_estimator('rls', 2, order=1))
-    changed = []
-    # a: y_t = 0.5 y_t-1 + u_t-1 exactly, a stable model (a ramp would fit a pole at 3: not valid)
-    y_a = [0.0, 1.0, -0.5, 0.75, -0.625, 0.6875]
-    for t in range(6):
+    # a: an ARX plant y_t = 0.5 y_t-1 + u_t-1 + e_t, long enough for its residual tests;
+    # b: two samples only (never its p = 2 updates)
+    rng = np.random.default_rng(4)
+    u = rng.standard_normal(1200)
+    e = 0.1 * rng.standard_normal(1200)
+    y = np.zeros(1200)
+    for t in range(1, 1200):
+        y[t] = 0.5 * y[t - 1] + u[t - 1] + e[t]
+    changed, valid = [], []
+    for t in range(1200):
         names = ['a', 'b'] if t < 2 else ['a']
-        result = feeder.take(joint_state(names, [y_a[t], 0.2 * t][:len(names)],
-                                         [(-1.0) ** t, 1.0 + t][:len(names)]))
+        result = feeder.take(joint_state(names, [y[t], 0.2 * t][:len(names)],
+                                         [u[t], 1.0 + t][:len(names)]))
         changed.append(result.valid_changed.tolist())
-    # n = 1: p = 2 updates after the regressor is filled; b never gets its second update
-    assert changed == [[], [], [0], [], [], []]
+        valid.append(feeder.valid.tolist())
+    # the changes reported are exactly the flips of a's validity, and b never changes
+    flips = [t for t in range(1, 1200) if valid[t][0] != valid[t - 1][0]]
+    assert [t for t, joints in enumerate(changed) if joints] == flips
+    assert all(joints in ([], [0]) for joints in changed)
     assert feeder.valid.tolist() == [True, False]
     assert feeder.reset().valid_changed.tolist() == [0]
     assert not feeder.valid.any()
