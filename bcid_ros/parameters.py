@@ -11,7 +11,8 @@ file builds the same estimator online and offline:
 >>> estimator = estimator_from_parameters(values)
 
 The estimator-specific options (docs/nodes.md: ``iv_lag``, ... for
-``bciv``; ``controller_numerator``, ... for ``cl_bcls``) default to
+``bciv``; ``controller_numerator``, ... for ``cl_bcls``; ``model`` for
+``rpem``) default to
 ``None``, which means "the estimator class's own default": they are only
 passed to the constructor when set, and the constructor validates them.
 """
@@ -233,6 +234,10 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'redesign. Unset: the estimator default.', low=1, high=10000),
     _p('tolerance', 'double', None, 'cl_bcls: stop redesigning when the estimate moves less '
        'than this. Unset: the estimator default.', low=0.0, high=1e6, low_open=True),
+    # --- rpem (Ljung and Soderstrom 1983)
+    _p('model', 'string', None, 'rpem: oe (output error y = sum B_i/F u_i + v, v of any '
+       'colour) or armax (A y = sum B_i u_i + C e; adds c1..cn). Unset: the estimator default '
+       '(oe).', choices=('oe', 'armax')),
     # --- node: input topics, pairing, publishing
     _p('input_mode', 'string', 'combined', 'combined: y and u in one Float64MultiArray on '
        'samples (single samples or frames). separate: u on input and y on output. '

@@ -20,6 +20,7 @@ ESTIMATORS = {
     'bcrls': 'bcid_ros.estimators.bcrls:Bcrls',
     'bciv': 'bcid_ros.estimators.bciv:Bciv',
     'cl_bcls': 'bcid_ros.estimators.cl_bcls:ClosedLoopBcls',
+    'rpem': 'bcid_ros.estimators.rpem:Rpem',
 }
 
 
