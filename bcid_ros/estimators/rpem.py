@@ -41,8 +41,8 @@ FIRST_FIT_PER_PARAMETER = 10
 BATCH_LIMIT = 8192
 #: Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterations of a fit.
 IV_ITERATIONS = 8
-#: Levenberg-Marquardt iterations of a fit.
-LM_ITERATIONS = 12
+#: Gauss-Newton (or Levenberg-Marquardt) iterations of a fit.
+LM_ITERATIONS = 20
 #: The gate tests samples once tau >= GATE_WARMUP * p (J / tau is then a variance).
 GATE_WARMUP = 10
 #: A detected plant change cuts the weighted memory tau to this many times p.
@@ -70,7 +70,10 @@ VARIANCE_FLOOR = 2.0 ** -40
 LAMBDA_START = 1.0
 #: See LAMBDA_START.
 LAMBDA_RATE = 0.99
-#: Relative loss decrease below which the Levenberg-Marquardt search stops.
+#: A fit excludes the samples whose prediction error exceeds the gate's limit
+#: (robust scale) when they are at most this share of the stored samples.
+OUTLIER_SHARE = 0.05
+#: Relative loss decrease below which the Gauss-Newton search stops.
 LM_TOLERANCE = 1e-10
 
 
@@ -109,6 +112,20 @@ def pull_inside(a: np.ndarray, radius: float = STABILITY_RADIUS) -> np.ndarray:
     size = np.abs(roots)
     roots = np.where(size >= radius, roots * (0.99 * radius / np.maximum(size, 1e-300)), roots)
     return np.real(np.poly(roots))[1:]
+
+
+def signal_size(values: np.ndarray) -> float:
+    """
+    Return a robust size of a centred signal: 1.4826 median |x|, or its RMS if that is 0.
+
+    The median ignores a burst of outliers (which the fits then exclude);
+    for Gaussian x it is the standard deviation. 0 for an all-zero or
+    non-finite signal. Multiplying x by a power of two multiplies it exactly.
+    """
+    size = 1.4826 * float(np.median(np.abs(values)))
+    if not size > 0.0:
+        size = math.sqrt(float(np.mean(values * values)))
+    return size if math.isfinite(size) else 0.0
 
 
 class PredictorHistory:
@@ -284,6 +301,8 @@ class BatchFit:
         self.lags = order + 1 - self.first_lag
         self.num_b = num_inputs * self.lags
         self.num_parameters = order + self.num_b + (order if armax else 0)
+        #: The free responses of the last OE prediction with a fitted initial state.
+        self.free_response: np.ndarray | None = None
 
     # ----------------------------------------------------------- regressors
     def _lagged(self, x: np.ndarray, lag: int) -> np.ndarray:
@@ -305,8 +324,9 @@ class BatchFit:
 
     # ----------------------------------------------------------- predictor
     def predict(self, theta: np.ndarray, y: np.ndarray, u: np.ndarray, weights: np.ndarray,
-                inputs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray,
-                                                           np.ndarray, np.ndarray]:
+                inputs: np.ndarray | None = None,
+                initial_state: bool = True) -> tuple[np.ndarray, np.ndarray,
+                                                     np.ndarray, np.ndarray]:
         """
         Return (eps, psi, x, e) of one segment at fixed ``theta``.
 
@@ -314,8 +334,8 @@ class BatchFit:
         of every sample. For OE the initial lags w(span-1) ... w(span-n) are
         the weighted least-squares fit of the free response to y - w (the
         initial state estimated, Ljung 1999, sec. 10.1 "initial conditions";
-        psi is the derivative with it held); before them x = y. For ARMAX
-        e = 0 before span.
+        psi is the derivative with it held), or 0 (from rest) without
+        ``initial_state``; before them x = y. For ARMAX e = 0 before span.
         """
         lfilter, lfiltic = self._signal.lfilter, self._signal.lfiltic
         n, start = self.order, self.span
@@ -346,7 +366,7 @@ class BatchFit:
                                  zi=lfiltic([1.0], f_poly, unit))[0]
         root = np.sqrt(weights[start:])
         initial = np.linalg.lstsq(free * root[:, None], (y[start:] - w[start:]) * root,
-                                  rcond=None)[0]
+                                  rcond=None)[0] if initial_state else np.zeros(n)
         if np.isfinite(initial).all():
             # w(span - k) = initial[k - 1]
             w[start:] += free.dot(initial)
@@ -355,6 +375,7 @@ class BatchFit:
         regressors = np.column_stack((self._output_columns(w), inputs))
         # psi(t) = phi(t) / F(q)
         psi = lfilter([1.0], f_poly, regressors[start:], axis=0)
+        self.free_response = free if initial_state else None
         return eps, psi, w, np.zeros(y.shape[0])
 
     # -------------------------------------------------------------- the fit
@@ -377,13 +398,36 @@ class BatchFit:
         for theta, loss in starts:
             if theta is None:
                 continue
-            theta, loss = self._levenberg_marquardt(theta, loss, usable, prior)
+            theta, loss = self._search(theta, loss, usable, prior)
             if loss < best_loss:
                 best_theta, best_loss = theta, loss
         if best_theta is None:
             return None
         theta = best_theta
         return self._result(theta, segments, usable, arx)
+
+    def outliers(self, theta: np.ndarray, segments: list, limit: float) -> np.ndarray:
+        """
+        Return the rows (over all segments) whose prediction error exceeds ``limit`` scales.
+
+        The scale is 1.4826 times the median absolute prediction error at
+        ``theta`` (the standard deviation for Gaussian errors, robust to the
+        outliers themselves).
+        """
+        errors, rows = [], []
+        offset = 0
+        for y, u, weights in segments:
+            if y.shape[0] > self.span:
+                errors.append(self.predict(theta, y, u, weights)[0])
+                rows.append(np.arange(offset + self.span, offset + y.shape[0]))
+            offset += y.shape[0]
+        if not errors:
+            return np.zeros(0, dtype=np.intp)
+        error = np.abs(np.concatenate(errors))
+        scale = 1.4826 * float(np.median(error))
+        if not scale > 0.0:
+            return np.zeros(0, dtype=np.intp)
+        return np.concatenate(rows)[~(error <= limit * scale)]
 
     def _best(self, thetas: list[np.ndarray],
               usable: list) -> tuple[np.ndarray | None, float]:
@@ -464,22 +508,32 @@ class BatchFit:
             y_filtered = lfilter([1.0], f_poly, y)
             regressors = np.column_stack((self._output_columns(y_filtered),
                                           lfilter([1.0], f_poly, inputs, axis=0)))[start:]
-            # instruments: psi(t) = phi(w)(t) / F(q), the noise-free regressors
-            instruments = self.predict(theta, y, u, weights, inputs)[1] * weights[start:, None]
+            # instruments: psi(t) = phi(w)(t) / F(q), the noise-free regressors (from rest:
+            # the initial state fitted to a poor model would carry the noise into them)
+            instruments = self.predict(theta, y, u, weights, inputs, False)[1] * weights[
+                start:, None]
             gram += instruments.T.dot(regressors)
             moment += instruments.T.dot(y_filtered[start:])
         new = solve_regularised(gram, moment)
         return new if new is not None and np.isfinite(new).all() else None
 
-    def _gradient(self, theta: np.ndarray, usable: list,
-                  prior: float) -> tuple[float, np.ndarray, np.ndarray]:
-        """Return the loss, the Gauss-Newton information and the gradient at theta."""
+    def _gradient(self, theta: np.ndarray, usable: list, prior: float,
+                  concentrated: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+        """
+        Return the loss, the Gauss-Newton information and the gradient at theta.
+
+        ``concentrated``: of the loss with the OE initial state re-fitted at
+        every theta (the search); otherwise with it held (the information
+        the recursion continues with, which never re-fits it).
+        """
         p = self.num_parameters
         information = np.zeros((p, p))
         gradient = np.zeros(p)
         loss = 0.0
         for y, u, weights, inputs in usable:
             eps, psi = self.predict(theta, y, u, weights, inputs)[:2]
+            if concentrated and self.free_response is not None:
+                psi = self._without_initial_state(psi, self.free_response, weights[self.span:])
             weighted = psi * weights[self.span:, None]
             information += weighted.T.dot(psi)
             gradient += weighted.T.dot(eps)
@@ -487,36 +541,88 @@ class BatchFit:
         information[np.diag_indices(p)] += prior
         return loss, information, gradient
 
-    def _levenberg_marquardt(self, theta: np.ndarray, loss: float, usable: list,
-                             prior: float) -> tuple[np.ndarray, float]:
-        """Refine theta by damped Gauss-Newton steps that keep it stable and lower the loss."""
-        damping = 1e-3
+    @staticmethod
+    def _without_initial_state(psi: np.ndarray, free: np.ndarray,
+                               weights: np.ndarray) -> np.ndarray:
+        r"""
+        Return psi minus its weighted projection on the free responses (Kaufman's VarPro).
+
+        The initial state is re-fitted at every theta, so the gradient of the
+        concentrated loss is that of psi orthogonal to the free responses
+        :math:`\Phi_0`: :math:`\psi - \Phi_0(\Phi_0^TW\Phi_0)^{-1}\Phi_0^TW\psi`
+        (Golub and Pereyra 2003; Kaufman 1975). Without it the Gauss-Newton
+        step ignores how the initial state follows theta and crawls along
+        the valley of an oversampled plant (a hundred steps where ten do).
+        """
+        root = np.sqrt(weights)[:, None]
+        basis = np.linalg.qr(free * root)[0]
+        weighted = psi * root
+        projected = weighted - basis.dot(basis.T.dot(weighted))
+        return np.where(root > 0.0, projected / np.where(root > 0.0, root, 1.0), psi)
+
+    def _search(self, theta: np.ndarray, loss: float, usable: list,
+                prior: float) -> tuple[np.ndarray, float]:
+        """
+        Refine theta by Gauss-Newton steps that keep it stable and lower the loss.
+
+        Each iteration tries the Gauss-Newton step halved up to ``HALVINGS``
+        times (Ljung 1999, eq. 10.40 with a line search), then, if none is
+        accepted, Levenberg-Marquardt steps (H + mu diag H) with mu growing
+        tenfold; it stops when no step lowers the loss by LM_TOLERANCE. The
+        plain direction matters: the valley of an oversampled plant is
+        conditioned like 1e10, where diagonal damping crawls.
+        """
         for _ in range(LM_ITERATIONS):
             loss, information, gradient = self._gradient(theta, usable, prior)
-            diagonal = np.diag(information).copy()
-            improved = False
-            for _ in range(8):
-                # (H + mu diag H) step = sum w psi eps   (Ljung 1999, eq. 10.40)
-                step = solve_regularised(information + damping * np.diag(diagonal), gradient)
-                if step is None:
-                    break
-                candidate = theta + step
-                if self._is_inside(candidate):
-                    new_loss = self._loss(candidate, usable)
-                    if new_loss < loss:
-                        improved = loss - new_loss > LM_TOLERANCE * loss
-                        theta, loss = candidate, new_loss
-                        damping = max(damping * 0.1, 1e-9)
-                        break
-                damping *= 10.0
-            if not improved:
+            step = solve_regularised(information, gradient)
+            if step is None:
+                break
+            candidate, new_loss = self._line_search(theta, step, loss, usable)
+            if candidate is None:
+                candidate, new_loss = self._damped_step(theta, loss, information, gradient,
+                                                        usable)
+            if candidate is None:
+                break
+            improvement = loss - new_loss
+            theta, loss = candidate, new_loss
+            if not improvement > LM_TOLERANCE * loss:
                 break
         return theta, loss
+
+    def _line_search(self, theta: np.ndarray, step: np.ndarray, loss: float,
+                     usable: list) -> tuple[np.ndarray | None, float]:
+        """Return theta + mu step, mu = 1, 1/2, ..., the first stable one with a lower loss."""
+        scale = 1.0
+        for _ in range(HALVINGS + 1):
+            candidate = theta + scale * step
+            if self._is_inside(candidate):
+                new_loss = self._loss(candidate, usable)
+                if new_loss < loss:
+                    return candidate, new_loss
+            scale *= 0.5
+        return None, loss
+
+    def _damped_step(self, theta: np.ndarray, loss: float, information: np.ndarray,
+                     gradient: np.ndarray, usable: list) -> tuple[np.ndarray | None, float]:
+        """Return a Levenberg-Marquardt step (H + mu diag H) that lowers the loss, or None."""
+        diagonal = np.diag(information).copy()
+        damping = 1e-3
+        for _ in range(8):
+            step = solve_regularised(information + damping * np.diag(diagonal), gradient)
+            if step is None:
+                break
+            candidate = theta + step
+            if self._is_inside(candidate):
+                new_loss = self._loss(candidate, usable)
+                if new_loss < loss:
+                    return candidate, new_loss
+            damping *= 10.0
+        return None, loss
 
     def _result(self, theta: np.ndarray, segments: list, usable: list,
                 arx: np.ndarray) -> FitResult:
         """Return the fit at theta with the predictor state at the end of the last segment."""
-        loss, information, _ = self._gradient(theta, usable, 0.0)
+        loss, information, _ = self._gradient(theta, usable, 0.0, concentrated=False)
         weight = float(sum(w[self.span:].sum() for _, _, w, _ in usable))
         n, p = self.order, self.num_parameters
         y, u, weights = segments[-1]
@@ -726,17 +832,23 @@ class Rpem(RecursiveEstimator):
         g = self._p.dot(psi)
         s = lam + float(psi.dot(g))
         if not (0.0 < s < math.inf and e * e < math.inf):
-            self._undone()
+            self._refuse(s)
             return
         if self._tau >= self._gate_from:
             changes = self._changes
             # z^2 = e^2 / [(J / tau) (s + 1 - lambda)]
             z2 = e * e / ((self._loss / self._tau + VARIANCE_FLOOR ** 2) * (s + 1.0 - lam))
-            if not self._gate(z2):
+            self._gating = (phi, psi)
+            accepted = self._gate(z2)
+            self._gating = None
+            if not accepted:
                 return
             if self._changes != changes:  # the memory was cut: P changed
                 g = self._p.dot(psi)
                 s = lam + float(psi.dot(g))
+                if not 0.0 < s < math.inf:
+                    self._refuse(s)
+                    return
         self._undone_in_row = 0
         self._move_theta(theta, g, e / s)
         self._commit_covariance(g, s, lam)
@@ -790,6 +902,12 @@ class Rpem(RecursiveEstimator):
             else:
                 self._flag('windup_limited')
 
+    def _refuse(self, s: float) -> None:
+        """Refuse a step with a non-finite error or gain; repair P first if s <= 0."""
+        if s <= 0.0:
+            self._repair_covariance()
+        self._undone()
+
     def _undone(self) -> None:
         """Refuse a step that would break the state; restart after UNDONE_RESTART in a row."""
         self._undone_in_row += 1
@@ -797,6 +915,28 @@ class Rpem(RecursiveEstimator):
             self._undone_in_row = 0
             self._restart(f'{UNDONE_RESTART} steps in a row undone')
         self._undo('update_undone')
+
+    def _undo(self, flag: str) -> None:
+        """
+        Refuse a step; a sample the gate refuses keeps the predictor running without its y.
+
+        The output lag of the refused sample becomes its prediction (OE: the
+        simulated output w(t), which needs no y; ARMAX: y(t) replaced by
+        y^(t), residual 0), so the predictor state survives an output spike
+        where a restarted one would take the following samples for outliers
+        too. Other refusals restart the regressor (base class).
+        """
+        gating = self._gating
+        if gating is None or flag != 'outlier_rejected':
+            super()._undo(flag)
+            return
+        self._flag(flag)
+        self._refused += 1
+        phi, psi = gating
+        self._history.set_newest(float(phi.dot(self._theta_n)), 0.0)
+        self._psi_history[1:] = self._psi_history[:-1]
+        self._psi_history[0] = psi
+        self._break_pending = True
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the predictor on with theta held: w (or the residual) and psi keep running."""
@@ -873,9 +1013,9 @@ class Rpem(RecursiveEstimator):
             rows = rows - self._means.mean
         scale = self._signal_scale.copy()
         for channel in range(rows.shape[1]):
-            rms = math.sqrt(float(np.mean(rows[:, channel] ** 2)))
-            if rms > 0.0 and math.isfinite(rms):
-                scale[channel] = power_of_two_at_least(rms)
+            size = signal_size(rows[:, channel])
+            if size > 0.0:
+                scale[channel] = power_of_two_at_least(size)
         segments = self._segments(rows, breaks, scale)
         if self._batch is None:
             self._batch = BatchFit(self.order, self.num_inputs, self.feedthrough,
@@ -888,9 +1028,42 @@ class Rpem(RecursiveEstimator):
             candidates.append(self._theta_n * ratio)
         with np.errstate(all='ignore'):
             result = self._batch.fit(segments, candidates, 1.0 / self.initial_covariance)
+            if result is not None and self._exclude_outliers(result.theta, segments, breaks):
+                segments = self._segments(rows, breaks, scale)
+                result = self._batch.fit(segments, [result.theta],
+                                         1.0 / self.initial_covariance)
         if result is None or not self._take_fit(result, segments, scale):
             return False
         self._fits += 1
+        return True
+
+    def _exclude_outliers(self, theta: np.ndarray, segments: list, breaks: np.ndarray) -> bool:
+        """
+        Cut the samples that the gate would refuse at theta out of the stored segments.
+
+        Each such sample becomes a segment of its own (a break before and
+        after it), in ``breaks`` and in the store, so that no fit uses it
+        again (flag ``outlier_excluded`` per sample); False if there are none
+        or more than OUTLIER_SHARE of the samples (then it is the model, not
+        outliers).
+        """
+        batch = self._batch
+        if batch is None:
+            return False
+        bad = batch.outliers(theta, segments, math.sqrt(self._gate_limit2))
+        count = breaks.shape[0]
+        if not 0 < bad.shape[0] <= OUTLIER_SHARE * count:
+            return False
+        first = self._buffer_position - count
+        for row in bad:
+            breaks[row] = True
+            self._breaks[(first + row) % BATCH_LIMIT] = True
+            if row + 1 < count:
+                breaks[row + 1] = True
+                self._breaks[(first + row + 1) % BATCH_LIMIT] = True
+            else:
+                self._break_pending = True
+            self._flag('outlier_excluded')
         return True
 
     def _take_fit(self, result: FitResult, segments: list, scale: np.ndarray) -> bool:
@@ -952,9 +1125,13 @@ class Rpem(RecursiveEstimator):
         try:
             np.linalg.cholesky(self._p)
         except np.linalg.LinAlgError:
-            self._flag('covariance_repaired')
-            self._p = repair_covariance(self._p, np.eye(self.num_parameters)
-                                        * self.initial_covariance)
+            self._repair_covariance()
+
+    def _repair_covariance(self) -> None:
+        """Rebuild P as the nearest symmetric positive definite matrix (covariance_repaired)."""
+        self._flag('covariance_repaired')
+        self._p = np.ascontiguousarray(repair_covariance(
+            self._p, np.eye(self.num_parameters) * self.initial_covariance))
 
     def _check_validity(self) -> None:
         """Re-evaluate drift and the validity reasons (every VALIDITY_PERIOD updates)."""
@@ -1104,6 +1281,8 @@ class Rpem(RecursiveEstimator):
         self._last_check = 0
         self._restart_note = ''
         self._reasons: tuple[str, ...] = ()
+        # (phi, psi) of the step whose sample the gate is testing
+        self._gating: tuple[np.ndarray, np.ndarray] | None = None
 
     def _restart_regressor(self) -> None:
         self._history.clear()
