@@ -34,6 +34,7 @@ from scipy import linalg, optimize, signal
 
 from bcid_ros.analysis.metrics import autocorrelation, nrmse_fit
 from bcid_ros.estimators.base import check_delays, check_int, parameter_names
+from bcid_ros.estimators.lti import is_stable, spectral_radius
 from bcid_ros.estimators.regressor import ArxRegressor
 
 #: Largest pole (or zero of C) radius of a start: a root beyond is reflected
@@ -219,7 +220,7 @@ class PemResult:
     @property
     def stable(self) -> bool:
         """Return whether every root of F (A) is strictly inside the unit circle."""
-        return root_radius(self.denominator) < 1.0
+        return is_stable(self.denominator, 0.0)
 
     def fit(self, y: np.ndarray) -> float:
         """Return the NRMSE fit in percent of :attr:`output` to the y it was fitted to."""
@@ -228,27 +229,17 @@ class PemResult:
 
 
 # ---------------------------------------------------------------- helpers
-def root_radius(polynomial: np.ndarray) -> float:
-    """Return the largest root magnitude of ``[1, c1, ..., cn]`` (0 for a constant)."""
-    if polynomial.size <= 1:
-        return 0.0
-    if polynomial.size == 2:
-        return abs(float(polynomial[1]))
-    with np.errstate(all='ignore'):
-        roots = np.roots(polynomial)
-    return float(np.abs(roots).max()) if np.isfinite(roots).all() else math.inf
-
-
 def stabilise(polynomial: np.ndarray, radius: float = START_RADIUS) -> np.ndarray:
     """
     Return the monic polynomial with every root beyond ``radius`` reflected inside.
 
     A root z with |z| > ``radius`` becomes z / |z|^2 (its mirror in the unit
     circle, which keeps the magnitude of the frequency response up to a
-    constant), pulled in to ``radius`` if the mirror is still beyond it.
+    constant: :func:`bcid_ros.estimators.lti.stable_reflection`), pulled in
+    to ``radius`` if the mirror is still beyond it.
     """
     polynomial = np.asarray(polynomial, dtype=float)
-    if root_radius(polynomial) <= radius:
+    if is_stable(polynomial, 1.0 - radius):
         return polynomial.copy()
     roots = np.roots(polynomial)
     magnitude = np.abs(roots)
@@ -312,7 +303,7 @@ def oe_jacobian(theta: Any, u: Any, structure: Structure) -> np.ndarray:
     theta = _check_theta(theta, structure, 'oe')
     u = _check_inputs(u, structure, None)
     problem = _OutputError(np.zeros(u.shape[0]), u, structure, 'zero')
-    if not root_radius(structure.split(theta)[0]) < 1.0:
+    if not is_stable(structure.split(theta)[0], 0.0):
         raise ValueError('theta must have a stable F for its gradient')
     return problem.jacobian(theta)
 
@@ -338,7 +329,14 @@ def _shifted(x: np.ndarray, lags: range | list[int]) -> np.ndarray:
     return columns
 
 
+def _check_structure(structure: Any) -> Structure:
+    if not isinstance(structure, Structure):
+        raise ValueError(f'structure must be a Structure, got {type(structure).__name__}')
+    return structure
+
+
 def _check_theta(theta: Any, structure: Structure, model: str) -> np.ndarray:
+    _check_structure(structure)
     theta = np.asarray(theta, dtype=float).reshape(-1)
     size = len(structure.parameter_names(model))
     if theta.size != size or not np.isfinite(theta).all():
@@ -364,8 +362,7 @@ def _check_inputs(u: Any, structure: Structure, count: int | None) -> np.ndarray
 def _check_data(y: Any, u: Any, structure: Structure,
                 extra: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Return (y, u) as float arrays, or raise ValueError naming the argument."""
-    if not isinstance(structure, Structure):
-        raise ValueError(f'structure must be a Structure, got {type(structure).__name__}')
+    _check_structure(structure)
     y = np.asarray(y, dtype=float)
     if y.ndim != 1 or not np.isfinite(y).all():
         raise ValueError(f'y must be a finite 1-D array, got shape {y.shape}')
@@ -496,7 +493,7 @@ class _OutputError:
         if self._cached is not None and self._cached[0] == key:
             return self._cached[1]
         denominator, b = self.structure.split(x[:self.num_theta])
-        if not root_radius(denominator) < 1.0:
+        if not is_stable(denominator, 0.0):
             return None
         drive = _input_sum(b, self.u, self.structure)
         drive[:self.num_initial] += x[self.num_theta:]
@@ -609,7 +606,8 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
         raise ValueError(f"initial must be one of {', '.join(INITIALS)}, got {initial!r}")
     starts = check_int('starts', starts, 1)
     max_evaluations = check_int('max_evaluations', max_evaluations, 1)
-    y, u = _check_data(y, u, structure, 0 if initial == 'zero' else structure.span)
+    y, u = _check_data(y, u, _check_structure(structure),
+                       0 if initial == 'zero' else structure.span)
     result = _fit_oe(y, u, structure, 'zero' if initial == 'zero' else 'estimate', starts,
                      max_evaluations)
     if initial == 'auto' and _time_constant(result.denominator) > PERSISTENT_RECORDS * y.size:
@@ -629,7 +627,7 @@ def _fit_oe(y: np.ndarray, u: np.ndarray, structure: Structure, initial: str, st
 
 def _time_constant(denominator: np.ndarray) -> float:
     """Return the longest time constant -1/ln|pole| of 1/F in samples (inf at |pole| >= 1)."""
-    radius = root_radius(denominator)
+    radius = spectral_radius(denominator)
     if radius >= 1.0:
         return math.inf
     return -1.0 / math.log(radius) if radius > 0.0 else 0.0
@@ -820,7 +818,7 @@ class _Armax:
         if self._cached is not None and self._cached[0] == key:
             return self._cached[1]
         noise = np.concatenate([[1.0], x[self.num_ab:]])
-        if not root_radius(noise) < 1.0:
+        if not is_stable(noise, 0.0):
             return None
         error = signal.lfilter([1.0], noise, self.target - self.phi @ x[:self.num_ab])
         self._cached = (key, error)
@@ -885,7 +883,7 @@ def fit_armax(y: Any, u: Any, structure: Structure, *,
 
     """
     max_evaluations = check_int('max_evaluations', max_evaluations, 1)
-    y, u = _check_data(y, u, structure, structure.order + LONG_ARX_ORDER)
+    y, u = _check_data(y, u, _check_structure(structure), structure.order + LONG_ARX_ORDER)
     problem = _Armax(y, u, structure)
     arx = _least_squares(problem.phi, problem.target)[0]
     starts = [np.concatenate([arx, np.zeros(structure.order)])]
@@ -926,4 +924,4 @@ def _hannan_rissanen(y: np.ndarray, u: np.ndarray, structure: Structure) -> np.n
 
 
 __all__ = ['INITIALS', 'MODELS', 'PemResult', 'Structure', 'ar_noise_model', 'fit_armax',
-           'fit_arx', 'fit_oe', 'oe_jacobian', 'root_radius', 'simulate_oe', 'stabilise']
+           'fit_arx', 'fit_oe', 'oe_jacobian', 'simulate_oe', 'stabilise']
