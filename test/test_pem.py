@@ -117,6 +117,29 @@ def test_estimated_initial_transient_of_a_record_that_does_not_start_at_rest():
         estimated.theta - truth)
 
 
+def test_offset_of_a_slow_plant_centred_by_its_sample_means():
+    # at rest, then driven by an input whose mean is 0.3: after centring both signals by
+    # their sample means the output of a slow plant (poles 0.99, 0.95) keeps a constant
+    # offset from G(q) times the input, which the offset fits (the transient toward the
+    # new mean is a free response, which the estimated start-up transient fits)
+    f = np.real(np.poly([0.99, 0.95]))
+    b = np.array([0.02, -0.015])
+    rng = np.random.default_rng(8)
+    u = rng.standard_normal(2000) + 0.3
+    x = signal.lfilter(np.concatenate([[0.0], b]), f, u)
+    y = x + 0.001 * x.std() * rng.standard_normal(x.size)
+    y, u = y - y.mean(), u - u.mean()
+    truth = np.concatenate([f[1:], b])
+    with_offset = pem.fit_oe(y, u, pem.Structure(2), offset=True)
+    without = pem.fit_oe(y, u, pem.Structure(2))
+    assert np.all(np.abs(with_offset.theta - truth) <= 4.0 * with_offset.std)
+    # measured: 3e-6 against 8e-3
+    assert np.linalg.norm(without.theta - truth) > 100.0 * np.linalg.norm(
+        with_offset.theta - truth)
+    assert with_offset.offset != 0.0 and without.offset == 0.0
+    assert np.array_equal(with_offset.residual, y - with_offset.output)
+
+
 def test_simulate_oe_equals_the_filter_of_each_delayed_input():
     rng = np.random.default_rng(2)
     structure = pem.Structure(2, 2, (2, 0), feedthrough=True)

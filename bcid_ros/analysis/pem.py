@@ -175,6 +175,8 @@ class PemResult:
     initial : str
         OE: 'estimate' when the start-up transient was fitted, 'zero' when the
         simulation started from rest; '' otherwise.
+    offset : float
+        OE with ``offset=True``: the fitted constant c in ``output`` (else 0).
 
     """
 
@@ -194,6 +196,7 @@ class PemResult:
     message: str = ''
     start_losses: tuple[float, ...] = ()
     initial: str = ''
+    offset: float = 0.0
 
     @property
     def std(self) -> np.ndarray:
@@ -414,12 +417,14 @@ def fit_arx(y: Any, u: Any, structure: Structure) -> PemResult:
     """
     y, u = _check_data(y, u, structure)
     phi, target = _arx_rows(y, u, structure)
-    theta, residual = _least_squares(phi, target)
+    theta = _least_squares(phi, target)[0]
+    output = phi @ theta
+    residual = target - output
     rows = phi.shape[0]
     sigma2 = float(residual @ residual) / max(rows - theta.size, 1)
     covariance = sigma2 * _gram_inverse(phi)
     return PemResult('arx', structure, theta, structure.parameter_names('arx'),
-                     target - residual, residual, structure.span,
+                     output, residual, structure.span,
                      float(np.mean(residual ** 2)), covariance,
                      'white equation error e independent of u (the ARX model true)')
 
@@ -465,24 +470,27 @@ class _OutputError:
 
     The unknowns x are theta = [a, b] followed (``initial='estimate'``) by the
     initial transient w: M = n + max(d_i) free values w(0) ... w(M-1) added
-    to sum_i B_i u_i, so that F yhat = sum_i B_i u_i + w from rest. Every
+    to sum_i B_i u_i, so that F x_s = sum_i B_i u_i + w from rest (every
     initial state of the plant and every unknown input before the record
-    gives such a w, supported on those M samples.
+    gives such a w, supported on those M samples), and (``offset``) by a
+    constant c: yhat = x_s + c.
 
     .. math::
 
-        \partial\hat y/\partial a_k = -q^{-k}\hat y/F,\quad
+        \partial\hat y/\partial a_k = -q^{-k}x_s/F,\quad
         \partial\hat y/\partial b_{ik} = q^{-(d_i+k)}u_i/F,\quad
-        \partial\hat y/\partial w_m = q^{-m}\delta/F
+        \partial\hat y/\partial w_m = q^{-m}\delta/F,\quad
+        \partial\hat y/\partial c = 1
     """
 
     def __init__(self, y: np.ndarray, u: np.ndarray, structure: Structure,
-                 initial: str) -> None:
+                 initial: str, offset: bool = False) -> None:
         self.y = y
         self.u = u
         self.structure = structure
         self.num_theta = structure.num_parameters
         self.num_initial = structure.span if initial == 'estimate' else 0
+        self.num_offset = 1 if offset else 0
         self._impulse = np.zeros(y.size)
         self._impulse[0] = 1.0
         self._cached: tuple[bytes, np.ndarray] | None = None
@@ -496,8 +504,10 @@ class _OutputError:
         if not is_stable(denominator, 0.0):
             return None
         drive = _input_sum(b, self.u, self.structure)
-        drive[:self.num_initial] += x[self.num_theta:]
+        drive[:self.num_initial] += x[self.num_theta:self.num_theta + self.num_initial]
         yhat = signal.lfilter([1.0], denominator, drive)
+        if self.num_offset:
+            yhat += x[-1]
         self._cached = (key, yhat)
         return yhat
 
@@ -509,14 +519,15 @@ class _OutputError:
         return yhat - self.y
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """Return d yhat / dx, shape ``(N, p + M)``."""
+        """Return d yhat / dx, shape ``(N, p + M + offset)``."""
         denominator = self.structure.split(x[:self.num_theta])[0]
-        filtered = signal.lfilter([1.0], denominator, self.simulate(x))
+        dynamic = self.simulate(x) - (x[-1] if self.num_offset else 0.0)
+        filtered = signal.lfilter([1.0], denominator, dynamic)
         return np.hstack([-_shifted(filtered, range(1, self.structure.order + 1)),
                           self.linear_columns(denominator)])
 
     def linear_columns(self, denominator: np.ndarray) -> np.ndarray:
-        """Return d yhat / d[b, w], which depends on F only: shape ``(N, p - n + M)``."""
+        """Return d yhat / d[b, w, c], which depends on F only: ``(N, p - n + M + offset)``."""
         structure = self.structure
         columns = []
         for i, delay in enumerate(structure.input_delay):
@@ -526,16 +537,19 @@ class _OutputError:
         if self.num_initial:
             response = signal.lfilter([1.0], denominator, self._impulse)
             columns.append(_shifted(response, range(self.num_initial)))
+        if self.num_offset:
+            columns.append(np.ones((self.y.size, 1)))
         return np.hstack(columns)
 
     def best_numerators(self, denominator: np.ndarray) -> np.ndarray:
-        """Return x = [a, b, w] with the b and w that fit best for this F (linear LS)."""
+        """Return x = [a, b, w, c] with the b, w and c that fit best for this F (linear LS)."""
         linear = _least_squares(self.linear_columns(denominator), self.y)[0]
         return np.concatenate([denominator[1:], linear])
 
 
 def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
-           starts: int = 2, max_evaluations: int = MAX_EVALUATIONS) -> PemResult:
+           offset: bool = False, starts: int = 2,
+           max_evaluations: int = MAX_EVALUATIONS) -> PemResult:
     r"""
     Fit the MISO output-error model ``y = sum_i B_i/F u_i + v`` by prediction-error minimisation.
 
@@ -557,6 +571,9 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
     "transient" would be a persistent signal (a sinusoid on the unit circle,
     an offset) fitted to the noise, so the fit is redone from rest. F stays
     stable: a step to an unstable F is refused and the trust region shrinks.
+    With ``offset`` a constant c is added to the simulated output and fitted
+    with it: for a record centred by its sample means, whose output mean is
+    not G(1) times the input mean (a slow plant over a finite record).
 
     Starts: the ARX least-squares estimate, and its refinement by the
     simplified refined instrumental-variable method (SRIV: prefilter y and u
@@ -585,6 +602,8 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
         Order, inputs, dead times, feedthrough.
     initial : str
         ``'auto'`` (default), ``'estimate'`` or ``'zero'`` (the record starts at rest).
+    offset : bool
+        Fit a constant output offset c too (:attr:`PemResult.offset`).
     starts : int
         Most least-squares runs, >= 1, from the best starts first.
     max_evaluations : int
@@ -608,16 +627,17 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
     max_evaluations = check_int('max_evaluations', max_evaluations, 1)
     y, u = _check_data(y, u, _check_structure(structure),
                        0 if initial == 'zero' else structure.span)
-    result = _fit_oe(y, u, structure, 'zero' if initial == 'zero' else 'estimate', starts,
-                     max_evaluations)
+    offset = bool(offset)
+    result = _fit_oe(y, u, structure, 'zero' if initial == 'zero' else 'estimate', offset,
+                     starts, max_evaluations)
     if initial == 'auto' and _time_constant(result.denominator) > PERSISTENT_RECORDS * y.size:
-        result = _fit_oe(y, u, structure, 'zero', starts, max_evaluations)
+        result = _fit_oe(y, u, structure, 'zero', offset, starts, max_evaluations)
     return result
 
 
-def _fit_oe(y: np.ndarray, u: np.ndarray, structure: Structure, initial: str, starts: int,
-            max_evaluations: int) -> PemResult:
-    problem = _OutputError(y, u, structure, initial)
+def _fit_oe(y: np.ndarray, u: np.ndarray, structure: Structure, initial: str, offset: bool,
+            starts: int, max_evaluations: int) -> PemResult:
+    problem = _OutputError(y, u, structure, initial, offset)
     candidates = _oe_starts(problem)
     losses = [float(np.mean(problem.residual(x) ** 2)) for x in candidates]
     best = _best_run(problem.residual, problem.jacobian, candidates, losses, starts,
@@ -651,21 +671,27 @@ def _oe_starts(problem: _OutputError) -> list[np.ndarray]:
 def _refine_iv(y: np.ndarray, u: np.ndarray, structure: Structure,
                theta: np.ndarray) -> np.ndarray | None:
     r"""
-    Return the SRIV estimate of the OE model started at ``theta`` (stable F), or None.
+    Return the best SRIV iterate of the OE model started at ``theta`` (stable F), or None.
 
     Each iteration prefilters by the current 1/F and solves
     :math:`\sum\zeta\varphi_f^T\,\theta = \sum\zeta y_f` with the regressor
     :math:`\varphi_f` of the filtered data and the instrument ζ built like
     it from the filtered simulated output :math:`\hat x_f = B/F^2 u` instead
     of :math:`y_f` (Young 2011, Sec. 7.3); F is reflected to stability after
-    each solve.
+    each solve. A poorly determined pole can make the iterates wander
+    instead of converge, so the iterate with the lowest simulation error is
+    returned (the start included), not the last.
     """
     regressor = ArxRegressor(structure.order, structure.num_inputs, structure.feedthrough,
                              structure.input_delay)
     start = regressor.span
+    best, best_loss = None, math.inf
     for _ in range(REFINE_ITERATIONS):
         denominator = np.concatenate([[1.0], theta[:structure.order]])
         simulated = simulate_oe(theta, u, structure)
+        loss = float(np.mean((y - simulated) ** 2))
+        if loss < best_loss:
+            best, best_loss = theta, loss
         filtered_u = signal.lfilter([1.0], denominator, u, axis=0)
         filtered_y = signal.lfilter([1.0], denominator, y)
         filtered_x = signal.lfilter([1.0], denominator, simulated)
@@ -677,16 +703,16 @@ def _refine_iv(y: np.ndarray, u: np.ndarray, structure: Structure,
             solved = np.linalg.solve((instrument / scale).T @ (phi / scale),
                                      (instrument / scale).T @ filtered_y[start:]) / scale
         except np.linalg.LinAlgError:
-            return None
+            break
         if not np.isfinite(solved).all():
-            return None
+            break
         solved[:structure.order] = stabilise(np.concatenate(
             [[1.0], solved[:structure.order]]))[1:]
         change = np.linalg.norm(solved - theta) / max(np.linalg.norm(solved), 1e-300)
         theta = solved
         if change < REFINE_TOLERANCE:
             break
-    return theta
+    return best
 
 
 def _best_run(residual: Callable[[np.ndarray], np.ndarray],
@@ -718,20 +744,22 @@ def _oe_result(problem: _OutputError, run: optimize.OptimizeResult,
                start_losses: tuple[float, ...]) -> PemResult:
     structure = problem.structure
     p = problem.num_theta
-    residual = -run.fun
+    output = problem.y + run.fun
+    residual = problem.y - output
     jacobian = problem.jacobian(run.x)
     psi = jacobian[:, :p]
-    if problem.num_initial:
+    if jacobian.shape[1] > p:
         nuisance = jacobian[:, p:]
         psi = psi - nuisance @ _least_squares_matrix(nuisance, psi)
-    covariance, noise_order = _coloured_covariance(psi, residual, p + problem.num_initial)
+    covariance, noise_order = _coloured_covariance(psi, residual, jacobian.shape[1])
     return PemResult(
         'oe', structure, run.x[:p].copy(), structure.parameter_names('oe'),
-        problem.y + run.fun, residual, 0, float(np.mean(residual ** 2)), covariance,
+        output, residual, 0, float(np.mean(residual ** 2)), covariance,
         'open loop (v independent of u), the plant in the model set, stationary noise '
         f'described by the AR({noise_order}) model of the residual',
         noise_order, bool(run.status > 0), int(run.nfev), str(run.message), start_losses,
-        'estimate' if problem.num_initial else 'zero')
+        'estimate' if problem.num_initial else 'zero',
+        float(run.x[-1]) if problem.num_offset else 0.0)
 
 
 def _least_squares_matrix(columns: np.ndarray, targets: np.ndarray) -> np.ndarray:
@@ -893,11 +921,12 @@ def fit_armax(y: Any, u: Any, structure: Structure, *,
     losses = [float(np.mean(problem.residual(x) ** 2)) for x in starts]
     best = _best_run(problem.residual, problem.jacobian, starts, losses, len(starts),
                      max_evaluations)
-    residual = best.fun
+    output = problem.target - best.fun
+    residual = problem.target - output
     psi = problem.jacobian(best.x)
     sigma2 = float(residual @ residual) / max(residual.size - best.x.size, 1)
     return PemResult('armax', structure, best.x.copy(), structure.parameter_names('armax'),
-                     problem.target - residual, residual, structure.span,
+                     output, residual, structure.span,
                      float(np.mean(residual ** 2)), sigma2 * _gram_inverse(psi),
                      'white innovation e independent of past u (the ARMAX model true)', 0,
                      bool(best.status > 0), int(best.nfev), str(best.message), tuple(losses))
