@@ -181,7 +181,22 @@ def table(rows: list[dict[str, Any]], estimators: Sequence[str]) -> str:
     headers = ('estimator', 'accurate (<= 2 delta_ref or 1 %)', 'median delta/delta_ref',
                'median delta', 'valid at end', 'valid but wrong (delta > 10 %)',
                'accurate but invalid', 'coverage (valid, all within 3 std)', 'diverged')
-    return head + '\n' + markdown_table(headers, [summarise(rows, name) for name in estimators])
+    return (head + '\n' + markdown_table(headers, [summarise(rows, name) for name in estimators])
+            + '\n' + by_noise(rows, estimators))
+
+
+def by_noise(rows: list[dict[str, Any]], estimators: Sequence[str]) -> str:
+    """Return the markdown table of accurate cases per kind of noise."""
+    lines = []
+    for kind in sorted({row['noise'] for row in rows}):
+        chosen = [row for row in rows if row['noise'] == kind]
+        lines.append([kind, len(chosen),
+                      f'{100 * np.median([row["delta_ref"] for row in chosen]):.2f} %',
+                      f'{100 * np.median([row["delta_arx"] for row in chosen]):.2f} %']
+                     + [f'{sum(row["estimators"][name]["accurate"] for row in chosen)}'
+                        for name in estimators])
+    return markdown_table(['noise', 'cases', 'median delta_ref', 'median delta, batch ARX']
+                          + [f'{name} accurate' for name in estimators], lines)
 
 
 def main(argv: list[str] | None = None) -> int:
