@@ -323,6 +323,15 @@ def _input_sum(b: np.ndarray, u: np.ndarray, structure: Structure) -> np.ndarray
     return total
 
 
+def _shift_into(columns: np.ndarray, x: np.ndarray, lags: range) -> None:
+    """Write q^-k x (zeros before the start) into column j of ``columns`` for the j-th lag k."""
+    count = x.size
+    for j, lag in enumerate(lags):
+        lag = min(lag, count)
+        columns[:lag, j] = 0.0
+        columns[lag:, j] = x[:count - lag]
+
+
 def _shifted(x: np.ndarray, lags: range | list[int]) -> np.ndarray:
     """Return the columns q^-k x (zeros before the start) for k in ``lags``, ``(N, len)``."""
     columns = np.zeros((x.size, len(lags)))
@@ -520,26 +529,37 @@ class _OutputError:
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """Return d yhat / dx, shape ``(N, p + M + offset)``."""
+        n = self.structure.order
         denominator = self.structure.split(x[:self.num_theta])[0]
         dynamic = self.simulate(x) - (x[-1] if self.num_offset else 0.0)
-        filtered = signal.lfilter([1.0], denominator, dynamic)
-        return np.hstack([-_shifted(filtered, range(1, self.structure.order + 1)),
-                          self.linear_columns(denominator)])
+        columns = np.empty((self.y.size, x.size), order='F')
+        _shift_into(columns[:, :n], -signal.lfilter([1.0], denominator, dynamic),
+                    range(1, n + 1))
+        self._fill_linear(columns[:, n:], denominator)
+        return columns
 
     def linear_columns(self, denominator: np.ndarray) -> np.ndarray:
         """Return d yhat / d[b, w, c], which depends on F only: ``(N, p - n + M + offset)``."""
+        count = self.num_theta - self.structure.order + self.num_initial + self.num_offset
+        columns = np.empty((self.y.size, count), order='F')
+        self._fill_linear(columns, denominator)
+        return columns
+
+    def _fill_linear(self, columns: np.ndarray, denominator: np.ndarray) -> None:
+        """Write d yhat / d[b, w, c] into ``columns``."""
         structure = self.structure
-        columns = []
+        first = 0
         for i, delay in enumerate(structure.input_delay):
-            filtered = signal.lfilter([1.0], denominator, self.u[:, i])
-            columns.append(_shifted(filtered, range(delay + structure.first_lag,
-                                                    delay + structure.order + 1)))
+            lags = range(delay + structure.first_lag, delay + structure.order + 1)
+            _shift_into(columns[:, first:first + len(lags)],
+                        signal.lfilter([1.0], denominator, self.u[:, i]), lags)
+            first += len(lags)
         if self.num_initial:
             response = signal.lfilter([1.0], denominator, self._impulse)
-            columns.append(_shifted(response, range(self.num_initial)))
+            _shift_into(columns[:, first:first + self.num_initial], response,
+                        range(self.num_initial))
         if self.num_offset:
-            columns.append(np.ones((self.y.size, 1)))
-        return np.hstack(columns)
+            columns[:, -1] = 1.0
 
     def best_numerators(self, denominator: np.ndarray) -> np.ndarray:
         """Return x = [a, b, w, c] with the b, w and c that fit best for this F (linear LS)."""
