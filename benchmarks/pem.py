@@ -4,12 +4,12 @@ Batch prediction-error fits (bcid_ros.analysis.pem): the time of one fit on 10,0
 Each plant has the order it is fitted with: poles spread from 0.3 to 0.99 (a complex pair
 from n = 2 on), one input held 5 samples (a PRBS-like binary signal) or two with delays 1
 and 3, coloured output noise at 20 dB SNR. A figure is the fastest of three fits (the
-machine is shared; a disturbed fit is only ever slower), in CPU time of this process, against
-the target, and in wall time (in the note): other processes on a shared machine disturb
-the CPU time far less, and with one OpenBLAS thread it is the work done. The OE fit runs every start
-(ARX and SRIV) to its end; the ARX least-squares fit of the same structure is the floor.
-OpenBLAS threads: whatever ``OPENBLAS_NUM_THREADS`` says (the note); on a loaded 2-core
-machine its default threads slow the SVDs of the tall Jacobians several times.
+machine is shared; a disturbed fit is only ever slower), in CPU time of this process against
+the target, and in wall time in the note: other processes on a shared machine disturb the
+CPU time far less, and with one OpenBLAS thread it is the work done. The OE fit runs every
+start (ARX and SRIV) to its end; the ARX least-squares fit of the same structure is the
+floor. OpenBLAS threads: whatever ``OPENBLAS_NUM_THREADS`` says (the note); on a loaded
+2-core machine its default threads slow the SVDs of the tall Jacobians several times.
 """
 
 from __future__ import annotations
