@@ -311,13 +311,15 @@ def test_the_store_is_a_ring_of_the_last_batch_limit_samples():
 
 
 def test_predictor_history_gathers_lags_and_levels_the_outputs():
-    history = PredictorHistory(2, 1, False, (1,), True)
+    history = PredictorHistory(2, 1, False, (1,), True, True)
     for t in range(4):
         phi = history.push(float(t), np.array([10.0 + t]))
         history.set_newest(float(t), 100.0 + t)
-    # phi(3) = [-x(2), -x(1), u(1), u(0), e(2), e(1)] (one sample of dead time)
-    np.testing.assert_array_equal(phi, [-2.0, -1.0, 11.0, 10.0, 102.0, 101.0])
+    # phi(3) = [-x(2), -x(1), u(1), u(0), e(2), e(1), 1] (one sample of dead time)
+    np.testing.assert_array_equal(phi, [-2.0, -1.0, 11.0, 10.0, 102.0, 101.0, 1.0])
     np.testing.assert_array_equal(history.level_output_lags()[:2], [-1.5, -1.5])
+    history.clear()
+    assert not history.ready and history.push(0.0, np.array([0.0]))[-1] == 1.0
 
 
 @pytest.mark.parametrize('model', ['oe', 'armax'])

@@ -17,7 +17,7 @@ plant needs (docs/estimators.md, "RPEM").
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -132,11 +132,12 @@ class PredictorHistory:
     """
     Ring buffer of the last samples that yields the regression vector phi(t) with one gather.
 
-    Row ``k`` of ``history`` holds ``[-x, u_1, ..., u_r, e]`` of one sample,
-    where x is the output lag of the predictor (the simulated output w for
-    OE, the measured y for ARMAX) and e the residual lag (ARMAX). phi(t) is
-    ``[-x(t-1) ... -x(t-n), u_i(t-d_i-k) ..., e(t-1) ... e(t-n)]``, the
-    residual lags for ARMAX only.
+    Row ``k`` of ``history`` holds ``[-x, u_1, ..., u_r, e, 1]`` of one
+    sample, where x is the output lag of the predictor (the simulated output
+    w for OE, the measured y for ARMAX), e the residual lag (ARMAX) and 1 the
+    constant of the offset. phi(t) is ``[-x(t-1) ... -x(t-n), u_i(t-d_i-k)
+    ..., e(t-1) ... e(t-n), 1]``, the residual lags for ARMAX only, the 1
+    with an offset only.
 
     Parameters
     ----------
@@ -149,16 +150,19 @@ class PredictorHistory:
     input_delay : tuple of int
         d_i of each input.
     residual_lags : bool
-        Whether phi(t) ends with the n residual lags (ARMAX).
+        Whether phi(t) holds the n residual lags (ARMAX).
+    constant : bool
+        Whether phi(t) ends with a 1 (the offset).
 
     """
 
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
-                 input_delay: tuple[int, ...], residual_lags: bool) -> None:
+                 input_delay: tuple[int, ...], residual_lags: bool, constant: bool) -> None:
         self.order = order
         self.span = order + max(input_delay)
-        self.width = 2 + num_inputs
+        self.width = 3 + num_inputs
         self.history = np.zeros((self.span + 1, self.width))
+        self.history[:, -1] = 1.0
         self.position = 0
         self.filled = 0
         self._flat = self.history.reshape(-1)
@@ -171,8 +175,10 @@ class PredictorHistory:
                 index.extend(((newest - k - delay) % rows) * width + 1 + i
                              for k in range(first_lag, order + 1))
             if residual_lags:
-                index.extend(((newest - k) % rows) * width + width - 1
+                index.extend(((newest - k) % rows) * width + width - 2
                              for k in range(1, order + 1))
+            if constant:
+                index.append(width - 1)
             self._index.append(np.array(index, dtype=np.intp))
 
     def push(self, x: float, u: np.ndarray) -> np.ndarray:
@@ -180,8 +186,8 @@ class PredictorHistory:
         position = self.position
         row = self.history[position]
         row[0] = -x
-        row[1:-1] = u
-        row[-1] = 0.0
+        row[1:-2] = u
+        row[-2] = 0.0
         self.position = position + 1 if position < self.span else 0
         if self.filled <= self.span:
             self.filled += 1
@@ -206,18 +212,13 @@ class PredictorHistory:
         """Replace x and e of the newest sample (the a-posteriori values of the step)."""
         row = self.history[self.position - 1]
         row[0] = -x
-        row[-1] = e
-
-    def rows_oldest_first(self) -> np.ndarray:
-        """Return a view-free copy of the filled rows, oldest first."""
-        rows = np.concatenate((self.history[self.position:], self.history[:self.position]))
-        return rows[rows.shape[0] - self.filled:]
+        row[-2] = e
 
     def load_rows_oldest_first(self, rows: np.ndarray) -> None:
-        """Make ``rows`` (oldest first, at most span + 1) the content of the ring."""
+        """Make ``rows`` ``[-x, u_1 ... u_r, e]`` (oldest first) the content of the ring."""
         self.clear()
         count = min(rows.shape[0], self.span + 1)
-        self.history[:count] = rows[rows.shape[0] - count:]
+        self.history[:count, :-1] = rows[rows.shape[0] - count:]
         self.filled = count
         self.position = count % (self.span + 1)
 
@@ -228,7 +229,7 @@ class PredictorHistory:
 
     def clear(self) -> None:
         """Forget the history."""
-        self.history[:] = 0.0
+        self.history[:, :-1] = 0.0
         self.position = 0
         self.filled = 0
 
@@ -241,22 +242,25 @@ class FitResult:
     ----------
     theta : numpy.ndarray, shape ``(p,)``
         The estimate.
-    information : numpy.ndarray, shape ``(p, p)``
-        sum_t w_t psi(t) psi(t)^T at theta.
+    information : numpy.ndarray, shape ``(q, q)``
+        sum_t w_t psi(t) psi(t)^T at theta (q = p + 1 with the offset last).
     loss, weight : float
         sum_t w_t eps(t)^2 and sum_t w_t over the usable samples.
     arx : numpy.ndarray, shape ``(p,)``
         The least-squares ARX estimate of the same samples (c = 0 for ARMAX).
     tail_x, tail_e : numpy.ndarray
         x (w for OE, y for ARMAX) and e of the last segment's samples.
-    tail_psi : numpy.ndarray, shape ``(n, p)``
-        psi(t-1) ... psi(t-n) at the end (zeros where the segment is shorter).
+    tail_psi : numpy.ndarray, shape ``(n, q)``
+        psi(t-1) ... psi(t-n) at the end (zeros where the segment is shorter;
+        OE keeps the offset's column at 0, its gradient is not filtered).
+    offset : float
+        The output (OE) or equation (ARMAX) offset of the last segment.
 
     """
 
     def __init__(self, theta: np.ndarray, information: np.ndarray, loss: float, weight: float,
                  arx: np.ndarray, tail_x: np.ndarray, tail_e: np.ndarray,
-                 tail_psi: np.ndarray) -> None:
+                 tail_psi: np.ndarray, offset: float) -> None:
         self.theta = theta
         self.information = information
         self.loss = loss
@@ -265,6 +269,38 @@ class FitResult:
         self.tail_x = tail_x
         self.tail_e = tail_e
         self.tail_psi = tail_psi
+        self.offset = offset
+
+
+class Prediction(NamedTuple):
+    """
+    The predictor of one segment at fixed parameters (see :meth:`BatchFit.predict`).
+
+    Attributes
+    ----------
+    eps : numpy.ndarray, shape ``(T - span,)``
+        Prediction errors of the usable samples.
+    psi : numpy.ndarray, shape ``(T - span, p)``
+        Their gradients with respect to theta (the nuisance held).
+    x, e : numpy.ndarray, shape ``(T,)``
+        The output and residual lags of every sample (for the recursion).
+    nuisance : numpy.ndarray or None, shape ``(T - span, m)``
+        The columns of the linear nuisance fitted at every theta (OE start-up
+        transient, offset), or None.
+    offset : float
+        The fitted offset (0 without one).
+    offset_gradient : numpy.ndarray or None, shape ``(T - span,)``
+        The gradient of the prediction with respect to the offset.
+
+    """
+
+    eps: np.ndarray
+    psi: np.ndarray
+    x: np.ndarray
+    e: np.ndarray
+    nuisance: np.ndarray | None
+    offset: float
+    offset_gradient: np.ndarray | None
 
 
 class BatchFit:
@@ -273,22 +309,30 @@ class BatchFit:
 
     The same predictor as the recursion with the parameters held fixed
     (Ljung 1999, sec. 10.2): per segment, the first ``span`` samples fill the
-    lags (x = y, e = 0), then
+    lags, then
 
-    * OE: :math:`w = \sum_i B_i u_i / F` started from those y, :math:`\varepsilon = y - w`,
+    * OE: :math:`w = \sum_i B_i u_i / F` plus the free response of F from a
+      fitted initial state, :math:`\varepsilon = y - w - c`,
       :math:`\psi = \varphi(w) / F`;
-    * ARMAX: :math:`\varepsilon = (A y - \sum_i B_i u_i) / C`, :math:`\psi = \varphi / C`.
+    * ARMAX: :math:`\varepsilon = (A y - \sum_i B_i u_i - d) / C` from rest,
+      :math:`\psi = \varphi / C`;
 
-    :meth:`fit` takes the best of: the given candidates, the ARX least-squares
-    estimate, and ``IV_ITERATIONS`` Steiglitz-McBride (OE; instruments
-    :math:`\psi`, regressors of the data filtered by :math:`1/\hat F`) or
-    extended least-squares (ARMAX) iterations from it; each pulled into the
-    stability region; then refines the best by Levenberg-Marquardt on the
-    weighted prediction-error loss, keeping every iterate stable.
+    with the offset (c, or d) only with ``offset`` (``detrend: mean``: the
+    sample means of a finite record of a slow plant leave the output off
+    G(q) times the input by a constant). The initial state and the offset
+    enter linearly and are fitted by least squares at every theta (variable
+    projection), not searched.
+
+    :meth:`fit` starts from the best of the given candidates, and from the
+    best of the ARX least-squares estimate and ``IV_ITERATIONS``
+    Steiglitz-McBride (OE; instruments :math:`\psi`, regressors of the data
+    filtered by :math:`1/\hat F`) or extended least-squares (ARMAX) iterates,
+    each pulled into the stability region; it refines both by Gauss-Newton
+    steps that keep every iterate stable and returns the lower.
     """
 
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
-                 input_delay: tuple[int, ...], armax: bool) -> None:
+                 input_delay: tuple[int, ...], armax: bool, offset: bool) -> None:
         from scipy import signal  # only a fit needs it
 
         self._signal = signal
@@ -297,12 +341,11 @@ class BatchFit:
         self.first_lag = 0 if feedthrough else 1
         self.input_delay = input_delay
         self.armax = armax
+        self.offset = offset
         self.span = order + max(input_delay)
         self.lags = order + 1 - self.first_lag
         self.num_b = num_inputs * self.lags
         self.num_parameters = order + self.num_b + (order if armax else 0)
-        #: The free responses of the last OE prediction with a fitted initial state.
-        self.free_response: np.ndarray | None = None
 
     # ----------------------------------------------------------- regressors
     def _lagged(self, x: np.ndarray, lag: int) -> np.ndarray:
@@ -322,61 +365,91 @@ class BatchFit:
     def _output_columns(self, x: np.ndarray) -> np.ndarray:
         return np.column_stack([-self._lagged(x, k) for k in range(1, self.order + 1)])
 
+    def _with_constant(self, columns: np.ndarray) -> np.ndarray:
+        """Append a column of ones when the model has an offset."""
+        if not self.offset:
+            return columns
+        return np.column_stack((columns, np.ones(columns.shape[0])))
+
     # ----------------------------------------------------------- predictor
     def predict(self, theta: np.ndarray, y: np.ndarray, u: np.ndarray, weights: np.ndarray,
-                inputs: np.ndarray | None = None,
-                initial_state: bool = True) -> tuple[np.ndarray, np.ndarray,
-                                                     np.ndarray, np.ndarray]:
+                inputs: np.ndarray | None = None, initial_state: bool = True) -> Prediction:
         """
-        Return (eps, psi, x, e) of one segment at fixed ``theta``.
+        Return the :class:`Prediction` of one segment at fixed ``theta``.
 
-        eps and psi are those of the usable samples t >= span, x and e those
-        of every sample. For OE the initial lags w(span-1) ... w(span-n) are
-        the weighted least-squares fit of the free response to y - w (the
-        initial state estimated, Ljung 1999, sec. 10.1 "initial conditions";
-        psi is the derivative with it held), or 0 (from rest) without
-        ``initial_state``; before them x = y. For ARMAX e = 0 before span.
+        For OE the initial lags w(span-1) ... w(span-n) (and the offset) are
+        the weighted least-squares fit of the free response (and a constant)
+        to y - w (the initial state estimated, Ljung 1999, sec. 10.1), or 0
+        (from rest) without ``initial_state``; before them x = y. For ARMAX
+        e = 0 before span and the offset is fitted the same way.
         """
-        lfilter, lfiltic = self._signal.lfilter, self._signal.lfiltic
+        lfilter = self._signal.lfilter
         n, start = self.order, self.span
         inputs = self._input_columns(u) if inputs is None else inputs
-        b = theta[n:n + self.num_b]
-        if self.armax:
-            c_poly = np.concatenate(([1.0], theta[n + self.num_b:]))
-            regressors = np.column_stack((self._output_columns(y), inputs))
-            # eta(t) = A(q) y(t) - sum_i B_i(q) u_i(t), the equation error
-            eta = y[start:] - regressors[start:, :n + self.num_b].dot(theta[:n + self.num_b])
-            # C(q) eps(t) = eta(t), from rest (e = 0 before span)
-            eps = lfilter([1.0], c_poly, eta)
-            e = np.concatenate((np.zeros(start), eps))
-            regressors = np.column_stack((regressors, np.column_stack(
-                [self._lagged(e, k) for k in range(1, n + 1)])))
-            # psi(t) = phi(t) / C(q)
-            psi = lfilter([1.0], c_poly, regressors[start:], axis=0)
-            return eps, psi, y, e
-        f_poly = np.concatenate(([1.0], theta[:n]))
-        # w(t) = sum_i B_i(q) / F(q) u_i(t) from rest, plus the free response of F
-        w = y.copy()
-        w[start:] = lfilter([1.0], f_poly, inputs[start:].dot(b))
-        free = np.empty((y.shape[0] - start, n))
-        for k in range(n):
-            unit = np.zeros(n)
-            unit[k] = 1.0
-            free[:, k] = lfilter([1.0], f_poly, np.zeros(free.shape[0]),
-                                 zi=lfiltic([1.0], f_poly, unit))[0]
         root = np.sqrt(weights[start:])
-        initial = np.linalg.lstsq(free * root[:, None], (y[start:] - w[start:]) * root,
-                                  rcond=None)[0] if initial_state else np.zeros(n)
-        if np.isfinite(initial).all():
-            # w(span - k) = initial[k - 1]
-            w[start:] += free.dot(initial)
-            w[start - n:start] = initial[::-1]
-        eps = y[start:] - w[start:]
+        if self.armax:
+            return self._predict_armax(theta, y, inputs, root)
+        f_poly = np.concatenate(([1.0], theta[:n]))
+        # w(t) = sum_i B_i(q) / F(q) u_i(t) from rest ...
+        w = y.copy()
+        w[start:] = lfilter([1.0], f_poly, inputs[start:].dot(theta[n:n + self.num_b]))
+        # ... plus the free response of F from the initial lags (and the offset)
+        nuisance = self._with_constant(self._free_responses(f_poly, y.shape[0] - start)) \
+            if initial_state else None
+        offset = 0.0
+        if nuisance is not None:
+            fitted = np.linalg.lstsq(nuisance * root[:, None], (y[start:] - w[start:]) * root,
+                                     rcond=None)[0]
+            if np.isfinite(fitted).all():
+                # w(span - k) = fitted[k - 1]
+                w[start:] += nuisance[:, :n].dot(fitted[:n])
+                w[start - n:start] = fitted[n - 1::-1]
+                offset = float(fitted[n]) if self.offset else 0.0
+        eps = y[start:] - w[start:] - offset
         regressors = np.column_stack((self._output_columns(w), inputs))
         # psi(t) = phi(t) / F(q)
         psi = lfilter([1.0], f_poly, regressors[start:], axis=0)
-        self.free_response = free if initial_state else None
-        return eps, psi, w, np.zeros(y.shape[0])
+        gradient = np.ones(eps.shape[0]) if self.offset else None
+        return Prediction(eps, psi, w, np.zeros(y.shape[0]), nuisance, offset, gradient)
+
+    def _free_responses(self, f_poly: np.ndarray, count: int) -> np.ndarray:
+        """Return the responses of 1/F to each unit initial output lag, shape ``(count, n)``."""
+        lfilter, lfiltic = self._signal.lfilter, self._signal.lfiltic
+        n = self.order
+        free = np.empty((count, n))
+        for k in range(n):
+            unit = np.zeros(n)
+            unit[k] = 1.0
+            free[:, k] = lfilter([1.0], f_poly, np.zeros(count),
+                                 zi=lfiltic([1.0], f_poly, unit))[0]
+        return free
+
+    def _predict_armax(self, theta: np.ndarray, y: np.ndarray, inputs: np.ndarray,
+                       root: np.ndarray) -> Prediction:
+        lfilter = self._signal.lfilter
+        n, start = self.order, self.span
+        p_ab = n + self.num_b
+        c_poly = np.concatenate(([1.0], theta[p_ab:]))
+        regressors = np.column_stack((self._output_columns(y), inputs))
+        # eta(t) = A(q) y(t) - sum_i B_i(q) u_i(t), the equation error
+        eta = y[start:] - regressors[start:].dot(theta[:p_ab])
+        # C(q) eps(t) = eta(t) - d, from rest (e = 0 before span)
+        eps = lfilter([1.0], c_poly, eta)
+        offset, nuisance, gradient = 0.0, None, None
+        if self.offset:
+            gradient = lfilter([1.0], c_poly, np.ones(eta.shape[0]))
+            nuisance = gradient[:, None]
+            weighted = gradient * root
+            size = float(weighted.dot(weighted))
+            if size > 0.0:
+                offset = float(weighted.dot(eps * root)) / size
+                eps = eps - offset * gradient
+        e = np.concatenate((np.zeros(start), eps))
+        regressors = np.column_stack((regressors, np.column_stack(
+            [self._lagged(e, k) for k in range(1, n + 1)])))
+        # psi(t) = phi(t) / C(q)
+        psi = lfilter([1.0], c_poly, regressors[start:], axis=0)
+        return Prediction(eps, psi, y, e, nuisance, offset, gradient)
 
     # -------------------------------------------------------------- the fit
     def fit(self, segments: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -403,8 +476,7 @@ class BatchFit:
                 best_theta, best_loss = theta, loss
         if best_theta is None:
             return None
-        theta = best_theta
-        return self._result(theta, segments, usable, arx)
+        return self._result(best_theta, segments, usable, arx)
 
     def outliers(self, theta: np.ndarray, segments: list, limit: float) -> np.ndarray:
         """
@@ -415,12 +487,12 @@ class BatchFit:
         outliers themselves).
         """
         errors, rows = [], []
-        offset = 0
+        first = 0
         for y, u, weights in segments:
             if y.shape[0] > self.span:
-                errors.append(self.predict(theta, y, u, weights)[0])
-                rows.append(np.arange(offset + self.span, offset + y.shape[0]))
-            offset += y.shape[0]
+                errors.append(self.predict(theta, y, u, weights).eps)
+                rows.append(np.arange(first + self.span, first + y.shape[0]))
+            first += y.shape[0]
         if not errors:
             return np.zeros(0, dtype=np.intp)
         error = np.abs(np.concatenate(errors))
@@ -465,24 +537,27 @@ class BatchFit:
         return inside(theta[:n]) and (not self.armax or inside(theta[n + self.num_b:]))
 
     def _arx(self, usable: list) -> np.ndarray:
-        """Return the weighted least-squares ARX estimate (c = 0 for ARMAX)."""
-        n, start = self.order, self.span
-        p_ab = n + self.num_b
-        gram = np.zeros((p_ab, p_ab))
-        moment = np.zeros(p_ab)
+        """Return the weighted least-squares ARX estimate (c = 0 for ARMAX, offset dropped)."""
+        start = self.span
+        p_ab = self.order + self.num_b
+        gram = np.zeros((p_ab + self.offset, p_ab + self.offset))
+        moment = np.zeros(p_ab + self.offset)
         for y, _, weights, inputs in usable:
-            regressors = np.column_stack((self._output_columns(y), inputs))[start:]
+            regressors = self._with_constant(np.column_stack((self._output_columns(y),
+                                                              inputs)))[start:]
             weighted = regressors * weights[start:, None]
             gram += weighted.T.dot(regressors)
             moment += weighted.T.dot(y[start:])
         theta = np.zeros(self.num_parameters)
-        theta[:p_ab] = solve_regularised(gram, moment)
+        solution = solve_regularised(gram, moment)
+        if solution is not None:
+            theta[:p_ab] = solution[:p_ab]
         return theta
 
     def _loss(self, theta: np.ndarray, usable: list) -> float:
         total = 0.0
         for y, u, weights, inputs in usable:
-            eps = self.predict(theta, y, u, weights, inputs)[0]
+            eps = self.predict(theta, y, u, weights, inputs).eps
             total += float(weights[self.span:].dot(eps * eps))
         return total if math.isfinite(total) else math.inf
 
@@ -490,15 +565,16 @@ class BatchFit:
         """Return one Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterate."""
         lfilter = self._signal.lfilter
         n, start = self.order, self.span
-        p = self.num_parameters
-        gram = np.zeros((p, p))
-        moment = np.zeros(p)
+        size = self.num_parameters + self.offset
+        gram = np.zeros((size, size))
+        moment = np.zeros(size)
         for y, u, weights, inputs in usable:
             if self.armax:
                 # regress y on [-y lags, u lags, eps lags] with eps of the current model
-                _, _, _, e = self.predict(theta, y, u, weights, inputs)
-                regressors = np.column_stack((self._output_columns(y), inputs, np.column_stack(
-                    [self._lagged(e, k) for k in range(1, n + 1)])))[start:]
+                e = self.predict(theta, y, u, weights, inputs).e
+                regressors = self._with_constant(np.column_stack((
+                    self._output_columns(y), inputs,
+                    np.column_stack([self._lagged(e, k) for k in range(1, n + 1)]))))[start:]
                 weighted = regressors * weights[start:, None]
                 gram += weighted.T.dot(regressors)
                 moment += weighted.T.dot(y[start:])
@@ -506,56 +582,62 @@ class BatchFit:
             f_poly = np.concatenate(([1.0], theta[:n]))
             # data filtered by 1 / F: y_f(t) = F(q)^-1 y(t), u_f(t) = F(q)^-1 u(t)
             y_filtered = lfilter([1.0], f_poly, y)
-            regressors = np.column_stack((self._output_columns(y_filtered),
-                                          lfilter([1.0], f_poly, inputs, axis=0)))[start:]
+            regressors = self._with_constant(np.column_stack((
+                self._output_columns(y_filtered), lfilter([1.0], f_poly, inputs, axis=0))))[
+                start:]
             # instruments: psi(t) = phi(w)(t) / F(q), the noise-free regressors (from rest:
             # the initial state fitted to a poor model would carry the noise into them)
-            instruments = self.predict(theta, y, u, weights, inputs, False)[1] * weights[
-                start:, None]
+            psi = self.predict(theta, y, u, weights, inputs, False).psi
+            instruments = self._with_constant(psi) * weights[start:, None]
             gram += instruments.T.dot(regressors)
             moment += instruments.T.dot(y_filtered[start:])
         new = solve_regularised(gram, moment)
-        return new if new is not None and np.isfinite(new).all() else None
+        return new[:self.num_parameters] if new is not None and np.isfinite(new).all() \
+            else None
 
     def _gradient(self, theta: np.ndarray, usable: list, prior: float,
                   concentrated: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
         """
         Return the loss, the Gauss-Newton information and the gradient at theta.
 
-        ``concentrated``: of the loss with the OE initial state re-fitted at
-        every theta (the search); otherwise with it held (the information
-        the recursion continues with, which never re-fits it).
+        ``concentrated``: of the loss with the nuisance (initial state,
+        offset) re-fitted at every theta (the search), for theta alone;
+        otherwise the information of theta and the offset with the nuisance
+        held (what the recursion continues with: it never re-fits the
+        initial state, and it carries the offset as a parameter).
         """
         p = self.num_parameters
-        information = np.zeros((p, p))
-        gradient = np.zeros(p)
+        size = p if concentrated else p + self.offset
+        information = np.zeros((size, size))
+        gradient = np.zeros(size)
         loss = 0.0
         for y, u, weights, inputs in usable:
-            eps, psi = self.predict(theta, y, u, weights, inputs)[:2]
-            if concentrated and self.free_response is not None:
-                psi = self._without_initial_state(psi, self.free_response, weights[self.span:])
+            prediction = self.predict(theta, y, u, weights, inputs)
+            psi = prediction.psi
+            if concentrated and prediction.nuisance is not None:
+                psi = self._without_nuisance(psi, prediction.nuisance, weights[self.span:])
+            elif not concentrated and self.offset:
+                psi = np.column_stack((psi, prediction.offset_gradient))
             weighted = psi * weights[self.span:, None]
             information += weighted.T.dot(psi)
-            gradient += weighted.T.dot(eps)
-            loss += float(weights[self.span:].dot(eps * eps))
-        information[np.diag_indices(p)] += prior
+            gradient += weighted.T.dot(prediction.eps)
+            loss += float(weights[self.span:].dot(prediction.eps ** 2))
+        information[np.diag_indices(size)] += prior
         return loss, information, gradient
 
     @staticmethod
-    def _without_initial_state(psi: np.ndarray, free: np.ndarray,
-                               weights: np.ndarray) -> np.ndarray:
+    def _without_nuisance(psi: np.ndarray, nuisance: np.ndarray,
+                          weights: np.ndarray) -> np.ndarray:
         r"""
-        Return psi minus its weighted projection on the free responses (Kaufman's VarPro).
+        Return psi minus its weighted projection on the nuisance columns (Kaufman's VarPro).
 
-        The initial state is re-fitted at every theta, so the gradient of the
-        concentrated loss is that of psi orthogonal to the free responses
-        :math:`\Phi_0`: :math:`\psi - \Phi_0(\Phi_0^TW\Phi_0)^{-1}\Phi_0^TW\psi`
-        (Golub and Pereyra 2003; Kaufman 1975). Without it the Gauss-Newton
-        step ignores how the initial state follows theta and crawls along
-        the valley of an oversampled plant (a hundred steps where ten do).
+        The nuisance (initial state, offset) is re-fitted at every theta, so
+        the gradient of the concentrated loss is that of psi orthogonal to its
+        columns :math:`N`: :math:`\psi - N(N^TWN)^{-1}N^TW\psi` (Golub and
+        Pereyra 2003; Kaufman 1975).
         """
         root = np.sqrt(weights)[:, None]
-        basis = np.linalg.qr(free * root)[0]
+        basis = np.linalg.qr(nuisance * root)[0]
         weighted = psi * root
         projected = weighted - basis.dot(basis.T.dot(weighted))
         return np.where(root > 0.0, projected / np.where(root > 0.0, root, 1.0), psi)
@@ -570,7 +652,8 @@ class BatchFit:
         accepted, Levenberg-Marquardt steps (H + mu diag H) with mu growing
         tenfold; it stops when no step lowers the loss by LM_TOLERANCE. The
         plain direction matters: the valley of an oversampled plant is
-        conditioned like 1e10, where diagonal damping crawls.
+        conditioned like 1e10, where diagonal damping crawls (a hundred
+        iterations where Gauss-Newton takes five, measured).
         """
         for _ in range(LM_ITERATIONS):
             loss, information, gradient = self._gradient(theta, usable, prior)
@@ -626,14 +709,21 @@ class BatchFit:
         weight = float(sum(w[self.span:].sum() for _, _, w, _ in usable))
         n, p = self.order, self.num_parameters
         y, u, weights = segments[-1]
-        tail_psi = np.zeros((n, p))
+        tail_psi = np.zeros((n, p + self.offset))
+        offset = 0.0
         if y.shape[0] > self.span:
-            _, psi, x, e = self.predict(theta, y, u, weights)
-            rows = psi[::-1][:n]
-            tail_psi[:rows.shape[0]] = rows
+            prediction = self.predict(theta, y, u, weights)
+            x, e, offset = prediction.x, prediction.e, prediction.offset
+            rows = prediction.psi[::-1][:n]
+            tail_psi[:rows.shape[0], :p] = rows
+            if self.armax and self.offset:  # the offset's gradient is filtered by 1 / C
+                tail = prediction.offset_gradient[::-1][:n]
+                tail_psi[:tail.shape[0], p] = tail
         else:
             x, e = y, np.zeros(y.shape[0])
-        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi)
+            if usable:  # the offset of the newest usable segment
+                offset = self.predict(theta, *usable[-1][:3]).offset
+        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset)
 
 
 def solve_regularised(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray | None:
@@ -789,12 +879,17 @@ class Rpem(RecursiveEstimator):
             self.num_parameters = len(self.parameter_names)
         self._lags = n + (1 if self.feedthrough else 0)
         self._num_b = r * self._lags
+        # with detrend: mean the model carries an offset, the last internal parameter
+        self._offset = self._means is not None
+        self._size = self.num_parameters + self._offset
         # the signal channel (0 = y, i = u_i) of each parameter: b's scale with u_i / y
         self._channel = np.array([0] * n + [i for i in range(1, r + 1)
                                             for _ in range(self._lags)]
                                  + ([0] * n if self._armax else []), dtype=np.intp)
-        self._filter_slice = slice(n + self._num_b, None) if self._armax else slice(0, n)
-        self._history = PredictorHistory(n, r, self.feedthrough, self.input_delay, self._armax)
+        self._filter_slice = slice(n + self._num_b, 2 * n + self._num_b) if self._armax \
+            else slice(0, n)
+        self._history = PredictorHistory(n, r, self.feedthrough, self.input_delay, self._armax,
+                                         self._offset)
         self._first_fit = max(FIRST_FIT_SAMPLES, FIRST_FIT_PER_PARAMETER * self.num_parameters)
         self._batch: BatchFit | None = None
         self._reset()
@@ -855,15 +950,7 @@ class Rpem(RecursiveEstimator):
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
-        # the a-posteriori output lag (OE: w(t)) or residual lag (ARMAX)
-        posterior = float(phi.dot(theta))
-        if self._armax:
-            history.set_newest(yn, yn - posterior)
-        else:
-            history.set_newest(posterior, 0.0)
-        psi_history = self._psi_history
-        psi_history[1:] = psi_history[:-1]
-        psi_history[0] = psi
+        self._advance(yn, phi, psi)
         # recent mean square prediction error (the drift monitor)
         self._recent += (e * e - self._recent) * (1.0 / DRIFT_MEMORY)
         self._lambda_t = self._forgetting_factor - LAMBDA_RATE * (
@@ -875,14 +962,31 @@ class Rpem(RecursiveEstimator):
         if self._updates >= self._next_check:
             self._check_validity()
 
+    def _advance(self, yn: float, phi: np.ndarray, psi: np.ndarray) -> None:
+        """Move the predictor on: the a-posteriori lags of sample t and psi(t)."""
+        theta = self._theta_n
+        posterior = float(phi.dot(theta))
+        if self._armax:
+            # e(t) = y(t) - phi(t)' theta(t), the a-posteriori residual
+            self._history.set_newest(yn, yn - posterior)
+        else:
+            # w(t) = phi(t)' theta(t) without the offset: the simulated output
+            self._history.set_newest(posterior - theta[-1] if self._offset else posterior, 0.0)
+        psi_history = self._psi_history
+        psi_history[1:] = psi_history[:-1]
+        psi_history[0] = psi
+        if self._offset and not self._armax:
+            psi_history[0, -1] = 0.0  # the OE offset's gradient is 1, not filtered by 1/F
+
     def _move_theta(self, theta: np.ndarray, g: np.ndarray, gain: float) -> None:
         """Take theta + mu g gain with mu = 1, 1/2, ... inside D_M, or stay (projection)."""
         n = self.order
         armax = self._armax
+        noise = self._filter_slice
         for _ in range(HALVINGS + 1):
             # theta(t) = theta(t-1) + mu P psi e / s
             new = theta + g * gain
-            if inside(new[:n]) and (not armax or inside(new[n + self._num_b:])):
+            if inside(new[:n]) and (not armax or inside(new[noise])):
                 theta[:] = new
                 self._projected_in_row = 0
                 return
@@ -933,9 +1037,8 @@ class Rpem(RecursiveEstimator):
         self._flag(flag)
         self._refused += 1
         phi, psi = gating
-        self._history.set_newest(float(phi.dot(self._theta_n)), 0.0)
-        self._psi_history[1:] = self._psi_history[:-1]
-        self._psi_history[0] = psi
+        # y(t) unknown: its prediction in its place, residual 0
+        self._advance(float(phi.dot(self._theta_n)), phi, psi)
         self._break_pending = True
 
     def _hold(self, y: float, u: np.ndarray) -> None:
@@ -953,15 +1056,8 @@ class Rpem(RecursiveEstimator):
             return
         if refilled and not self._armax:
             phi = history.level_output_lags()
-        theta = self._theta_n
-        psi = phi - theta[self._filter_slice].dot(self._psi_history)
-        posterior = float(phi.dot(theta))
-        if self._armax:
-            history.set_newest(yn, yn - posterior)
-        else:
-            history.set_newest(posterior, 0.0)
-        self._psi_history[1:] = self._psi_history[:-1]
-        self._psi_history[0] = psi
+        psi = phi - self._theta_n[self._filter_slice].dot(self._psi_history)
+        self._advance(yn, phi, psi)
 
     # ------------------------------------------------------- stored samples
     def _store(self, y: float, u: np.ndarray) -> None:
@@ -1019,13 +1115,13 @@ class Rpem(RecursiveEstimator):
         segments = self._segments(rows, breaks, scale)
         if self._batch is None:
             self._batch = BatchFit(self.order, self.num_inputs, self.feedthrough,
-                                   self.input_delay, self._armax)
+                                   self.input_delay, self._armax, self._offset)
         candidates = []
         if self._fitted:
             # theta in the new scales: the b's scale with s_u / s_y
             ratio = (self._signal_scale[self._channel] / scale[self._channel]) * (
                 scale[0] / self._signal_scale[0])
-            candidates.append(self._theta_n * ratio)
+            candidates.append(self._theta_n[:self.num_parameters] * ratio)
         with np.errstate(all='ignore'):
             result = self._batch.fit(segments, candidates, 1.0 / self.initial_covariance)
             if result is not None and self._exclude_outliers(result.theta, segments, breaks):
@@ -1068,8 +1164,7 @@ class Rpem(RecursiveEstimator):
 
     def _take_fit(self, result: FitResult, segments: list, scale: np.ndarray) -> bool:
         """Continue from the fit: theta, P, J, tau, the lags and psi; False if unsound."""
-        p = self.num_parameters
-        information = result.information + np.eye(p) / self.initial_covariance
+        information = result.information + np.eye(self._size) / self.initial_covariance
         try:
             covariance = np.linalg.inv(information)
         except np.linalg.LinAlgError:
@@ -1078,23 +1173,24 @@ class Rpem(RecursiveEstimator):
                 and math.isfinite(result.loss) and result.weight > 0.0):
             return False
         self._p = np.ascontiguousarray(0.5 * (covariance + covariance.T))
-        self._theta_n[:] = result.theta
+        self._theta_n[:self.num_parameters] = result.theta
+        if self._offset:
+            self._theta_n[-1] = result.offset
         self._loss = result.loss
         self._tau = result.weight
         self._signal_scale = scale
         self._set_scale_dependents()
         self._arx = result.arx * self._unscale
         # the predictor's lags: those of the last segment's newest samples
-        y, u, _ = segments[-1]
-        rows = np.column_stack((-result.tail_x, u, result.tail_e))
-        self._history.load_rows_oldest_first(rows)
+        u = segments[-1][1]
+        self._history.load_rows_oldest_first(np.column_stack((-result.tail_x, u,
+                                                              result.tail_e)))
         self._psi_history[:] = result.tail_psi
         self._sigma2_fit = result.loss / result.weight
         self._recent = self._sigma2_fit
         self._lambda_t = min(self._forgetting_factor, LAMBDA_START)
         self._fitted = True
         self._projected_in_row = 0
-        del y
         return True
 
     def _restart(self, reason: str) -> None:
@@ -1131,7 +1227,7 @@ class Rpem(RecursiveEstimator):
         """Rebuild P as the nearest symmetric positive definite matrix (covariance_repaired)."""
         self._flag('covariance_repaired')
         self._p = np.ascontiguousarray(repair_covariance(
-            self._p, np.eye(self.num_parameters) * self.initial_covariance))
+            self._p, np.eye(self._size) * self.initial_covariance))
 
     def _check_validity(self) -> None:
         """Re-evaluate drift and the validity reasons (every VALIDITY_PERIOD updates)."""
@@ -1186,13 +1282,14 @@ class Rpem(RecursiveEstimator):
 
     @property
     def covariance(self) -> np.ndarray:
-        """Return P(t) in the units of theta, shape ``(p, p)`` (a copy)."""
-        return self._p * np.outer(self._unscale, self._unscale)
+        """Return the theta block of P(t) in the units of theta, shape ``(p, p)`` (a copy)."""
+        p = self.num_parameters
+        return self._p[:p, :p] * np.outer(self._unscale, self._unscale)
 
     @property
     def covariance_trace(self) -> float:
-        """Return tr P(t) in the units of theta."""
-        return float(np.diagonal(self._p).dot(self._unscale ** 2))
+        """Return the trace of the theta block of P(t) in the units of theta."""
+        return float(np.diagonal(self._p)[:self.num_parameters].dot(self._unscale ** 2))
 
     @property
     def weighted_count(self) -> float:
@@ -1221,10 +1318,10 @@ class Rpem(RecursiveEstimator):
             return None
         variance = self._loss / dof * ratio * self._signal_scale[0] ** 2
         unscale = self._unscale / self._signal_scale[0]
-        return variance * self._p * np.outer(unscale, unscale)
+        return variance * self._p[:p, :p] * np.outer(unscale, unscale)
 
     def _theta(self) -> np.ndarray:
-        return self._theta_n * self._unscale
+        return self._theta_n[:self.num_parameters] * self._unscale
 
     def _theta_uncompensated(self) -> np.ndarray:
         return self._arx
@@ -1233,6 +1330,24 @@ class Rpem(RecursiveEstimator):
         if not self._tau > 0.0:
             return np.zeros(1)
         return np.array([self._loss / self._tau * self._signal_scale[0] ** 2])
+
+    @property
+    def operating_point(self) -> np.ndarray | None:
+        """
+        Return ``[y0, u1, ..., ur]``: the recursive means, y0 moved by the model's offset.
+
+        With ``detrend: mean`` the model is y - m_y = G(q)(u - m_u) + c (OE;
+        ARMAX: the equation offset d, c = d / A(1)), so the operating point of
+        the estimate is (m_y + c, m_u): the point to simulate the model around.
+        """
+        point = super().operating_point
+        if point is None or not self._fitted:
+            return point
+        offset = float(self._theta_n[-1]) * self._signal_scale[0]
+        if self._armax:  # A(1) > 0 for a stable A
+            offset /= 1.0 + float(self._theta_n[:self.order].sum())
+        point[0] += offset
+        return point
 
     def __repr__(self) -> str:
         return (f'Rpem(model={self.model!r}, order={self.order}, num_inputs={self.num_inputs}, '
@@ -1247,15 +1362,16 @@ class Rpem(RecursiveEstimator):
         self._unscale = scale[0] / scale[self._channel]
 
     def _reset(self) -> None:
-        p, n = self.num_parameters, self.order
+        p, n, size = self.num_parameters, self.order, self._size
         self._history.clear()
-        self._theta_n = np.zeros(p)
-        self._p = self.initial_covariance * np.eye(p)
-        self._psi_history = np.zeros((n, p))
+        # theta in normalised units, and the offset last with detrend: mean
+        self._theta_n = np.zeros(size)
+        self._p = self.initial_covariance * np.eye(size)
+        self._psi_history = np.zeros((n, size))
         self._arx = np.zeros(p)
         self._signal_scale = np.ones(1 + self.num_inputs)
         self._set_scale_dependents()
-        self._trace_limit = self.initial_covariance * p
+        self._trace_limit = self.initial_covariance * size
         self._buffer = np.zeros((BATCH_LIMIT, 1 + self.num_inputs))
         self._breaks = np.zeros(BATCH_LIMIT, dtype=bool)
         self._buffer_position = 0
