@@ -15,8 +15,8 @@ from scipy import signal
 
 from bcid_ros import persistence
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.rpem import (BATCH_LIMIT, inside, PredictorHistory, pull_inside, Rpem,
-                                      STABILITY_RADIUS)
+from bcid_ros.estimators.rpem import (BATCH_LIMIT, FIT_GROWTH, inside, PredictorHistory,
+                                      pull_inside, Rpem, STABILITY_RADIUS)
 from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: The OE plant of most tests: F = 1 - 1.5 q^-1 + 0.7 q^-2, B = q^-1 + 0.5 q^-2.
@@ -273,13 +273,21 @@ def test_gate_refuses_spikes_and_keeps_the_estimate():
         gated.theta - clean.theta)
 
 
-def test_not_ready_before_the_first_fit_then_fits_as_samples_double():
+def fit_schedule(first, limit):
+    """Return the sample counts at which the fits fall: first, then times FIT_GROWTH."""
+    counts = [first]
+    while int(np.ceil(FIT_GROWTH * counts[-1])) <= limit:
+        counts.append(int(np.ceil(FIT_GROWTH * counts[-1])))
+    return counts
+
+
+def test_not_ready_before_the_first_fit_then_fits_as_samples_grow():
     y, u = oe_data(1, count=1000)
     estimator = make_estimator('rpem', order=2)
     first = max(50, 10 * 4)
     trajectory = estimator.run(y, u)
     assert not trajectory.ready[:first - 1].any() and trajectory.ready[first - 1:].all()
-    assert estimator.fits == 5  # at 50, 100, 200, 400 and 800 samples
+    assert estimator.fits == len(fit_schedule(first, 1000))
     assert estimator.parameter_std is not None
     fresh = make_estimator('rpem', order=2)
     assert fresh.parameter_std is None and not fresh.theta.any()
@@ -307,7 +315,7 @@ def test_the_store_is_a_ring_of_the_last_batch_limit_samples():
     state = estimator.get_state()
     assert state.scalars['stored'] == BATCH_LIMIT
     assert state.scalars['next_fit'] == 0  # no fit after the limit
-    assert estimator.fits == 8  # 50, 100, ..., 6400
+    assert estimator.fits == len(fit_schedule(50, BATCH_LIMIT))
 
 
 def test_predictor_history_gathers_lags_and_levels_the_outputs():

@@ -37,7 +37,10 @@ HALVINGS = 8
 FIRST_FIT_SAMPLES = 50
 #: ... and for this many per parameter.
 FIRST_FIT_PER_PARAMETER = 10
-#: The batch fit is repeated each time the stored samples double, up to this many.
+#: The batch fit is repeated each time the stored samples grow by FIT_GROWTH, up to
+#: BATCH_LIMIT samples.
+FIT_GROWTH = 1.5
+#: See FIT_GROWTH.
 BATCH_LIMIT = 8192
 #: Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterations of a fit.
 IV_ITERATIONS = 8
@@ -373,7 +376,8 @@ class BatchFit:
 
     # ----------------------------------------------------------- predictor
     def predict(self, theta: np.ndarray, y: np.ndarray, u: np.ndarray, weights: np.ndarray,
-                inputs: np.ndarray | None = None, initial_state: bool = True) -> Prediction:
+                inputs: np.ndarray | None = None, initial_state: bool = True,
+                gradient: bool = True) -> Prediction:
         """
         Return the :class:`Prediction` of one segment at fixed ``theta``.
 
@@ -381,14 +385,15 @@ class BatchFit:
         the weighted least-squares fit of the free response (and a constant)
         to y - w (the initial state estimated, Ljung 1999, sec. 10.1), or 0
         (from rest) without ``initial_state``; before them x = y. For ARMAX
-        e = 0 before span and the offset is fitted the same way.
+        e = 0 before span and the offset is fitted the same way. Without
+        ``gradient`` psi is left empty (a loss needs only eps).
         """
         lfilter = self._signal.lfilter
         n, start = self.order, self.span
         inputs = self._input_columns(u) if inputs is None else inputs
-        root = np.sqrt(weights[start:])
+        weights = weights[start:]
         if self.armax:
-            return self._predict_armax(theta, y, inputs, root)
+            return self._predict_armax(theta, y, inputs, weights, gradient)
         f_poly = np.concatenate(([1.0], theta[:n]))
         # w(t) = sum_i B_i(q) / F(q) u_i(t) from rest ...
         w = y.copy()
@@ -398,34 +403,45 @@ class BatchFit:
             if initial_state else None
         offset = 0.0
         if nuisance is not None:
-            fitted = np.linalg.lstsq(nuisance * root[:, None], (y[start:] - w[start:]) * root,
-                                     rcond=None)[0]
-            if np.isfinite(fitted).all():
+            weighted = nuisance * weights[:, None]
+            # the normal equations of the nuisance (a few columns)
+            fitted = solve_regularised(weighted.T.dot(nuisance),
+                                       weighted.T.dot(y[start:] - w[start:]))
+            if fitted is not None:
                 # w(span - k) = fitted[k - 1]
                 w[start:] += nuisance[:, :n].dot(fitted[:n])
                 w[start - n:start] = fitted[n - 1::-1]
                 offset = float(fitted[n]) if self.offset else 0.0
         eps = y[start:] - w[start:] - offset
-        regressors = np.column_stack((self._output_columns(w), inputs))
-        # psi(t) = phi(t) / F(q)
-        psi = lfilter([1.0], f_poly, regressors[start:], axis=0)
-        gradient = np.ones(eps.shape[0]) if self.offset else None
-        return Prediction(eps, psi, w, np.zeros(y.shape[0]), nuisance, offset, gradient)
+        psi = np.zeros((0, self.num_parameters))
+        if gradient:
+            regressors = np.column_stack((self._output_columns(w), inputs))
+            # psi(t) = phi(t) / F(q)
+            psi = lfilter([1.0], f_poly, regressors[start:], axis=0)
+        offset_gradient = np.ones(eps.shape[0]) if self.offset else None
+        return Prediction(eps, psi, w, np.zeros(y.shape[0]), nuisance, offset,
+                          offset_gradient)
 
     def _free_responses(self, f_poly: np.ndarray, count: int) -> np.ndarray:
-        """Return the responses of 1/F to each unit initial output lag, shape ``(count, n)``."""
-        lfilter, lfiltic = self._signal.lfilter, self._signal.lfiltic
+        """
+        Return the responses of 1/F to each unit initial output lag, shape ``(count, n)``.
+
+        The lag w(-k-1) = 1 acts as the input x(t) = -f_(t+1+k), t < n - k, so
+        each response is a sum of shifted impulse responses h of 1/F (one filter).
+        """
         n = self.order
-        free = np.empty((count, n))
+        impulse = np.zeros(count)
+        impulse[0] = 1.0
+        h = self._signal.lfilter([1.0], f_poly, impulse)
+        free = np.zeros((count, n))
         for k in range(n):
-            unit = np.zeros(n)
-            unit[k] = 1.0
-            free[:, k] = lfilter([1.0], f_poly, np.zeros(count),
-                                 zi=lfiltic([1.0], f_poly, unit))[0]
+            for t in range(n - k):
+                # free_k(s) -= f_(t+1+k) h(s - t)
+                free[t:, k] -= f_poly[t + 1 + k] * h[:count - t]
         return free
 
     def _predict_armax(self, theta: np.ndarray, y: np.ndarray, inputs: np.ndarray,
-                       root: np.ndarray) -> Prediction:
+                       weights: np.ndarray, gradient: bool) -> Prediction:
         lfilter = self._signal.lfilter
         n, start = self.order, self.span
         p_ab = n + self.num_b
@@ -435,21 +451,24 @@ class BatchFit:
         eta = y[start:] - regressors[start:].dot(theta[:p_ab])
         # C(q) eps(t) = eta(t) - d, from rest (e = 0 before span)
         eps = lfilter([1.0], c_poly, eta)
-        offset, nuisance, gradient = 0.0, None, None
+        offset, nuisance, offset_gradient = 0.0, None, None
         if self.offset:
-            gradient = lfilter([1.0], c_poly, np.ones(eta.shape[0]))
-            nuisance = gradient[:, None]
-            weighted = gradient * root
-            size = float(weighted.dot(weighted))
+            # the offset's response d / C(q), fitted by weighted least squares
+            offset_gradient = lfilter([1.0], c_poly, np.ones(eta.shape[0]))
+            nuisance = offset_gradient[:, None]
+            weighted = offset_gradient * weights
+            size = float(weighted.dot(offset_gradient))
             if size > 0.0:
-                offset = float(weighted.dot(eps * root)) / size
-                eps = eps - offset * gradient
+                offset = float(weighted.dot(eps)) / size
+                eps = eps - offset * offset_gradient
         e = np.concatenate((np.zeros(start), eps))
-        regressors = np.column_stack((regressors, np.column_stack(
-            [self._lagged(e, k) for k in range(1, n + 1)])))
-        # psi(t) = phi(t) / C(q)
-        psi = lfilter([1.0], c_poly, regressors[start:], axis=0)
-        return Prediction(eps, psi, y, e, nuisance, offset, gradient)
+        psi = np.zeros((0, self.num_parameters))
+        if gradient:
+            regressors = np.column_stack((regressors, np.column_stack(
+                [self._lagged(e, k) for k in range(1, n + 1)])))
+            # psi(t) = phi(t) / C(q)
+            psi = lfilter([1.0], c_poly, regressors[start:], axis=0)
+        return Prediction(eps, psi, y, e, nuisance, offset, offset_gradient)
 
     # -------------------------------------------------------------- the fit
     def fit(self, segments: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -490,7 +509,7 @@ class BatchFit:
         first = 0
         for y, u, weights in segments:
             if y.shape[0] > self.span:
-                errors.append(self.predict(theta, y, u, weights).eps)
+                errors.append(self.predict(theta, y, u, weights, gradient=False).eps)
                 rows.append(np.arange(first + self.span, first + y.shape[0]))
             first += y.shape[0]
         if not errors:
@@ -557,7 +576,7 @@ class BatchFit:
     def _loss(self, theta: np.ndarray, usable: list) -> float:
         total = 0.0
         for y, u, weights, inputs in usable:
-            eps = self.predict(theta, y, u, weights, inputs).eps
+            eps = self.predict(theta, y, u, weights, inputs, gradient=False).eps
             total += float(weights[self.span:].dot(eps * eps))
         return total if math.isfinite(total) else math.inf
 
@@ -571,7 +590,7 @@ class BatchFit:
         for y, u, weights, inputs in usable:
             if self.armax:
                 # regress y on [-y lags, u lags, eps lags] with eps of the current model
-                e = self.predict(theta, y, u, weights, inputs).e
+                e = self.predict(theta, y, u, weights, inputs, gradient=False).e
                 regressors = self._with_constant(np.column_stack((
                     self._output_columns(y), inputs,
                     np.column_stack([self._lagged(e, k) for k in range(1, n + 1)]))))[start:]
@@ -636,11 +655,9 @@ class BatchFit:
         columns :math:`N`: :math:`\psi - N(N^TWN)^{-1}N^TW\psi` (Golub and
         Pereyra 2003; Kaufman 1975).
         """
-        root = np.sqrt(weights)[:, None]
-        basis = np.linalg.qr(nuisance * root)[0]
-        weighted = psi * root
-        projected = weighted - basis.dot(basis.T.dot(weighted))
-        return np.where(root > 0.0, projected / np.where(root > 0.0, root, 1.0), psi)
+        weighted = nuisance * weights[:, None]
+        coefficients = solve_regularised(weighted.T.dot(nuisance), weighted.T.dot(psi))
+        return psi if coefficients is None else psi - nuisance.dot(coefficients)
 
     def _search(self, theta: np.ndarray, loss: float, usable: list,
                 prior: float) -> tuple[np.ndarray, float]:
@@ -722,7 +739,7 @@ class BatchFit:
         else:
             x, e = y, np.zeros(y.shape[0])
             if usable:  # the offset of the newest usable segment
-                offset = self.predict(theta, *usable[-1][:3]).offset
+                offset = self.predict(theta, *usable[-1][:3], gradient=False).offset
         return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset)
 
 
@@ -1103,7 +1120,8 @@ class Rpem(RecursiveEstimator):
     # ------------------------------------------------------------- the fits
     def _fit(self) -> bool:
         """Fit the stored samples and continue the recursion from the fit (False: no fit)."""
-        self._next_fit = 2 * self._since_start if 2 * self._since_start <= BATCH_LIMIT else 0
+        later = math.ceil(FIT_GROWTH * self._since_start)
+        self._next_fit = later if later <= BATCH_LIMIT else 0
         rows, breaks = self._stored_rows()
         if self._means is not None:
             rows = rows - self._means.mean
