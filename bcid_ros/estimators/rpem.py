@@ -82,6 +82,8 @@ LAMBDA_RATE = 0.99
 #: A fit excludes the samples whose prediction error exceeds the gate's limit
 #: (robust scale) when they are at most this share of the stored samples.
 OUTLIER_SHARE = 0.05
+#: Samples weighing less than this in a fit (forgetting) are not tested for outliers.
+OUTLIER_WEIGHT = 0.01
 #: Relative loss decrease below which the Gauss-Newton search stops.
 LM_TOLERANCE = 1e-10
 
@@ -383,7 +385,7 @@ class BatchFit:
     # ----------------------------------------------------------- predictor
     def predict(self, theta: np.ndarray, y: np.ndarray, u: np.ndarray, weights: np.ndarray,
                 inputs: np.ndarray | None = None, initial_state: bool = True,
-                gradient: bool = True) -> Prediction:
+                gradient: bool = True, prior: float = INITIAL_PRIOR) -> Prediction:
         """
         Return the :class:`Prediction` of one segment at fixed ``theta``.
 
@@ -392,7 +394,8 @@ class BatchFit:
         to y - w (the initial state estimated, Ljung 1999, sec. 10.1), or 0
         (from rest) without ``initial_state``; before them x = y. For ARMAX
         e = 0 before span and the offset is fitted the same way. Without
-        ``gradient`` psi is left empty (a loss needs only eps).
+        ``gradient`` psi is left empty (a loss needs only eps). ``prior``:
+        the information of the prior on the initial state (INITIAL_PRIOR).
         """
         lfilter = self._signal.lfilter
         n, start = self.order, self.span
@@ -413,7 +416,7 @@ class BatchFit:
             # the normal equations of the nuisance (a few columns), the initial state
             # shrunk by a prior of unit variance (normalised units): see INITIAL_PRIOR
             gram = weighted.T.dot(nuisance)
-            gram[np.arange(n), np.arange(n)] += INITIAL_PRIOR
+            gram[np.arange(n), np.arange(n)] += prior
             fitted = solve_regularised(gram, weighted.T.dot(y[start:] - w[start:]))
             if fitted is not None:
                 # w(span - k) = fitted[k - 1]
@@ -511,14 +514,19 @@ class BatchFit:
 
         The scale is 1.4826 times the median absolute prediction error at
         ``theta`` (the standard deviation for Gaussian errors, robust to the
-        outliers themselves).
+        outliers themselves), over the samples weighing at least
+        OUTLIER_WEIGHT.
         """
         errors, rows = [], []
         first = 0
         for y, u, weights in segments:
             if y.shape[0] > self.span:
-                errors.append(self.predict(theta, y, u, weights, gradient=False).eps)
-                rows.append(np.arange(first + self.span, first + y.shape[0]))
+                # the start-up transient free (no prior): a transient is no outlier
+                eps = self.predict(theta, y, u, weights, gradient=False, prior=0.0).eps
+                # only the samples the fit weighs (forgetting leaves the old ones out)
+                weighed = weights[self.span:] >= OUTLIER_WEIGHT
+                errors.append(eps[weighed])
+                rows.append(np.arange(first + self.span, first + y.shape[0])[weighed])
             first += y.shape[0]
         if not errors:
             return np.zeros(0, dtype=np.intp)
@@ -958,7 +966,7 @@ class Rpem(RecursiveEstimator):
             changes = self._changes
             # z^2 = e^2 / [(J / tau) (s + 1 - lambda)]
             z2 = e * e / ((self._loss / self._tau + VARIANCE_FLOOR ** 2) * (s + 1.0 - lam))
-            self._gating = (phi, psi)
+            self._gating = (phi, psi, y, u)
             accepted = self._gate(z2)
             self._gating = None
             if not accepted:
@@ -1061,10 +1069,13 @@ class Rpem(RecursiveEstimator):
             return
         self._flag(flag)
         self._refused += 1
-        phi, psi = gating
+        phi, psi, y, u = gating
         # y(t) unknown: its prediction in its place, residual 0
         self._advance(float(phi.dot(self._theta_n)), phi, psi)
-        self._break_pending = True
+        if self._armax:
+            self._break_pending = True  # y(t) is a lag of the next samples
+        else:
+            self._store(y, u, excluded=True)  # u(t) drives the simulation on
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the predictor on with theta held: w (or the residual) and psi keep running."""
@@ -1085,8 +1096,13 @@ class Rpem(RecursiveEstimator):
         self._advance(yn, phi, psi)
 
     # ------------------------------------------------------- stored samples
-    def _store(self, y: float, u: np.ndarray) -> None:
-        """Keep the sample (on the raw operating point) for the fits; fit when it is due."""
+    def _store(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
+        """
+        Keep the sample (on the raw operating point) for the fits; fit when it is due.
+
+        An ``excluded`` sample (OE: its output refused) keeps its input in the
+        simulation and weighs 0 in the fits.
+        """
         row = self._buffer[self._buffer_position]
         if self._means is None:
             row[0] = y
@@ -1096,6 +1112,7 @@ class Rpem(RecursiveEstimator):
             row[0] = y + mean[0]
             row[1:] = u + mean[1:]
         self._breaks[self._buffer_position] = self._break_pending
+        self._excluded[self._buffer_position] = excluded
         self._break_pending = False
         self._buffer_position = (self._buffer_position + 1) % BATCH_LIMIT
         self._stored = min(self._stored + 1, BATCH_LIMIT)
@@ -1104,22 +1121,25 @@ class Rpem(RecursiveEstimator):
         if self._since_start == self._next_fit:
             self._fit()
 
-    def _stored_rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """Return the stored samples and their segment starts, oldest first."""
+    def _stored_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the stored samples, their segment starts and exclusions, oldest first."""
         end, count = self._buffer_position, self._stored
         if count < BATCH_LIMIT:
-            return self._buffer[end - count:end], self._breaks[end - count:end]
+            return (self._buffer[end - count:end].copy(), self._breaks[end - count:end].copy(),
+                    self._excluded[end - count:end].copy())
         return (np.concatenate((self._buffer[end:], self._buffer[:end])),
-                np.concatenate((self._breaks[end:], self._breaks[:end])))
+                np.concatenate((self._breaks[end:], self._breaks[:end])),
+                np.concatenate((self._excluded[end:], self._excluded[:end])))
 
-    def _segments(self, rows: np.ndarray, breaks: np.ndarray,
+    def _segments(self, rows: np.ndarray, breaks: np.ndarray, excluded: np.ndarray,
                   scale: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Split the normalised rows into gap-free segments (y, u, weights)."""
         lam = self._forgetting_factor
         count = rows.shape[0]
-        # sample t of T weighs lambda^(T-1-t)
+        # sample t of T weighs lambda^(T-1-t), an excluded one 0
         weights = lam ** np.arange(count - 1, -1, -1, dtype=float) if lam < 1.0 else np.ones(
             count)
+        weights[excluded] = 0.0
         normalised = rows / scale
         starts = [0] + [int(k) for k in np.flatnonzero(breaks) if k > 0] + [count]
         return [(normalised[a:b, 0], normalised[a:b, 1:], weights[a:b])
@@ -1130,7 +1150,7 @@ class Rpem(RecursiveEstimator):
         """Fit the stored samples and continue the recursion from the fit (False: no fit)."""
         later = math.ceil(FIT_GROWTH * self._since_start)
         self._next_fit = later if later <= BATCH_LIMIT else 0
-        rows, breaks = self._stored_rows()
+        rows, breaks, excluded = self._stored_rows()
         if self._means is not None:
             rows = rows - self._means.mean
         scale = self._signal_scale.copy()
@@ -1138,7 +1158,7 @@ class Rpem(RecursiveEstimator):
             size = signal_size(rows[:, channel])
             if size > 0.0:
                 scale[channel] = power_of_two_at_least(size)
-        segments = self._segments(rows, breaks, scale)
+        segments = self._segments(rows, breaks, excluded, scale)
         if self._batch is None:
             self._batch = BatchFit(self.order, self.num_inputs, self.feedthrough,
                                    self.input_delay, self._armax, self._offset)
@@ -1150,8 +1170,9 @@ class Rpem(RecursiveEstimator):
             candidates.append(self._theta_n[:self.num_parameters] * ratio)
         with np.errstate(all='ignore'):
             result = self._batch.fit(segments, candidates, 1.0 / self.initial_covariance)
-            if result is not None and self._exclude_outliers(result.theta, segments, breaks):
-                segments = self._segments(rows, breaks, scale)
+            if result is not None and self._exclude_outliers(result.theta, segments, breaks,
+                                                             excluded):
+                segments = self._segments(rows, breaks, excluded, scale)
                 result = self._batch.fit(segments, [result.theta],
                                          1.0 / self.initial_covariance)
         if result is None or not self._take_fit(result, segments, scale):
@@ -1159,12 +1180,15 @@ class Rpem(RecursiveEstimator):
         self._fits += 1
         return True
 
-    def _exclude_outliers(self, theta: np.ndarray, segments: list, breaks: np.ndarray) -> bool:
+    def _exclude_outliers(self, theta: np.ndarray, segments: list, breaks: np.ndarray,
+                          excluded: np.ndarray) -> bool:
         """
-        Cut the samples that the gate would refuse at theta out of the stored segments.
+        Take the samples that the gate would refuse at theta out of the fits.
 
-        Each such sample becomes a segment of its own (a break before and
-        after it), in ``breaks`` and in the store, so that no fit uses it
+        OE: each such sample weighs 0 from then on (its output enters nothing
+        else); ARMAX: it becomes a segment of its own (a break before and
+        after it: its output is a lag of the next ones). Marked in
+        ``breaks`` / ``excluded`` and in the store, so that no fit uses it
         again (flag ``outlier_excluded`` per sample); False if there are none
         or more than OUTLIER_SHARE of the samples (then it is the model, not
         outliers).
@@ -1178,6 +1202,11 @@ class Rpem(RecursiveEstimator):
             return False
         first = self._buffer_position - count
         for row in bad:
+            self._flag('outlier_excluded')
+            if not self._armax:
+                excluded[row] = True
+                self._excluded[(first + row) % BATCH_LIMIT] = True
+                continue
             breaks[row] = True
             self._breaks[(first + row) % BATCH_LIMIT] = True
             if row + 1 < count:
@@ -1185,7 +1214,6 @@ class Rpem(RecursiveEstimator):
                 self._breaks[(first + row + 1) % BATCH_LIMIT] = True
             else:
                 self._break_pending = True
-            self._flag('outlier_excluded')
         return True
 
     def _take_fit(self, result: FitResult, segments: list, scale: np.ndarray) -> bool:
@@ -1400,6 +1428,7 @@ class Rpem(RecursiveEstimator):
         self._trace_limit = self.initial_covariance * size
         self._buffer = np.zeros((BATCH_LIMIT, 1 + self.num_inputs))
         self._breaks = np.zeros(BATCH_LIMIT, dtype=bool)
+        self._excluded = np.zeros(BATCH_LIMIT, dtype=bool)
         self._buffer_position = 0
         self._stored = 0
         self._since_start = 0
@@ -1423,15 +1452,16 @@ class Rpem(RecursiveEstimator):
         self._last_check = 0
         self._restart_note = ''
         self._reasons: tuple[str, ...] = ()
-        # (phi, psi) of the step whose sample the gate is testing
-        self._gating: tuple[np.ndarray, np.ndarray] | None = None
+        # (phi, psi, y, u) of the step whose sample the gate is testing
+        self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
 
     def _restart_regressor(self) -> None:
         self._history.clear()
         self._psi_history[:] = 0.0
         self._break_pending = True
 
-    _ARRAYS = ('theta_n', 'p', 'psi_history', 'arx', 'signal_scale', 'buffer', 'breaks')
+    _ARRAYS = ('theta_n', 'p', 'psi_history', 'arx', 'signal_scale', 'buffer', 'breaks',
+               'excluded')
     _SCALARS = ('buffer_position', 'stored', 'since_start', 'next_fit', 'break_pending',
                 'fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t',
                 'sigma2_fit', 'recent', 'changes', 'undone_in_row', 'projected_in_row',
