@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy import signal
+from scipy import signal, stats
 
 from bcid_ros import persistence
 from bcid_ros.estimators import make_estimator
@@ -82,10 +82,11 @@ def test_armax_recovers_a_b_c_and_its_std_is_calibrated():
     spread = estimates.std(axis=0, ddof=1)
     # bias within 4 Monte Carlo standard errors of the mean
     assert (np.abs(estimates.mean(axis=0) - truth) < 4 * spread / np.sqrt(8)).all()
-    # the mean reported std against the spread of 8 runs: the sample std of 8 runs is
-    # within a factor (1 -+ 3 / sqrt(2 * 7)) of the true one with probability > 0.99
+    # the mean reported std against the spread of 8 runs: 7 s^2 / sigma^2 is chi2(7), so a
+    # calibrated std lies within these bounds of the spread with probability 0.999 each
+    low, high = np.sqrt(stats.chi2.ppf([0.0005, 0.9995], 7) / 7)
     ratio = np.mean(stds, axis=0) / spread
-    assert ((ratio > 1 - 3 / np.sqrt(14)) & (ratio < 1 / (1 - 3 / np.sqrt(14)))).all()
+    assert ((ratio > 1 / high) & (ratio < 1 / low)).all()
 
 
 def test_miso_with_per_input_delays_and_their_names():
