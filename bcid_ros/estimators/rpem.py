@@ -2,16 +2,16 @@
 RPEM: the recursive prediction-error method for output-error and ARMAX models.
 
 Ljung and Söderström (1983), *Theory and Practice of Recursive
-Identification* (L&S below), sec. 3.7 (the recursive prediction-error
-algorithm, eqs. 3.127-3.130 in its Gauss-Newton form) and sec. 3.8 (the
-special cases: the output-error model, eqs. 3.144-3.146, and ARMAX, the
-recursive maximum-likelihood method); Ljung, *System Identification*, 2nd ed.
-(1999), sec. 11.3 (the recursive Gauss-Newton algorithm, eqs. 11.50-11.52),
-sec. 11.7 (projection into the stability region) and sec. 10.1/10.2 (the
-batch Gauss-Newton / Levenberg-Marquardt search and its instrumental-variable
-start, Steiglitz-McBride). What MATLAB's ``recursiveOE`` and
-``recursiveARMAX`` run, with a batch-refined start and the safeguards a real
-plant needs (docs/estimators.md, "RPEM").
+Identification* (L&S below): the recursive prediction-error algorithm in its
+Gauss-Newton form, with the output-error predictor and the recursive
+maximum-likelihood (ARMAX) one, and the projection into the stability region
+D_M; Ljung, *System Identification*, 2nd ed. (1999), ch. 11 (sec. 11.4, the
+recursive prediction-error method) and ch. 10 (sec. 10.2, the batch
+Gauss-Newton search, here started by instrumental-variable, Steiglitz-McBride,
+iterations). What MATLAB's ``recursiveOE`` and ``recursiveARMAX`` run, with a
+batch-refined start and the safeguards a real plant needs (docs/estimators.md,
+"RPEM"). Equation numbers are not given: the books were not at hand to check
+them.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ INITIAL_PRIOR = 10.0
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
 #: Largest pole (and, for ARMAX, zero of C) radius of an estimate: the
-#: stability region D_M of L&S sec. 3.7 (F, or A and C, kept inside it).
+#: stability region D_M of L&S (F, or A and C, kept inside it).
 STABILITY_RADIUS = 0.999
 #: Step halvings tried before a step that leaves D_M is not taken at all.
 HALVINGS = 8
@@ -319,7 +319,7 @@ class BatchFit:
     Batch prediction-error fit of the OE or ARMAX model over stored segments (normalised).
 
     The same predictor as the recursion with the parameters held fixed
-    (Ljung 1999, sec. 10.2): per segment, the first ``span`` samples fill the
+    (Ljung 1999, ch. 10): per segment, the first ``span`` samples fill the
     lags, then
 
     * OE: :math:`w = \sum_i B_i u_i / F` plus the free response of F from a
@@ -391,7 +391,7 @@ class BatchFit:
 
         For OE the initial lags w(span-1) ... w(span-n) (and the offset) are
         the weighted least-squares fit of the free response (and a constant)
-        to y - w (the initial state estimated, Ljung 1999, sec. 10.1), or 0
+        to y - w (the initial state estimated, as Ljung 1999, ch. 10, allows), or 0
         (from rest) without ``initial_state``; before them x = y. For ARMAX
         e = 0 before span and the offset is fitted the same way. Without
         ``gradient`` psi is left empty (a loss needs only eps). ``prior``:
@@ -681,7 +681,7 @@ class BatchFit:
         Refine theta by Gauss-Newton steps that keep it stable and lower the loss.
 
         Each iteration tries the Gauss-Newton step halved up to ``HALVINGS``
-        times (Ljung 1999, eq. 10.40 with a line search), then, if none is
+        times (Ljung 1999, sec. 10.2, with a line search), then, if none is
         accepted, Levenberg-Marquardt steps (H + mu diag H) with mu growing
         tenfold; it stops when no step lowers the loss by LM_TOLERANCE. The
         plain direction matters: the valley of an oversampled plant is
@@ -783,14 +783,14 @@ class Rpem(RecursiveEstimator):
     * ``'oe'``: :math:`y(t) = \sum_i B_i(q)/F(q)\,u_i(t) + v(t)`, v of any
       colour. Predictor: the simulated output :math:`w(t) = \varphi^T(t)\theta`,
       :math:`\varphi(t) = [-w(t-1) \dots -w(t-n), u_i(t-d_i-1) \dots]`
-      (L&S eqs. 3.144-3.146); gradient filter :math:`D = F`.
+      (L&S, the output-error model); gradient filter :math:`D = F`.
     * ``'armax'``: :math:`A(q)y(t) = \sum_i B_i(q)u_i(t) + C(q)e(t)`, e
       white. :math:`\varphi(t) = [-y(t-1) \dots, u_i(t-d_i-1) \dots,
       \bar\varepsilon(t-1) \dots \bar\varepsilon(t-n)]` (the recursive ML
-      method, L&S sec. 3.8); gradient filter :math:`D = C`.
+      method of L&S); gradient filter :math:`D = C`.
 
-    **The recursion** (L&S eqs. 3.127-3.130, Gauss-Newton direction; Ljung
-    1999, eqs. 11.50-11.52), in normalised units:
+    **The recursion** (L&S, the Gauss-Newton direction; Ljung 1999, sec.
+    11.4), in normalised units:
 
     .. math::
 
@@ -800,16 +800,16 @@ class Rpem(RecursiveEstimator):
             && \psi = \varphi / D(q) \\
         s(t) &= \lambda(t) + \psi^T(t)P(t-1)\psi(t) \\
         \hat\theta(t) &= \big[\hat\theta(t-1) + \mu\,P(t-1)\psi(t)\,\varepsilon(t)/s(t)
-            \big]_{D_M} && \text{(3.127b)} \\
+            \big]_{D_M} && \text{(projected step)} \\
         P(t) &= \frac{1}{\lambda(t)}\Big[P(t-1) - \frac{P(t-1)\psi(t)\psi^T(t)P(t-1)}{s(t)}
-            \Big] && \text{(3.127c)} \\
+            \Big] && \text{(Gauss-Newton P)} \\
         w(t) &= \varphi^T(t)\hat\theta(t) \ \text{(OE)}, \qquad
             \bar\varepsilon(t) = y(t) - \varphi^T(t)\hat\theta(t) \ \text{(ARMAX)} \\
         J(t) &= \lambda J(t-1) + \lambda\varepsilon^2(t)/s(t), \qquad
             \tau(t) = \lambda\tau(t-1) + 1
 
-    :math:`[\cdot]_{D_M}`: the projection into the stability region (L&S sec.
-    3.7; Ljung 1999, sec. 11.7): :math:`\mu` = 1, 1/2, ... (``HALVINGS``
+    :math:`[\cdot]_{D_M}`: the projection into the stability region (L&S;
+    Ljung 1999, ch. 11): :math:`\mu` = 1, 1/2, ... (``HALVINGS``
     times) until every root of F (ARMAX: of A and C) lies within
     ``STABILITY_RADIUS``; if none does, :math:`\hat\theta(t) = \hat\theta(t-1)`
     (flag ``stability_projection``). So no estimate, published or internal,
@@ -823,11 +823,12 @@ class Rpem(RecursiveEstimator):
     psi and drifts away (docs/estimators.md, "RPEM", measured), so the
     recursion never starts cold. The samples are stored; after
     ``max(FIRST_FIT_SAMPLES, FIRST_FIT_PER_PARAMETER p)`` of them, and again
-    each time their count doubles up to ``BATCH_LIMIT``, :class:`BatchFit`
-    fits the model to all stored samples (ARX least squares, Steiglitz-McBride
-    or extended LS iterations, then Levenberg-Marquardt on the prediction
-    error; the current estimate is a candidate, so a fit never has a worse
-    loss than it) and the recursion continues from it with
+    each time their count has grown by ``FIT_GROWTH`` up to ``BATCH_LIMIT``,
+    :class:`BatchFit` fits the model to all stored samples (ARX least
+    squares and Steiglitz-McBride or extended LS iterations, the current
+    estimate too, then Gauss-Newton on the prediction error with the start-up
+    transient and the offset fitted at every step; samples the gate would
+    refuse are then excluded) and the recursion continues from it with
     :math:`P = (\sum_t w_t\psi\psi^T + I/p_0)^{-1}`, its :math:`J`,
     :math:`\tau`, w and psi: what the recursion would hold had it run over the
     same samples at that estimate. Beyond ``BATCH_LIMIT`` samples it is the
@@ -836,19 +837,24 @@ class Rpem(RecursiveEstimator):
     With forgetting, sample t weighs :math:`\lambda^{T-t}` in a fit.
 
     **Units.** Each fit takes per channel (y, each u_i) the smallest power of
-    two at or above the RMS of the stored samples as its scale, and the
-    recursion runs on the scaled signals: the estimates do not depend on the
-    units of y and u (bit for bit for power-of-two units), and
-    ``initial_covariance`` p0 is the prior variance of the parameters of
-    signals of unit RMS (the fits add :math:`I/p_0` to the information).
-    With ``detrend: mean`` a fit re-centres the stored samples on the
-    current means.
+    two at or above a robust size of the stored samples
+    (:func:`signal_size`) as its scale, and the recursion runs on the scaled
+    signals: the estimates do not depend on the units of y and u (bit for
+    bit for power-of-two units), and ``initial_covariance`` p0 is the prior
+    variance of the parameters of signals of unit size (the fits add
+    :math:`I/p_0` to the information).
+
+    **Offset** (``detrend: mean``). A fit re-centres the stored samples on
+    the current means; the model carries an offset c, the last internal
+    parameter (OE: y - m_y = G (u - m_u) + c + v; ARMAX: an equation offset
+    d, c = d / A(1)), regressed on a constant 1 in phi, not published;
+    :attr:`operating_point` is (m_y + c, m_u).
 
     **Annealed forgetting.** After each fit :math:`\lambda(t)` starts at
     :math:`\min(\lambda, \text{LAMBDA\_START})` and tends to the user's
     :math:`\lambda` by :math:`\lambda(t) \leftarrow \lambda - \text{LAMBDA\_RATE}
-    (\lambda - \lambda(t-1))` (L&S sec. 5.6). Measured after a batch start it
-    only loses information, so LAMBDA_START = 1 (off).
+    (\lambda - \lambda(t-1))` (the forgetting profile of L&S). Measured after a
+    batch start it only loses information, so LAMBDA_START = 1 (off).
 
     **Safeguards**, each counted in :attr:`flags`:
 
@@ -857,9 +863,10 @@ class Rpem(RecursiveEstimator):
       restarts);
     * the gate: :math:`z^2 = \varepsilon^2/[(J/\tau)(s + 1 - \lambda)]`
       goes to the base class's gate once :math:`\tau \ge` ``GATE_WARMUP`` p;
-      a plant change cuts the memory to ``CHANGE_MEMORY`` p (as
-      :class:`~bcid_ros.estimators.rls.Rls`) and restarts the fit schedule
-      on the samples after the change;
+      a refused sample keeps the predictor running with its prediction in
+      place of y (OE: it is stored with weight 0); a plant change cuts the
+      memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
+      and restarts the fit schedule on the samples after the change;
     * restart (``restarted``, and a validity reason until the next check):
       a new fit of the stored samples when ``PROJECTION_RESTART`` steps in a
       row left D_M, when ``UNDONE_RESTART`` steps in a row were undone, or
@@ -1029,7 +1036,7 @@ class Rpem(RecursiveEstimator):
         self._projected_since_check += 1
 
     def _commit_covariance(self, g: np.ndarray, s: float, lam: float) -> None:
-        """Apply P(t) = [P - g g' / s] / lambda in place (3.127c), without winding up."""
+        """Apply P(t) = [P - g g' / s] / lambda in place, without winding up."""
         # h = g / sqrt(s); P <- P - h h'   (BLAS rank-1 update of the C-ordered P in place)
         h = g * (1.0 / math.sqrt(s))
         self._p = self._blas['dger'](-1.0, h, h, 1, 1, self._p.T, 0, 0, 1).T
@@ -1356,7 +1363,7 @@ class Rpem(RecursiveEstimator):
 
         The Gauss-Newton P is the inverse of the weighted information
         :math:`\sum w_t\psi\psi^T`, so this is the asymptotic PEM covariance
-        (Ljung 1999, eq. 9.18) with the effective-sample-size correction of
+        (Ljung 1999, sec. 9.3) with the effective-sample-size correction of
         forgetting (:func:`~bcid_ros.estimators.base.weighted_square_ratio`)
         and :math:`\hat\sigma^2 = J/(\tau - p\,\tau_2/\tau)`. It assumes
         white prediction errors: right for ARMAX, and for OE only when v is
