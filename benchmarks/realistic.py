@@ -46,7 +46,8 @@ from bcid_ros.analysis.pem import fit_arx, fit_oe, Structure
 from bcid_ros.analysis.realistic import realistic_family, RealisticCase
 from bcid_ros.estimators import ESTIMATORS, make_estimator
 from bcid_ros.estimators.registry import names_where
-from bcid_ros.reproduction.common import markdown_table, relative_error
+from bcid_ros.markdown import markdown_table
+from bcid_ros.reproduction.common import relative_error
 
 #: delta at or below this counts as accurate whatever delta_ref is.
 ACCURATE_FLOOR = 0.01

@@ -11,7 +11,8 @@ file builds the same estimator online and offline:
 >>> estimator = estimator_from_parameters(values)
 
 The estimator-specific options (docs/nodes.md: ``iv_lag``, ... for
-``bciv``; ``controller_numerator``, ... for ``cl_bcls``) default to
+``bciv``; ``controller_numerator``, ... for ``cl_bcls``; ``model`` for
+``rpem``) default to
 ``None``, which means "the estimator class's own default": they are only
 passed to the constructor when set, and the constructor validates them.
 """
