@@ -164,8 +164,9 @@ def test_play_into_identifier_equals_offline_replay(estimator, bag_name, message
     # The contract is 1e-12; what we get (and README.md promises) is bit-identical.
     np.testing.assert_allclose(received[-1], offline.theta, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(received[-1], offline.theta)
-    # ~/valid at the end is the replay's valid (and so its JSON's).
-    assert offline.valid and valid[-1] is True and offline.summary()['valid'] is True
+    # ~/valid at the end is the replay's valid (and so its JSON's): true for bcrls; rls is
+    # biased on Ding's output-error data, and its residual tests say so
+    assert offline.valid == valid[-1] == offline.summary()['valid'] == (estimator != 'rls')
     assert offline.summary()['flags'] == offline.flags
 
 

@@ -268,8 +268,10 @@ def test_a_missing_joint_and_a_nan_touch_only_their_joint(executor, ros_context)
     with_nan = y.copy()
     with_nan[300, 1] = np.nan
     present = np.arange(600) % 40 != 0
+    singles = {}
     for k in range(len(JOINTS)):
         single, _ = single_plant(with_nan, u, k, present if k == 2 else None)
+        singles[JOINTS[k]] = single
         assert_joint_follows_its_single_plant({'final theta': estimator.theta[k]}, with_nan, u, k,
                                               present if k == 2 else None)
         assert estimator.samples[k] == single.estimator.samples
@@ -297,7 +299,9 @@ def test_a_missing_joint_and_a_nan_touch_only_their_joint(executor, ros_context)
             # an estimator flag of the start-up may warn, never what happened elsewhere
             assert 'missing' not in status.message and 'NaN' not in status.message
             assert status.level != b'\x02', status.message
-            assert values['valid'] == 'true' and values['samples used'] == '600'
+            # valid as the joint's own single-plant run (its residual tests need their window)
+            assert values['valid'] == str(singles[joint].estimator.valid).lower()
+            assert values['samples used'] == '600'
             assert 'missing from the message' not in values  # a counter shows once not zero
 
 

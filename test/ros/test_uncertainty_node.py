@@ -23,6 +23,8 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 from bcid_ros.bag.reader import BagReader  # noqa: E402
 from bcid_ros.bag.replay import replay, SAMPLES_TOPIC  # noqa: E402
 from bcid_ros.bag.simulate import simulate_bag  # noqa: E402
+from bcid_ros.estimators.lagged import BLOCK as HAC_BLOCK  # noqa: E402
+from bcid_ros.estimators.rules import GATE_WARMUP  # noqa: E402
 from bcid_ros.identifier.layouts import decode_samples  # noqa: E402
 from bcid_ros.identifier.parameters import load_yaml_parameters  # noqa: E402
 from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS  # noqa: E402
@@ -84,7 +86,9 @@ def test_node_publishes_std_and_covariance_equal_to_replay(estimator, ros_contex
     np.testing.assert_array_equal(matrix, matrix.T)
     np.testing.assert_array_equal(np.array(std.data), np.sqrt(np.diag(matrix)))
     # published with every estimate, and the last one is the replay's, bit for bit
-    first = {'rls': 7, 'bcrls': 64}[estimator]  # the first update with a covariance
+    # the first update with a covariance: rls's HAC after a block of scores recorded from
+    # the gate's warm-up (10 p updates) on; bcrls's sandwich after its first moment block
+    first = {'rls': GATE_WARMUP * 6 + HAC_BLOCK - 1, 'bcrls': 64}[estimator]
     assert len(received['parameters']) == published == SAMPLES - 2 - 6 + 1
     assert len(received['parameter_std']) == published - (first - 6)
     np.testing.assert_array_equal(np.array(received['parameters'][-1].data), offline.theta)
