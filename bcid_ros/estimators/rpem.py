@@ -24,7 +24,11 @@ import numpy as np
 from bcid_ros.estimators.base import (power_of_two_at_least, RecursiveEstimator,
                                       weighted_square_ratio)
 from bcid_ros.estimators.lti import is_stable
-from bcid_ros.estimators.rls import load_blas, repair_covariance
+from bcid_ros.estimators import rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor
+from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.rls import (HEALTH_CHECK_PERIOD, load_blas, repair_covariance,
+                                     residual_items, residual_reasons, residual_states)
 
 #: Information (normalised units) of the prior that shrinks the OE initial state of a
 #: fit towards 0: where a slow pole makes the start-up transient a near constant over a
@@ -52,14 +56,6 @@ BATCH_LIMIT = 8192
 IV_ITERATIONS = 8
 #: Gauss-Newton (or Levenberg-Marquardt) iterations of a fit.
 LM_ITERATIONS = 20
-#: The gate tests samples once tau >= GATE_WARMUP * p (J / tau is then a variance).
-GATE_WARMUP = 10
-#: A detected plant change cuts the weighted memory tau to this many times p.
-CHANGE_MEMORY = 4
-#: Validity and drift are re-evaluated every this many updates.
-VALIDITY_PERIOD = 100
-#: How often (in updates) P is checked by a Cholesky factorisation.
-HEALTH_CHECK_PERIOD = 1000
 #: Steps in a row that the stability projection refuses before the estimator restarts.
 PROJECTION_RESTART = 50
 #: Share of the steps of a validity period refused by the projection beyond which
@@ -862,7 +858,7 @@ class Rpem(RecursiveEstimator):
       non-finite error is not taken (``update_undone``; the regressor
       restarts);
     * the gate: :math:`z^2 = \varepsilon^2/[(J/\tau)(s + 1 - \lambda)]`
-      goes to the base class's gate once :math:`\tau \ge` ``GATE_WARMUP`` p;
+      goes to the rulebook's gate once :math:`\tau \ge` ``GATE_WARMUP`` p;
       a refused sample keeps the predictor running with its prediction in
       place of y (OE: it is stored with weight 0); a plant change cuts the
       memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
@@ -902,14 +898,15 @@ class Rpem(RecursiveEstimator):
 
     name = 'rpem'
     noise_names = ('sigma2',)
-    #: Extra constructor keywords (ROS parameter names) beyond the base ones.
-    options: tuple[str, ...] = ('model',)
 
     def __init__(self, *, model: str = 'oe', **settings: Any) -> None:
         if model not in MODELS:
             raise ValueError(f"model must be 'oe' or 'armax', got {model!r}")
         self.model = model
         self._armax = model == 'armax'
+        # the residual tests: an OE model's output error may be coloured (only its
+        # correlation with past inputs contradicts the model); ARMAX's innovation is white
+        self.adequacy_model = model
         self._blas = load_blas()
         super().__init__(**settings)
         n, r = self.order, self.num_inputs
@@ -997,6 +994,10 @@ class Rpem(RecursiveEstimator):
             self._forgetting_factor - lam)
         self._updates += 1
         self._store(y, u)
+        if self._tau >= self._gate_from and not self._quiet_left:
+            # the residual tests take the prediction error; the HAC its score psi e
+            self._monitor.record(e, u)
+            self._hac.record_product(psi, e)
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
         if self._updates >= self._next_check:
@@ -1259,13 +1260,16 @@ class Rpem(RecursiveEstimator):
         self._flag('restarted')
         self._restart_note = reason
         self._projected_in_row = 0
+        # the residuals so far are of the model that drifted
+        self._forget_residuals()
         self._fit()
         self._recent = max(self._recent, self._sigma2_fit)
 
     def _accept_change(self) -> None:
-        """Cut the memory to CHANGE_MEMORY p samples and restart the fits after the change."""
+        """Cut the memory (rules.memory_keep) and restart the fits after the change."""
         self._changes += 1
-        keep = CHANGE_MEMORY * self.num_parameters / self._tau if self._tau > 0 else 1.0
+        self._forget_residuals()
+        keep = rules.memory_keep(self._tau, self.num_parameters)
         if keep < 1.0:
             # one extra forgetting step: P / kappa, kappa J, kappa tau
             self._p *= 1.0 / keep
@@ -1294,7 +1298,7 @@ class Rpem(RecursiveEstimator):
         """Re-evaluate drift and the validity reasons (every VALIDITY_PERIOD updates)."""
         steps = self._updates - self._last_check
         self._last_check = self._updates
-        self._next_check = self._updates + VALIDITY_PERIOD
+        self._next_check = self._updates + rules.VALIDITY_PERIOD
         reasons = []
         if self._projected_in_row >= PROJECTION_RESTART:
             self._restart(f'stability projection refused {self._projected_in_row} steps '
@@ -1310,7 +1314,7 @@ class Rpem(RecursiveEstimator):
         if steps > 0 and projected > PROJECTION_SHARE * steps:
             reasons.append(f'stability projection active ({projected} of the last {steps} '
                            f'updates)')
-        self._reasons = tuple(reasons)
+        self._reasons = tuple(reasons + residual_reasons(self._monitor))
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -1359,27 +1363,36 @@ class Rpem(RecursiveEstimator):
 
     def _parameter_covariance(self) -> np.ndarray | None:
         r"""
-        Return :math:`\hat\sigma^2 P \tau_2/\tau` in the units of theta (None before ready).
+        Return the HAC covariance of the estimate in the units of theta (None before ready).
 
-        The Gauss-Newton P is the inverse of the weighted information
-        :math:`\sum w_t\psi\psi^T`, so this is the asymptotic PEM covariance
-        (Ljung 1999, sec. 9.3) with the effective-sample-size correction of
-        forgetting (:func:`~bcid_ros.estimators.base.weighted_square_ratio`)
-        and :math:`\hat\sigma^2 = J/(\tau - p\,\tau_2/\tau)`. It assumes
-        white prediction errors: right for ARMAX, and for OE only when v is
-        white (a coloured v makes it too small; docs/estimators.md).
+        The recursion's P is the inverse of the weighted information
+        :math:`\sum w_t\psi_t\psi_t^T`, and the estimate moves by
+        :math:`P\sum_t w_t\psi_t\varepsilon_t`, so its covariance is
+        :math:`P\,\mathrm{var}(\sum_t w_t\psi_t\varepsilon_t)\,P` (Ljung 1999,
+        sec. 9.3, without assuming white prediction errors). The middle is
+        :math:`\tau_2\hat\Omega`, with :math:`\hat\Omega` the long-run covariance
+        per unit weight of the scores :math:`\psi_t\varepsilon_t` that
+        :class:`~bcid_ros.estimators.hac.HacCovariance` estimates from the scores
+        since the gate's warm-up (prewhitened, windowed), and :math:`\tau_2` that of
+        every sample the estimate learnt from (the batch fits' included), with the
+        small-sample factor T/(T - p). Calibrated whether the output error of an
+        OE model is white or coloured (docs/trust.md).
         """
         tau = self._tau
-        p = self.num_parameters
         if not self.ready or not tau > 0.0:
             return None
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
-        dof = tau - p * ratio
-        if not dof > 0.0:
+        long_run = self._hac.long_run(transform=self._p)
+        if long_run is None:
             return None
-        variance = self._loss / dof * ratio * self._signal_scale[0] ** 2
-        unscale = self._unscale / self._signal_scale[0]
-        return variance * self._p[:p, :p] * np.outer(unscale, unscale)
+        p = self.num_parameters
+        tau2 = tau * weighted_square_ratio(tau, self._forgetting_factor)
+        size = tau * tau / tau2
+        if not size > self._size:
+            return None
+        covariance = long_run[:p, :p] * (tau2 * size / (size - self._size))
+        # normalised units to theta's: theta_k s_y / s_channel(k)
+        unscale = self._unscale
+        return 0.5 * (covariance + covariance.T) * np.outer(unscale, unscale)
 
     def _theta(self) -> np.ndarray:
         return self._theta_n[:self.num_parameters] * self._unscale
@@ -1450,17 +1463,25 @@ class Rpem(RecursiveEstimator):
         self._lambda_t = self._forgetting_factor
         self._sigma2_fit = 0.0
         self._recent = 0.0
-        self._gate_from = GATE_WARMUP * p
+        self._gate_from = rules.GATE_WARMUP * p
         self._changes = 0
         self._undone_in_row = 0
         self._projected_in_row = 0
         self._projected_since_check = 0
-        self._next_check = VALIDITY_PERIOD
+        self._next_check = rules.VALIDITY_PERIOD
         self._last_check = 0
         self._restart_note = ''
         self._reasons: tuple[str, ...] = ()
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
+        self._forget_residuals()
+
+    def _forget_residuals(self) -> None:
+        """Start the residual tests and the HAC afresh (at a reset and at a plant change)."""
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor)
+        self._hac = HacCovariance(dimension=self._size,
+                                  forgetting_factor=self._forgetting_factor)
 
     def _restart_regressor(self) -> None:
         self._history.clear()
@@ -1481,7 +1502,9 @@ class Rpem(RecursiveEstimator):
         scalars = {name: getattr(self, '_' + name) for name in self._SCALARS}
         scalars.update(filled=self._history.filled, position=self._history.position,
                        reasons=list(self._reasons))
-        return arrays, scalars
+        residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
+                                                           self._hac.get_state())
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         for name in self._ARRAYS:
@@ -1498,3 +1521,6 @@ class Rpem(RecursiveEstimator):
             setattr(self, '_' + name, kinds.get(name, int)(scalars[name]))
         self._reasons = tuple(scalars['reasons'])
         self._set_scale_dependents()
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.set_state(monitor)
+        self._hac.set_state(hac)
