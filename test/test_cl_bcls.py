@@ -14,7 +14,7 @@ from bcid_ros.parameters import (check_identifier_parameters, estimator_from_par
                                  load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
-from equivalence import assert_paths_agree, assert_within, EPS, two_path_spread
+from equivalence import assert_paths_agree, two_path_spread
 from test_lti import random_stable_polynomial
 
 PAPER = IkedaClosedLoop()
