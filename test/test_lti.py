@@ -119,8 +119,8 @@ def test_stein_solver_equals_the_direct_kronecker_solve():
         def direct(a, b, c):
             # vec(A X B) = (B' kron A) vec(X), column-major vec
             lhs = np.eye(rows * cols) - np.kron(b.T, a)
-            return {'x': np.linalg.solve(lhs, c.flatten(order='F')).reshape((rows, cols),
-                                                                           order='F')}
+            x = np.linalg.solve(lhs, c.flatten(order='F'))
+            return {'x': x.reshape((rows, cols), order='F')}
 
         def ours(a, b, c):
             return {'x': lti.solve_stein(a, b, c)}
