@@ -300,8 +300,13 @@ def test_the_excitation_ratio_does_not_depend_on_the_sign_convention_or_units():
 
     # the scaled run rounds its data and sums (a_c u + b_c y cancels the noise) its own
     # way: within the rounding spreads of both runs (test/equivalence.py)
-    assert_paths_agree(scaled(y, u), ratio(y, u), two_path_spread(scaled, ratio, y, u),
-                       y.shape[0], 'excitation ratio')
+    spread = two_path_spread(scaled, ratio, y, u)
+    assert_paths_agree(scaled(y, u), ratio(y, u), spread, y.shape[0], 'excitation ratio')
+    # one output moved by a ten-thousandth of its value in the scaled run: the bound sees it
+    changed = y.copy()
+    changed[1500] *= 1.0 + 1e-4
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(scaled(changed, u), ratio(y, u), spread, y.shape[0])
 
 
 # False-alarm check: 10 seeds of the paper's loop at 6000 samples. Over 10 seeds at 20,000
