@@ -32,9 +32,6 @@ from bcid_ros.nodes.interface import JOINT_STATES
 #: letters, digits and underscores, not starting with a digit, as ROS requires.
 JOINT_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
 
-#: The estimators that have a batched form (``bcid_ros.estimators.batched``).
-JOINT_ESTIMATORS = ('rls', 'bcrls')
-
 
 def check_joint_names(joints: Sequence[Any], parameter: str = 'joints') -> tuple[str, ...]:
     """
@@ -321,7 +318,7 @@ def joint_feeder_from_parameters(values: dict[str, Any]) -> JointFeeder:
         If the estimator has no batched form (named in the message).
 
     """
-    from bcid_ros.estimators.batched import make_batched_estimator
+    from bcid_ros.estimators import make_batched_estimator
 
     joints = check_joint_names(values['joints'])
     estimator = make_batched_estimator(
@@ -332,5 +329,5 @@ def joint_feeder_from_parameters(values: dict[str, Any]) -> JointFeeder:
                        values['excitation_window'], values['publish_period'])
 
 
-__all__ = ['JOINT_ESTIMATORS', 'JOINT_NAME', 'JOINT_STATES', 'JointFeedResult', 'JointFeeder',
+__all__ = ['JOINT_NAME', 'JOINT_STATES', 'JointFeedResult', 'JointFeeder',
            'check_joint_names', 'joint_feeder_from_parameters', 'joint_topic']

@@ -18,19 +18,16 @@ passed to the constructor when set, and the constructor validates them.
 
 from __future__ import annotations
 
-import dataclasses
 import inspect
-import math
-from pathlib import Path
 from typing import Any
 
-from bcid_ros.estimators import estimator_class, ESTIMATORS, RecursiveEstimator
+from bcid_ros.estimators import RecursiveEstimator
+from bcid_ros.estimators.registry import (entry, ESTIMATOR_NAMES, estimator_class, INPUT_MODES,
+                                          names_where, option_specs)
 from bcid_ros.nodes.interface import check_input_width, INPUT_TYPES, MESSAGE_TYPES, OUTPUT_TYPES
+from bcid_ros.parameter_spec import (check_parameters, load_yaml_parameters, markdown_table,
+                                     parameter as _p, ParameterSpec, spec_by_name)
 from bcid_ros.simulation import SCENARIOS
-
-#: Parameter types, named as the ROS parameter types they become.
-TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array',
-         'integer_array')
 
 #: The keyword arguments of every estimator's base constructor.
 BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
@@ -40,141 +37,11 @@ BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
 OUTPUT_FIELD_DEFAULTS = {'combined': 'position', 'separate': 'position',
                          'joint_state': 'velocity'}
 
-#: Parameters every ROS node has; accepted in parameter files and ignored here.
-ROS_BUILTIN = ('use_sim_time', 'start_type_description_service')
-
-
-@dataclasses.dataclass(frozen=True)
-class ParameterSpec:
-    """
-    One node parameter: its type, default and allowed values.
-
-    Attributes
-    ----------
-    name : str
-        The ROS parameter name.
-    type : str
-        One of :data:`TYPES`.
-    default : object
-        The default value; ``None`` means not set (the estimator's default).
-    description : str
-        One sentence for ``ros2 param describe`` and the docs.
-    choices : tuple of str
-        Allowed values of a string parameter (empty: any string).
-    low, high : float or None
-        Inclusive range of a number (or of every element of a double array).
-    low_open : bool
-        Whether ``low`` itself is excluded.
-    read_only : bool
-        Whether the parameter is fixed after start-up.
-
-    """
-
-    name: str
-    type: str
-    default: Any
-    description: str
-    choices: tuple[str, ...] = ()
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    read_only: bool = True
-
-    def allowed(self) -> str:
-        """Return the allowed values in words, for messages and descriptors."""
-        if self.choices:
-            return 'one of ' + ', '.join(repr(c) for c in self.choices)
-        if self.type == 'bool':
-            return 'true or false'
-        if self.low is not None or self.high is not None:
-            low = '-inf' if self.low is None else f'{self.low:g}'
-            high = 'inf' if self.high is None else f'{self.high:g}'
-            bracket = '(' if self.low_open else '['
-            kind = {'integer': 'an integer', 'double': 'a number',
-                    'double_array': 'a list of numbers',
-                    'integer_array': 'a list of integers'}.get(self.type, self.type)
-            each = ' each' if self.type.endswith('_array') else ''
-            return f'{kind}{each} in {bracket}{low}, {high}]'
-        return {'integer': 'an integer', 'double': 'a finite number',
-                'double_array': 'a list of numbers', 'string_array': 'a list of strings',
-                'string': 'a string'}[self.type]
-
-    def check(self, value: Any) -> Any:
-        """
-        Return ``value`` converted to this parameter's type, or raise ValueError.
-
-        Raises
-        ------
-        ValueError
-            If the value has the wrong type or is out of range; the message
-            names the parameter, the allowed values and the value given.
-
-        """
-        if value is None:
-            if self.default is None:
-                return None
-            raise ValueError(self._message(value))
-        converted = self._convert(value)
-        if converted is None:
-            raise ValueError(self._message(value))
-        numbers = ([converted] if self.type in ('integer', 'double')
-                   else converted if self.type in ('double_array', 'integer_array') else [])
-        for number in numbers:
-            if not math.isfinite(number) or not self._in_range(number):
-                raise ValueError(self._message(value))
-        if self.choices and converted not in self.choices:
-            raise ValueError(self._message(value))
-        return converted
-
-    def _convert(self, value: Any) -> Any:
-        if self.type == 'bool':
-            return value if isinstance(value, bool) else None
-        if self.type == 'integer':
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                return None
-            return int(value) if float(value).is_integer() else None
-        if self.type == 'double':
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-            return float(value) if ok else None
-        if self.type == 'string':
-            return value if isinstance(value, str) else None
-        if self.type == 'integer_array' and isinstance(value, int) and \
-                not isinstance(value, bool):
-            return [value]  # one integer for all inputs
-        if not isinstance(value, (list, tuple)) and not hasattr(value, 'tolist'):
-            return None
-        items = list(value.tolist() if hasattr(value, 'tolist') else value)
-        if self.type == 'double_array':
-            if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
-                return None
-            return [float(v) for v in items]
-        if self.type == 'integer_array':
-            if any(isinstance(v, bool) or not isinstance(v, (int, float))
-                   or not float(v).is_integer() for v in items):
-                return None
-            return [int(v) for v in items]
-        if any(not isinstance(v, str) for v in items):
-            return None
-        return items
-
-    def _in_range(self, number: float) -> bool:
-        if self.low is not None and (number <= self.low if self.low_open else number < self.low):
-            return False
-        return self.high is None or number <= self.high
-
-    def _message(self, value: Any) -> str:
-        return f'parameter {self.name!r} must be {self.allowed()}, got {value!r}'
-
-
-def _p(name: str, type_: str, default: Any, description: str, **kwargs: Any) -> ParameterSpec:
-    return ParameterSpec(name, type_, default, description, **kwargs)
-
-
 #: The identifier node's parameters (docs/nodes.md), in declaration order.
 IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     # --- the estimator and the model structure
     _p('estimator', 'string', 'bcrls', 'Estimator, by its registry name '
-       '(docs/estimators.md describes each).', choices=tuple(ESTIMATORS)),
+       '(docs/estimators.md describes each).', choices=ESTIMATOR_NAMES),
     _p('order', 'integer', 2, 'Plant order n: number of a coefficients and of input lags.',
        low=1, high=64),
     _p('num_inputs', 'integer', 1, 'Number of inputs r.', low=1, high=64),
@@ -199,45 +66,11 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     _p('outlier_threshold', 'double', 0.0, 'Refuse (and count) a sample whose normalised '
        'one-step prediction error exceeds this; 0 turns the gate off. May be changed while '
        'running.', low=0.0, high=1e6, read_only=False),
-    # --- bciv (Ikenoue et al. 2008)
-    _p('iv_lag', 'integer', None, 'bciv: IV lag l (the IV vector has n + 2l past inputs; '
-       'colored input noise needs l >= 2n). Unset: the estimator default.', low=1, high=1000),
-    _p('input_noise', 'string', None, 'bciv: input measurement noise model. Unset: the '
-       'estimator default.', choices=('colored', 'white')),
-    _p('idle_samples', 'integer', None, 'bciv: idle period L, samples before the bias '
-       'compensation starts. Unset: the estimator default.', low=0, high=1e9),
-    _p('bciv_iterations', 'integer', None, 'bciv: alternations K of the compensation per '
-       'sample. Unset: the estimator default.', low=1, high=10000),
-    _p('bciv_update', 'string', None, 'bciv: converged (K alternations from the IV '
-       'estimate) or printed (the paper\'s one-step recursion). Unset: the estimator '
-       'default.', choices=('converged', 'printed')),
-    _p('allow_underdetermined', 'bool', None, 'bciv: allow l < 2n with colored input noise '
-       '(under-determined, poor). Unset: the estimator default.'),
-    # --- cl_bcls (Ikeda 2008)
-    _p('controller_numerator', 'double_array', None, 'cl_bcls: controller numerator b_c in '
-       'descending powers of q.'),
-    _p('controller_denominator', 'double_array', None, 'cl_bcls: controller denominator a_c '
-       'in descending powers of q.'),
-    _p('controller_sign', 'string', None, 'cl_bcls: negative means u = (b_c/a_c)(r - y), '
-       'positive means u = (b_c/a_c)(y - r). Unset: the estimator default (negative).',
-       choices=('negative', 'positive')),
-    _p('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f(q): one pole '
-       '[p] for (q - p)^n, or its n + 1 coefficients in descending powers of q. Unset: the '
-       'estimator default.'),
-    _p('window', 'integer', None, 'cl_bcls: 0 (the estimator default) compensates over every '
-       'sample since the last controller change (recursive moments); > 0 over the last window '
-       'samples, for slowly varying plants. Unset: the estimator default.', low=0, high=1e9),
-    _p('redesign_period', 'integer', None, 'cl_bcls: samples between compensations and '
-       'prefilter redesigns. Unset: the estimator default.', low=1, high=1e9),
-    _p('max_iterations', 'integer', None, 'cl_bcls: most prefilter redesign iterations per '
-       'redesign. Unset: the estimator default.', low=1, high=10000),
-    _p('tolerance', 'double', None, 'cl_bcls: stop redesigning when the estimate moves less '
-       'than this. Unset: the estimator default.', low=0.0, high=1e6, low_open=True),
     # --- node: input topics, pairing, publishing
     _p('input_mode', 'string', 'combined', 'combined: y and u in one Float64MultiArray on '
        'samples (single samples or frames). separate: u on input and y on output. '
        'joint_state: one estimator per joint of joints, fed from joint_states.',
-       choices=('combined', 'separate', 'joint_state')),
+       choices=INPUT_MODES),
     _p('joints', 'string_array', [], 'joint_state mode (required there): the joint names, one '
        'single-input estimator each; each name becomes a topic token (letters, digits, _).'),
     _p('sync', 'string', 'arrival', 'Separate mode pairing: arrival (FIFO in arrival order) or '
@@ -279,6 +112,8 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'matches the configuration. Empty: off.'),
     _p('state_save_period', 'double', 10.0, 'Seconds between saves of state_file.',
        low=0.0, high=86400.0, low_open=True),
+    # --- the estimators' own options (from the estimator registry)
+    *option_specs(),
 )
 
 #: The simulator node's parameters (docs/nodes.md), in declaration order.
@@ -368,109 +203,6 @@ CUSTOM_SETTINGS = ('plant_denominator', 'plant_numerator', 'noise_numerator',
 IDENTIFIER_LIVE = tuple(p.name for p in IDENTIFIER_PARAMETERS if not p.read_only)
 
 
-def spec_by_name(table: tuple[ParameterSpec, ...]) -> dict[str, ParameterSpec]:
-    """Return ``{name: spec}`` of a parameter table."""
-    return {spec.name: spec for spec in table}
-
-
-def markdown_table(table: tuple[ParameterSpec, ...]) -> str:
-    """Return a parameter table as the Markdown table of docs/nodes.md."""
-    lines = ['| parameter | type | default | allowed | live | description |',
-             '|---|---|---|---|---|---|']
-    for spec in table:
-        default = 'estimator default' if spec.default is None else spec.default
-        lines.append(f'| `{spec.name}` | {spec.type} | {default} | {spec.allowed()} | '
-                     f'{"no" if spec.read_only else "yes"} | {spec.description} |')
-    return '\n'.join(lines)
-
-
-def _flatten(tree: dict[str, Any], prefix: str = '') -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in tree.items():
-        name = f'{prefix}{key}'
-        if isinstance(value, dict):
-            flat.update(_flatten(value, name + '.'))
-        else:
-            flat[name] = value
-    return flat
-
-
-def load_yaml_parameters(path: str | Path, node_name: str = 'bcid_identifier') -> dict[str, Any]:
-    """
-    Read the parameters of one node from a ROS 2 parameter YAML file.
-
-    Values under ``/**:`` apply to every node; those under ``<node_name>:``
-    (or ``/<node_name>:``, or any ``/namespace/<node_name>:``) override them.
-    Nested keys are flattened with dots, as ROS does.
-
-    Parameters
-    ----------
-    path : str or pathlib.Path
-        The YAML file.
-    node_name : str
-        The node whose section to read.
-
-    Returns
-    -------
-    dict
-        ``{parameter name: value}`` as written in the file.
-
-    Raises
-    ------
-    ValueError
-        If the file is not a parameter file or has no section for the node.
-
-    """
-    import yaml
-
-    text = Path(path).read_text()
-    loader = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)  # libyaml's, where it was built
-    try:
-        document = yaml.load(text, Loader=loader)
-    except yaml.YAMLError as error:
-        raise ValueError(f'{path}: not valid YAML: {error}') from None
-    if not isinstance(document, dict):
-        raise ValueError(f'{path}: not a ROS 2 parameter file (expected a mapping)')
-    values: dict[str, Any] = {}
-    found = False
-    wildcard = [key for key in document if str(key).strip('/') == '**']
-    own = [key for key in document
-           if str(key).lstrip('/') == node_name or str(key).endswith('/' + node_name)]
-    for key in wildcard + own:
-        section = document[key]
-        if not isinstance(section, dict) or 'ros__parameters' not in section:
-            raise ValueError(f'{path}: section {key!r} has no ros__parameters')
-        parameters = section['ros__parameters'] or {}
-        if not isinstance(parameters, dict):
-            raise ValueError(f'{path}: {key}: ros__parameters must be a mapping')
-        values.update(_flatten(parameters))
-        found = True
-    if not found:
-        raise ValueError(f'{path}: no section for node {node_name!r} '
-                         f'(expected "{node_name}: ros__parameters:" or "/**:")')
-    return values
-
-
-def check_parameters(values: dict[str, Any],
-                     table: tuple[ParameterSpec, ...]) -> dict[str, Any]:
-    """
-    Check values against a parameter table and fill in the defaults.
-
-    Raises
-    ------
-    ValueError
-        For an unknown parameter name or a value that is not allowed; the
-        message names the parameter and its allowed values.
-
-    """
-    specs = spec_by_name(table)
-    unknown = sorted(set(values) - set(specs) - set(ROS_BUILTIN))
-    if unknown:
-        raise ValueError(f'unknown parameter {unknown[0]!r}; known parameters: '
-                         f'{", ".join(specs)}')
-    return {name: spec.check(values.get(name, spec.default)) for name, spec in specs.items()}
-
-
 def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
     """
     Check identifier parameters and return all of them, defaults filled in.
@@ -527,11 +259,12 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
 
 def _check_joint_state_parameters(checked: dict[str, Any]) -> None:
     """Check what ``input_mode: joint_state`` needs: names, a batched estimator, one input."""
-    from bcid_ros.joint_feeder import check_joint_names, JOINT_ESTIMATORS
+    from bcid_ros.joint_feeder import check_joint_names
 
     check_joint_names(checked['joints'])
-    if checked['estimator'] not in JOINT_ESTIMATORS:
-        raise ValueError(f"parameter 'estimator' must be one of {', '.join(JOINT_ESTIMATORS)} "
+    batched = names_where(input_modes='joint_state')
+    if checked['estimator'] not in batched:
+        raise ValueError(f"parameter 'estimator' must be one of {', '.join(batched)} "
                          f"with input_mode: joint_state (the estimators with a batched form), "
                          f"got {checked['estimator']!r}")
     if checked['num_inputs'] != 1:
@@ -544,7 +277,7 @@ def _check_joint_state_parameters(checked: dict[str, Any]) -> None:
 
 def estimator_options(name: str) -> tuple[str, ...]:
     """
-    Return the extra constructor keywords (ROS parameter names) of estimator ``name``.
+    Return the options (own constructor keywords, ROS parameter names) of estimator ``name``.
 
     Raises
     ------
@@ -552,12 +285,13 @@ def estimator_options(name: str) -> tuple[str, ...]:
         If ``name`` is not a registered estimator or its module is missing.
 
     """
+    options = entry(name).option_names
     try:
-        cls = estimator_class(name)
+        estimator_class(name)
     except ImportError as error:
         raise ValueError(f'parameter \'estimator\': {name!r} is not available in this '
                          f'installation ({error})') from None
-    return tuple(getattr(cls, 'options', ()))
+    return options
 
 
 def unused_options(values: dict[str, Any]) -> list[str]:
@@ -572,7 +306,7 @@ def estimator_settings(values: dict[str, Any]) -> dict[str, Any]:
     """
     Return the constructor keywords of the configured estimator.
 
-    These are the base settings plus those of the class's ``options`` that
+    These are the base settings plus those of the estimator's registry options that
     are set (not ``None``).
 
     Raises
@@ -647,8 +381,7 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
 
 
 __all__ = ['CUSTOM_SETTINGS', 'IDENTIFIER_LIVE', 'IDENTIFIER_PARAMETERS',
-           'OPERATING_POINT_SETTINGS', 'ParameterSpec',
-           'SIMULATOR_PARAMETERS', 'TYPES', 'check_identifier_parameters', 'check_parameters',
+           'OPERATING_POINT_SETTINGS', 'SIMULATOR_PARAMETERS', 'check_identifier_parameters',
            'check_simulator_parameters', 'estimator_from_parameters', 'estimator_options',
            'estimator_settings', 'load_yaml_parameters', 'markdown_table', 'spec_by_name',
            'unused_options']

@@ -27,7 +27,7 @@ import numpy as np
 
 from benchmarks.common import best_of, per_sample_us, Result, summary, time_each
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.batched import make_batched_estimator
+from bcid_ros.estimators import make_batched_estimator
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
 from bcid_ros.joints import JointStateDemux

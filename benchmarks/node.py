@@ -519,7 +519,7 @@ def joint_state_messages(scenario, samples: int,
 def joints_case(bench: JointsBench, joints: int, rate: float, seconds: float,
                 directory: Path) -> tuple[list[Result], float]:
     """Run one joint_state case; return its rows and the node's RSS after the run (MB)."""
-    from bcid_ros.estimators.batched import make_batched_estimator
+    from bcid_ros.estimators import make_batched_estimator
     from bcid_ros.simulation import make_scenario
 
     samples = int(rate * seconds) // JOINTS_PUBLISH_PERIOD * JOINTS_PUBLISH_PERIOD
@@ -591,7 +591,7 @@ def joints_baseline_rss(bench: JointsBench, directory: Path) -> float:
 
 def joints_diagnostics_cost(count: int, repeats: int = 10) -> Result:
     """Time one 1 Hz /diagnostics message of ``count`` joints: compose and serialise."""
-    from bcid_ros.estimators.batched import make_batched_estimator
+    from bcid_ros.estimators import make_batched_estimator
     from bcid_ros.joint_feeder import JointFeeder
     from bcid_ros.nodes.diagnostics_cdr import DiagnosticArrayEncoder
     from bcid_ros.nodes.joint_diagnostics import JointStatuses

@@ -19,7 +19,7 @@ import sys
 from bcid_ros.reproduction.common import markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
-SECTIONS = ('estimators', 'replay', 'node', 'reproduce')
+SECTIONS = ('estimators', 'replay', 'csv_logs', 'node', 'reproduce', 'pem')
 
 
 def machine() -> str:

@@ -145,10 +145,11 @@ def assert_paths_agree(actual: dict[str, Any], expected: dict[str, Any],
         assert mine.shape == theirs.shape, f'{what} {key}: shape {mine.shape} {theirs.shape}'
         np.testing.assert_array_equal(np.isnan(mine), np.isnan(theirs),
                                       err_msg=f'{what} {key}: NaN entries')
-        bound = path_bound(theirs, spread[key], steps) + allowance.get(key, 0.0)
         deviation = row_deviation(mine, theirs)
-        with np.errstate(divide='ignore', invalid='ignore'):  # 0 deviation: no excess
-            excess = np.where(deviation > 0.0, deviation / bound, 0.0)
+        bound = path_bound(theirs, spread[key], steps) + allowance.get(key, 0.0)
+        # where the bound is 0 (exact zeros both), any deviation is too much
+        excess = np.divide(deviation, bound, out=np.where(deviation > 0.0, np.inf, 0.0),
+                           where=bound > 0.0)
         worst = int(np.argmax(excess))
         assert not excess[worst] > 1.0, (
             f'{what} {key}: the paths differ by {excess[worst]:.3g} times the bound '

@@ -5,7 +5,8 @@ import pytest
 from scipy import signal
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.batched import BatchedBcrls, BatchedRls, make_batched_estimator
+from bcid_ros.estimators import make_batched_estimator
+from bcid_ros.estimators.batched import BatchedBcrls, BatchedRls
 from equivalence import assert_paths_agree, rounding_spread
 
 # Stable second-order plants (a1, a2, b1, b2), one per row: different poles and gains.
@@ -392,10 +393,10 @@ def test_bad_shapes_and_names_are_refused_and_change_nothing():
 def test_state_bytes_count_each_plant_array_once():
     p, history, channels = 4, 3 * 2, 2
     # rls, in 8-byte numbers per plant: theta (p), P (p x p), history ((n + 1)(1 + r)),
-    # signal scales (1 + r), component scales and trace weights (2 p), and eleven scalars
+    # signal scales (1 + r), component scales (p), and eleven scalars
     # (J, tau, updates, cleared_at, missing, nonfinite, variance floor, undone in a row,
     # change score, next check, last power); plus two bools (scales pending, has reasons)
-    rls = 8 * (p + p * p + history + channels + 2 * p + 11) + 2
+    rls = 8 * (p + p * p + history + channels + p + 11) + 2
     assert BatchedRls(7, order=2).nbytes == 7 * rls
     # bcrls adds theta_c, Lambda theta_c, sigma2 and the compensation resets checked, and
     # for its covariance the moment ring ((n + 64) x (p + 1)), the rows pending, the sums
@@ -521,3 +522,39 @@ def test_a_signal_far_above_its_first_samples_rescales_that_plant_only(name):
     reference = run_batched(name, y[3:], u[3:], present[3:], order=2)
     ratio = batched.signal_scale[1] / reference.signal_scale[1]
     assert ((ratio >= 0.25) & (ratio <= 4.0)).all()
+
+
+def hot_steps(theta, p, phi, y, lam):
+    """Return the single (BLAS) and batched (numpy) RLS step of each row, as two arrays."""
+    from bcid_ros.estimators.rls import rls_innovation, rls_step, rls_steps
+
+    singles, innovations = [], []
+    for k in range(theta.shape[0]):
+        e, g, s = rls_innovation(theta[k], p[k], phi[k], y[k], lam)
+        innovations.append((g.copy(), s, e))
+        step_theta = theta[k].copy()
+        step_p = rls_step(step_theta, p[k].copy(), g, s, e)
+        singles.append(np.concatenate([step_theta, step_p.ravel()]))
+    g, s, e = (np.array(column) for column in zip(*innovations))
+    batched_theta, batched_p = rls_steps(theta, p, g, s, e)
+    return np.array(singles), np.hstack([batched_theta, batched_p.reshape(len(theta), -1)])
+
+
+def test_the_hot_step_written_twice_agrees_within_rounding():
+    # rls_step (BLAS daxpy/dger) and rls_steps (numpy) are the one step written twice; the
+    # bound is the rounding spread of the single step under one-ulp nudges of its inputs.
+    # (The compensation's twins, Bcrls._after_ls_step and compensate_rows, are compared
+    # through whole runs above.)
+    rng = np.random.default_rng(21)
+    a = rng.standard_normal((50, 6, 6))
+    p = a @ np.swapaxes(a, 1, 2) + np.eye(6)
+    theta, phi = rng.standard_normal((50, 6)), rng.standard_normal((50, 6))
+    y = rng.standard_normal(50)
+    single, batched = hot_steps(theta, p, phi, y, 0.98)
+    spread = rounding_spread(lambda *data: {'step': hot_steps(*data, 0.98)[0]}, theta, p, phi, y)
+    assert_paths_agree({'step': batched}, {'step': single}, spread, 1, 'hot step')
+    changed = y.copy()
+    changed[7] *= 1.0 + 1e-9  # one input changed by a billionth: the bound still catches it
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree({'step': hot_steps(theta, p, phi, changed, 0.98)[1]},
+                           {'step': single}, spread, 1, 'hot step')

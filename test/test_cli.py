@@ -13,6 +13,7 @@ ARGV = {
     'info': ['--debug', 'info', 'bag'],
     'demo': ['demo', '--scenario', 'adaptive_loop'],
     'analyze': ['analyze', 'bag', '--params', 'p.yaml', '--orders', '1-2'],
+    'import': ['import', 'log.csv', '--out', 'o', '--columns', 'temp,heater', '--rate', '20'],
 }
 
 

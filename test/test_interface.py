@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from bcid_ros.estimators import ESTIMATORS
+from bcid_ros.estimators.registry import ESTIMATOR_NAMES
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.interface import (check_input_width, INPUT_TYPES, MESSAGE_TYPES,
                                       OUTPUT_TYPES, resolve)
@@ -32,7 +32,7 @@ def test_names_resolve_as_ros_resolves_them():
 def test_parameter_choices_come_from_the_tables():
     identifier = spec_by_name(IDENTIFIER_PARAMETERS)
     simulator = spec_by_name(SIMULATOR_PARAMETERS)
-    assert identifier['estimator'].choices == tuple(ESTIMATORS)
+    assert identifier['estimator'].choices == ESTIMATOR_NAMES
     assert identifier['input_type'].choices == INPUT_TYPES == simulator['input_type'].choices
     assert identifier['output_type'].choices == OUTPUT_TYPES == simulator['output_type'].choices
     assert set(INPUT_TYPES) | set(OUTPUT_TYPES) == set(MESSAGE_TYPES)
@@ -124,3 +124,27 @@ def test_docs_parameter_tables_are_the_tables():
     docs = (Path(__file__).resolve().parent.parent / 'docs' / 'nodes.md').read_text()
     for table in (IDENTIFIER_PARAMETERS, SIMULATOR_PARAMETERS):
         assert markdown_table(table) in docs
+
+
+def test_every_list_of_estimators_derives_from_the_registry():
+    from bcid_ros.estimators.registry import batched_class, entry, names_where, REGISTRY
+
+    assert names_where(input_modes='joint_state') == ('rls', 'bcrls')
+    assert names_where(model='arx') == ('rls',)
+    assert set(names_where(open_loop=True)) <= set(REGISTRY)
+    for name, item in REGISTRY.items():
+        assert item.model in ('arx', 'output_error', 'errors_in_variables', 'closed_loop')
+        assert make_estimator_class_name(name) == item.single.split(':')[1]
+        assert set(item.option_names) <= set(spec.name for spec in IDENTIFIER_PARAMETERS)
+    assert batched_class('bcrls').__name__ == 'BatchedBcrls'
+    with pytest.raises(ValueError, match="one of rls, bcrls for many plants; got 'bciv'"):
+        batched_class('bciv')
+    with pytest.raises(ValueError, match="estimator must be one of rls, bcrls, bciv, cl_bcls"):
+        entry('kalman')
+
+
+def make_estimator_class_name(name):
+    """Return the class name of the registered single-plant estimator ``name``."""
+    from bcid_ros.estimators import estimator_class
+
+    return estimator_class(name).__name__

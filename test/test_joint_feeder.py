@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.batched import make_batched_estimator
+from bcid_ros.estimators import make_batched_estimator
 from bcid_ros.joint_feeder import (check_joint_names, joint_feeder_from_parameters, JointFeeder,
                                    joint_topic)
 from bcid_ros.parameters import check_identifier_parameters, check_simulator_parameters

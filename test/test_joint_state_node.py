@@ -25,7 +25,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 
 from bcid_ros.estimators import make_estimator  # noqa: E402
-from bcid_ros.estimators.batched import make_batched_estimator  # noqa: E402
+from bcid_ros.estimators import make_batched_estimator  # noqa: E402
 from bcid_ros.joint_feeder import JointFeeder  # noqa: E402
 from bcid_ros.nodes.common import SAMPLES_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402

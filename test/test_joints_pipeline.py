@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.batched import make_batched_estimator
+from bcid_ros.estimators import make_batched_estimator
 from bcid_ros.joints import JointStateDemux
 from bcid_ros.samples import SampleFeeder
 from bcid_ros.simulation import make_scenario

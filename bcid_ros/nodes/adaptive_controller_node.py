@@ -26,7 +26,7 @@ from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_ch
                                    SAMPLES_QOS, Throttle, usage)
 from bcid_ros.nodes import interface
 from bcid_ros.nodes.diagnostics import DiagnosticsUpdater, OK, Status, WARN
-from bcid_ros.parameters import spec_by_name
+from bcid_ros.parameter_spec import spec_by_name
 from bcid_ros.samples import parse_names_label
 
 

@@ -351,7 +351,7 @@ def _reference(settings: dict[str, Any], samples: int) -> np.ndarray:
 
 def run_adaptive_loop(args: argparse.Namespace) -> int:
     """Run ``bcid demo --scenario adaptive_loop``; return the exit code."""
-    from bcid_ros.parameters import load_yaml_parameters
+    from bcid_ros.parameter_spec import load_yaml_parameters
 
     samples, rate, _ = DEMO_DEFAULTS['adaptive_loop']
     samples = args.samples or samples
