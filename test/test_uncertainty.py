@@ -126,8 +126,11 @@ def test_not_ready_estimators_have_no_covariance():
 def test_bcrls_lagged_moments_equal_the_batch_sums_and_survive_a_state_round_trip():
     y, u = ding_data(np.random.default_rng(3), 1000)
     estimator = run('bcrls', y, u)
-    sums, weight = add_lagged_moments(estimator._moment_sums, estimator._moment_weight,
-                                      estimator._pending_moments(), estimator.order,
+    # the sums so far and the rows not yet summed (the lag context first), from the snapshot
+    state = estimator.get_state()
+    rows = estimator.order + state.scalars['moment_pending']
+    sums, weight = add_lagged_moments(state.arrays['moment_sums'], state.scalars['moment_weight'],
+                                      state.arrays['moment_ring'][:rows], estimator.order,
                                       estimator.forgetting_factor)
     phi = np.column_stack([-y[1:-1], -y[:-2], u[1:-1, 0], u[:-2, 0], u[1:-1, 1], u[:-2, 1]])
     z = np.column_stack([phi, y[2:]])
