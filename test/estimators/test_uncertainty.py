@@ -18,19 +18,30 @@ from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.base import standard_deviations, weighted_square_ratio
 from bcid_ros.estimators.bcrls import add_lagged_moments
 from bcid_ros.estimators.moment_covariance import MAX_BLOCKS, MomentBlocks
-from bcid_ros.estimators.rls import ls_batch
+from equivalence import assert_paths_agree, assert_within, EPS, two_path_spread
+from test_estimators_core import batch_figures
 
 
 # ------------------------------------------------------------------ formulas
 def test_rls_covariance_is_residual_variance_times_p():
     y, u = arx_data(np.random.default_rng(1), 800)
-    estimator = run('rls', y, u)
-    theta, p, loss, _ = ls_batch(y, u, order=2, num_inputs=2,
-                                 initial_covariance=estimator.initial_covariance_diagonal)
+    prior = run('rls', y, u).initial_covariance_diagonal
     updates = y.shape[0] - 2
-    expected = loss / (updates - 6) * p
-    np.testing.assert_allclose(estimator.parameter_covariance, expected, rtol=1e-7)
-    np.testing.assert_allclose(estimator.parameter_std, np.sqrt(np.diag(expected)), rtol=1e-7)
+
+    def recursion(y, u):
+        estimator = run('rls', y, u)
+        return {'covariance': estimator.parameter_covariance, 'std': estimator.parameter_std}
+
+    def batch(y, u):
+        # J of eq. (50), the regularised cost's minimum, over N' - p, times P
+        figures = batch_figures(y, u, prior, order=2, num_inputs=2)
+        expected = figures['loss'] / (updates - 6) * figures['covariance']
+        return {'covariance': expected, 'std': np.sqrt(np.diag(expected))}
+
+    # the recursion against the batch solution: two arithmetic paths, within the rounding
+    # spreads of both (test/equivalence.py; test_estimators_core shows the bound sees a change)
+    assert_paths_agree(recursion(y, u), batch(y, u), two_path_spread(recursion, batch, y, u),
+                       updates, 'rls')
 
 
 def test_rls_covariance_with_forgetting_uses_the_effective_sample_size():
@@ -40,12 +51,15 @@ def test_rls_covariance_with_forgetting_uses_the_effective_sample_size():
     tau = estimator.weighted_count
     updates = y.shape[0] - 2
     weights = lam ** np.arange(updates)
-    # the closed form equals sum(w^2) / sum(w) over the weights of the updates
+    # the closed form equals sum(w^2) / sum(w) over the weights of the updates: two sums
+    # of N terms round by at most N eps each, the closed form's tau by about
+    # eps / (1 - lambda); 1e-9 is far above both (3e-13)
     assert weighted_square_ratio(tau, lam) == pytest.approx(
         (weights ** 2).sum() / weights.sum(), rel=1e-9)
     ratio = weighted_square_ratio(tau, lam)
+    # the estimator's own formula, in the same order on the same numbers: the same bits
     expected = estimator.loss / (tau - 6 * ratio) * ratio * estimator.covariance
-    np.testing.assert_allclose(estimator.parameter_covariance, expected, rtol=1e-12)
+    np.testing.assert_array_equal(estimator.parameter_covariance, expected)
     assert weighted_square_ratio(10.0, 1.0) == 1.0
     assert weighted_square_ratio(1e9, 0.5) == pytest.approx(1.0 / 1.5)
 
@@ -68,9 +82,19 @@ def test_bcrls_lagged_moments_equal_the_batch_sums_and_survive_a_state_round_tri
     phi = np.column_stack([-y[1:-1], -y[:-2], u[1:-1, 0], u[:-2, 0], u[1:-1, 1], u[:-2, 1]])
     z = np.column_stack([phi, y[2:]])
     assert weight == z.shape[0]
+
+    def bound(z, k):
+        # blocks of 64 rows added up against one product over all N rows: two summation
+        # orders of N terms, each within N eps sum |term| of the exact sum (Higham)
+        return 2 * z.shape[0] * EPS * (np.abs(z[k:]).T @ np.abs(z[:z.shape[0] - k]))
+
     for k in range(3):
-        np.testing.assert_allclose(sums[k], z[k:].T @ z[:z.shape[0] - k], rtol=1e-12,
-                                   atol=1e-10)
+        assert_within(sums[k], z[k:].T @ z[:z.shape[0] - k], bound(z, k), f'lag {k}')
+    # one sample changed by a millionth of its value: far above that bound
+    changed = z.copy()
+    changed[500, 1] *= 1.0 + 1e-6
+    with pytest.raises(AssertionError, match='times the bound'):
+        assert_within(sums[0], changed.T @ changed, bound(changed, 0))
     # a snapshot in the middle of a block continues to the same covariance, bit for bit
     first = run('bcrls', y[:537], u[:537])
     second = make_estimator('bcrls', order=2, num_inputs=2)
@@ -86,7 +110,9 @@ def test_bcrls_covariance_is_unit_free():
     y, u = ding_data(np.random.default_rng(4), 1500)
     base = run('bcrls', y, u)
     scaled = run('bcrls', y * 1e-3, u * 1e4)
-    # theta: a -> a, b -> b s_y / s_u; so std of b scales by 1e-7
+    # theta: a -> a, b -> b s_y / s_u; so std of b scales by 1e-7. The scaled data are the
+    # same up to half an ulp per sample and a prior p0 S^-2 up to 4x apart (~1 / (p0 N)):
+    # measured 1.4e-8 relative, 1e-6 leaves room
     factor = np.array([1.0, 1.0, 1e-7, 1e-7, 1e-7, 1e-7])
     np.testing.assert_allclose(scaled.parameter_std, base.parameter_std * factor, rtol=1e-6)
     covariance = base.parameter_covariance
@@ -136,7 +162,9 @@ def test_block_covariance_scales_with_the_units(name, data, settings):
         # the controller maps the scaled y to the scaled u: its gain times 1e4 / 1e-3
         settings = dict(settings, controller_numerator=[0.2289e7])
     scaled = run_single(name, y * 1e-3, u * 1e4, **settings)
-    # theta: a -> a, b -> b s_y / s_u = 1e-7 b, so the std of b scales by 1e-7
+    # theta: a -> a, b -> b s_y / s_u = 1e-7 b, so the std of b scales by 1e-7. Only the
+    # prior (up to 16x apart in normalised units) and half an ulp per sample differ:
+    # measured theta 1.4e-8 (bciv) and 4e-15 (cl_bcls) relative, std 4e-8 and 1e-6
     factor = np.repeat([1.0, 1e-7], settings['order'])
     np.testing.assert_allclose(scaled.theta, base.theta * factor, rtol=1e-7)
     np.testing.assert_allclose(scaled.parameter_std, base.parameter_std * factor, rtol=1e-4)
@@ -162,7 +190,11 @@ def test_moment_blocks_sum_each_block_exactly_with_forgetting():
         end = boundaries[len(boundaries) - blocks.blocks + index]
         rows = terms[end - 32:end]
         weights = lam ** np.arange(31, -1, -1)
+        # a block is the difference of two running sums of ~1 / (1 - lambda) = 1000 terms
+        # (rounding ~1e3 eps of their size, ~1e-12); 1e-9 is far above it
         np.testing.assert_allclose(block, weights @ rows, rtol=1e-9, atol=1e-9)
+        # the closed form (1 - lambda^32) / (1 - lambda) against a sum of 32 powers: the
+        # cancellation in 1 - lambda^32 costs eps / 0.03 ~ 1e-14 relative, 1e-12 is above it
         assert blocks._weights[index][1] == pytest.approx(weights.sum(), rel=1e-12)
         assert blocks._weights[index][2] == pytest.approx((weights ** 2).sum(), rel=1e-12)
 
