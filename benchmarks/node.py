@@ -547,8 +547,8 @@ def joints_case(bench: JointsBench, joints: int, rate: float, seconds: float,
         estimates = bench.estimates(list(scenario.joint_names))
     finally:
         stop(node)
-    # the node's estimates against the same samples run offline (each joint equals its
-    # single-plant run to 1e-12, test_batched.py), and both against the truth
+    # the node's estimates against the same samples run offline (the same code path: the
+    # same bits), and both against the truth
     offline = make_batched_estimator('bcrls', joints, order=2)
     for t in range(samples):
         offline.update(y[t], u[t])

@@ -6,7 +6,8 @@ The estimator is built from the same parameter file through
 goes through the node's own per-message rule,
 :class:`bcid_ros.identifier.feeder.SampleFeeder`, which also decides the samples where
 estimates are published. So the replay's final estimate equals what
-``identifier_node`` publishes for the same bag, to the last bit.
+``identifier_node`` publishes for the same bag on the same machine, to the
+last bit (another CPU may get other BLAS and SIMD kernels).
 
 The bag is read in blocks (:meth:`bcid_ros.bag.reader.BagReader.blocks`):
 runs of messages with the same layout, in log-time order, fed with

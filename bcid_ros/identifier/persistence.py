@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators import estimator_class, EstimatorState, RecursiveEstimator
+from bcid_ros.estimators.registry import entry
 from bcid_ros.identifier.feeder import SampleFeeder
 
 #: The ``format`` field of the header.
@@ -96,7 +97,7 @@ def configuration_fingerprint(settings: dict[str, Any]) -> dict[str, Any]:
     cls = estimator_class(settings['estimator'])
     signature = inspect.signature(cls)
     fingerprint = {name: settings[name] for name in STRUCTURAL if name in settings}
-    for name in getattr(cls, 'options', ()):
+    for name in entry(settings['estimator']).option_names:
         value = settings.get(name)
         if value is None and name in signature.parameters:
             value = signature.parameters[name].default

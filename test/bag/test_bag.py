@@ -269,7 +269,9 @@ def test_replay_converges(name):
 
 @pytest.mark.parametrize('estimator', ['rls', 'bcrls'])
 def test_replay_equals_the_estimator_run_on_the_samples(estimator):
-    # Both runs here, on the bag's own samples: bit equality holds on any machine.
+    # Both runs here, on the bag's own samples, and one arithmetic path (the replay's block
+    # path forms the same regressors and takes the same steps, test_bag_blocks.py): bit
+    # equality holds on any machine.
     path = bag_path('ding_miso')
     values = params('ding_miso')
     result = replay(path, values, estimator=estimator)

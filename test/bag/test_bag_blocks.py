@@ -4,7 +4,11 @@ The block path of ``bcid replay``: file order, its check, block decoding, block 
 Every replay here is compared with a reference computed in the same test: the
 node's per-message rule (:meth:`SampleFeeder.take_message`) on the messages as
 ``mcap``/``mcap_ros2`` read and order them. So the blocks, the order check and
-:meth:`SampleFeeder.take_messages` must change nothing, to the last bit.
+:meth:`SampleFeeder.take_messages` must change nothing, to the last bit. That is
+one arithmetic path: the block path gathers each phi(t) from the same values
+(``ArxRegressor.push_rows``) as a contiguous row of the same length p and takes
+the same step on it, so every BLAS call sees the same n and strides as sample by
+sample; only the addresses differ.
 """
 
 from pathlib import Path

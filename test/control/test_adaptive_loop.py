@@ -80,6 +80,8 @@ def test_loop_record_finds_when_the_poles_converged():
     assert record.phases() == [('before the change', 0, 100), ('after the change', 100, 200)]
     assert record.converged_at(0, 100) == 60
     assert record.converged_at(100, 200) == 130
+    # the exact design, 1/6 rounded: simple roots 0.2 apart, np.roots within a few eps / 0.2
+    # of 0.4 and 0.6; 1e-9 is far above that
     assert record.pole_error(120) > 0.05 and record.pole_error(199) < 1e-9
     np.testing.assert_array_equal(record.truth_at(99), BEFORE)
 

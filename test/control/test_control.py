@@ -20,6 +20,7 @@ from bcid_ros.control.design import (check_estimate, closed_loop_polynomial, par
 from bcid_ros.control.loop import EVENTS, REFUSALS
 from bcid_ros.control.parameters import check_controller_parameters
 from bcid_ros.control.reference import ReferenceGenerator
+from equivalence import assert_paths_agree, assert_within, EPS, two_path_spread
 
 #: The paper's plant 0.5/(q - 0.8) and its names.
 IKEDA = ModelStructure(1)
@@ -102,6 +103,40 @@ def random_plant(rng, order, unstable, delay=0, feedthrough=False):
     return structure, theta
 
 
+def assert_design_places(structure, theta, poles, **options):
+    """
+    Assert that the design for ``theta`` places ``poles``: A R + B S = A_cl(q), and its roots.
+
+    The design's solve and products against np.poly of the poles: two
+    arithmetic paths, within the rounding spreads of both (test/equivalence.py;
+    the roots' conditioning is in their spread). Return the controller.
+    """
+    def design(theta, poles):
+        plant = Plant.from_estimate(theta, structure)
+        controller = place_poles(plant, poles, **options)
+        achieved = closed_loop_poles(plant, controller)
+        order = np.argsort(achieved.real)
+        return {'A R + B S': closed_loop_polynomial(plant, controller),
+                'poles': achieved.real[order], 'imaginary parts': achieved.imag[order]}
+
+    def requested(theta, poles):
+        return {'A R + B S': np.poly(poles), 'poles': np.sort(poles),
+                'imaginary parts': np.zeros(len(poles))}
+
+    theta, poles = np.asarray(theta, float), np.asarray(poles, float)
+    spread = two_path_spread(design, requested, theta, poles)
+    assert_paths_agree(design(theta, poles), requested(theta, poles), spread, 1, 'design')
+    # the plant's B moved by 1e-10 of its size: the bound sees it
+    moved = theta.copy()
+    moved[structure.order:] *= 1.0 + 1e-10
+    plant = Plant.from_estimate(theta, structure)
+    controller = place_poles(Plant.from_estimate(moved, structure), poles, **options)
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree({'A R + B S': closed_loop_polynomial(plant, controller)},
+                           {'A R + B S': np.poly(poles)}, spread, 1)
+    return place_poles(plant, poles, **options)
+
+
 def spread_poles(rng, count):
     """Return ``count`` real poles in (-0.9, 0.9), evenly spread with a small jitter."""
     grid = np.linspace(-0.85, 0.85, count) if count > 1 else np.array([0.3])
@@ -116,20 +151,18 @@ def test_designed_poles_are_the_requested_ones(order, integral, strict, unstable
     rng = np.random.default_rng(1000 * order + 100 * integral + 10 * strict + unstable)
     for _ in range(5):
         structure, theta = random_plant(rng, order, unstable)
-        plant = Plant.from_estimate(theta, structure)
         count = required_pole_count(structure, integral=integral, strictly_proper=strict)
         poles = spread_poles(rng, count + int(rng.integers(2)))  # sometimes an extra pole
-        controller = place_poles(plant, poles, integral=integral, strictly_proper=strict)
-        np.testing.assert_allclose(closed_loop_polynomial(plant, controller), np.poly(poles),
-                                   rtol=0, atol=1e-9)
-        achieved = np.sort(closed_loop_poles(plant, controller).real)
-        np.testing.assert_allclose(achieved, np.sort(poles), rtol=0, atol=1e-9)
-        assert np.max(np.abs(closed_loop_poles(plant, controller).imag)) < 1e-9
+        controller = assert_design_places(structure, theta, poles, integral=integral,
+                                          strictly_proper=strict)
         # causal, strictly proper when asked, monic R with the integrator when asked
         assert controller.numerator.size <= controller.denominator.size - int(strict)
         assert controller.denominator[0] == 1.0
         if integral:
-            assert abs(np.polyval(controller.denominator, 1.0)) < 1e-12
+            # R = R' (q - 1): its coefficients and their sum round by 2 size eps sum |r_k|
+            denominator = controller.denominator
+            assert abs(np.polyval(denominator, 1.0)) <= (
+                2 * denominator.size * EPS * np.abs(denominator).sum())
 
 
 @pytest.mark.parametrize('delay, feedthrough', [(1, False), (2, True), (0, True)])
@@ -139,9 +172,8 @@ def test_delayed_and_feedthrough_plants_get_a_causal_exact_design(delay, feedthr
     plant = Plant.from_estimate(theta, structure)
     count = required_pole_count(structure, integral=True, strictly_proper=False)
     poles = spread_poles(rng, count)
-    controller = place_poles(plant, poles, integral=True, strictly_proper=False)
-    np.testing.assert_allclose(closed_loop_polynomial(plant, controller), np.poly(poles),
-                               atol=1e-9)
+    controller = assert_design_places(structure, theta, poles, integral=True,
+                                      strictly_proper=False)
     if structure.lags[0] == 0:  # a lag-0 feedthrough needs a strictly proper controller
         assert controller.strictly_proper
     with pytest.raises(ValueError, match='at least'):
@@ -157,15 +189,28 @@ def test_runtime_in_the_loop_is_the_designed_transfer_function(delayed):
     poles = spread_poles(np.random.default_rng(4), required_pole_count(
         structure, integral=True, strictly_proper=delayed))
     controller = place_poles(plant, poles, integral=True, strictly_proper=delayed)
-    loop = RuntimeLoop(ControllerRuntime(controller, input_limit=1e9, delayed=delayed),
-                       ReferenceGenerator('square', amplitude=1.0, period=40))
-    ys, _, rs = run_loop(loop, ArxPlant(theta, structure), 300, delayed)
-    denominator = closed_loop_polynomial(plant, controller)
-    numerator = np.polymul(plant.numerator, controller.numerator)
-    # in powers of q^-1 both need the same length: pad B S with leading zeros
-    numerator = np.concatenate([np.zeros(denominator.size - numerator.size), numerator])
-    tracking = signal.lfilter(numerator, denominator, rs)
-    np.testing.assert_allclose(ys, tracking, rtol=0, atol=1e-9)
+
+    def runtime(theta):
+        loop = RuntimeLoop(ControllerRuntime(controller, input_limit=1e9, delayed=delayed),
+                           ReferenceGenerator('square', amplitude=1.0, period=40))
+        ys, _, rs = run_loop(loop, ArxPlant(theta, structure), 300, delayed)
+        return {'y': ys, 'r': rs}
+
+    def transfer_function(theta):
+        plant = Plant.from_estimate(theta, structure)
+        denominator = closed_loop_polynomial(plant, controller)
+        numerator = np.polymul(plant.numerator, controller.numerator)
+        # in powers of q^-1 both need the same length: pad B S with leading zeros
+        numerator = np.concatenate([np.zeros(denominator.size - numerator.size), numerator])
+        return {'y': signal.lfilter(numerator, denominator, rs), 'r': rs}
+
+    rs = runtime(theta)['r']
+    # the loop stepped sample by sample against lfilter of its transfer function: two
+    # arithmetic paths, within the rounding spreads of both (test/equivalence.py)
+    spread = two_path_spread(runtime, transfer_function, theta)
+    assert_paths_agree(runtime(theta), transfer_function(theta), spread, 300, 'loop')
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(runtime(theta * (1.0 + 1e-9)), transfer_function(theta), spread, 300)
 
 
 def trusted_loop(theta=IKEDA_THETA, **values):
@@ -328,9 +373,11 @@ def test_the_fallback_runs_until_a_trusted_estimate_then_the_design():
     assert loop.controller is loop.fallback and not loop.trusted
     np.testing.assert_allclose(loop.fallback.numerator, [0.2289])
     loop = trusted_loop()
-    # 0.5/(q - 0.8) with poles 0.5, 0.5 and a strictly proper C: C = 0.18/(q - 0.2)
-    np.testing.assert_allclose(loop.controller.numerator, [0.18], atol=1e-12)
-    np.testing.assert_allclose(loop.controller.denominator, [1.0, -0.2], atol=1e-12)
+    # 0.5/(q - 0.8) with poles 0.5, 0.5 and a strictly proper C: C = 0.18/(q - 0.2), from a
+    # solve of 2 unknowns: within its condition number times 2 x 2 eps, relative
+    bound = 4 * 2 * loop.controller.condition * EPS
+    assert_within(loop.controller.numerator, [0.18], bound * 0.18, 'S')
+    assert_within(loop.controller.denominator, [1.0, -0.2], bound * 0.2, 'R')
     np.testing.assert_allclose(loop.predicted_poles(), [0.5, 0.5], atol=1e-6)
     assert loop.counters['redesigns'] == 1
 

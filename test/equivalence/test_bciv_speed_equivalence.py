@@ -152,6 +152,24 @@ def test_alternations_equal_the_equations_written_out(white, lag, feedthrough, w
         assert_close(fast.gamma, dense.gamma, gamma, 'gamma')
 
 
+def test_the_rounding_bounds_catch_a_moved_moment():
+    # one moment moved by 1e-7 of its value (what one sample moved by ~3e-4 does to a sum
+    # of 3000 of them): far above rounding, the bounds above must see it
+    z, w = section('ikenoue_colored', 3000, 11)
+    solver = BcivSolver(order=2, iv_lag=5, feedthrough=False, input_noise='colored')
+    eta, pz = solver.data_windows(z, w)
+    moments = eta.T @ pz
+    dense = dense_bciv(moments, 2, 5, False, 7)
+    iv, theta, _ = tolerances(dense, solver.m, 7)
+    moved = moments.copy()
+    moved[3, 1] *= 1.0 + 1e-7
+    fast = solver.estimate(moved, 1e-6, mode='steps', iterations=7, tolerance=0.0)
+    with pytest.raises(AssertionError, match='above the rounding bound'):
+        assert_close(fast.theta_iv, dense.theta_iv, iv, 'theta_IV')
+    with pytest.raises(AssertionError, match='above the rounding bound'):
+        assert_close(fast.theta, dense.theta, theta, 'theta')
+
+
 def test_white_fixed_point_is_the_limit_of_the_alternation():
     z, w = section('ikenoue_white_input', 4000, 11)
     solver = BcivSolver(order=2, iv_lag=4, feedthrough=False, input_noise='white')

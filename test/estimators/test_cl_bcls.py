@@ -14,6 +14,7 @@ from bcid_ros.identifier.parameters import (check_identifier_parameters, estimat
                                             load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
+from equivalence import assert_paths_agree, two_path_spread
 from test_lti import random_stable_polynomial
 
 PAPER = IkedaClosedLoop()
@@ -97,18 +98,32 @@ def test_prefilter_from_a_pole_or_coefficients():
 def test_sylvester_and_lyapunov_pieces_match_the_full_lyapunov_eq36(seed):
     rng = np.random.default_rng(seed)
     n, m = rng.integers(1, 4), rng.integers(0, 3)
-    a_cl, b_cl = lti.controller_canonical(random_stable_polynomial(rng, n + m))
-    f_matrix, g = lti.controller_canonical(random_stable_polynomial(rng, n))
     h = rng.standard_normal(n)
-    p22 = batch.solve_p22(f_matrix, g)
-    p12 = batch.solve_p12(a_cl, b_cl, f_matrix, g, h, p22)
-    full = batch.noise_state_covariance(a_cl, b_cl, f_matrix, g, h)  # scipy, eq. (36)
     k = n + m
-    np.testing.assert_allclose(p22, scipy.linalg.solve_discrete_lyapunov(f_matrix,
-                                                                         np.outer(g, g)),
-                               atol=1e-10)
-    np.testing.assert_allclose(p22, full[k:, k:], atol=1e-9)
-    np.testing.assert_allclose(p12, full[:k, k:], atol=1e-9)
+    # the monic polynomials' other coefficients and h are the data (companion forms from them)
+    data = (random_stable_polynomial(rng, n + m)[1:], random_stable_polynomial(rng, n)[1:], h)
+
+    def pieces(closed_loop, prefilter, h):
+        a_cl, b_cl = lti.controller_canonical(np.r_[1.0, closed_loop])
+        f_matrix, g = lti.controller_canonical(np.r_[1.0, prefilter])
+        p22 = batch.solve_p22(f_matrix, g)
+        return {'p22': p22, 'lyapunov p22': p22,
+                'p12': batch.solve_p12(a_cl, b_cl, f_matrix, g, h, p22)}
+
+    def scipy_solutions(closed_loop, prefilter, h):
+        a_cl, b_cl = lti.controller_canonical(np.r_[1.0, closed_loop])
+        f_matrix, g = lti.controller_canonical(np.r_[1.0, prefilter])
+        full = batch.noise_state_covariance(a_cl, b_cl, f_matrix, g, h)  # scipy, eq. (36)
+        return {'p22': full[k:, k:], 'p12': full[:k, k:],
+                'lyapunov p22': scipy.linalg.solve_discrete_lyapunov(f_matrix, np.outer(g, g))}
+
+    # our Kronecker solves against scipy's: two paths, within the rounding spreads of both
+    spread = two_path_spread(pieces, scipy_solutions, *data)
+    assert_paths_agree(pieces(*data), scipy_solutions(*data), spread, 1, f'seed {seed}')
+    # h moved by a millionth: the bound sees it
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(pieces(*data[:2], h * (1.0 + 1e-6)), scipy_solutions(*data),
+                           spread, 1)
 
 
 def impulse_moments(a_p, b_p, controller, prefilter, length=3000):
@@ -150,10 +165,28 @@ def test_bias_terms_are_the_noise_moments_of_theorem1(seed, sign):
         if lti.is_stable(d_cl, 0.1):
             break
     prefilter = random_stable_polynomial(rng, n)
-    direction, beta = batch.bias_terms(np.concatenate((a_p[1:], b_p)), prefilter, controller)
-    moments, power = impulse_moments(a_p, b_p, controller, prefilter)
-    np.testing.assert_allclose(direction, moments, atol=1e-10)
-    assert beta == pytest.approx(power, abs=1e-10)
+    numerator, denominator = controller.numerator, controller.denominator
+
+    def theorem(a_p, b_p, numerator, denominator, prefilter):
+        controller = lti.make_controller(numerator, np.r_[1.0, denominator], sign)
+        direction, beta = batch.bias_terms(np.concatenate((a_p, b_p)), np.r_[1.0, prefilter],
+                                           controller)
+        return {'direction': direction, 'beta': beta}
+
+    def sums(a_p, b_p, numerator, denominator, prefilter):
+        controller = lti.make_controller(numerator, np.r_[1.0, denominator], sign)
+        moments, power = impulse_moments(np.r_[1.0, a_p], b_p, controller,
+                                         np.r_[1.0, prefilter])
+        return {'direction': moments, 'beta': power}
+
+    # Lyapunov solves against 3000-term sums of products (the tail beyond 3000 is below
+    # 0.95^3000): two paths, within the rounding spreads of both plus the sums' N eps
+    data = (a_p[1:], b_p, numerator, denominator[1:], prefilter[1:])
+    spread = two_path_spread(theorem, sums, *data)
+    assert_paths_agree(theorem(*data), sums(*data), spread, 3000, f'seed {seed}')
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(theorem(data[0] * (1.0 + 1e-6), *data[1:]), sums(*data), spread,
+                           3000)
 
 
 def test_bias_terms_refuse_an_unstable_estimated_loop():
@@ -176,14 +209,30 @@ def test_prefiltered_ls_solves_the_normal_equations():
     y, u = PAPER.simulate(300, 2)
     prefilter = np.array([1.0, -0.5])
     ls = batch.prefiltered_ls(y, u[:, 0], prefilter)
-    y_f = signal.lfilter([1.0], prefilter, y)
-    u_f = signal.lfilter([1.0], prefilter, u[:, 0])
-    phi = np.column_stack((y_f[:-1], u_f[:-1]))
-    theta, *_ = np.linalg.lstsq(phi, y[1:], rcond=None)
-    np.testing.assert_allclose(ls.theta, theta, rtol=1e-10)
     assert ls.count == 299
-    assert ls.loss == pytest.approx(np.sum((y[1:] - phi @ theta) ** 2), rel=1e-10)
-    np.testing.assert_allclose(ls.next_regressor, [y_f[-1], u_f[-1]])
+
+    def normal_equations(y, u):
+        ls = batch.prefiltered_ls(y, u, prefilter)
+        return {'theta': ls.theta, 'loss': ls.loss}
+
+    def lstsq(y, u):
+        phi = np.column_stack((signal.lfilter([1.0], prefilter, y)[:-1],
+                               signal.lfilter([1.0], prefilter, u)[:-1]))
+        theta = np.linalg.lstsq(phi, y[1:], rcond=None)[0]
+        return {'theta': theta, 'loss': np.sum((y[1:] - phi @ theta) ** 2)}
+
+    # a Cholesky-checked solve against LAPACK's least squares: two paths, within the
+    # rounding spreads of both (test/equivalence.py)
+    spread = two_path_spread(normal_equations, lstsq, y, u[:, 0])
+    assert_paths_agree(normal_equations(y, u[:, 0]), lstsq(y, u[:, 0]), spread, 299, 'LS')
+    changed = y.copy()
+    changed[150] *= 1.0 + 1e-6
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(normal_equations(changed, u[:, 0]), lstsq(y, u[:, 0]), spread, 299)
+    # the same filter on the same samples: the same bits
+    np.testing.assert_array_equal(ls.next_regressor, [signal.lfilter([1.0], prefilter, y)[-1],
+                                                      signal.lfilter([1.0], prefilter,
+                                                                     u[:, 0])[-1]])
 
 
 def test_algorithm1_converges_and_bias_compensation_saves_iterations():
@@ -221,51 +270,107 @@ def test_algorithm1_follows_remark3_for_an_unstable_plant():
     assert result.converged
     # 40 runs gave std 0.003 (pole) and 0.005 (b); 5 std as bounds for one run
     assert abs(result.theta[0] + 1.2) < 0.02 and abs(result.theta[1] - 0.5) < 0.03
+    # the root of q + a_1 mirrored (np.roots, 1 / r, np.poly) against 1 / a_1: a few
+    # roundings of numbers near 1, 1e-9 is far above them
     assert result.next_prefilter[1] == pytest.approx(1.0 / result.theta[0], abs=1e-9)
 
 
 # --------------------------------------------------------------- the online form
-def run_and_check_against_batch(y, u, est, controller):
-    """Feed samples; at every redesign and some samples between, compare with the batch."""
-    checks = 0
-    window_start = prefilter = direction = beta = None
+def online_checkpoints(y, u, make_est):
+    """
+    Feed samples; return the estimator and its figures at every redesign and some samples between.
+
+    Each entry is {sample: (kind, figures)}; at a redesign ``kind`` holds the
+    window start, the prefilter before it and the iterations.
+    """
+    est = make_est()
+    checkpoints, window_start = {}, None
     for k in range(y.size):
         before = est.prefilter
         redesigns = est.redesigns
         est.update(y[k], u[k])
+        figures = {'theta': est.theta, 'ls': est.theta_uncompensated, 'sigma2': est.noise[0]}
         if est.redesigns != redesigns:
-            length = min(k + 1, est.window)
-            window_start = k + 1 - length
-            offline = batch.closed_loop_bcls(
-                y[window_start:k + 1], u[window_start:k + 1], order=est.order,
-                prefilter_initial=before, max_iterations=est.max_iterations,
-                tolerance=est.tolerance, **controller)
-            np.testing.assert_allclose(est.theta, offline.theta, atol=1e-10)
-            np.testing.assert_allclose(est.theta_uncompensated, offline.theta_ls, atol=1e-10)
-            assert est.noise[0] == pytest.approx(offline.sigma2, abs=1e-10)
-            assert est.last_iterations == offline.iterations
-            prefilter, direction, beta = offline.prefilter, offline.direction, offline.beta
-            checks += 1
+            window_start = k + 1 - min(k + 1, est.window)
+            checkpoints[k] = (('redesign', window_start, before, est.last_iterations), figures)
         elif window_start is not None and k % 97 == 0:
-            # between redesigns: eqs. (56)-(59) on the LS over samples s..k with frozen c, beta
-            ls = batch.prefiltered_ls(y[window_start:k + 1], u[window_start:k + 1], prefilter)
-            theta, sigma2 = batch.compensated_estimate(ls, direction, beta)
-            np.testing.assert_allclose(est.theta, batch.plant_from_regression(theta, prefilter),
-                                       atol=1e-9)
-            np.testing.assert_allclose(est.theta_uncompensated,
-                                       batch.plant_from_regression(ls.theta, prefilter),
-                                       atol=1e-9)
-            assert est.noise[0] == pytest.approx(sigma2, abs=1e-9)
-            checks += 1
-    return checks
+            checkpoints[k] = (('between', window_start), figures)
+    return est, checkpoints
+
+
+def batch_checkpoints(y, u, est, controller, kinds):
+    """
+    Return the figures of :func:`online_checkpoints` from the batch, at the same samples.
+
+    At a redesign, Algorithm 1 on the window from the prefilter in use; between
+    redesigns, eqs. (56)-(59) on the LS over the window start..k with the
+    frozen c, beta of the last redesign. The prefilters come from the batch's own
+    redesigns, as the online form's come from its own.
+    """
+    figures, prefilter, last = {}, None, None
+    for k, kind in sorted(kinds.items()):
+        start = kind[1]
+        if kind[0] == 'redesign':
+            last = batch.closed_loop_bcls(
+                y[start:k + 1], u[start:k + 1], order=est.order,
+                prefilter_initial=kind[2] if prefilter is None else prefilter,
+                max_iterations=est.max_iterations, tolerance=est.tolerance, **controller)
+            prefilter = last.prefilter
+            figures[k] = {'theta': last.theta, 'ls': last.theta_ls, 'sigma2': last.sigma2,
+                          'iterations': last.iterations}
+        else:
+            ls = batch.prefiltered_ls(y[start:k + 1], u[start:k + 1], prefilter)
+            theta, sigma2 = batch.compensated_estimate(ls, last.direction, last.beta)
+            figures[k] = {'theta': batch.plant_from_regression(theta, prefilter),
+                          'ls': batch.plant_from_regression(ls.theta, prefilter),
+                          'sigma2': sigma2}
+    return figures
+
+
+def run_and_check_against_batch(y, u, make_est, controller, online_y=None):
+    """
+    Compare the online form with the batch at every redesign and some samples between.
+
+    ``online_y`` feeds the online form other outputs (the test that the bound sees
+    a change); the batch and the rounding spreads take ``y``.
+    """
+    est, online = online_checkpoints(y if online_y is None else online_y, u, make_est)
+    kinds = {k: kind for k, (kind, _) in online.items()}
+
+    def flat(checkpoints):
+        return {(k, name): value for k, figures in checkpoints.items()
+                for name, value in figures.items() if name != 'iterations'}
+
+    # Two arithmetic paths, also at a redesign: the online form hands Algorithm 1 the
+    # columns of its sample buffer, so the LS's Phi' y runs BLAS gemv on a strided y
+    # (incx 2) where the batch has a contiguous record; between redesigns RLS steps
+    # continue the redesign's LS. Within the rounding spreads of both (test/equivalence.py).
+    spread = two_path_spread(
+        lambda y, u: flat({k: f for k, (_, f) in online_checkpoints(y, u, make_est)[1].items()}),
+        lambda y, u: flat(batch_checkpoints(y, u, est, controller, kinds)), y, u)
+    expected = batch_checkpoints(y, u, est, controller, kinds)
+    for k, (kind, figures) in online.items():
+        if kind[0] == 'redesign':  # a discrete outcome: exactly the batch's
+            assert kind[3] == expected[k]['iterations'], k
+        assert_paths_agree(figures, {name: expected[k][name] for name in figures},
+                           {name: spread[k, name] for name in figures}, k + 1 - kind[1],
+                           f'sample {k}')
+    return est, len(online)
 
 
 def test_online_form_equals_the_batch_algorithm_on_the_same_window():
     y, u = PAPER.simulate(2600, 7)
-    est = make(window=700, redesign_period=250)
-    checks = run_and_check_against_batch(y, u[:, 0], est, CONTROLLER)
+    est, checks = run_and_check_against_batch(
+        y, u[:, 0], lambda: make(window=700, redesign_period=250), CONTROLLER)
     assert est.redesigns == 10 and checks > 25
     assert not est.flags
+    # one sample changed by a ten-thousandth of its value online only: the bound sees it
+    changed = y.copy()
+    changed[2450] *= 1.0 + 1e-4
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        run_and_check_against_batch(
+            y, u[:, 0], lambda: make(window=700, redesign_period=250), CONTROLLER,
+            online_y=changed)
 
 
 def test_online_form_equals_batch_for_a_second_order_loop():
@@ -275,9 +380,9 @@ def test_online_form_equals_batch_for_a_second_order_loop():
                            reference_amplitude=1.0)
     settings = loop.estimator_settings()
     y, u = loop.simulate(1500, 5)
-    est = make_estimator('cl_bcls', window=900, redesign_period=300, **settings)
     controller = {key: settings[key] for key in CONTROLLER}
-    checks = run_and_check_against_batch(y, u[:, 0], est, controller)
+    est, checks = run_and_check_against_batch(y, u[:, 0], lambda: make_estimator(
+        'cl_bcls', window=900, redesign_period=300, **settings), controller)
     # this loop is poorly excited: Algorithm 1 contracts slowly and some redesigns stop at
     # max_iterations, which the batch run must reproduce as well
     assert est.redesigns == 4 and checks > 10 and est.flags == {'not_converged': 2}
@@ -459,7 +564,10 @@ def test_scenario_equals_the_loop_simulated_sample_by_sample():
     for k in range(count):
         if k % 16 == 0:
             level = 0.5 if draws[k, 1] >= 0 else -0.5
-        # u[k] from the controller state, y[k] = plant state + nu[k]
+        # u[k] from the controller state, y[k] = plant state + nu[k]. The scenario filters
+        # the same loop with lfilter: each step rounds by a few eps of signals below 3,
+        # carried by the loop's decaying response (poles 0.55, 0.34), ~1e-15 (measured
+        # 4e-16); 1e-12 is far above it and far below any wrong coefficient
         measured = plant + draws[k, 0]
         assert u[k, 0] == pytest.approx(controller, abs=1e-12)
         assert y[k] == pytest.approx(measured, abs=1e-12)
@@ -533,15 +641,38 @@ def test_seed_1082_drifting_first_redesign_is_dropped_and_flagged():
     assert not est.valid and est.redesigns == 0 and not first.valid.any()
     # the prefilter and the running LS stay as they were: the LS with f = q - 0.7
     np.testing.assert_array_equal(est.prefilter, [1.0, -0.7])
-    ls = batch.prefiltered_ls(y[:1000], u[:1000], np.array([1.0, -0.7]))
-    np.testing.assert_allclose(est.theta, batch.plant_from_regression(ls.theta, est.prefilter),
-                               atol=1e-9)
+    at_1000 = est.theta
     # the next redesign starts again from f = q - 0.7, on 2000 samples
     rest = est.run(y[1000:2000], u[1000:2000])
     offline = batch.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
                                      max_iterations=est.max_iterations, **CONTROLLER)
     assert est.valid and offline.converged
-    np.testing.assert_allclose(est.theta, offline.theta, atol=1e-10)
+
+    def online_form(y, u):
+        est = config_estimator(window=2000)
+        est.run(y[:1000], u[:1000])
+        theta = est.theta
+        est.run(y[1000:2000], u[1000:2000])
+        return {'LS at 1000': theta, 'theta at 2000': est.theta}
+
+    # the running LS started from P(0) = p0 S^-2 (the scales the run chose): its batch
+    # form is the LS regularised by P(0)^-1
+    regularisation = np.diag(1.0 / est._initial_p().diagonal())
+
+    def batch_form(y, u):
+        prefilter = np.array([1.0, -0.7])
+        phi, target, _ = batch.prefiltered_regression(y[:1000], u[:1000], prefilter)
+        ls = np.linalg.solve(phi.T @ phi + regularisation, phi.T @ target)
+        offline = batch.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
+                                         max_iterations=est.max_iterations, **CONTROLLER)
+        return {'LS at 1000': batch.plant_from_regression(ls, prefilter),
+                'theta at 2000': offline.theta}
+
+    # RLS steps against the batch LS, and Algorithm 1 on a strided against a contiguous
+    # record: two arithmetic paths, within the rounding spreads of both (test/equivalence.py)
+    assert_paths_agree({'LS at 1000': at_1000, 'theta at 2000': est.theta}, batch_form(y, u),
+                       two_path_spread(online_form, batch_form, y[:2000], u[:2000]), 2000,
+                       'seed 1082')
     rest = est.run(y[2000:], u[2000:])
     assert_no_nan(first)
     assert_no_nan(rest)

@@ -8,6 +8,7 @@ from bcid_ros.estimators import cl_bcls_batch as batch
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.lti import make_controller
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
+from equivalence import assert_paths_agree, two_path_spread
 
 PAPER = IkedaClosedLoop()
 KEYS = ('controller_numerator', 'controller_denominator', 'controller_sign')
@@ -45,51 +46,108 @@ def dense_rows(y, u, prefilters):
 
 
 # ------------------------------------------------------ the moments are exact
+#: The redesigns of a single-prefilter run: each time the rows double from 10 * 2n + n = 21.
+REDESIGNS = [21 * 2 ** j for j in range(8)]
+
+
+def single_prefilter_online(y, u):
+    """Return the estimates at the first redesign and at every 211th sample after it."""
+    # redesign_period 5000: the prefilter stays f = q - 0.7 for the whole run
+    est = make(prefilter_initial=0.7, redesign_period=5000, max_iterations=1)
+    figures = {}
+    for k in range(y.size):
+        est.update(y[k], u[k])
+        if est.redesigns and (k % 211 == 0 or not figures):
+            figures[k] = {'theta': est.theta, 'ls': est.theta_uncompensated,
+                          'sigma2': est.sigma2}
+    return est, figures
+
+
+def single_prefilter_batch(y, u, checkpoints):
+    """Return at ``checkpoints`` what :func:`single_prefilter_online` returns, from the batch."""
+    prefilter = np.array([1.0, -0.7])
+    controller = make_controller(*CONTROLLER.values())
+    figures, direction, beta, theta = {}, None, None, None
+    for k in sorted(set(checkpoints) | set(REDESIGNS)):
+        # the LS over all samples so far (sample k completes row k)
+        ls = batch.prefiltered_ls(y[:k + 1], u[:k + 1], prefilter)
+        ls_plant = batch.plant_from_regression(ls.theta, prefilter)
+        if k in REDESIGNS:
+            # one iteration of Algorithm 1 on the moments: the bias terms of eq. (37), (57)
+            # at the compensated estimate of this row (the LS at the first redesign)
+            if direction is not None:
+                theta, _ = batch.compensated_estimate(ls, direction, beta)
+            start = ls_plant if direction is None else batch.plant_from_regression(
+                theta, prefilter)
+            direction, beta = batch.bias_terms(start, prefilter, controller)
+        # eqs. (53), (56)-(59) with the c, beta of the last redesign
+        theta, sigma2 = batch.compensated_estimate(ls, direction, beta)
+        if k in checkpoints:
+            figures[k] = {'theta': batch.plant_from_regression(theta, prefilter),
+                          'ls': ls_plant, 'sigma2': sigma2}
+    return figures
+
+
+def flat(figures):
+    """Return {(sample, name): value} of {sample: {name: value}}."""
+    return {(k, name): value for k, named in figures.items() for name, value in named.items()}
+
+
 def test_single_prefilter_moments_equal_the_batch_ls_and_compensation():
     y, u = PAPER.simulate(3000, 3)
     u = u[:, 0]
-    # redesign_period 5000: the prefilter stays f = q - 0.7 for the whole run
-    est = make(prefilter_initial=0.7, redesign_period=5000, max_iterations=1)
-    prefilter = np.array([1.0, -0.7])
-    first = None
-    for k in range(y.size):
-        est.update(y[k], u[k])
-        if est.redesigns and first is None:
-            # first redesign after 10 * 2n + n = 21 rows (22 samples): one iteration of
-            # Algorithm 1 on those samples, bias terms from their LS
-            assert k + 1 == 22 and est.window_length == 21
-            offline = batch.algorithm1(y[:k + 1], u[:k + 1], make_controller(
-                *CONTROLLER.values()), prefilter, 1, 1e-3)
-            np.testing.assert_allclose(est.theta, offline.theta, atol=1e-12)
-            np.testing.assert_allclose(est.theta_uncompensated, offline.theta_ls, atol=1e-12)
-            first = offline
-        elif first is not None and k % 211 == 0 and est.redesigns == 1:
-            # between redesigns: the LS over all samples so far, compensated with the
-            # frozen c, beta by eqs. (53), (56)-(59)
-            ls = batch.prefiltered_ls(y[:k + 1], u[:k + 1], prefilter)
-            theta, sigma2 = batch.compensated_estimate(ls, first.direction, first.beta)
-            np.testing.assert_allclose(est.theta, batch.plant_from_regression(theta, prefilter),
-                                       atol=1e-9)
-            np.testing.assert_allclose(est.theta_uncompensated,
-                                       batch.plant_from_regression(ls.theta, prefilter),
-                                       atol=1e-9)
-            assert est.sigma2 == pytest.approx(sigma2, abs=1e-9)
-    assert est.epochs == 1 and est.redesigns == 8  # rows 21, 42, ..., 2688
+    est, online = single_prefilter_online(y, u)
+    checkpoints = sorted(online)
+    # first redesign after 10 * 2n + n = 21 rows (22 samples), then every 211th sample
+    assert checkpoints[0] + 1 == 22 and checkpoints[1:] == list(range(211, 3000, 211))
+    assert est.epochs == 1 and est.redesigns == len(REDESIGNS)
+    # The moments summed per sample against the batch LS of the prefiltered record: two
+    # arithmetic paths, within the rounding spreads of both (test/equivalence.py)
+    spread = two_path_spread(lambda y, u: flat(single_prefilter_online(y, u)[1]),
+                             lambda y, u: flat(single_prefilter_batch(y, u, checkpoints)),
+                             y, u)
+    expected = single_prefilter_batch(y, u, checkpoints)
+    for k in checkpoints:
+        assert_paths_agree(online[k], expected[k], {name: spread[k, name] for name in online[k]},
+                           k + 1, f'sample {k}')
+    # one sample changed by a ten-thousandth of its value in the recursion only: the bound
+    # of the last checkpoint sees it
+    changed = y.copy()
+    changed[1500] *= 1.0 + 1e-4
+    last = checkpoints[-1]
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(single_prefilter_online(changed, u)[1][last], expected[last],
+                           {name: spread[last, name] for name in online[last]}, last + 1)
 
 
-def test_rows_of_every_prefilter_stack_in_one_exact_ls():
-    y, u = PAPER.simulate(4000, 5)
-    u = u[:, 0]
+def every_prefilter_run(y, u):
+    """Return the cl_bcls run with redesign_period 500 and the prefilter of every sample."""
     est = make(redesign_period=500)
     prefilters = []
     for k in range(y.size):
         prefilters.append(est.prefilter)
         est.update(y[k], u[k])
+    return est, prefilters
+
+
+def test_rows_of_every_prefilter_stack_in_one_exact_ls():
+    y, u = PAPER.simulate(4000, 5)
+    u = u[:, 0]
+    est, prefilters = every_prefilter_run(y, u)
     assert est.epochs >= 2
-    psi, target = dense_rows(y, u, prefilters)
-    theta = np.linalg.lstsq(psi, target, rcond=None)[0]
-    np.testing.assert_allclose(est.theta_uncompensated, theta, atol=1e-9)
-    np.testing.assert_allclose(est.covariance, np.linalg.inv(psi.T @ psi), rtol=1e-7)
+
+    def online(y, u):
+        est = every_prefilter_run(y, u)[0]
+        return {'theta': est.theta_uncompensated, 'covariance': est.covariance}
+
+    def dense(y, u):
+        psi, target = dense_rows(y, u, prefilters)
+        return {'theta': np.linalg.lstsq(psi, target, rcond=None)[0],
+                'covariance': np.linalg.inv(psi.T @ psi)}
+
+    # moments per sample against one least-squares solve of the stacked rows: two paths
+    assert_paths_agree(online(y, u), dense(y, u), two_path_spread(online, dense, y, u),
+                       y.size, 'all prefilters')
 
 
 # ---------------------------------------------------------- the measurement
@@ -129,9 +187,9 @@ def test_a_controller_change_restarts_everything_but_the_prefilter(window):
     switched = est.run(y2, u2)
     fresh = make(window=window, redesign_period=250, prefilter_initial=prefilter, **RETUNED)
     fresh_run = fresh.run(y2, u2)
+    # one code path from the same restarted state on the same samples: the same bits
     for name in ('theta', 'theta_uncompensated', 'noise', 'valid'):
-        np.testing.assert_allclose(getattr(switched, name), getattr(fresh_run, name),
-                                   rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(getattr(switched, name), getattr(fresh_run, name))
     np.testing.assert_array_equal(est.prefilter, fresh.prefilter)
 
 
@@ -215,19 +273,40 @@ def test_no_reference_is_never_valid(window):
         assert est.excitation_ratio < 1e-20
 
 
+def excitation(est, y, u):
+    """Return the excitation ratio of ``est`` after the samples."""
+    est.run(y, u)
+    return est.excitation_ratio
+
+
 def test_the_excitation_ratio_does_not_depend_on_the_sign_convention_or_units():
     y, u = PAPER.simulate(3000, 6)
     est = make()
     est.run(y, u)
     flipped = make(controller_numerator=[-0.2289], controller_sign='positive')
     flipped.run(y, u)
-    # u = C (r - y) in new units: u * 1e4 = (C * 1e7) (r * 1e-3 - y * 1e-3)
-    scaled = make(controller_numerator=[0.2289 * 1e7])
-    scaled.run(y * 1e-3, u * 1e4)
     # the paper's loop: var(b_c r) / var(b_c y) about 0.24
     assert 0.1 < est.excitation_ratio < 0.5
-    assert flipped.excitation_ratio == pytest.approx(est.excitation_ratio, rel=1e-12)
-    assert scaled.excitation_ratio == pytest.approx(est.excitation_ratio, rel=1e-9)
+    # the sign folds into the same feedback numerator: the same arithmetic, the same bits
+    assert flipped.excitation_ratio == est.excitation_ratio
+
+    # u = C (r - y) in new units: u * 1e4 = (C * 1e7) (r * 1e-3 - y * 1e-3)
+    def ratio(y, u):
+        return {'ratio': excitation(make(), y, u)}
+
+    def scaled(y, u):
+        return {'ratio': excitation(make(controller_numerator=[0.2289 * 1e7]), y * 1e-3,
+                                    u * 1e4)}
+
+    # the scaled run rounds its data and sums (a_c u + b_c y cancels the noise) its own
+    # way: within the rounding spreads of both runs (test/equivalence.py)
+    spread = two_path_spread(scaled, ratio, y, u)
+    assert_paths_agree(scaled(y, u), ratio(y, u), spread, y.shape[0], 'excitation ratio')
+    # one output moved by a ten-thousandth of its value in the scaled run: the bound sees it
+    changed = y.copy()
+    changed[1500] *= 1.0 + 1e-4
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(scaled(changed, u), ratio(y, u), spread, y.shape[0])
 
 
 # False-alarm check: 10 seeds of the paper's loop at 6000 samples. Over 10 seeds at 20,000

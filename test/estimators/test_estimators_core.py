@@ -13,6 +13,7 @@ from bcid_ros.estimators.regressor import ArxRegressor
 from bcid_ros.estimators.rls import (ls_batch, repair_covariance, rls_innovation, rls_step,
                                      spectral_radius)
 from bcid_ros.simulation import make_scenario
+from equivalence import assert_paths_agree, two_path_spread
 
 
 def ding_data(samples, seed=1):
@@ -166,29 +167,72 @@ def test_rls_recovers_a_noise_free_arx_plant_with_feedthrough():
     # The prior P(0) = p0 S^-2 (S: power-of-two signal scales, here 2 and 4) pulls theta
     # towards 0 by about |theta| s^2 / (p0 N) = 0.7 * 16 / (1e6 * 40) ~ 3e-7.
     np.testing.assert_allclose(est.theta, [-0.7, 0.5, 0.2], atol=1e-6)
-    theta, _, _, _ = ls_batch(y, u, order=1, feedthrough=True,
-                              initial_covariance=est.initial_covariance_diagonal)
-    np.testing.assert_allclose(est.theta, theta, atol=1e-12)
+    assert_recursion_equals_batch(y, u, keys=('theta',), order=1, feedthrough=True)
     assert est.parameter_names == ('a1', 'b1_0', 'b1_1')
+
+
+def recursion_figures(y, u, name='rls', **settings):
+    """Return theta_LS, P, J and tau of the estimator ``name`` after the samples."""
+    est = make_estimator(name, **settings)
+    est.run(y, u)
+    return {'theta': est.theta_uncompensated, 'covariance': est.covariance,
+            'loss': est.loss, 'tau': est.weighted_count}
+
+
+def batch_figures(y, u, prior, **settings):
+    """Return what :func:`recursion_figures` returns, from the batch solution (ls_batch)."""
+    theta, p, loss, tau = ls_batch(y, u, initial_covariance=prior, **settings)
+    updates = y.shape[0] - settings['order']
+    # J of eq. (50) is the minimum of the regularised cost, which adds
+    # lambda^N' theta' P0^-1 theta to the residual sum of squares.
+    regularisation = settings.get('forgetting_factor', 1.0) ** updates * float(
+        theta @ (theta / prior))
+    return {'theta': theta, 'covariance': p, 'loss': loss + regularisation, 'tau': tau}
+
+
+def assert_recursion_equals_batch(y, u, keys=('theta', 'covariance', 'loss', 'tau'),
+                                  name='rls', recursion_y=None, **settings):
+    """
+    Assert that the recursion (47)-(50) on y, u ends at the batch LS solution of the same data.
+
+    A rank-1 update per sample and one solve of the normal equations are two
+    arithmetic paths: they agree within the rounding spreads of both
+    (test/equivalence.py), which hold the ill-conditioned start of the
+    recursion, plus the summation term of the N' updates. ``recursion_y``
+    feeds the recursion other outputs (the test that the bound sees a change).
+    """
+    prior = make_estimator(name, **settings)
+    prior.run(y, u)
+    prior = prior.initial_covariance_diagonal
+
+    def recursion(y, u):
+        figures = recursion_figures(y, u, name, **settings)
+        return {key: figures[key] for key in keys}
+
+    def batch(y, u):
+        figures = batch_figures(y, u, prior, **settings)
+        return {key: figures[key] for key in keys}
+
+    spread = two_path_spread(recursion, batch, y, u)
+    assert_paths_agree(recursion(y if recursion_y is None else recursion_y, u), batch(y, u),
+                       spread, y.shape[0] - settings['order'], name)
 
 
 @pytest.mark.parametrize('samples', [50, 1000, 5000])
 @pytest.mark.parametrize('lam', [1.0, 0.99])
 def test_rls_equals_batch_least_squares(samples, lam):
     y, u, _ = ding_data(samples)
-    est = make_estimator('rls', order=2, num_inputs=2, forgetting_factor=lam)
-    est.run(y, u)
-    theta, p, loss, tau = ls_batch(y, u, order=2, num_inputs=2,
-                                   initial_covariance=est.initial_covariance_diagonal,
-                                   forgetting_factor=lam)
-    np.testing.assert_allclose(est.theta, theta, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(est.covariance, p, rtol=1e-6, atol=1e-12)
-    assert est.weighted_count == pytest.approx(tau, rel=1e-12)
-    # J of eq. (50) is the minimum of the regularised cost, which adds
-    # lambda^N' theta' P0^-1 theta to the residual sum of squares.
-    regularisation = lam ** (samples - 2) * float(
-        theta @ (theta / est.initial_covariance_diagonal))
-    assert est.loss == pytest.approx(loss + regularisation, rel=1e-9)
+    assert_recursion_equals_batch(y, u, order=2, num_inputs=2, forgetting_factor=lam)
+
+
+def test_the_batch_bound_catches_one_changed_sample():
+    # one output changed by a ten-thousandth of its value in the recursion only: far
+    # below the noise, far above rounding; the comparison with the batch must fail
+    y, u, _ = ding_data(1000)
+    changed = y.copy()
+    changed[500] *= 1.0 + 1e-4
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_recursion_equals_batch(y, u, recursion_y=changed, order=2, num_inputs=2)
 
 
 @pytest.mark.parametrize('samples', [1000, 3000, 10000])
@@ -201,8 +245,12 @@ def test_bcrls_tracks_the_batch_bcls_fixed_point(samples):
     # gap (measured 1e-6..3e-5) must be far below the estimation error (~1e-2).
     assert np.abs(est.theta - theta_c).max() < 1e-4
     assert np.abs(est.theta - theta_c).max() < 0.01 * np.linalg.norm(theta_c - truth)
-    np.testing.assert_allclose(est.theta_uncompensated, theta_ls, atol=1e-9)
+    # theta_LS without the prior p0 S^-2: the prior's pull, ~ |theta| s^2 / (p0 N) < 1e-8,
+    # is the only difference beyond rounding (the rounding: the test just below)
+    np.testing.assert_allclose(est.theta_uncompensated, theta_ls, atol=1e-7)
     assert est.sigma2 == pytest.approx(sigma2, rel=1e-3)
+    # bcrls's LS part is the RLS recursion: it ends at the regularised batch solution
+    assert_recursion_equals_batch(y, u, keys=('theta',), name='bcrls', order=2, num_inputs=2)
 
 
 def test_bcrls_without_forgetting_is_the_paper_recursion():
@@ -210,19 +258,31 @@ def test_bcrls_without_forgetting_is_the_paper_recursion():
     y, u, _ = ding_data(200, seed=4)
     est = make_estimator('bcrls', order=2, num_inputs=2)
     est.run(y, u)
-    phi = ArxRegressor(2, 2, False).regressors(y, u)
-    lam = np.diag([1.0, 1.0, 0, 0, 0, 0])
-    p = np.diag(est.initial_covariance_diagonal)
-    theta_ls, theta_c, loss = np.zeros(6), np.zeros(6), 0.0
-    for t, (row, target) in enumerate(zip(phi, y[2:]), start=1):
-        gain = p @ row / (1 + row @ p @ row)
-        loss += (target - row @ theta_ls) ** 2 / (1 + row @ p @ row)
-        theta_ls = theta_ls + gain * (target - row @ theta_ls)
-        p = (np.eye(6) - np.outer(gain, row)) @ p
-        sigma2 = loss / (t * (1 + theta_c @ lam @ theta_ls))
-        theta_c = theta_ls + t * sigma2 * p @ lam @ theta_c
-    np.testing.assert_allclose(est.theta, theta_c, atol=1e-8)
-    assert est.sigma2 == pytest.approx(sigma2, rel=1e-8)
+    prior = est.initial_covariance_diagonal
+
+    def estimator(y, u):
+        est = make_estimator('bcrls', order=2, num_inputs=2)
+        est.run(y, u)
+        return {'theta': est.theta, 'sigma2': est.sigma2}
+
+    def transcription(y, u):
+        phi = ArxRegressor(2, 2, False).regressors(y, u)
+        lam = np.diag([1.0, 1.0, 0, 0, 0, 0])
+        p = np.diag(prior)
+        theta_ls, theta_c, loss = np.zeros(6), np.zeros(6), 0.0
+        for t, (row, target) in enumerate(zip(phi, y[2:]), start=1):
+            gain = p @ row / (1 + row @ p @ row)
+            loss += (target - row @ theta_ls) ** 2 / (1 + row @ p @ row)
+            theta_ls = theta_ls + gain * (target - row @ theta_ls)
+            p = (np.eye(6) - np.outer(gain, row)) @ p
+            sigma2 = loss / (t * (1 + theta_c @ lam @ theta_ls))
+            theta_c = theta_ls + t * sigma2 * p @ lam @ theta_c
+        return {'theta': theta_c, 'sigma2': sigma2}
+
+    # two arithmetic paths (the transcription's P update is not even symmetric): within
+    # the rounding spreads of both (test/equivalence.py)
+    assert_paths_agree(estimator(y, u), transcription(y, u),
+                       two_path_spread(estimator, transcription, y, u), 198, 'bcrls')
 
 
 def test_bcrls_with_forgetting_stays_consistent_on_stationary_data():
@@ -395,14 +455,30 @@ def test_the_rls_step_functions_are_the_textbook_step():
     a = rng.standard_normal((6, 6))
     p = a @ a.T + np.eye(6)
     theta, phi, y, lam = rng.standard_normal(6), rng.standard_normal(6), 0.7, 0.98
-    e, g, s = rls_innovation(theta, p, phi, y, lam)
-    assert e == pytest.approx(y - phi @ theta) and s == pytest.approx(lam + phi @ p @ phi)
-    gain = p @ phi / s
-    expected_theta, expected_p = theta + gain * e, p - np.outer(gain, phi @ p)
-    new_p = rls_step(theta, p.copy(), g, s, e)
-    np.testing.assert_allclose(theta, expected_theta, rtol=1e-12)
-    np.testing.assert_allclose(new_p, expected_p, rtol=1e-10, atol=1e-12)
-    assert np.array_equal(new_p, new_p.T)
+
+    def functions(theta, p, phi, y):
+        e, g, s = rls_innovation(theta, p, phi, float(y), lam)
+        theta = theta.copy()
+        new_p = rls_step(theta, p.copy(), g, s, e)
+        return {'e': e, 's': s, 'theta': theta, 'p': new_p}
+
+    def textbook(theta, p, phi, y):
+        s = lam + phi @ p @ phi
+        gain = p @ phi / s
+        e = y - phi @ theta
+        return {'e': e, 's': s, 'theta': theta + gain * e, 'p': p - np.outer(gain, phi @ p)}
+
+    # BLAS axpy/ger against numpy's products: two paths, within the rounding spread of both
+    data = (theta, p, phi, np.array(y))
+    spread = two_path_spread(functions, textbook, *data)
+    assert_paths_agree(functions(*data), textbook(*data), spread, 1, 'one step')
+    # one entry of phi moved by 1e-9 of its size: far above rounding, the bound sees it
+    moved = phi.copy()
+    moved[3] *= 1.0 + 1e-9
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(functions(theta, p, moved, y), textbook(*data), spread, 1)
+    new_p = functions(*data)['p']
+    assert np.array_equal(new_p, new_p.T)  # one path: p_ij - h_i h_j is p_ji - h_j h_i
 
 
 def test_repair_covariance_returns_a_positive_definite_matrix():

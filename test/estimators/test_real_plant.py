@@ -21,6 +21,7 @@ from bcid_ros.identifier.parameters import (check_identifier_parameters, estimat
                                             spec_by_name)
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.custom import CustomScenario
+from equivalence import assert_within, EPS
 
 A = [1.0, -1.5, 0.7]
 CONFIG = Path(__file__).resolve().parents[2] / 'config'
@@ -162,12 +163,28 @@ def test_plant_at_an_operating_point_is_identified_as_around_zero(lam):
     assert raw.mean() > 5 * bound
 
 
+def mean_bound(y, u):
+    """
+    Return the rounding bound of the running means against numpy's of y and u.
+
+    m += (x - m) / t rounds three times per sample, by eps |m| or so, and an error
+    made at sample t is carried on with weight t / N: at most ~1.5 N eps max |x|
+    in all; numpy's pairwise mean rounds far less. So 2 N eps max |x| per channel.
+    """
+    return 2 * y.shape[0] * EPS * np.array([np.abs(y).max(), np.abs(u).max()])
+
+
 def test_operating_point_is_the_running_mean():
     y, u = offset_plant(1).simulate(4000, 5)
     estimator = make_estimator('rls', order=2, detrend='mean')
     assert estimator.operating_point_names == ('y', 'u1')
     estimator.run(y, u)
-    np.testing.assert_allclose(estimator.operating_point, [y.mean(), u.mean()], rtol=1e-9)
+    assert_within(estimator.operating_point, [y.mean(), u.mean()], mean_bound(y, u), 'means')
+    # one sample moved by a millionth of its value: 1e-6 |y| / N, far above that bound
+    moved = y.copy()
+    moved[2000] *= 1.0 + 1e-6
+    with pytest.raises(AssertionError, match='times the bound'):
+        assert_within(estimator.operating_point, [moved.mean(), u.mean()], mean_bound(y, u))
     # the plant's steady-state: y0 = 5, u0 = 2 (within a few standard errors of the means)
     np.testing.assert_allclose(estimator.operating_point, [5.0, 2.0], atol=0.3)
     assert make_estimator('rls', order=2).operating_point is None
@@ -379,6 +396,6 @@ def test_a_refused_spike_does_not_move_the_operating_point(name):
     # kept in the means, the spike would move y0 by about 1e3 y / 3000 (1.7) for good;
     # refused, it is the one sample missing from the plain means (lambda = 1)
     kept = np.arange(len(y)) != 1500
-    np.testing.assert_allclose(spiked.operating_point, [y[kept].mean(), u[kept].mean()],
-                               rtol=1e-9)
+    assert_within(spiked.operating_point, [y[kept].mean(), u[kept].mean()],
+                  mean_bound(y[kept], u[kept]), 'means without the spike')
     assert abs(spiked.operating_point[0] - clean.operating_point[0]) < 0.01

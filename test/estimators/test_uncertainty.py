@@ -19,28 +19,54 @@ from bcid_ros.estimators.base import standard_deviations, weighted_square_ratio
 from bcid_ros.estimators.bcrls import add_lagged_moments
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.moment_covariance import MAX_BLOCKS, MomentBlocks
+from equivalence import assert_paths_agree, assert_within, EPS, rounding_spread
 
 
 # ------------------------------------------------------------------ formulas
-@pytest.mark.parametrize('lam', [1.0, 0.99])
-def test_rls_covariance_is_the_hac_of_its_scores(lam):
-    # Built offline: the scores phi_t e_t of the updates from the gate's warm-up on
-    # (tau >= 10 p = 60), e_t the a-priori error with the estimate before the sample
-    y, u = arx_data(np.random.default_rng(1), 1500)
-    estimator = make_estimator('rls', order=2, num_inputs=2, forgetting_factor=lam)
-    theta = estimator.run(y, u).theta
+def offline_hac(y, u, theta, lam, covariance):
+    """
+    Return rls's covariance built offline: the HAC of its scores phi_t e_t.
+
+    The scores of the updates from the gate's warm-up on (tau >= 10 p = 60), e_t the
+    a-priori error with the estimate before the sample (``theta`` after each sample).
+    """
     hac = HacCovariance(dimension=6, forgetting_factor=lam)
     for t in range(2, y.shape[0]):
         phi = np.array([-y[t - 1], -y[t - 2], u[t - 1, 0], u[t - 2, 0], u[t - 1, 1], u[t - 2, 1]])
         tau = (1.0 - lam ** (t - 1)) / (1.0 - lam) if lam < 1.0 else t - 1.0  # after update t
         if tau >= 60.0:
             hac.record(phi * (y[t] - phi @ theta[t - 1]))
-    expected = hac.covariance(estimator.covariance)
-    # the same products, formed per block in the estimator and per sample here, and the
-    # a-priori error from BLAS there and numpy here: agreement to rounding, 1e-9 relative
-    np.testing.assert_allclose(estimator.parameter_covariance, expected, rtol=1e-9,
-                               atol=1e-9 * np.abs(expected).max())
-    np.testing.assert_allclose(estimator.parameter_std, np.sqrt(np.diag(expected)), rtol=1e-9)
+    return hac.covariance(covariance)
+
+
+@pytest.mark.parametrize('lam', [1.0, 0.99])
+def test_rls_covariance_is_the_hac_of_its_scores(lam):
+    y, u = arx_data(np.random.default_rng(1), 1500)
+
+    def estimate(y, u):
+        estimator = make_estimator('rls', order=2, num_inputs=2, forgetting_factor=lam)
+        theta = estimator.run(y, u).theta
+        return estimator, theta
+
+    def online(y, u):
+        return {'covariance': estimate(y, u)[0].parameter_covariance}
+
+    def offline(y, u):
+        estimator, theta = estimate(y, u)
+        return {'covariance': offline_hac(y, u, theta, lam, estimator.covariance)}
+
+    # two paths (the products formed per block there and per sample here, the a-priori
+    # error from BLAS there and numpy here): within the rounding spread of the offline one
+    spread = rounding_spread(offline, y, u)
+    assert_paths_agree(online(y, u), offline(y, u), spread, y.shape[0], 'rls HAC')
+    estimator = estimate(y, u)[0]
+    np.testing.assert_array_equal(estimator.parameter_std,
+                                  np.sqrt(np.diag(estimator.parameter_covariance)))
+    # one output changed by a millionth of its value: the bound sees it
+    changed = y.copy()
+    changed[700] *= 1.0 + 1e-6
+    with pytest.raises(AssertionError, match='the paths differ by'):
+        assert_paths_agree(online(changed, u), offline(y, u), spread, y.shape[0], 'rls HAC')
 
 
 def test_the_effective_sample_size_ratio():
@@ -73,9 +99,19 @@ def test_bcrls_lagged_moments_equal_the_batch_sums_and_survive_a_state_round_tri
     phi = np.column_stack([-y[1:-1], -y[:-2], u[1:-1, 0], u[:-2, 0], u[1:-1, 1], u[:-2, 1]])
     z = np.column_stack([phi, y[2:]])
     assert weight == z.shape[0]
+
+    def bound(z, k):
+        # blocks of 64 rows added up against one product over all N rows: two summation
+        # orders of N terms, each within N eps sum |term| of the exact sum (Higham)
+        return 2 * z.shape[0] * EPS * (np.abs(z[k:]).T @ np.abs(z[:z.shape[0] - k]))
+
     for k in range(3):
-        np.testing.assert_allclose(sums[k], z[k:].T @ z[:z.shape[0] - k], rtol=1e-12,
-                                   atol=1e-10)
+        assert_within(sums[k], z[k:].T @ z[:z.shape[0] - k], bound(z, k), f'lag {k}')
+    # one sample changed by a millionth of its value: far above that bound
+    changed = z.copy()
+    changed[500, 1] *= 1.0 + 1e-6
+    with pytest.raises(AssertionError, match='times the bound'):
+        assert_within(sums[0], changed.T @ changed, bound(changed, 0))
     # a snapshot in the middle of a block continues to the same covariance, bit for bit
     first = run('bcrls', y[:537], u[:537])
     second = make_estimator('bcrls', order=2, num_inputs=2)
@@ -91,7 +127,9 @@ def test_bcrls_covariance_is_unit_free():
     y, u = ding_data(np.random.default_rng(4), 1500)
     base = run('bcrls', y, u)
     scaled = run('bcrls', y * 1e-3, u * 1e4)
-    # theta: a -> a, b -> b s_y / s_u; so std of b scales by 1e-7
+    # theta: a -> a, b -> b s_y / s_u; so std of b scales by 1e-7. The scaled data are the
+    # same up to half an ulp per sample and a prior p0 S^-2 up to 4x apart (~1 / (p0 N)):
+    # measured 1.4e-8 relative, 1e-6 leaves room
     factor = np.array([1.0, 1.0, 1e-7, 1e-7, 1e-7, 1e-7])
     np.testing.assert_allclose(scaled.parameter_std, base.parameter_std * factor, rtol=1e-6)
     covariance = base.parameter_covariance
@@ -141,7 +179,9 @@ def test_block_covariance_scales_with_the_units(name, data, settings):
         # the controller maps the scaled y to the scaled u: its gain times 1e4 / 1e-3
         settings = dict(settings, controller_numerator=[0.2289e7])
     scaled = run_single(name, y * 1e-3, u * 1e4, **settings)
-    # theta: a -> a, b -> b s_y / s_u = 1e-7 b, so the std of b scales by 1e-7
+    # theta: a -> a, b -> b s_y / s_u = 1e-7 b, so the std of b scales by 1e-7. Only the
+    # prior (up to 16x apart in normalised units) and half an ulp per sample differ:
+    # measured theta 1.4e-8 (bciv) and 4e-15 (cl_bcls) relative, std 4e-8 and 1e-6
     factor = np.repeat([1.0, 1e-7], settings['order'])
     np.testing.assert_allclose(scaled.theta, base.theta * factor, rtol=1e-7)
     np.testing.assert_allclose(scaled.parameter_std, base.parameter_std * factor, rtol=1e-4)
@@ -167,7 +207,11 @@ def test_moment_blocks_sum_each_block_exactly_with_forgetting():
         end = boundaries[len(boundaries) - blocks.blocks + index]
         rows = terms[end - 32:end]
         weights = lam ** np.arange(31, -1, -1)
+        # a block is the difference of two running sums of ~1 / (1 - lambda) = 1000 terms
+        # (rounding ~1e3 eps of their size, ~1e-12); 1e-9 is far above it
         np.testing.assert_allclose(block, weights @ rows, rtol=1e-9, atol=1e-9)
+        # the closed form (1 - lambda^32) / (1 - lambda) against a sum of 32 powers: the
+        # cancellation in 1 - lambda^32 costs eps / 0.03 ~ 1e-14 relative, 1e-12 is above it
         assert blocks._weights[index][1] == pytest.approx(weights.sum(), rel=1e-12)
         assert blocks._weights[index][2] == pytest.approx((weights ** 2).sum(), rel=1e-12)
 

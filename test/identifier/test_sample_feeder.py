@@ -151,4 +151,6 @@ def test_a_block_fed_at_once_equals_message_by_message():
     block = SampleFeeder(estimator_from_parameters(values))
     result = block.take_rows(rows)
     assert (result.used, result.nonfinite) == (one.used, one.nonfinite) == (299, 1)
+    # one arithmetic path: the block's regressors are the same values as contiguous rows of
+    # the same length, and the same step runs on them (test_bag_blocks.py): the same bits
     np.testing.assert_array_equal(block.estimator.theta, one.estimator.theta)

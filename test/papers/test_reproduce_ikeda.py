@@ -4,10 +4,12 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.cl_bcls_batch import closed_loop_bcls
 from bcid_ros.reproduction.common import mean_and_stderr
-from bcid_ros.reproduction.ikeda import (PREFILTER_73, reproduce, SAMPLES, SEED_72, study_71,
-                                         study_72, study_73, TOLERANCE_73)
+from bcid_ros.reproduction.ikeda import (MAX_ITERATIONS_73, PREFILTER_73, reproduce, SAMPLES,
+                                         SEED_72, study_71, study_72, study_73, TOLERANCE_73)
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
+from equivalence import assert_paths_agree, two_path_spread
 
 RUNS = 150
 
@@ -84,15 +86,33 @@ def test_online_form_with_one_redesign_is_the_73_batch_estimate():
     # window = redesign_period = N: the one redesign at sample N is Algorithm 1 on all data
     loop = IkedaClosedLoop()
     result = study_73(2, samples=SAMPLES)
+    settings = dict(prefilter_initial=PREFILTER_73, tolerance=TOLERANCE_73,
+                    max_iterations=MAX_ITERATIONS_73, **loop.estimator_settings())
+
+    def online(y, u):
+        est = make_estimator('cl_bcls', window=SAMPLES, redesign_period=SAMPLES, **settings)
+        est.run(y, u)
+        return {'pole, b': [-est.theta[0], est.theta[1]]}
+
+    def batch(y, u):
+        keys = ('order', 'prefilter_initial', 'tolerance', 'max_iterations',
+                'controller_numerator', 'controller_denominator', 'controller_sign')
+        theta = closed_loop_bcls(y, u, **{key: settings[key] for key in keys}).theta
+        return {'pole, b': [-theta[0], theta[1]]}
+
     for run in range(2):
         y, u = loop.simulate(SAMPLES, SEED_72 + run)
-        est = make_estimator('cl_bcls', window=SAMPLES, redesign_period=SAMPLES,
-                             prefilter_initial=PREFILTER_73, tolerance=TOLERANCE_73,
-                             max_iterations=200, **loop.estimator_settings())
+        est = make_estimator('cl_bcls', window=SAMPLES, redesign_period=SAMPLES, **settings)
         est.run(y, u)
         assert est.redesigns == 1
-        np.testing.assert_allclose([-est.theta[0], est.theta[1]], result.bc[run], atol=1e-12)
         assert est.last_iterations == result.iterations_bc[run]
+        # study_73 is Algorithm 1 on the record: the same bits as here
+        np.testing.assert_array_equal(batch(y, u)['pole, b'], result.bc[run])
+        # the online form hands Algorithm 1 the columns of its sample buffer (Phi' y on a
+        # strided y, another BLAS path) and maps theta through [f - a | b] and back: two
+        # arithmetic paths, within the rounding spreads of both (test/equivalence.py)
+        assert_paths_agree(online(y, u), batch(y, u), two_path_spread(online, batch, y, u[:, 0]),
+                           SAMPLES, f'run {run}')
 
 
 def test_reproduce_quick_writes_the_report_and_figures(tmp_path):

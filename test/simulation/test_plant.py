@@ -42,6 +42,9 @@ def test_zero_order_hold_timing_operating_point_and_noise_match_a_filter():
     expected = (-3.0 + signal.lfilter([0.0, 0.0, 0.0, 0.4, 0.3], [1.0, -1.2, 0.5],
                                       us[:, 0] - 1.5)
                 + signal.lfilter([1.0, 0.5], [1.0, -0.3], e))
+    # the plant's difference equations against lfilter: the same recursions summed in
+    # another order, a few eps of |y| < 10 carried by poles of radius 0.71 (measured
+    # 3.6e-15); 1e-10 is far above that and far below a sample of wrong timing
     np.testing.assert_allclose(ys, expected, rtol=0, atol=1e-10)
 
 
@@ -55,6 +58,7 @@ def test_equation_error_feedthrough_and_two_inputs():
     expected = (signal.lfilter([0.2, 1.0], [1.0, -0.5], us[:, 0])
                 + signal.lfilter([0.0, 0.0, -0.7], [1.0, -0.5], us[:, 1])
                 + signal.lfilter([1.0], [1.0, -0.5], e))
+    # as above (measured 9e-16 on |y| < 4)
     np.testing.assert_allclose(ys, expected, rtol=0, atol=1e-10)
 
 
@@ -70,6 +74,8 @@ def test_the_plant_change_keeps_the_histories_and_changes_the_coefficients():
     for t in range(1, 100):
         a, b = (0.8, 0.5) if t < 50 else (0.6, 0.9)
         x[t] = a * x[t - 1] + b * us[t - 1, 0]
+    # a first-order recursion in two orders of summation: a few eps of |y|, decaying
+    # with 0.8^k; 1e-12 is far above that
     np.testing.assert_allclose(ys, x, rtol=0, atol=1e-12)
     assert plant.changed
     np.testing.assert_array_equal(plant.truth().parameters, [-0.6, 0.9])
@@ -119,8 +125,10 @@ def test_a_pole_placement_loop_on_the_held_input_plant_has_the_designed_poles():
         ys.append(y)
         rs.append(loop.last_reference)
     truth = Plant.from_estimate([-0.8, 0.5], ModelStructure(1))
+    # a double pole moves by the square root of its polynomial's rounding (~1e-8)
     np.testing.assert_allclose(np.sort(closed_loop_poles(truth, loop.controller).real),
                                [0.5, 0.5], atol=1e-6)
-    # y = B S / (A R + B S) r: (q - 0.5)^2 y = 0.5 * 0.18 r
+    # y = B S / (A R + B S) r: (q - 0.5)^2 y = 0.5 * 0.18 r, to the rounding of the loop's
+    # signals (below 3, decaying with 0.5^k) and of the design; 1e-12 is far above it
     ys, rs = np.array(ys), np.array(rs)
     np.testing.assert_allclose(ys[2:] - ys[1:-1] + 0.25 * ys[:-2], 0.09 * rs[:-2], atol=1e-12)
