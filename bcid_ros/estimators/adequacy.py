@@ -741,38 +741,47 @@ def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarra
             shift = np.maximum(0, -column)
             variance += (kappa * colour[:, abs(j)])[:, None, None, None] * products[
                 :, :, tests[:, None] + shift, column + shift]
+    sizes = np.repeat(np.broadcast_to(np.reshape(np.asarray(size, dtype=float), (-1,)),
+                                      (count,)), inputs)
     statistic, standardised = quadratic_forms(variance.reshape(-1, lags, lags),
-                                              r.reshape(-1, lags))
+                                              r.reshape(-1, lags), sizes)
     worst = np.argmax(np.abs(standardised), axis=-1)
     flat = r.reshape(-1, lags)[np.arange(count * inputs), worst].reshape(count, inputs)
     scale = np.sqrt(np.maximum(colour[:, :1] * np.einsum('kiaa->kia', products)[:, :, 0], 0.0))
     value = np.where(scale > 0.0, flat / np.where(scale > 0.0, scale, 1.0), 0.0)
-    return (np.reshape(size, (-1, 1)) * statistic.reshape(count, inputs),
-            worst.reshape(count, inputs) + 1, value)
+    return statistic.reshape(count, inputs), worst.reshape(count, inputs) + 1, value
 
 
-def quadratic_forms(variance: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def quadratic_forms(variance: np.ndarray, r: np.ndarray, size: Any
+                    ) -> tuple[np.ndarray, np.ndarray]:
     r"""
-    Return :math:`r^T P^{-1} r` and the standardised correlations :math:`r_k/\sqrt{P_{kk}}`.
+    Return :math:`N r^T P^{-1} r` on the chi-square(M) scale, and :math:`r_k/\sqrt{P_{kk}}`.
 
-    ``variance`` P ``(n, M, M)`` and r ``(n, M)``: one solve of the stack;
-    where it fails, one per P. A singular P (an input without power) gives 0
-    and zeros: its test cannot see anything. (The t-values of the lags in a
-    joint regression, :math:`(P^{-1}r)_k/\sqrt{(P^{-1})_{kk}}`, were tried for
-    the worst lag and name it less often: a held input makes the lags nearly
-    collinear.)
+    ``variance`` P ``(n, M, M)``, r ``(n, M)``, ``size`` N (a float or
+    ``(n,)``). P is inverted on the directions its window can estimate: an
+    eigenvalue below ``1 / N`` of the largest is below the precision of
+    moments from N samples (a multisine of a few sines, or a held input,
+    makes P nearly singular, and the colour terms can make it slightly
+    indefinite there), and a direction the input does not excite cannot
+    show a correlation anyway. On the k kept directions the statistic is
+    chi-square(k) under the null; it is mapped to the chi-square(M) value of
+    the same tail probability, so that one pair of thresholds serves. A P
+    without power gives 0: its test cannot see anything.
     """
-    try:
-        solved = np.linalg.solve(variance, r[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        solved = np.full(r.shape, np.nan)
-        for k in range(r.shape[0]):
-            try:
-                solved[k] = np.linalg.solve(variance[k], r[k])
-            except np.linalg.LinAlgError:  # singular: this test sees nothing
-                continue
-    statistic = np.einsum('ki,ki->k', r, solved)
+    lags = r.shape[-1]
+    sizes = np.broadcast_to(np.asarray(size, dtype=float), r.shape[:1])
+    statistic = np.zeros(r.shape[0])
+    finite = np.isfinite(variance).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
+    for k in np.flatnonzero(finite).tolist():
+        values, vectors = np.linalg.eigh(0.5 * (variance[k] + variance[k].T))
+        if not values[-1] > 0.0:
+            continue
+        kept = values > values[-1] / max(sizes[k], 1.0)
+        projected = vectors[:, kept].T @ r[k]
+        value = sizes[k] * float(projected @ (projected / values[kept]))
+        rank = int(kept.sum())
+        statistic[k] = value if rank == lags else chi2_quantile(chi2_survival(value, rank), lags)
     diagonal = np.einsum('kii->ki', variance)
-    good = np.isfinite(statistic) & (statistic >= 0.0) & (diagonal > 0.0).all(axis=-1)
+    good = finite & (diagonal > 0.0).all(axis=-1)
     standardised = r / np.sqrt(np.where(good[:, None], diagonal, 1.0))
-    return np.where(good, statistic, 0.0), np.where(good[:, None], standardised, 0.0)
+    return statistic, np.where(good[:, None], standardised, 0.0)
