@@ -102,7 +102,8 @@ class ReplayResult:
         Return the ``bcid replay --json`` object (docs/bags.md).
 
         Keys: ``estimator``, ``samples``, ``valid`` (whether the final
-        estimate is valid, as ``~/valid`` would say), ``parameters``,
+        estimate is valid, as ``~/valid`` would say), ``validity_reasons`` (why it
+        is not, as /diagnostics says; empty when valid), ``parameters``,
         ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
         ``{name: count}``), ``std`` (the standard deviations of the final
         parameters, for estimators that have them: rls, bcrls), with ``detrend: mean``
@@ -114,6 +115,7 @@ class ReplayResult:
             'estimator': self.estimator,
             'samples': self.samples,
             'valid': self.valid,
+            'validity_reasons': list(self.validity_reasons),
             'parameters': _named(self.parameter_names, self.theta),
             'uncompensated': _named(self.parameter_names, self.theta_uncompensated),
             'noise': _named(self.noise_names, self.noise),

@@ -292,8 +292,9 @@ def test_replay_json_is_the_spec_object(capsys):
     import json
 
     summary = json.loads(capsys.readouterr().out)
-    assert list(summary) == ['estimator', 'samples', 'valid', 'parameters', 'uncompensated',
-                             'noise', 'flags', 'std', 'truth', 'delta']
+    assert list(summary) == ['estimator', 'samples', 'valid', 'validity_reasons', 'parameters',
+                             'uncompensated', 'noise', 'flags', 'std', 'truth', 'delta']
+    assert summary['valid'] is True and summary['validity_reasons'] == []
     assert summary['estimator'] == 'bcrls' and summary['samples'] == 10000
     names = ['a1', 'a2', 'b1_1', 'b1_2', 'b2_1', 'b2_2']
     assert list(summary['parameters']) == names == list(summary['uncompensated'])
@@ -497,3 +498,15 @@ def test_fast_cdr_decoder_equals_mcap_ros2(bag):
     truth = reader.truth()
     last = reader.last_decoded(reader.find_topic('true_parameters'))
     np.testing.assert_array_equal(truth.parameters, np.asarray(last.data))
+
+
+def test_replay_json_says_why_an_estimate_is_not_valid(capsys):
+    # rls on Ding's output-error data: its equation error is coloured, and the JSON says so
+    path = bag_path('ding_miso')
+    assert bcid(['replay', str(path), '--params', str(REPO / 'config/ding_miso.yaml'),
+                 '--estimator', 'rls', '--json']) == 0
+    import json
+
+    summary = json.loads(capsys.readouterr().out)
+    assert summary['valid'] is False
+    assert any(reason.startswith('residual not white') for reason in summary['validity_reasons'])
