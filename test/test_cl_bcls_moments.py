@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import cl_bcls as cl
-from bcid_ros.estimators import cl_bcls_batch as batch
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.lti import make_controller
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
@@ -58,7 +57,7 @@ def test_single_prefilter_moments_equal_the_batch_ls_and_compensation():
             # first redesign after 10 * 2n + n = 21 rows (22 samples): one iteration of
             # Algorithm 1 on those samples, bias terms from their LS
             assert k + 1 == 22 and est.window_length == 21
-            offline = batch.algorithm1(y[:k + 1], u[:k + 1], make_controller(
+            offline = cl.algorithm1(y[:k + 1], u[:k + 1], make_controller(
                 *CONTROLLER.values()), prefilter, 1, 1e-3)
             np.testing.assert_allclose(est.theta, offline.theta, atol=1e-12)
             np.testing.assert_allclose(est.theta_uncompensated, offline.theta_ls, atol=1e-12)
@@ -66,12 +65,12 @@ def test_single_prefilter_moments_equal_the_batch_ls_and_compensation():
         elif first is not None and k % 211 == 0 and est.redesigns == 1:
             # between redesigns: the LS over all samples so far, compensated with the
             # frozen c, beta by eqs. (53), (56)-(59)
-            ls = batch.prefiltered_ls(y[:k + 1], u[:k + 1], prefilter)
-            theta, sigma2 = batch.compensated_estimate(ls, first.direction, first.beta)
-            np.testing.assert_allclose(est.theta, batch.plant_from_regression(theta, prefilter),
+            ls = cl.prefiltered_ls(y[:k + 1], u[:k + 1], prefilter)
+            theta, sigma2 = cl.compensated_estimate(ls, first.direction, first.beta)
+            np.testing.assert_allclose(est.theta, cl.plant_from_regression(theta, prefilter),
                                        atol=1e-9)
             np.testing.assert_allclose(est.theta_uncompensated,
-                                       batch.plant_from_regression(ls.theta, prefilter),
+                                       cl.plant_from_regression(ls.theta, prefilter),
                                        atol=1e-9)
             assert est.sigma2 == pytest.approx(sigma2, abs=1e-9)
     assert est.epochs == 1 and est.redesigns == 8  # rows 21, 42, ..., 2688
@@ -101,8 +100,8 @@ def test_all_data_since_the_change_is_as_good_as_the_batch_algorithm(seed):
     y, u = PAPER.simulate(20000, seed)
     est = make(prefilter_initial=0.7)
     est.run(y, u)
-    offline = batch.closed_loop_bcls(y, u[:, 0], order=1, prefilter_initial=0.7,
-                                     max_iterations=50, **CONTROLLER)
+    offline = cl.closed_loop_bcls(y, u[:, 0], order=1, prefilter_initial=0.7,
+                                  max_iterations=50, **CONTROLLER)
     assert est.valid
     # both estimate the same quantity from the same data: they differ by much less than the
     # spread over seeds (about 2 % delta at this length)
