@@ -53,7 +53,7 @@ from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, plant_f
                                                     regression_from_plant)
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, RunningLs, SignalScales,
                                                     update_is_safe)
-from bcid_ros.estimators.cl_bcls.window import SampleWindow, window_lengths, WindowMemory
+from bcid_ros.estimators.cl_bcls.window import window_lengths, WindowMemory
 
 __all__ = ['algorithm1', 'AllDataMemory', 'augmented_system', 'bias_terms', 'closed_loop_bcls',
            'closed_loop_realisation', 'ClosedLoopBcls', 'ClosedLoopResult',
@@ -62,6 +62,6 @@ __all__ = ['algorithm1', 'AllDataMemory', 'augmented_system', 'bias_terms', 'clo
            'MomentCompensation', 'noise_state_covariance', 'plant_from_regression',
            'prefilter_polynomial', 'prefilter_realisation', 'PrefilterBank', 'PrefilteredLs',
            'prefiltered_ls', 'prefiltered_regression', 'PrefilteredMoments', 'Redesign',
-           'regression_from_plant', 'RunningLs', 'SampleWindow', 'scaled_condition',
+           'regression_from_plant', 'RunningLs', 'scaled_condition',
            'SignalScales', 'solve_p12', 'solve_p22', 'update_is_safe', 'validity_reasons',
            'window_lengths', 'WindowMemory']

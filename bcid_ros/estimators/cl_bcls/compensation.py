@@ -109,11 +109,6 @@ class Compensation:
         self.discriminant_ratio = 1.0
         self.model_reasons: tuple[str, ...] = ()
 
-    @property
-    def compensated(self) -> bool:
-        """Whether a redesign has succeeded (since the last restart)."""
-        return self.direction is not None
-
     def apply(self, theta: np.ndarray, pc: np.ndarray, direction: np.ndarray,
               total_beta: float, loss: float) -> str:
         """

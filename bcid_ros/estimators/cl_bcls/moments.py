@@ -44,7 +44,7 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
-from bcid_ros.estimators.cl_bcls.compensation import Redesign
+from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.regression import CompensationFailure
 from bcid_ros.estimators.cl_bcls.running_ls import PrefilterBank, RunningLs
 from bcid_ros.estimators.lti import Controller, is_stable, stable_reflection
@@ -139,11 +139,6 @@ class PrefilteredMoments:
         """Keep the share ``keep`` of the memory (one extra forgetting step)."""
         self.sums *= keep
         self.weights *= keep
-
-    def totals(self) -> tuple[np.ndarray, float]:
-        """Return C = sum_e W_e D c_e and B = sum_e W_e beta_e."""
-        weights = self.weights
-        return weights.dot(self.directions), weights.dot(self.betas)
 
     def open_epoch(self, prefilter: np.ndarray, direction: np.ndarray, beta: float) -> None:
         """Start a new epoch: the following rows come through ``prefilter``."""
@@ -330,6 +325,9 @@ class AllDataMemory:
     def __init__(self, prefilter: np.ndarray, initial_p: np.ndarray, min_window: int,
                  redesign_period: int) -> None:
         self.redesign_period = redesign_period
+        self._order = prefilter.shape[0] - 1
+        # psi = D phi, D = diag(-I_n, I_n) (eq. 13)
+        self._psi_signs = np.repeat([-1.0, 1.0], self._order)
         self.ls = RunningLs(initial_p)
         self.moments = PrefilteredMoments(prefilter, initial_p.shape[0])
         self.rows = 0
@@ -341,12 +339,16 @@ class AllDataMemory:
         return self.moments.weighted_count()
 
     def a_priori(self, y: float, filters: PrefilterBank, lam: float
-                 ) -> tuple[float, np.ndarray, float, tuple[np.ndarray, float]]:
-        """Return e, g = P psi, s of the row of sample y, and the row (psi, y_f)."""
-        # y_f[k], psi[k] = D phi[k]                                       (10), (13)
-        target, psi = filters.moment_row(y)
-        e, g, s = self.ls.a_priori(psi, target, lam)
-        return e, g, s, (psi, target)
+                 ) -> tuple[float, np.ndarray, float, tuple[np.ndarray, float], float]:
+        """Return e = y_f - psi' theta, g = P psi, s = lambda + psi' g, the row and tau."""
+        phi = filters.phi
+        # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
+        target = y - filters.prefilter[1:].dot(phi[:self._order])
+        psi = phi * self._psi_signs
+        ls = self.ls
+        g = ls.p.dot(psi)
+        s = lam + psi.dot(g)
+        return target - psi.dot(ls.theta), g, s, (psi, target), float(self.moments.weights.sum())
 
     def commit(self, row: tuple[np.ndarray, float], e: float, g: np.ndarray, s: float,
                lam: float) -> bool | None:
@@ -361,25 +363,22 @@ class AllDataMemory:
 
         """
         psi, target = row
-        if s > 0.0:
-            update = self.ls.forgetting_update(g, s, e)
-            if update is None:
-                return False
+        positive = s > 0.0
+        # (the RLS step and the moments change apart: the step first, as it may refuse)
+        if positive and not self.ls.forgetting_step(g, s, e, lam):
+            return False
         self.moments.add(psi, target, lam)
         self.rows += 1
-        if not s > 0.0:
-            return None
-        self.ls.forgetting_step(update, g, s, e, lam)
-        return True
+        return True if positive else None
 
-    def terms(self, direction: np.ndarray, beta: float) -> tuple[Any, ...]:
-        """Return (theta_LS, P C, C, B) of the moments' epochs for the compensation."""
+    def compensate(self, compensation: Compensation) -> str:
+        """Compensate theta_LS with C and B of the moments' epochs (return the failure flag)."""
+        moments = self.moments
         # C = sum_e W_e D c_e ; B = sum_e W_e beta_e
-        total, total_beta = self.moments.totals()
-        return self.ls.theta, self.ls.p.dot(total), total, total_beta
-
-    def keep(self, y: float, u0: float) -> None:
-        """Keep nothing of the raw sample (the moments have its row)."""
+        total = moments.weights.dot(moments.directions)
+        total_beta = moments.weights.dot(moments.betas)
+        ls = self.ls
+        return compensation.apply(ls.theta, ls.p.dot(total), total, total_beta, ls.loss)
 
     def cut(self, keep: float) -> None:
         """Keep the share ``keep`` of the memory (one extra forgetting step)."""
@@ -394,7 +393,7 @@ class AllDataMemory:
         """Whether the next row may be a redesign's."""
         return self.rows + 1 >= self.next_redesign
 
-    def redesign_due(self, compensated: bool) -> bool:
+    def after_sample(self, y: float, u0: float, compensated: bool) -> bool:
         """Return whether a redesign is due now (and schedule the next one)."""
         rows = self.rows
         if rows < self.next_redesign:

@@ -255,23 +255,21 @@ class ClosedLoopBcls(RecursiveEstimator):
                 return
         else:
             filters.lags += 1
-        memory = self._memory
-        memory.keep(y, u0)
         self._excitation.update(y, u0, self._forgetting_factor)
         filters.advance(y, u0)
-        if memory.redesign_due(self._bc.compensated):
+        if self._memory.after_sample(y, u0, self._bc.direction is not None):
             self._redesign()
 
     def _row_step(self, y: float) -> bool:
         """Gate the row; do the RLS step (and the moments) and compensate; or refuse it."""
         memory, lam = self._memory, self._forgetting_factor
-        e, g, s, row = memory.a_priori(y, self._filters, lam)
+        e, g, s, row, count = memory.a_priori(y, self._filters, lam)
         cuts = self._memory_cuts
-        if not self._passes_gate(e, s, memory.weighted_count()):
+        if not self._passes_gate(e, s, count):
             return False
         if self._memory_cuts != cuts:
             # a plant change cut the memory (P grew): redo the a-priori part
-            e, g, s, row = memory.a_priori(y, self._filters, lam)
+            e, g, s, row, _ = memory.a_priori(y, self._filters, lam)
         done = memory.commit(row, e, g, s, lam)
         if done is None:  # P lost definiteness
             self._flag('covariance_repaired')
@@ -281,8 +279,10 @@ class ClosedLoopBcls(RecursiveEstimator):
             self._undo('update_undone')
             return False
         bc = self._bc
-        if bc.compensated and not bc.holding:
-            self._compensate(*memory.terms(bc.direction, bc.beta))
+        if bc.direction is not None and not bc.holding:
+            failure = memory.compensate(bc)
+            if failure:
+                self._flag(failure)
         return True
 
     def _compensate(self, theta: np.ndarray, pc: np.ndarray, direction: np.ndarray,
@@ -296,7 +296,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         """Run the memory's redesign and take over its result (or hold after a failure)."""
         bc, filters = self._bc, self._filters
         result = self._memory.redesign(self.controller, filters.prefilter,
-                                       bc.theta.copy() if bc.compensated else None,
+                                       bc.theta.copy() if bc.direction is not None else None,
                                        self._units.unit_weights(), self.max_iterations,
                                        self.tolerance)
         for flag in result.flags:

@@ -27,8 +27,7 @@ import numpy as np
 
 from bcid_ros.estimators.base import all_finite, power_of_two_at_least
 from bcid_ros.estimators.lti import controller_canonical
-from bcid_ros.estimators.rls import (repair_covariance, rls_innovation, rls_step,
-                                     VARIANCE_FLOOR)
+from bcid_ros.estimators.rls import repair_covariance, rls_step, VARIANCE_FLOOR
 
 #: Squared 2-norm below which an update cannot overflow (see update_is_safe).
 SAFE_SQUARE = 2.0 ** 1022
@@ -125,9 +124,7 @@ class PrefilterBank:
     """
 
     def __init__(self, prefilter: np.ndarray) -> None:
-        self.order = n = prefilter.shape[0] - 1
-        # psi = D phi, D = diag(-I_n, I_n) (eq. 13)
-        self._psi_signs = np.repeat([-1.0, 1.0], n)
+        self.order = prefilter.shape[0] - 1
         self.set_prefilter(prefilter)
         self.restart()
 
@@ -159,12 +156,6 @@ class PrefilterBank:
         phi[self.order] += u0
         self.phi = phi
 
-    def moment_row(self, y: float) -> tuple[float, np.ndarray]:
-        """Return (y_f[k], psi[k]) of the row y_f = psi' [a | b] + epsilon."""
-        phi = self.phi
-        # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
-        return y - self.prefilter[1:].dot(phi[:self.order]), phi * self._psi_signs
-
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the state (not copied)."""
         return {'prefilter': self.prefilter, 'phi': self.phi}, {'lags': self.lags}
@@ -190,9 +181,10 @@ class RunningLs:
 
     With all data since the change the rows are weighted by the forgetting
     factor and J is the weighted residual sum of squares
-    (:meth:`a_priori`, :meth:`forgetting_step`); with a window, the plain
-    RLS of the shared step (:meth:`innovation`, :meth:`step`). A redesign
-    replaces the four (:meth:`restart_from`).
+    (:meth:`forgetting_step`); with a window, the plain RLS of the shared
+    step (:meth:`step`). Each memory computes the
+    a-priori part in its own form. A redesign replaces the four
+    (:meth:`restart_from`).
 
     Parameters
     ----------
@@ -212,23 +204,11 @@ class RunningLs:
         self.theta, self.p, self.loss, self.count = theta, p, loss, count
 
     # --------------------------------------------- all data: psi rows, forgetting
-    def a_priori(self, psi: np.ndarray, target: float, lam: float
-                 ) -> tuple[float, np.ndarray, float]:
-        """Return e = y_f - psi' theta, g = P psi and s = lambda + psi' P psi."""
-        g = self.p.dot(psi)
-        s = lam + psi.dot(g)
-        return target - psi.dot(self.theta), g, s
-
-    def forgetting_update(self, g: np.ndarray, s: float, e: float) -> np.ndarray | None:
-        """Return the step g e / s of theta, or None if theta + step may not be finite."""
+    def forgetting_step(self, g: np.ndarray, s: float, e: float, lam: float) -> bool:
+        """Do the step of theta, P and J; False (and nothing changed) if it may not be finite."""
         update = g * (e / s)
         if not (update_is_safe(self.theta, update, 1.0) or all_finite(self.theta + update)):
-            return None
-        return update
-
-    def forgetting_step(self, update: np.ndarray, g: np.ndarray, s: float, e: float,
-                        lam: float) -> None:
-        """Commit the step of :meth:`forgetting_update`: theta, P and J."""
+            return False
         self.theta += update
         h = g * (1.0 / math.sqrt(s))
         self.p -= h[:, None] * h
@@ -236,12 +216,9 @@ class RunningLs:
             self.p *= 1.0 / lam
         # J = lam J + lam e^2 / s (weighted LS loss)
         self.loss = lam * (self.loss + e * e / s)
+        return True
 
     # --------------------------------------------------- a window: phi rows, lambda 1
-    def innovation(self, phi: np.ndarray, y: float) -> tuple[float, np.ndarray, float]:
-        """Return e = y - phi' theta_LS, g = P phi, s = 1 + phi' P phi (the shared RLS step)."""
-        return rls_innovation(self.theta, self.p, phi, y, 1.0)
-
     def step(self, g: np.ndarray, s: float, e: float) -> bool:
         """Do the RLS step and count the row; False (and nothing changed) if not finite."""
         theta = self.theta

@@ -24,12 +24,13 @@ import numpy as np
 
 from bcid_ros.estimators.base import check_int
 from bcid_ros.estimators.cl_bcls.batch import algorithm1, is_contracting
-from bcid_ros.estimators.cl_bcls.compensation import Redesign
+from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.moments import PrefilteredMoments
 from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, plant_from_regression,
                                                     regression_from_plant)
 from bcid_ros.estimators.cl_bcls.running_ls import PrefilterBank, RunningLs
 from bcid_ros.estimators.lti import Controller
+from bcid_ros.estimators.rls import rls_innovation
 
 
 #: Regression rows per parameter that the data must hold before a redesign.
@@ -61,61 +62,15 @@ def window_lengths(window: Any, order: int) -> tuple[int, int, int]:
     return window, min_window, first
 
 
-class SampleWindow:
-    """
-    The last ``window`` samples, in a buffer of twice that length moved back when full.
-
-    Parameters
-    ----------
-    window : int
-        The number of samples kept (0: none, the estimator uses its moments).
-
-    """
-
-    def __init__(self, window: int) -> None:
-        self.window = window
-        self.buffer = np.zeros((2 * window, 2))
-        self.pos = 0
-        self.filled = 0
-
-    def push(self, y: float, u0: float) -> None:
-        """Keep the sample (y[k], u[k])."""
-        pos = self.pos
-        if pos == self.buffer.shape[0]:
-            self.buffer[:self.window] = self.buffer[self.window:]
-            pos = self.window
-        buffer = self.buffer
-        buffer[pos, 0] = y
-        buffer[pos, 1] = u0
-        self.pos = pos + 1
-        if self.filled < self.window:
-            self.filled += 1
-
-    def samples(self) -> np.ndarray:
-        """Return the kept samples, ``(filled, 2)`` rows of [y, u], oldest first (a view)."""
-        return self.buffer[self.pos - self.filled:self.pos]
-
-    def restart(self) -> None:
-        """Forget the kept samples (after a gap)."""
-        self.filled = 0
-
-    def snapshot(self) -> tuple[int, int]:
-        """Return what a step may change, but for the row it writes (the next one rewrites it)."""
-        return self.pos, self.filled
-
-    def restore(self, saved: tuple[int, int]) -> None:
-        """Go back to a :meth:`snapshot`."""
-        self.pos, self.filled = saved
-
-
 class WindowMemory:
     """
     What the online estimator remembers with a window: the samples, the running LS, the schedule.
 
-    The running LS is in the regression form of eq. (17), the plain RLS with
-    lambda = 1 (:class:`~bcid_ros.estimators.cl_bcls.running_ls.RunningLs`).
-    The moments of ``window`` 0 stay empty (they are kept for the state's
-    keys).
+    The last ``window`` samples lie in a buffer of twice that length, moved
+    back when full. The running LS is in the regression form of eq. (17),
+    the plain RLS with lambda = 1
+    (:class:`~bcid_ros.estimators.cl_bcls.running_ls.RunningLs`). The
+    moments of ``window`` 0 stay empty (they are kept for the state's keys).
 
     Parameters
     ----------
@@ -137,7 +92,10 @@ class WindowMemory:
         self.min_window, self.first_window = min_window, first_window
         self.redesign_period = redesign_period
         self.ls = RunningLs(initial_p)
-        self.samples = SampleWindow(window)
+        self.window = window
+        self.buffer = np.zeros((2 * window, 2))
+        self.pos = 0
+        self.filled = 0
         self.since_redesign = 0
         self.rows = 0
         self._moments = PrefilteredMoments(prefilter, initial_p.shape[0])
@@ -148,11 +106,12 @@ class WindowMemory:
         return self.ls.count
 
     def a_priori(self, y: float, filters: PrefilterBank, lam: float
-                 ) -> tuple[float, np.ndarray, float, np.ndarray]:
-        """Return e = y - phi' theta_LS, g = P phi, s = 1 + phi' P phi and the row phi."""
-        phi = filters.phi
-        e, g, s = self.ls.innovation(phi, y)
-        return e, g, s, phi
+                 ) -> tuple[float, np.ndarray, float, np.ndarray, float]:
+        """Return e = y - phi' theta_LS, g = P phi, s = 1 + phi' g, the row phi and N."""
+        ls, phi = self.ls, filters.phi
+        # (the shared RLS step, lambda 1)
+        e, g, s = rls_innovation(ls.theta, ls.p, phi, y, 1.0)
+        return e, g, s, phi, ls.count
 
     def commit(self, row: np.ndarray, e: float, g: np.ndarray, s: float,
                lam: float) -> bool | None:
@@ -170,18 +129,15 @@ class WindowMemory:
             return None
         return self.ls.step(g, s, e)
 
-    def terms(self, direction: np.ndarray, beta: float) -> tuple[Any, ...]:
-        """Return (theta_LS, P C, C, B) with C = N c and B = N beta (eqs. 53, 56, 58)."""
+    def compensate(self, compensation: Compensation) -> str:
+        """Compensate theta_LS with C = N c, B = N beta (return the failure flag)."""
         # gamma = J / N, alpha = N c' P c, eqs. (53), (56), are eq. (58) with B = N beta
         # and C = N c: sigma2 = 2 J / (N beta + sqrt(N^2 beta^2 - 4 N^2 c'Pc J))
         ls = self.ls
         count = ls.count
-        total = count * direction
-        return ls.theta, ls.p.dot(total), total, count * beta
-
-    def keep(self, y: float, u0: float) -> None:
-        """Keep the raw sample for the redesign window."""
-        self.samples.push(y, u0)
+        total = count * compensation.direction
+        return compensation.apply(ls.theta, ls.p.dot(total), total,
+                                  count * compensation.beta, ls.loss)
 
     def cut(self, keep: float) -> None:
         """Keep the share ``keep`` of the running LS (one extra forgetting step)."""
@@ -192,10 +148,20 @@ class WindowMemory:
         """Whether the next sample may be a redesign's."""
         return self.since_redesign + 1 >= self.redesign_period
 
-    def redesign_due(self, compensated: bool) -> bool:
-        """Count a sample; return whether a redesign is due now (and restart the count)."""
+    def after_sample(self, y: float, u0: float, compensated: bool) -> bool:
+        """Keep the sample; return whether a redesign is due now (and restart the count)."""
+        pos = self.pos
+        if pos == self.buffer.shape[0]:
+            self.buffer[:self.window] = self.buffer[self.window:]
+            pos = self.window
+        buffer = self.buffer
+        buffer[pos, 0] = y
+        buffer[pos, 1] = u0
+        self.pos = pos + 1
+        if self.filled < self.window:
+            self.filled += 1
         self.since_redesign += 1
-        if (self.since_redesign >= self.redesign_period and self.samples.filled >= (
+        if (self.since_redesign >= self.redesign_period and self.filled >= (
                 self.min_window if compensated else self.first_window)):
             self.since_redesign = 0
             return True
@@ -212,7 +178,8 @@ class WindowMemory:
         has drifted: there is no fixed point of this window near the
         prefilter in use, and it is dropped like a failed one.
         """
-        data = self.samples.samples()
+        # the kept samples, oldest first
+        data = self.buffer[self.pos - self.filled:self.pos]
         try:
             result = algorithm1(data[:, 0], data[:, 1], controller, prefilter, max_iterations,
                                 tolerance, True)
@@ -250,7 +217,7 @@ class WindowMemory:
     @property
     def window_length(self) -> int:
         """Return the samples the next redesign would use."""
-        return self.samples.filled
+        return self.filled
 
     def epoch_shares(self, prefilter: np.ndarray) -> list[tuple[float, np.ndarray]]:
         """Return [(1, f)]: the window's rows all come through the prefilter in use."""
@@ -258,7 +225,7 @@ class WindowMemory:
 
     def restart(self) -> None:
         """Forget the window's samples (after a gap)."""
-        self.samples.restart()
+        self.filled = 0
 
     def moment_sums(self) -> np.ndarray | None:
         """
@@ -278,9 +245,9 @@ class WindowMemory:
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the state (not copied)."""
         arrays, scalars = self._moments.state_items()
-        ls, samples = self.ls, self.samples
-        arrays.update({'buffer': samples.buffer, 'theta_ls': ls.theta, 'p': ls.p})
-        scalars.update({'pos': samples.pos, 'filled': samples.filled, 'loss': ls.loss,
+        ls = self.ls
+        arrays.update({'buffer': self.buffer, 'theta_ls': ls.theta, 'p': ls.p})
+        scalars.update({'pos': self.pos, 'filled': self.filled, 'loss': ls.loss,
                         'count': ls.count, 'since_redesign': self.since_redesign,
                         'rows': self.rows, 'next_redesign': self.min_window})
         return arrays, scalars
@@ -290,19 +257,17 @@ class WindowMemory:
         self._moments = PrefilteredMoments.from_state(arrays, scalars)
         self.ls.restart_from(arrays['theta_ls'], arrays['p'], float(scalars['loss']),
                              float(scalars['count']))
-        samples = self.samples
-        samples.buffer = arrays['buffer']
-        samples.pos = int(scalars['pos'])
-        samples.filled = int(scalars['filled'])
+        self.buffer = arrays['buffer']
+        self.pos = int(scalars['pos'])
+        self.filled = int(scalars['filled'])
         self.since_redesign = int(scalars['since_redesign'])
         self.rows = int(scalars['rows'])
 
     def snapshot(self) -> tuple:
-        """Return what a step may change."""
-        return self.ls.snapshot(), self.samples.snapshot(), self.since_redesign
+        """Return what a step may change, but the buffer's row (the next sample rewrites it)."""
+        return self.ls.snapshot(), self.pos, self.filled, self.since_redesign
 
     def restore(self, saved: tuple) -> None:
         """Go back to a :meth:`snapshot`."""
-        ls, samples, self.since_redesign = saved
+        ls, self.pos, self.filled, self.since_redesign = saved
         self.ls.restore(ls)
-        self.samples.restore(samples)
