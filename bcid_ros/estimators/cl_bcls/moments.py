@@ -39,14 +39,15 @@ until they are ``redesign_period`` rows apart).
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
 from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.regression import CompensationFailure
-from bcid_ros.estimators.cl_bcls.running_ls import PrefilterBank, RunningLs
+from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
+                                                    STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller, is_stable, stable_reflection
 
 #: With ``window`` 0 a redesign changes the prefilter only when the new f(q) differs from
@@ -93,9 +94,9 @@ class PrefilteredMoments:
     """
     The weighted moments of the rows since the change, and the epochs of their prefilters.
 
-    :attr:`sums` is ``[M (p x p), sum w psi y_f (p), sum w y_f^2]`` in one
-    flat array, with the views :attr:`information` and :attr:`cross`; each
-    epoch has its prefilter, weight W_e, D c_e and beta_e.
+    The sums are :attr:`information` M, :attr:`cross` sum w psi y_f and
+    :attr:`energy` sum w y_f^2; each epoch has its prefilter, weight W_e,
+    D c_e and beta_e.
 
     Parameters
     ----------
@@ -108,18 +109,13 @@ class PrefilteredMoments:
 
     def __init__(self, prefilter: np.ndarray, num_parameters: int) -> None:
         p = num_parameters
-        self.sums = np.zeros(p * p + p + 1)
-        self.information = self.sums[:p * p].reshape(p, p)
-        self.cross = self.sums[p * p:p * p + p]
+        self.information = np.zeros((p, p))
+        self.cross = np.zeros(p)
+        self.energy = 0.0
         self.prefilters = [prefilter.copy()]
         self.weights = np.zeros(1)
         self.directions = np.zeros((1, p))
         self.betas = np.ones(1)
-
-    @property
-    def energy(self) -> float:
-        """Return sum w y_f^2."""
-        return float(self.sums[-1])
 
     def weighted_count(self) -> float:
         """Return tau, the weighted count of the rows."""
@@ -128,17 +124,25 @@ class PrefilteredMoments:
     def add(self, psi: np.ndarray, target: float, lam: float) -> None:
         """Add the row (psi, y_f) after one forgetting step of everything."""
         if lam != 1.0:
-            self.sums *= lam
+            self.information *= lam
+            self.cross *= lam
+            self.energy *= lam
             self.weights *= lam
         self.information += psi[:, None] * psi
         self.cross += psi * target
-        self.sums[-1] += target * target
+        self.energy += target * target
         self.weights[-1] += 1.0
 
     def cut(self, keep: float) -> None:
         """Keep the share ``keep`` of the memory (one extra forgetting step)."""
-        self.sums *= keep
+        self.information *= keep
+        self.cross *= keep
+        self.energy *= keep
         self.weights *= keep
+
+    def sums(self) -> np.ndarray:
+        """Return [M, sum w psi y_f, sum w y_f^2] flat (for the block means)."""
+        return np.concatenate((self.information.reshape(-1), self.cross, [self.energy]))
 
     def open_epoch(self, prefilter: np.ndarray, direction: np.ndarray, beta: float) -> None:
         """Start a new epoch: the following rows come through ``prefilter``."""
@@ -167,7 +171,7 @@ class PrefilteredMoments:
             raise CompensationFailure('singular_information',
                                       'the information matrix is not positive definite') from None
         theta = inverse.dot(self.cross)
-        loss = max(self.sums[-1] - self.cross.dot(theta), 0.0)
+        loss = max(self.energy - self.cross.dot(theta), 0.0)
         if not (np.isfinite(theta).all() and np.isfinite(inverse).all()):
             raise CompensationFailure('singular_information', 'the LS solution is not finite')
         return theta, 0.5 * (inverse + inverse.T), loss
@@ -276,9 +280,9 @@ class PrefilteredMoments:
         prefilters = [np.array(f, dtype=float) for f in scalars['epoch_prefilters']]
         p = arrays['cross'].shape[0]
         moments = cls(prefilters[0], p)
-        moments.information[...] = arrays['information']
-        moments.cross[...] = arrays['cross']
-        moments.sums[-1] = float(scalars['energy'])
+        moments.information = arrays['information']
+        moments.cross = arrays['cross']
+        moments.energy = float(scalars['energy'])
         moments.prefilters = prefilters
         moments.weights = np.array(scalars['epoch_weights'], dtype=float)
         moments.directions = np.array(scalars['epoch_directions'], dtype=float).reshape(
@@ -287,14 +291,17 @@ class PrefilteredMoments:
         return moments
 
     def snapshot(self) -> tuple:
-        """Return what a step may change (the sums and weights in place, the epochs)."""
-        return (self.sums.copy(), self.weights, self.weights.copy(), list(self.prefilters),
+        """Return what a step may change (the sums and weights in place too, the epochs)."""
+        return (self.information, self.information.copy(), self.cross, self.cross.copy(),
+                self.energy, self.weights, self.weights.copy(), list(self.prefilters),
                 self.directions, self.betas)
 
     def restore(self, saved: tuple) -> None:
-        """Go back to a :meth:`snapshot` (the sums in place: the views stay valid)."""
-        sums, self.weights, weights, prefilters, self.directions, self.betas = saved
-        self.sums[:] = sums
+        """Go back to a :meth:`snapshot`."""
+        (self.information, information, self.cross, cross, self.energy, self.weights, weights,
+         prefilters, self.directions, self.betas) = saved
+        self.information[:] = information
+        self.cross[:] = cross
         self.weights[:] = weights
         self.prefilters[:] = prefilters
 
@@ -332,44 +339,48 @@ class AllDataMemory:
         self.moments = PrefilteredMoments(prefilter, initial_p.shape[0])
         self.rows = 0
         self.next_redesign = min_window
+        #: memory cuts so far (a step redoes its a-priori part after one)
+        self.cuts = 0
 
     # ------------------------------------------------------------------ a row
     def weighted_count(self) -> float:
         """Return tau, the weighted count of the rows."""
         return self.moments.weighted_count()
 
-    def a_priori(self, y: float, filters: PrefilterBank, lam: float
-                 ) -> tuple[float, np.ndarray, float, tuple[np.ndarray, float], float]:
-        """Return e = y_f - psi' theta, g = P psi, s = lambda + psi' g, the row and tau."""
+    def step_row(self, y: float, filters: PrefilterBank, lam: float,
+                 passes_gate: Callable[[float, float, float], bool]) -> str:
+        """
+        Gate the row of sample y, then add it to the moments and do the RLS step.
+
+        ``passes_gate(e, s, tau)`` is the estimator's gate; a memory cut it
+        makes (:meth:`cut`) grows P, and the a-priori part is redone. Returns
+        ``STEPPED``, ``REFUSED`` (by the gate), ``UNSAFE`` (the update may not
+        be finite; nothing changed) or ``REPAIR`` (s not positive: the row is
+        in the moments, P needs a repair).
+        """
         phi = filters.phi
         # y_f[k] = y[k] - f_1 y_f[k-1] - ... - f_n y_f[k-n]; psi = D phi       (10), (13)
         target = y - filters.prefilter[1:].dot(phi[:self._order])
         psi = phi * self._psi_signs
         ls = self.ls
+        # e = y_f - psi' theta, g = P psi, s = lambda + psi' P psi
         g = ls.p.dot(psi)
         s = lam + psi.dot(g)
-        return target - psi.dot(ls.theta), g, s, (psi, target), float(self.moments.weights.sum())
-
-    def commit(self, row: tuple[np.ndarray, float], e: float, g: np.ndarray, s: float,
-               lam: float) -> bool | None:
-        """
-        Add the row to the moments and do the RLS step.
-
-        Returns
-        -------
-        bool or None
-            True; False if the step may not be finite (nothing changed); None
-            if s is not positive (the row is in the moments, P needs a repair).
-
-        """
-        psi, target = row
+        e = target - psi.dot(ls.theta)
+        cuts = self.cuts
+        if not passes_gate(e, s, float(self.moments.weights.sum())):
+            return REFUSED
+        if self.cuts != cuts:
+            # a plant change cut the memory (P grew): redo the a-priori part
+            g = ls.p.dot(psi)
+            s = lam + psi.dot(g)
         positive = s > 0.0
         # (the RLS step and the moments change apart: the step first, as it may refuse)
-        if positive and not self.ls.forgetting_step(g, s, e, lam):
-            return False
+        if positive and not ls.forgetting_step(g, s, e, lam):
+            return UNSAFE
         self.moments.add(psi, target, lam)
         self.rows += 1
-        return True if positive else None
+        return STEPPED if positive else REPAIR
 
     def compensate(self, compensation: Compensation) -> str:
         """Compensate theta_LS with C and B of the moments' epochs (return the failure flag)."""
@@ -382,6 +393,7 @@ class AllDataMemory:
 
     def cut(self, keep: float) -> None:
         """Keep the share ``keep`` of the memory (one extra forgetting step)."""
+        self.cuts += 1
         self.ls.cut(keep)
         self.moments.cut(keep)
 
@@ -474,7 +486,7 @@ class AllDataMemory:
 
     def moment_sums(self) -> np.ndarray:
         """Return the weighted sums [M, sum w psi y_f, sum w y_f^2] (for the block means)."""
-        return self.moments.sums
+        return self.moments.sums()
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the state (not copied)."""

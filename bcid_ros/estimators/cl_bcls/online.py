@@ -23,7 +23,8 @@ from bcid_ros.estimators.cl_bcls.compensation import (Compensation, MIN_DISCRIMI
 from bcid_ros.estimators.cl_bcls.excitation import ExcitationMeter
 from bcid_ros.estimators.cl_bcls.moments import AllDataMemory
 from bcid_ros.estimators.cl_bcls.regression import prefilter_polynomial
-from bcid_ros.estimators.cl_bcls.running_ls import PrefilterBank, SignalScales
+from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REPAIR, SignalScales,
+                                                    STEPPED, UNSAFE)
 from bcid_ros.estimators.cl_bcls.uncertainty import moment_function
 from bcid_ros.estimators.cl_bcls.window import window_lengths, WindowMemory
 from bcid_ros.estimators.lti import make_controller
@@ -261,22 +262,16 @@ class ClosedLoopBcls(RecursiveEstimator):
             self._redesign()
 
     def _row_step(self, y: float) -> bool:
-        """Gate the row; do the RLS step (and the moments) and compensate; or refuse it."""
-        memory, lam = self._memory, self._forgetting_factor
-        e, g, s, row, count = memory.a_priori(y, self._filters, lam)
-        cuts = self._memory_cuts
-        if not self._passes_gate(e, s, count):
-            return False
-        if self._memory_cuts != cuts:
-            # a plant change cut the memory (P grew): redo the a-priori part
-            e, g, s, row, _ = memory.a_priori(y, self._filters, lam)
-        done = memory.commit(row, e, g, s, lam)
-        if done is None:  # P lost definiteness
-            self._flag('covariance_repaired')
-            memory.ls.repair(self._units.initial_p())
-            return True
-        if not done:
-            self._undo('update_undone')
+        """Step the row in the memory (through the gate) and compensate; or refuse it."""
+        memory = self._memory
+        done = memory.step_row(y, self._filters, self._forgetting_factor, self._passes_gate)
+        if done != STEPPED:
+            if done == REPAIR:  # P lost definiteness
+                self._flag('covariance_repaired')
+                memory.ls.repair(self._units.initial_p())
+                return True
+            if done == UNSAFE:
+                self._undo('update_undone')
             return False
         bc = self._bc
         if bc.direction is not None and not bc.holding:
@@ -318,37 +313,29 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._check_model()
 
     # ------------------------------------------------------------ the gate
-    def _gate_score(self, e: float, s: float, count: float) -> float:
-        r"""
-        Return z^2 of a row with a-priori error ``e``, gain ``s`` and weighted count tau.
-
-        The larger of :math:`e^2 / [(J/\tau)(1 + \psi^T P\psi)]` (the error
-        over its variance: an outlier in y) and :math:`\tau\,\psi^T P\psi / p`
-        (the regressor's squared Mahalanobis distance over its mean: an
-        outlier in u, whose huge leverage hides it from the first);
-        docs/cl_bcls.md, "Outliers and units".
-        """
-        leverage = s - self._forgetting_factor
-        loss = self._memory.ls.loss
-        return max(e * e / ((loss / count + self._units.variance_floor) * (leverage + 1.0)),
-                   count * leverage / self.num_parameters)
-
     def _passes_gate(self, e: float, s: float, count: float) -> bool:
-        """
-        Return whether a row with a-priori error ``e``, gain ``s`` and count tau is used.
+        r"""
+        Return whether a row with a-priori error ``e``, gain ``s`` and weighted count tau is used.
 
         A non-finite e or s is refused (``update_undone``). From ``GATE_WARMUP``
-        p rows on, z^2 of :meth:`_gate_score` within the limit passes; for
-        ``PREFILTER_SETTLE`` rows after a new prefilter only the hard limit
-        ``IMPLAUSIBLE_ERROR`` applies (the filters' transient is no outlier);
-        else :meth:`_gate_with_slow_score` decides.
+        p rows on, z^2 is the larger of :math:`e^2 / [(J/\tau)(1 + \psi^T P\psi)]`
+        (the error over its variance: an outlier in y) and
+        :math:`\tau\,\psi^T P\psi / p` (the regressor's squared Mahalanobis
+        distance over its mean: an outlier in u, whose leverage hides it from
+        the first; docs/cl_bcls.md, "Outliers and units"). Within the limit it
+        passes; for ``PREFILTER_SETTLE`` rows after a new prefilter only the
+        hard limit ``IMPLAUSIBLE_ERROR`` applies (the filters' transient is no
+        outlier); else :meth:`_gate_with_slow_score` decides.
         """
         if not (s < math.inf and e * e < math.inf):
             self._undo('update_undone')
             return False
         if count < self._gate_from:
             return True
-        z2 = self._gate_score(e, s, count)
+        # z^2 = max(e^2 / ((J / tau + floor)(1 + psi' P psi)), tau psi' P psi / p)
+        leverage = s - self._forgetting_factor
+        z2 = max(e * e / ((self._memory.ls.loss / count + self._units.variance_floor)
+                          * (leverage + 1.0)), count * leverage / self.num_parameters)
         if z2 <= self._gate_limit2 and not (self._change_score or self._refusals):
             return True
         if self._memory.rows < self._gate_resume:
@@ -384,7 +371,6 @@ class ClosedLoopBcls(RecursiveEstimator):
         keep = CHANGE_MEMORY * self.num_parameters / count if count > 0.0 else 1.0
         if keep >= 1.0:
             return
-        self._memory_cuts += 1
         self._memory.cut(keep)
 
     # ------------------------------------------------------------ validity
@@ -525,8 +511,9 @@ class ClosedLoopBcls(RecursiveEstimator):
         """Return the collaborators' part of a step's state (saved by the step transaction)."""
         # (not the window's rows, the meter's lags and pending sample: the undo's restart
         # empties them)
-        parts = self._filters, self._memory, self._bc, self._units
-        return parts, tuple(part.snapshot() for part in parts), list(self._excitation.sums)
+        filters, memory, bc, units = parts = self._filters, self._memory, self._bc, self._units
+        return (parts, (filters.snapshot(), memory.snapshot(), bc.snapshot(), units.snapshot()),
+                list(self._excitation.sums))
 
     @_parts_state.setter
     def _parts_state(self, saved: tuple) -> None:
@@ -542,7 +529,6 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._redesigns = 0
         self._last_iterations = 0
         self._controller_changes = 0
-        self._memory_cuts = 0  # counts _accept_change's cuts (tells a step to redo P psi)
         self._restart_statistics()
 
     def _restart_statistics(self) -> None:

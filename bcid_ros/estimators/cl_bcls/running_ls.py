@@ -31,6 +31,9 @@ from bcid_ros.estimators.rls import repair_covariance, rls_step, VARIANCE_FLOOR
 
 #: Squared 2-norm below which an update cannot overflow (see update_is_safe).
 SAFE_SQUARE = 2.0 ** 1022
+#: What a memory's row step did: the row is in; the gate refused it; its update may not be
+#: finite (nothing changed); s was not positive (P lost definiteness and needs a repair).
+STEPPED, REFUSED, UNSAFE, REPAIR = 'stepped', 'refused', 'unsafe', 'repair'
 
 
 def update_is_safe(theta: np.ndarray, direction: np.ndarray, ratio: float) -> bool:

@@ -18,7 +18,7 @@ eqs. (58), (59) with B = N beta and C = N c.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -28,7 +28,8 @@ from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.moments import PrefilteredMoments
 from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, plant_from_regression,
                                                     regression_from_plant)
-from bcid_ros.estimators.cl_bcls.running_ls import PrefilterBank, RunningLs
+from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
+                                                    STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller
 from bcid_ros.estimators.rls import rls_innovation
 
@@ -98,6 +99,8 @@ class WindowMemory:
         self.filled = 0
         self.since_redesign = 0
         self.rows = 0
+        #: memory cuts so far (a step redoes its a-priori part after one)
+        self.cuts = 0
         self._moments = PrefilteredMoments(prefilter, initial_p.shape[0])
 
     # ------------------------------------------------------------------ a row
@@ -105,29 +108,28 @@ class WindowMemory:
         """Return N, the rows of the running LS (its memory cuts included)."""
         return self.ls.count
 
-    def a_priori(self, y: float, filters: PrefilterBank, lam: float
-                 ) -> tuple[float, np.ndarray, float, np.ndarray, float]:
-        """Return e = y - phi' theta_LS, g = P phi, s = 1 + phi' g, the row phi and N."""
+    def step_row(self, y: float, filters: PrefilterBank, lam: float,
+                 passes_gate: Callable[[float, float, float], bool]) -> str:
+        """
+        Gate the row of sample y, then do the RLS step (lambda is 1 with a window).
+
+        ``passes_gate(e, s, N)`` is the estimator's gate; a memory cut it
+        makes (:meth:`cut`) grows P, and the a-priori part is redone. Returns
+        ``STEPPED``, ``REFUSED`` (by the gate), ``UNSAFE`` (the update is not
+        finite; nothing changed) or ``REPAIR`` (s not positive: P needs a repair).
+        """
         ls, phi = self.ls, filters.phi
-        # (the shared RLS step, lambda 1)
+        # e = y[k] - phi' theta_LS, g = P phi, s = 1 + phi' P phi (the shared RLS step)
         e, g, s = rls_innovation(ls.theta, ls.p, phi, y, 1.0)
-        return e, g, s, phi, ls.count
-
-    def commit(self, row: np.ndarray, e: float, g: np.ndarray, s: float,
-               lam: float) -> bool | None:
-        """
-        Do the RLS step of the row.
-
-        Returns
-        -------
-        bool or None
-            True; False if the step is not finite (nothing changed); None if
-            s is not positive (nothing changed, P needs a repair).
-
-        """
+        cuts = self.cuts
+        if not passes_gate(e, s, ls.count):
+            return REFUSED
+        if self.cuts != cuts:
+            # a plant change cut the memory (P grew): redo the a-priori part
+            e, g, s = rls_innovation(ls.theta, ls.p, phi, y, 1.0)
         if not s > 0.0:
-            return None
-        return self.ls.step(g, s, e)
+            return REPAIR
+        return STEPPED if ls.step(g, s, e) else UNSAFE
 
     def compensate(self, compensation: Compensation) -> str:
         """Compensate theta_LS with C = N c, B = N beta (return the failure flag)."""
@@ -141,6 +143,7 @@ class WindowMemory:
 
     def cut(self, keep: float) -> None:
         """Keep the share ``keep`` of the running LS (one extra forgetting step)."""
+        self.cuts += 1
         self.ls.cut(keep)
 
     # -------------------------------------------------------------- redesign
