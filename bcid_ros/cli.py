@@ -1,5 +1,5 @@
 """
-The ``bcid`` command: replay, simulate, reproduce, record, play, info, demo.
+The ``bcid`` command: replay, simulate, reproduce, record, play, info, demo, analyze, import.
 
 Each subcommand is a small function in the module that owns the work; this
 file only parses arguments and turns :class:`~bcid_ros.errors.BcidError`
@@ -17,7 +17,7 @@ import sys
 import traceback
 
 from bcid_ros.errors import BcidError
-from bcid_ros.estimators import ESTIMATORS
+from bcid_ros.estimators.registry import ESTIMATOR_NAMES
 from bcid_ros.simulation import SCENARIOS
 
 #: Subcommand -> 'module:function(args) -> int'.
@@ -28,11 +28,11 @@ HANDLERS = {
     'record': 'bcid_ros.bag.commands:record',
     'play': 'bcid_ros.bag.commands:play',
     'info': 'bcid_ros.bag.commands:info',
-    'demo': 'bcid_ros.nodes.demo:run',
+    'demo': 'bcid_ros.cli:demo',
     'analyze': 'bcid_ros.analysis.command:run',
+    'import': 'bcid_ros.bag.commands:import_csv',
 }
 
-ESTIMATOR_NAMES = tuple(ESTIMATORS)
 #: The papers' scenarios; ``custom`` takes its plant from ROS parameters, which the CLI lacks.
 SCENARIO_NAMES = tuple(name for name in SCENARIOS if name != 'custom')
 
@@ -47,6 +47,7 @@ SUMMARIES = {
     'info': 'topics, counts, duration and truth of a bag',
     'demo': 'simulator + identifier nodes, converging live',
     'analyze': 'choose the order and delay, validate and describe the model',
+    'import': 'write a CSV log as a rosbag2 MCAP bag of /samples',
 }
 
 
@@ -70,8 +71,30 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+#: How a CSV log's columns are read (``bcid replay``, ``analyze`` and ``import``).
+CSV_COLUMNS_HELP = (
+    'A CSV log has a header row, then one row per sample. By default the columns named y, '
+    'u1, u2, ... are the output and the inputs; other columns are ignored. An empty cell, '
+    'nan or inf is a missing sample, skipped as the identifier skips a NaN. Rows are numbered '
+    'as lines of the file in error messages.')
+
+
+def _csv_arguments(parser: argparse.ArgumentParser, rate: bool = True) -> None:
+    group = parser.add_argument_group('CSV logs', CSV_COLUMNS_HELP)
+    group.add_argument('--columns', metavar='NAMES',
+                       help='the output column, then the input columns, comma-separated '
+                       '(e.g. temp,heater); if none, the columns y,u1,...,ur')
+    group.add_argument('--time-column', metavar='NAME',
+                       help='the column of the sample times in seconds (>= 0, in time '
+                       'order); if none, one sample per row')
+    if rate:
+        group.add_argument('--rate', type=float, metavar='HZ',
+                           help='the sample rate of rows without --time-column: row k is '
+                           'stamped k/HZ s; if none, 100 Hz')
+
+
 def _replay_arguments(replay: argparse.ArgumentParser) -> None:
-    replay.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
+    replay.add_argument('bag', type=Path, help='rosbag2 directory, .mcap file or .csv log')
     replay.add_argument('--params', type=Path, required=True,
                         help='identifier parameter YAML (bcid_identifier: ros__parameters:)')
     replay.add_argument('--estimator', choices=ESTIMATOR_NAMES,
@@ -79,6 +102,7 @@ def _replay_arguments(replay: argparse.ArgumentParser) -> None:
     replay.add_argument('--output', type=Path, help='write the estimate trajectory '
                         '(.mcap in the node topic format, or .csv)')
     replay.add_argument('--json', action='store_true', help='print one JSON summary to stdout')
+    _csv_arguments(replay)
 
 
 def _simulate_arguments(simulate: argparse.ArgumentParser) -> None:
@@ -137,7 +161,7 @@ def _demo_arguments(demo: argparse.ArgumentParser) -> None:
 
 
 def _analyze_arguments(analyze: argparse.ArgumentParser) -> None:
-    analyze.add_argument('bag', type=Path, help='rosbag2 directory or .mcap file')
+    analyze.add_argument('bag', type=Path, help='rosbag2 directory, .mcap file or .csv log')
     analyze.add_argument('--params', type=Path, required=True,
                          help='identifier parameter YAML (its estimator and settings)')
     analyze.add_argument('--orders', default='1-4', help='order range A-B')
@@ -151,6 +175,18 @@ def _analyze_arguments(analyze: argparse.ArgumentParser) -> None:
                          help='sample period in seconds: adds continuous-time equivalents')
     analyze.add_argument('--plot', type=Path, metavar='OUT.png', help='write the figure')
     analyze.add_argument('--json', action='store_true', help='print one JSON object to stdout')
+    _csv_arguments(analyze, rate=False)
+
+
+def _import_arguments(imports: argparse.ArgumentParser) -> None:
+    imports.description = (
+        'Write the samples of a CSV log to a new rosbag2 MCAP bag: one '
+        'std_msgs/msg/Float64MultiArray [y, u1, ..., ur] per row on /samples, labelled '
+        'y,u1,...,ur, in the simulator\'s format and QoS, which bcid replay, bcid play and '
+        'ros2 bag play take.')
+    imports.add_argument('csv', type=Path, help='the CSV log')
+    imports.add_argument('--out', type=Path, required=True, help='the new bag directory')
+    _csv_arguments(imports)
 
 
 #: Subcommand -> the function that adds its arguments.
@@ -163,6 +199,7 @@ ARGUMENTS = {
     'info': _info_arguments,
     'demo': _demo_arguments,
     'analyze': _analyze_arguments,
+    'import': _import_arguments,
 }
 
 
@@ -175,6 +212,15 @@ def reproduce(args: argparse.Namespace) -> int:
     for path in run(args.paper, args.runs, args.quick, args.out_dir):
         print(f'wrote {path}')
     return 0
+
+
+def demo(args: argparse.Namespace) -> int:
+    """Run ``bcid demo``: a scenario's simulator and identifier, or the adaptive loop's three."""
+    if args.scenario == 'adaptive_loop':
+        from bcid_ros.nodes.demo_loop import run_adaptive_loop as run
+    else:
+        from bcid_ros.nodes.demo import run
+    return run(args)
 
 
 def main(argv: list[str] | None = None) -> int:

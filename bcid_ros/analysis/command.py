@@ -1,4 +1,4 @@
-"""``bcid analyze``: order and delay search, validation and model properties of a bag."""
+"""``bcid analyze``: order and delay search, validation and model properties of the samples."""
 
 from __future__ import annotations
 
@@ -20,14 +20,14 @@ def _progress(line: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``bcid analyze`` and print the table (or the JSON object)."""
-    from bcid_ros.parameters import load_yaml_parameters
+    from bcid_ros.parameter_spec import load_yaml_parameters
 
     if not args.params.is_file():
         raise BcidError(f'--params {args.params}: no such file')
     parameters = load_yaml_parameters(args.params)
     orders = parse_orders(args.orders)
     delays = parse_delays(args.delays)
-    y, u, dropped = read_samples(args.bag, _progress)
+    y, u, dropped = read_samples(args.bag, _progress, args.columns, args.time_column)
     _progress(f'{y.size} samples, {u.shape[1]} input(s)'
               + (f', {dropped} dropped (malformed or NaN/Inf)' if dropped else ''))
     analysis = analyze(y, u, parameters, orders=orders, delays=delays,

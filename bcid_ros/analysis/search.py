@@ -21,7 +21,8 @@ import numpy as np
 from bcid_ros.analysis import metrics
 from bcid_ros.analysis.model import complex_list, DiscreteModel
 from bcid_ros.errors import BcidError
-from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
+from bcid_ros.estimators.registry import entry
+from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: A candidate is "as good as the best" when its validation RMS error is at
 #: most (1 + FIT_MARGIN) times the best one's (docs/analyze.md).
@@ -32,8 +33,6 @@ WHITENESS_LEVEL = 0.01
 SAMPLES_PER_PARAMETER = 10
 #: Smallest estimation and validation parts.
 MINIMUM_PART = 50
-#: Estimators whose model is output error: their simulation error is tested for whiteness.
-OUTPUT_ERROR_ESTIMATORS = ('bcrls', 'bciv', 'cl_bcls')
 
 
 @dataclasses.dataclass
@@ -310,7 +309,7 @@ def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
     y_mean = float(y_aligned[:estimation_count].mean())
     u_mean = u[:estimation_count].mean(axis=0)
     y_dev = y_aligned - y_mean
-    residual_kind = ('simulation error' if values['estimator'] in OUTPUT_ERROR_ESTIMATORS
+    residual_kind = ('simulation error' if entry(values['estimator']).model != 'arx'
                      else 'equation error')
     grid = [(n, d) for n in range(orders[0], orders[1] + 1)
             for d in range(delays[0], delays[1] + 1)]
@@ -385,5 +384,5 @@ def _fit_candidate(values: dict[str, Any], order: int, delay: int, y: np.ndarray
     return candidate
 
 
-__all__ = ['Analysis', 'Candidate', 'FIT_MARGIN', 'OUTPUT_ERROR_ESTIMATORS', 'WHITENESS_LEVEL',
+__all__ = ['Analysis', 'Candidate', 'FIT_MARGIN', 'WHITENESS_LEVEL',
            'analyze', 'parse_delays', 'parse_orders', 'recommend']

@@ -1,8 +1,8 @@
 """
-The bag subcommands of ``bcid``: replay, simulate, record, play, info.
+The bag subcommands of ``bcid``: replay, simulate, record, play, info, import.
 
-``replay``, ``simulate`` and ``info`` work offline and never import rclpy;
-``record`` and ``play`` import it (lazily, in their own modules).
+``replay``, ``simulate``, ``info`` and ``import`` work offline and never import
+rclpy; ``record`` and ``play`` import it (lazily, in their own modules).
 """
 
 from __future__ import annotations
@@ -15,13 +15,15 @@ from bcid_ros.errors import BcidError
 
 def replay(args: argparse.Namespace) -> int:
     """Run ``bcid replay``: the estimator over a bag, a summary, an optional trajectory."""
+    from bcid_ros.bag.csv_samples import samples_source
     from bcid_ros.bag.replay import replay as run, write_output
-    from bcid_ros.parameters import load_yaml_parameters
+    from bcid_ros.parameter_spec import load_yaml_parameters
 
     if not args.params.is_file():
         raise BcidError(f'--params {args.params}: no such file')
+    source = samples_source(args.bag, args.columns, args.time_column, args.rate)
     # The trajectory is kept only for --output; the final estimate is the same either way.
-    result = run(args.bag, load_yaml_parameters(args.params), estimator=args.estimator,
+    result = run(source, load_yaml_parameters(args.params), estimator=args.estimator,
                  trajectory=args.output is not None)
     if not result.in_file_order:
         print('bcid replay: note: the samples were not stored in log-time order; '
@@ -81,6 +83,26 @@ def info(args: argparse.Namespace) -> int:
     return 0
 
 
+def import_csv(args: argparse.Namespace) -> int:
+    """Run ``bcid import``: write the samples of a CSV log to a rosbag2 MCAP bag."""
+    from bcid_ros.bag.csv_samples import read_csv_samples, write_samples_bag
+    from bcid_ros.bag.replay import SAMPLES_TOPIC
+    from bcid_ros.identifier.layouts import sample_label
+
+    samples = read_csv_samples(args.csv, args.columns, args.time_column, args.rate)
+    out = write_samples_bag(samples, args.out)
+    count = samples.rows.shape[0]
+    span = (samples.times_ns[-1] - samples.times_ns[0]) / 1e9
+    stamps = (f'times from column {samples.time_column!r}' if samples.time_column is not None
+              else f'stamped at {samples.rate_hz:g} Hz')
+    print(f'wrote {out}: {count} samples on {SAMPLES_TOPIC} ({sample_label(samples.num_inputs)} '
+          f'from columns {",".join(samples.columns)}), {stamps}, {span:.6g} s')
+    if samples.nonfinite_rows:
+        print(f'{samples.nonfinite_rows} row(s) with an empty, NaN or infinite value: written '
+              'as they are (empty as NaN); the identifier skips such samples')
+    return 0
+
+
 def record(args: argparse.Namespace) -> int:
     """Run ``bcid record``: record topics over rclpy until SIGINT or --duration."""
     from bcid_ros.bag.record import record_bag
@@ -103,4 +125,4 @@ def play(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ['info', 'play', 'record', 'replay', 'simulate']
+__all__ = ['import_csv', 'info', 'play', 'record', 'replay', 'simulate']

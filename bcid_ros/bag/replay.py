@@ -2,18 +2,21 @@
 Offline replay: run the identifier's estimator over a bag's samples, no ROS graph.
 
 The estimator is built from the same parameter file through
-:func:`bcid_ros.parameters.estimator_from_parameters`, and every message
+:func:`bcid_ros.identifier.parameters.estimator_from_parameters`, and every message
 goes through the node's own per-message rule,
-:class:`bcid_ros.samples.SampleFeeder`, which also decides the samples where
+:class:`bcid_ros.identifier.feeder.SampleFeeder`, which also decides the samples where
 estimates are published. So the replay's final estimate equals what
-``identifier_node`` publishes for the same bag, to the last bit.
+``identifier_node`` publishes for the same bag on the same machine, to the
+last bit (another CPU may get other BLAS and SIMD kernels).
 
 The bag is read in blocks (:meth:`bcid_ros.bag.reader.BagReader.blocks`):
 runs of messages with the same layout, in log-time order, fed with
-:meth:`~bcid_ros.samples.SampleFeeder.take_messages`, which applies the
+:meth:`~bcid_ros.identifier.feeder.SampleFeeder.take_messages`, which applies the
 per-message rule to a whole block in one loop. A block whose layout is
 wrong goes message by message through
-:meth:`~bcid_ros.samples.SampleFeeder.take_message`, as the node would.
+:meth:`~bcid_ros.identifier.feeder.SampleFeeder.take_message`, as the node would. A CSV
+log (:mod:`bcid_ros.bag.csv_samples`) comes in blocks of one-sample messages,
+the messages of the bag that ``bcid import`` writes from it.
 """
 
 from __future__ import annotations
@@ -26,12 +29,14 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.bag.blocks import MessageBlock
+from bcid_ros.bag.csv_samples import CsvSamples, is_csv, read_csv_samples
 from bcid_ros.bag.reader import BagReader, BagTruth
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
-                                      PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
-from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
-from bcid_ros.samples import decode_samples, estimate_layout, SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
+                                           PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
+from bcid_ros.identifier.layouts import decode_samples, estimate_layout
+from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: The topic the identifier reads (combined input mode).
 SAMPLES_TOPIC = resolve(SAMPLES, IDENTIFIER_NODE)
@@ -97,7 +102,8 @@ class ReplayResult:
         Return the ``bcid replay --json`` object (docs/bags.md).
 
         Keys: ``estimator``, ``samples``, ``valid`` (whether the final
-        estimate is valid, as ``~/valid`` would say), ``parameters``,
+        estimate is valid, as ``~/valid`` would say), ``validity_reasons`` (why it
+        is not, as /diagnostics says; empty when valid), ``parameters``,
         ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
         ``{name: count}``), ``std`` (the standard deviations of the final
         parameters, for estimators that have them: rls, bcrls), with ``detrend: mean``
@@ -109,6 +115,7 @@ class ReplayResult:
             'estimator': self.estimator,
             'samples': self.samples,
             'valid': self.valid,
+            'validity_reasons': list(self.validity_reasons),
             'parameters': _named(self.parameter_names, self.theta),
             'uncompensated': _named(self.parameter_names, self.theta_uncompensated),
             'noise': _named(self.noise_names, self.noise),
@@ -130,16 +137,21 @@ def _named(names: tuple[str, ...], values: np.ndarray) -> dict[str, float]:
     return {name: float(value) for name, value in zip(names, values)}
 
 
-def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
+def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
            estimator: str | None = None, topic: str = SAMPLES_TOPIC,
            trajectory: bool = True) -> ReplayResult:
     """
-    Run the configured estimator over the samples of a bag.
+    Run the configured estimator over the samples of a bag or a CSV log.
+
+    A CSV log (:class:`~bcid_ros.bag.csv_samples.CsvSamples`, or a path
+    ending in ``.csv``, read with the default columns) goes through the same
+    per-message rule as the bag that ``bcid import`` writes from it: blocks
+    of one-sample messages.
 
     Parameters
     ----------
-    bag : str, pathlib.Path or BagReader
-        The bag.
+    bag : str, pathlib.Path, BagReader or CsvSamples
+        The bag, or the CSV log.
     parameters : dict
         Identifier parameters (``bcid_identifier`` section of a parameter file).
     estimator : str, optional
@@ -157,12 +169,15 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     Raises
     ------
     BcidError
-        If the bag cannot be read, lacks the topic, or it has another type.
+        If the bag cannot be read, lacks the topic, or it has another type;
+        if the CSV cannot be read or has another number of inputs than
+        ``num_inputs``.
     ValueError
         If a parameter is not allowed (named in the message).
 
     """
-    reader = bag if isinstance(bag, BagReader) else BagReader(bag)
+    if not isinstance(bag, (BagReader, CsvSamples)):
+        bag = read_csv_samples(bag) if is_csv(bag) else BagReader(bag)
     values = dict(parameters)
     if estimator is not None:
         values['estimator'] = estimator
@@ -170,15 +185,22 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
     if values['input_mode'] != 'combined':
         raise BcidError("replay reads the combined samples topic; set input_mode: combined "
                         f"(got {values['input_mode']!r})")
-    reader.require(topic, FLOAT64_MULTI_ARRAY)
-    truth = reader.truth()
+    if isinstance(bag, CsvSamples):
+        if bag.num_inputs != values['num_inputs']:
+            raise BcidError(f'{bag.path} has {bag.num_inputs} input column(s) '
+                            f'({",".join(bag.columns[1:])}) but the parameter file sets '
+                            f"num_inputs = {values['num_inputs']}")
+        blocks, truth = bag.blocks(), None
+    else:
+        bag.require(topic, FLOAT64_MULTI_ARRAY)
+        blocks, truth = bag.blocks(topic), bag.truth()
     est = estimator_from_parameters(values)
     feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'],
                           values['freeze_unexcited'])
     published = _Published()
     messages = malformed = failures = 0
     start = time.perf_counter()
-    for block in reader.blocks(topic):
+    for block in blocks:
         messages += len(block)
         rows, count = _block_rows(block, est.num_inputs)
         if rows is None:
@@ -194,7 +216,7 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
             published.add(int(block.times_ns[index]), used, estimates)
     elapsed = time.perf_counter() - start
     if messages == 0:
-        raise BcidError(f'{reader.path}: topic {topic} has no messages')
+        raise BcidError(f'{bag.path}: topic {topic} has no messages')
     p, q = est.num_parameters, len(est.noise_names)
     return ReplayResult(
         estimator=values['estimator'], parameter_names=est.parameter_names,
@@ -208,7 +230,8 @@ def replay(bag: str | Path | BagReader, parameters: dict[str, Any],
         theta_trajectory=published.array(0, p),
         uncompensated_trajectory=published.array(1, p),
         noise_trajectory=published.array(2, q),
-        in_file_order=reader.order[topic].in_file_order, std=est.parameter_std,
+        in_file_order=isinstance(bag, CsvSamples) or bag.order[topic].in_file_order,
+        std=est.parameter_std,
         operating_point=est.operating_point,
         operating_point_names=est.operating_point_names)
 
@@ -237,7 +260,7 @@ def _block_rows(block: MessageBlock, num_inputs: int) -> tuple[np.ndarray | None
     Return the rows of all the messages of a block and the samples per message.
 
     The messages share their layout and length, so the first one's decoding
-    (:func:`~bcid_ros.samples.decode_samples`) holds for all. ``(None, 0)``
+    (:func:`~bcid_ros.identifier.layouts.decode_samples`) holds for all. ``(None, 0)``
     if that decoding fails: the block then goes message by message.
     """
     try:

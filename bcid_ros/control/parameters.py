@@ -1,7 +1,7 @@
 """
 The parameter table of the adaptive controller node (pure Python, no ROS).
 
-It uses the :class:`bcid_ros.parameters.ParameterSpec` of the other nodes,
+It uses the :class:`bcid_ros.parameter_spec.ParameterSpec` of the other nodes,
 so the node declares its ROS parameters with descriptors from it and the
 same checks run offline (``check_controller_parameters`` on a YAML section).
 """
@@ -12,11 +12,7 @@ from typing import Any
 
 from bcid_ros.control.design import Controller, ModelStructure, required_pole_count
 from bcid_ros.control.reference import REFERENCE_SIGNALS
-from bcid_ros.parameters import check_parameters, ParameterSpec
-
-
-def _p(name: str, type_: str, default: Any, description: str, **kwargs: Any) -> ParameterSpec:
-    return ParameterSpec(name, type_, default, description, **kwargs)
+from bcid_ros.parameter_spec import check_parameters, parameter as _p, ParameterSpec
 
 
 #: The controller node's parameters, in declaration order (all fixed at start-up).

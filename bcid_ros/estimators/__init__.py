@@ -2,41 +2,21 @@
 Recursive estimators: pure numpy, free of ROS.
 
 Use :func:`make_estimator` to build one by its registry name, the value of
-the identifier node's ``estimator`` parameter.
+the identifier node's ``estimator`` parameter; :mod:`.registry` says what
+each one is (model kind, options, input modes, batched form).
 """
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
 from bcid_ros.estimators.base import (EstimatorState, parameter_names, RecursiveEstimator,
                                       Trajectory)
+from bcid_ros.estimators.registry import (batched_class, ESTIMATOR_NAMES, estimator_class,
+                                          REGISTRY)
 
-#: Registry name -> 'module:class'. A module is imported when its estimator is
-#: first asked for by name.
-ESTIMATORS = {
-    'rls': 'bcid_ros.estimators.rls:Rls',
-    'bcrls': 'bcid_ros.estimators.bcrls:Bcrls',
-    'bciv': 'bcid_ros.estimators.bciv:Bciv',
-    'cl_bcls': 'bcid_ros.estimators.cl_bcls:ClosedLoopBcls',
-}
-
-
-def estimator_class(name: str) -> type[RecursiveEstimator]:
-    """
-    Return the estimator class registered as ``name``.
-
-    Raises
-    ------
-    ValueError
-        If ``name`` is not one of :data:`ESTIMATORS`.
-
-    """
-    if name not in ESTIMATORS:
-        raise ValueError(f'estimator must be one of {", ".join(ESTIMATORS)}; got {name!r}')
-    module, cls = ESTIMATORS[name].split(':')
-    return getattr(importlib.import_module(module), cls)
+#: The registry, by name (see :mod:`bcid_ros.estimators.registry`).
+ESTIMATORS = REGISTRY
 
 
 def make_estimator(name: str, **settings: Any) -> RecursiveEstimator:
@@ -44,5 +24,19 @@ def make_estimator(name: str, **settings: Any) -> RecursiveEstimator:
     return estimator_class(name)(**settings)
 
 
-__all__ = ['ESTIMATORS', 'EstimatorState', 'RecursiveEstimator', 'Trajectory',
-           'estimator_class', 'make_estimator', 'parameter_names']
+def make_batched_estimator(name: str, num_plants: int, **settings: Any) -> Any:
+    """
+    Build the batched form of estimator ``name`` over ``num_plants`` plants.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` has no batched form.
+
+    """
+    return batched_class(name)(num_plants, **settings)
+
+
+__all__ = ['ESTIMATORS', 'ESTIMATOR_NAMES', 'EstimatorState', 'RecursiveEstimator',
+           'Trajectory', 'batched_class', 'estimator_class', 'make_batched_estimator',
+           'make_estimator', 'parameter_names']

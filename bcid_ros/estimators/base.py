@@ -32,13 +32,12 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
+from bcid_ros.estimators import rules
 from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
                                                  RunningMean)
+# the names bciv and cl_bcls still take from here
+from bcid_ros.estimators.rules import IMPLAUSIBLE_ERROR  # noqa: F401
 
-#: Normalised prediction error beyond which a sample is refused even with the
-#: gate off (``outlier_threshold`` = 0): no Gaussian noise produces it, and
-#: taking it would move the estimate by a million standard deviations.
-IMPLAUSIBLE_ERROR = 1e6
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
 HUGE_SCREEN = 2.0 ** -450
@@ -49,11 +48,6 @@ HUGE_VALUE = 1.0 / HUGE_SCREEN
 EXACT_CHECKPOINT_SIZE = 4096
 #: See EXACT_CHECKPOINT_SIZE.
 CHECKPOINT_PERIOD = 64
-#: The change score of the gate: +1 per refused sample, times CHANGE_DECAY per
-#: tested sample; three refusals in a row (1 + 0.8 + 0.64 = 2.44) reach it.
-CHANGE_SCORE = 2.4
-#: See CHANGE_SCORE.
-CHANGE_DECAY = 0.8
 #: Largest dead time accepted (samples): the regressor keeps d_i more past inputs.
 MAX_DELAY = 100000
 #: Values of the ``detrend`` setting.
@@ -61,16 +55,8 @@ DETRENDS = ('none', 'mean')
 
 
 def power_of_two_at_least(value: float) -> float:
-    """
-    Return the smallest power of two >= ``value`` > 0 (1.0 for 0 or non-finite).
-
-    Scaling by it is exact in binary floating point, so signals divided by
-    such scales keep every bit.
-    """
-    if not 0.0 < value < math.inf:
-        return 1.0
-    mantissa, exponent = math.frexp(value)
-    return math.ldexp(1.0, exponent - 1 if mantissa == 0.5 else exponent)
+    """Return the smallest power of two >= ``value`` > 0 (rules.powers_of_two_at_least)."""
+    return rules.powers_of_two_at_least(value)
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
@@ -188,6 +174,49 @@ def check_forgetting_factor(value: Any) -> float:
     return check_range('forgetting_factor', value, 0.0, 1.0, low_open=True)
 
 
+class SharedSettings:
+    """
+    The settings a single-plant estimator and a batched one check and expose alike.
+
+    The model structure (order, inputs, feedthrough), p0, and the two
+    settings that may change while running: the forgetting factor and the
+    gate's threshold (whose squared limit the rulebook's gate takes).
+    """
+
+    def _check_settings(self, order: int, num_inputs: int, feedthrough: bool,
+                        initial_covariance: float, forgetting_factor: float,
+                        outlier_threshold: float) -> None:
+        """Check and keep the shared settings; raise ValueError naming a bad one."""
+        self.order = check_int('order', order, 1)
+        self.num_inputs = check_int('num_inputs', num_inputs, 1)
+        self.feedthrough = bool(feedthrough)
+        self.initial_covariance = check_range(
+            'initial_covariance', initial_covariance, 0.0, 1e15, low_open=True)
+        # not through the property, which subclasses may extend with checks of their state
+        self._forgetting_factor = check_forgetting_factor(forgetting_factor)
+        self.outlier_threshold = outlier_threshold
+
+    @property
+    def forgetting_factor(self) -> float:
+        """Forgetting factor lambda in (0, 1]; may be changed while running."""
+        return self._forgetting_factor
+
+    @forgetting_factor.setter
+    def forgetting_factor(self, value: float) -> None:
+        self._forgetting_factor = check_forgetting_factor(value)
+
+    @property
+    def outlier_threshold(self) -> float:
+        """Gate of the normalised prediction error, >= 0 (0 = off); may change while running."""
+        return self._outlier_threshold
+
+    @outlier_threshold.setter
+    def outlier_threshold(self, value: float) -> None:
+        self._outlier_threshold = check_range('outlier_threshold', value, 0.0,
+                                              rules.IMPLAUSIBLE_ERROR)
+        self._gate_limit2 = rules.gate_limit2(self._outlier_threshold)
+
+
 @dataclasses.dataclass(frozen=True)
 class EstimatorState:
     """
@@ -234,7 +263,7 @@ class Trajectory:
         return self.theta[-1]
 
 
-class RecursiveEstimator(abc.ABC):
+class RecursiveEstimator(SharedSettings, abc.ABC):
     """
     Base class of the per-sample estimators.
 
@@ -291,19 +320,13 @@ class RecursiveEstimator(abc.ABC):
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
                  outlier_threshold: float = 0.0, input_delay: Any = 0,
                  detrend: str = 'none', adapt: bool = True) -> None:
-        self.order = check_int('order', order, 1)
-        self.num_inputs = check_int('num_inputs', num_inputs, 1)
-        self.feedthrough = bool(feedthrough)
-        self.initial_covariance = check_range(
-            'initial_covariance', initial_covariance, 0.0, 1e15, low_open=True)
-        self._forgetting_factor = check_range(
-            'forgetting_factor', forgetting_factor, 0.0, 1.0, low_open=True)
+        self._check_settings(order, num_inputs, feedthrough, initial_covariance,
+                             forgetting_factor, outlier_threshold)
         self.input_delay = check_delays(input_delay, self.num_inputs)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough,
                                                self.input_delay)
         self.num_parameters = len(self.parameter_names)
         self._init_operation(detrend, adapt)
-        self.outlier_threshold = outlier_threshold
         self._change_score = 0.0
         self._quiet_left = 0
         # samples refused by _undo, so that they can be kept out of the operating point
@@ -644,28 +667,6 @@ class RecursiveEstimator(abc.ABC):
         return np.array(self._noise(), dtype=float)
 
     @property
-    def forgetting_factor(self) -> float:
-        """Forgetting factor lambda in (0, 1]; may be changed while running."""
-        return self._forgetting_factor
-
-    @forgetting_factor.setter
-    def forgetting_factor(self, value: float) -> None:
-        self._forgetting_factor = check_range('forgetting_factor', value, 0.0, 1.0,
-                                              low_open=True)
-
-    @property
-    def outlier_threshold(self) -> float:
-        """Gate of the normalised prediction error, >= 0 (0 = off); may change while running."""
-        return self._outlier_threshold
-
-    @outlier_threshold.setter
-    def outlier_threshold(self, value: float) -> None:
-        self._outlier_threshold = check_range('outlier_threshold', value, 0.0,
-                                              IMPLAUSIBLE_ERROR)
-        # squared limit of the normalised prediction error (see _gate)
-        self._gate_limit2 = (self._outlier_threshold or IMPLAUSIBLE_ERROR) ** 2
-
-    @property
     def valid(self) -> bool:
         """
         Whether the estimate can be trusted: :attr:`ready` and no :attr:`validity_reasons`.
@@ -821,29 +822,19 @@ class RecursiveEstimator(abc.ABC):
 
         With the one-step prediction error :math:`e(t)` and its variance
         :math:`\hat\sigma_e^2(1 + \varphi^T P\varphi)` the estimator computes
-        :math:`z^2 = e^2 / [\hat\sigma_e^2(1 + \varphi^T P\varphi)]`. A sample
-        with :math:`z` above ``outlier_threshold`` (or above
-        ``IMPLAUSIBLE_ERROR`` with the gate off) is refused (flag
-        ``outlier_rejected``) and the regressor restarts. Refusals raise a
-        change score that decays by ``CHANGE_DECAY`` per tested sample; when
-        it reaches ``CHANGE_SCORE`` (three refusals in a row) the errors are
-        taken as a real change of the plant: the sample is used after
-        :meth:`_accept_change` (flag ``plant_change``).
+        :math:`z^2 = e^2 / [\hat\sigma_e^2(1 + \varphi^T P\varphi)]` and the
+        rulebook's gate decides (:func:`~bcid_ros.estimators.rules.gate`). A
+        refused sample is counted (flag ``outlier_rejected``) and the regressor
+        restarts; a detected plant change is counted (``plant_change``) and
+        :meth:`_accept_change` cuts the memory before the sample is used.
         """
-        if z2 <= self._gate_limit2:
-            if self._change_score:
-                score = self._change_score * CHANGE_DECAY
-                self._change_score = score if score > 1e-3 else 0.0
-            return True
-        score = self._change_score * CHANGE_DECAY + 1.0
-        if score >= CHANGE_SCORE:
-            self._change_score = 0.0
+        used, self._change_score, change = rules.gate(z2, self._gate_limit2, self._change_score)
+        if change:
             self._flag('plant_change')
             self._accept_change()
-            return True
-        self._change_score = score
-        self._undo('outlier_rejected')
-        return False
+        elif not used:
+            self._undo('outlier_rejected')
+        return used
 
     def _accept_change(self) -> None:
         """Prepare for a real plant change detected by :meth:`_gate`; nothing here."""

@@ -8,26 +8,18 @@ sample, most of it call overhead at these sizes. Here the K states are
 stacked (theta as ``(K, p)``, P as ``(K, p, p)``, one regressor history per
 plant) and each sample of all plants is one numpy pass.
 
-Each plant follows exactly the recursion of its single-plant estimator, with
-its units (signal scales per plant and channel), its transaction, its outlier
-gate and plant-change rule, and its validity, all per plant; and with the
-single-plant sample policy of the identifier (``SampleFeeder``) applied per
-plant: a plant whose sample is missing or not finite restarts its own
-regressor and is counted, and the other plants are not touched. Each plant's
-estimate therefore equals that of a single-plant estimator fed the same
-samples, to 1e-12. The dot products go to the same BLAS kernels as the
-single plant's, on rows laid out the same way, so the LS part agrees bit for
-bit. BCRLS's compensation (46) is one BLAS gemv with beta = 1 in the single
-plant, whose kernel rounds the final sum its own way when p is not a multiple
-of 4 (measured here): last-bit differences there, which the contraction of
-(46) keeps from growing.
-
-Every step computes the a-priori quantities of all plants ``rows`` whose
-regressor is filled, in one pass. The plants whose step is ordinary (a
-moderate gain s/lambda, a finite error, s > 0 and a prediction error the gate
-accepts) are committed together; the few others (a step that may break P, a
-refused sample, a plant change) go one by one through the single-plant logic
-(:meth:`BatchedRls._plant_step`), which the one pass has not touched yet.
+Each plant follows the recursion of its single-plant estimator with the same
+rules: the step and every safeguard around it are
+:func:`~bcid_ros.estimators.rls.ls_step_rows` (which the single plant runs as
+K = 1 for its rare samples) and the rulebook
+(:mod:`~bcid_ros.estimators.rules`); the compensation of BCRLS is
+:func:`~bcid_ros.estimators.bcrls.compensate_rows`, the batched twin of the
+single plant's. The single plant's plain step calls BLAS, the batched one
+numpy: the estimates agree within rounding (the tests bound the difference by
+the problem's own rounding spread), and the decisions (flags, validity) are the
+same. The identifier's sample policy (``SampleFeeder``) applies per plant: a
+plant whose sample is missing or not finite restarts its own regressor and is
+counted, and the other plants are not touched.
 """
 
 from __future__ import annotations
@@ -37,64 +29,22 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from bcid_ros.estimators.base import (CHANGE_DECAY, CHANGE_SCORE, check_int, check_range,
-                                      EstimatorState, HUGE_SCREEN, IMPLAUSIBLE_ERROR,
-                                      parameter_names, weighted_square_ratio)
-from bcid_ros.estimators.bcrls import (add_lagged_moments, block_sandwich, COMPENSATION_MAX,
-                                       CONTRACTION_MAX, DENOMINATOR_MIN, MOMENT_BLOCK,
-                                       RUNAWAY, sandwich_or_nan)
-from bcid_ros.estimators.rls import (CAREFUL_GAIN, CHANGE_MEMORY, GATE_WARMUP, GROWTH,
-                                     HEALTH_CHECK_PERIOD, repair_covariance, rls_step,
-                                     UNSTABLE_RADIUS, VALIDITY_PERIOD, VARIANCE_FLOOR)
+from bcid_ros.estimators import rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor
+from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
+                                      SharedSettings, weighted_square_ratio)
+from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
+                                       LaggedMoments, OUTPUT_ERROR_LIMIT)
+from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.regressor import phi_channels
+from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings,
+                                     residual_items, residual_reasons, residual_states, Rls,
+                                     rowdot, scale_dependents)
 
 Rows = slice | np.ndarray
 
 
-def _matvec(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """
-    Return ``matrices[k] @ vectors[k]`` for every k, shape ``(K, p)``.
-
-    numpy's matmul hands each product to BLAS gemv, the kernel of the
-    single-plant estimator's ``P.dot(phi)``, so both sum in the same order.
-    """
-    return np.matmul(matrices, vectors[:, :, None])[:, :, 0]
-
-
-def _rowdot(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """
-    Return ``left[k] . right[k]`` for every k, shape ``(K,)``.
-
-    numpy.vecdot: its inner loop is BLAS ddot, the kernel of the single-plant
-    estimator's ``phi.dot(g)``, so the two sum in the same order and agree
-    bit for bit. einsum has its own loop, which on some machines sums with
-    two accumulators (measured: one dot product of 4 terms in 4 differed in
-    the last bit), and the ill-conditioned start amplifies that to 1e-10.
-    """
-    return np.vecdot(left, right)
-
-
-def _powers_of_two_at_least(values: np.ndarray) -> np.ndarray:
-    """Return the smallest power of two >= each value > 0 (1.0 for 0), elementwise."""
-    mantissa, exponent = np.frexp(values)
-    return np.ldexp(1.0, np.where(mantissa == 0.5, exponent - 1, exponent))
-
-
-def _spectral_radii(a: np.ndarray) -> np.ndarray:
-    """Return the largest pole magnitude of each A_k(q) = 1 + a_k1 q^-1 + ..., rows of ``a``."""
-    count, order = a.shape
-    if order == 1:
-        return np.abs(a[:, 0])
-    radius = np.full(count, math.inf)
-    finite = np.isfinite(a).all(axis=1)
-    if finite.any():
-        companion = np.zeros((int(finite.sum()), order, order))
-        companion[:, 0] = -a[finite]
-        companion[:, 1:, :-1] = np.eye(order - 1)
-        radius[finite] = np.abs(np.linalg.eigvals(companion)).max(axis=1)
-    return radius
-
-
-class BatchedRls:
+class BatchedRls(LsAccessors, SharedSettings):
     r"""
     K independent RLS estimators of one structure, updated together.
 
@@ -113,29 +63,11 @@ class BatchedRls:
         \tau_k(t) = \lambda\tau_k(t-1) + 1
 
     with everything around it per plant, as in the single-plant estimator
-    (docs/estimators.md, "Estimates you can trust"), and counted per plant in
-    :attr:`flags`:
-
-    * **units**: :math:`P_k(0) = p_0 S_k^{-2}`, with the power-of-two scales
-      :math:`S_k` of plant k's channels (y, u_1 ... u_r) taken from the
-      samples in its regressor at its first update (:attr:`signal_scale`);
-    * **transaction**: a step with a non-finite :math:`s_k` or
-      :math:`e_k^2`, or a risky one (:math:`s_k/\lambda >` ``CAREFUL_GAIN``)
-      that leaves :math:`S_k P_k S_k` indefinite or ill-conditioned, is
-      undone on plant k only (``update_undone``) and its regressor restarts;
-      three in a row start plant k afresh with new scales (``rescaled``);
-    * **gate**: plant k's squared normalised prediction error
-      :math:`z_k^2 = e_k^2 / [(J_k/\tau_k)(1 + \varphi_k^T P_k\varphi_k)]` above
-      ``outlier_threshold``:math:`^2` (or above 1e6 with the gate off)
-      refuses the sample on plant k (``outlier_rejected``); three refusals in
-      a row are taken as a change of plant k (``plant_change``) and cut its
-      memory;
-    * anti-windup (``windup_limited``), the Cholesky check of :math:`P_k`
-      every ``HEALTH_CHECK_PERIOD`` of its updates and whenever
-      :math:`s_k \le 0` (``covariance_repaired``);
-    * **validity** (:attr:`valid`, :meth:`plant_validity_reasons`), re-evaluated
-      every ``VALIDITY_PERIOD`` of the plant's updates: an unstable model on
-      bounded data.
+    (units, transaction, gate and plant change, anti-windup, covariance
+    repair, validity: :class:`~bcid_ros.estimators.rls.Rls`), by the same
+    functions (:func:`~bcid_ros.estimators.rls.ls_step_rows` and the
+    rulebook), counted per plant in :attr:`flags`; P_k(0) = p0 S_k^-2 with
+    plant k's own power-of-two signal scales (:attr:`signal_scale`).
 
     **Samples.** :meth:`update` takes one sample of every plant. Plant k's
     sample is not used when it is marked absent (counted in :attr:`missing`)
@@ -161,23 +93,25 @@ class BatchedRls:
     #: The single-plant estimator whose recursion each plant follows.
     name: ClassVar[str] = 'rls'
     noise_names: ClassVar[tuple[str, ...]] = ('residual_variance',)
+    #: The single-plant snapshot's arrays and scalars (with their types), each
+    #: held here as the per-plant array ``_<key>``.
+    _SNAPSHOT_ARRAYS: ClassVar[tuple[str, ...]] = ('theta_ls', 'p', 'signal_scale')
+    _SNAPSHOT_SCALARS: ClassVar[dict[str, type]] = {
+        'loss': float, 'tau': float, 'updates': int, 'undone_in_row': int, 'next_check': int,
+        'last_power': float}
+    adequacy_model: ClassVar[str] = Rls.adequacy_model
+    hac_std: ClassVar[bool] = Rls.hac_std
 
     def __init__(self, num_plants: int, *, order: int, num_inputs: int = 1,
                  feedthrough: bool = False, initial_covariance: float = 1e6,
                  forgetting_factor: float = 1.0, outlier_threshold: float = 0.0) -> None:
         self.num_plants = check_int('num_plants', num_plants, 1)
-        self.order = check_int('order', order, 1)
-        self.num_inputs = check_int('num_inputs', num_inputs, 1)
-        self.feedthrough = bool(feedthrough)
-        self.initial_covariance = check_range(
-            'initial_covariance', initial_covariance, 0.0, 1e15, low_open=True)
-        self._forgetting_factor = check_range(
-            'forgetting_factor', forgetting_factor, 0.0, 1.0, low_open=True)
-        self.outlier_threshold = outlier_threshold
+        self._check_settings(order, num_inputs, feedthrough, initial_covariance,
+                             forgetting_factor, outlier_threshold)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
         self._trace_limit = self.initial_covariance * self.num_parameters
-        self._gate_from = GATE_WARMUP * self.num_parameters
+        self._gate_from = rules.GATE_WARMUP * self.num_parameters
         # history[k, j] = [-y, u_1, ..., u_r] of plant k's sample t - j (j = 0 newest);
         # phi(t) is one gather from it with a fixed index, since the rows shift.
         rows, width = self.order + 1, 1 + self.num_inputs
@@ -188,13 +122,9 @@ class BatchedRls:
         for i in range(self.num_inputs):
             index.extend(lag * width + 1 + i for lag in range(first_lag, self.order + 1))
         self._phi_index = np.array(index, dtype=np.intp)
-        # the signal channel (0 = y, i = u_i) of each component of phi
-        lags = self.order + (1 if self.feedthrough else 0)
-        self._channel = np.array([0] * self.order + [
-            i for i in range(1, self.num_inputs + 1) for _ in range(lags)], dtype=np.intp)
-        self._diagonal = np.arange(self.num_parameters)
+        self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         # a value at or above this may overflow in a step: see RecursiveEstimator.update
-        self._huge = 1.0 / (HUGE_SCREEN * width)
+        self._huge = HUGE_VALUE / width
         #: Samples of each plant that were missing / not finite (not used).
         self.missing = np.zeros(self.num_plants, dtype=np.int64)
         self.nonfinite = np.zeros(self.num_plants, dtype=np.int64)
@@ -246,12 +176,14 @@ class BatchedRls:
             if self._quiet_left:
                 # a huge value is in some regressor: its overflow is refused, not warned about
                 self._quiet_left -= 1
+                np.maximum(self._quiet - 1, 0, out=self._quiet)
                 with np.errstate(all='ignore'):
-                    self._step(rows, y[rows], phi)
+                    self._step(rows, y[rows], phi, u[rows])
             else:
-                self._step(rows, y[rows], phi)
+                self._step(rows, y[rows], phi, u[rows])
         elif self._quiet_left:
             self._quiet_left -= 1
+            np.maximum(self._quiet - 1, 0, out=self._quiet)
         return self.valid
 
     def reset(self, plants: Any = None) -> None:
@@ -265,10 +197,10 @@ class BatchedRls:
             self.flags: dict[str, np.ndarray] = {}
             self._allocate()
             self._quiet_left = 0
+            self._quiet = np.zeros(self.num_plants, dtype=np.int64)
         for counts in self.flags.values():
             counts[rows] = 0
         self._change_score[rows] = 0.0
-        self._scoring = bool(self._change_score.any())
         self._reset_learning(rows)
         self._clear_regressors(rows)
 
@@ -279,27 +211,6 @@ class BatchedRls:
         Each plant's next n + 1 samples refill its regressor before it updates.
         """
         self._clear_regressors(self._plant_rows(plants))
-
-    @property
-    def forgetting_factor(self) -> float:
-        """Forgetting factor lambda in (0, 1] of all plants; may be changed while running."""
-        return self._forgetting_factor
-
-    @forgetting_factor.setter
-    def forgetting_factor(self, value: float) -> None:
-        self._forgetting_factor = check_range('forgetting_factor', value, 0.0, 1.0,
-                                              low_open=True)
-
-    @property
-    def outlier_threshold(self) -> float:
-        """Gate of the normalised prediction error, >= 0 (0 = off); may change while running."""
-        return self._outlier_threshold
-
-    @outlier_threshold.setter
-    def outlier_threshold(self, value: float) -> None:
-        self._outlier_threshold = check_range('outlier_threshold', value, 0.0,
-                                              IMPLAUSIBLE_ERROR)
-        self._gate_limit2 = (self._outlier_threshold or IMPLAUSIBLE_ERROR) ** 2
 
     @property
     def theta(self) -> np.ndarray:
@@ -348,21 +259,6 @@ class BatchedRls:
         return self._calls - self.missing - self.nonfinite
 
     @property
-    def signal_scale(self) -> np.ndarray:
-        """Return the scales of y, u_1 ... u_r per plant, shape ``(K, 1 + r)`` (0: not yet)."""
-        return self._signal_scale.copy()
-
-    @property
-    def initial_covariance_diagonal(self) -> np.ndarray:
-        """Return the diagonal of each P_k(0) = p0 S_k^-2 in the user's units, ``(K, p)``."""
-        return self.initial_covariance / self._component_scale ** 2
-
-    @property
-    def covariance(self) -> np.ndarray:
-        """Return the covariances P_k(t), shape ``(K, p, p)`` (a copy)."""
-        return self._p.copy()
-
-    @property
     def covariance_trace(self) -> np.ndarray:
         """Return tr P_k(t) of each plant, shape ``(K,)``."""
         return np.trace(self._p, axis1=1, axis2=2)
@@ -399,22 +295,27 @@ class BatchedRls:
         return np.sqrt(np.diagonal(self.parameter_covariance, axis1=1, axis2=2))
 
     def _parameter_covariance(self) -> np.ndarray:
-        """Return sigma_e^2 P_k tau_2 / tau per plant (``Rls._parameter_covariance``)."""
-        p, tau = self.num_parameters, self._tau
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
-        dof = tau - p * ratio
-        known = (self._updates >= p) & (tau > 0.0) & (dof > 0.0)
-        factor = np.full(self.num_plants, np.nan)
-        factor[known] = self._loss[known] / dof[known] * ratio[known]
-        return factor[:, None, None] * self._p
+        """Return the HAC covariance per plant (``Rls._parameter_covariance``), NaN where none."""
+        covariance = self._hac.covariance(self._p)
+        covariance[self._updates < self.num_parameters] = np.nan
+        return covariance
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the per-plant state arrays (all plants), for sizing."""
-        arrays = [value for value in vars(self).values()
-                  if isinstance(value, np.ndarray) and value.base is None
-                  and value.shape[:1] == (self.num_plants,)]
-        return sum(array.nbytes for array in arrays + list(self.flags.values()))
+        """Bytes of every array this estimator holds, its helpers' included, for sizing."""
+        arrays: dict[int, np.ndarray] = {}
+        holders, seen = [self], set()
+        while holders:  # the estimator, its helpers (moments, tests, HAC) and theirs
+            holder = holders.pop()
+            seen.add(id(holder))
+            for value in vars(holder).values():
+                if isinstance(value, np.ndarray):
+                    arrays[id(value)] = value if value.base is None else value.base
+                elif hasattr(value, '__dict__') and id(value) not in seen and \
+                        type(value).__module__.startswith('bcid_ros.estimators'):
+                    holders.append(value)
+        owned = {id(array): array for array in arrays.values() if isinstance(array, np.ndarray)}
+        return sum(array.nbytes for array in list(owned.values()) + list(self.flags.values()))
 
     def plant_flags(self, plant: int) -> dict[str, int]:
         """Return the flags counted for one plant (only those that occurred)."""
@@ -471,7 +372,6 @@ class BatchedRls:
         for key, count in dict(state.scalars.get('flags', {})).items():
             self._flag_counts(key)[plant] = count
         self._change_score[plant] = float(state.scalars.get('change_score', 0.0))
-        self._scoring = bool(self._change_score.any())
         rows = self.order + 1
         filled, position = int(state.scalars['filled']), int(state.scalars['position'])
         pushes = filled if filled < rows else rows + position
@@ -519,11 +419,14 @@ class BatchedRls:
             usable &= present
         else:
             self.nonfinite += ~usable
-        with np.errstate(invalid='ignore'):
-            huge = usable & ~((np.abs(y) < self._huge) & (np.abs(u) < self._huge).all(axis=1))
+        with np.errstate(invalid='ignore', over='ignore'):
+            # the single plant's screen: the sum of the magnitudes (RecursiveEstimator.update)
+            huge = usable & ~(np.abs(y) + np.abs(u).sum(axis=1) < HUGE_VALUE)
         if huge.any():
-            # the order + 2 steps whose regressors can hold it run with warnings off
+            # the order + 2 steps whose regressors can hold it run with warnings off, and
+            # those plants' residual tests skip them (as Rls._record_residual's)
             self._quiet_left = self.order + 2
+            self._quiet[huge] = self.order + 2
         return None if usable.all() else np.flatnonzero(~usable)
 
     def _push(self, y: np.ndarray, u: np.ndarray) -> None:
@@ -549,246 +452,57 @@ class BatchedRls:
         return ready if ready.size else None
 
     # ------------------------------------------------------------- the step
-    def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray) -> None:
+    def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray, u: np.ndarray) -> None:
         """Do one step of the plants ``rows``, whose regressors ``phi`` are filled."""
+        rows = self._indices(rows)
         if self._pending_any:
-            self._choose_scales(self._indices(rows))
-        lam = self._forgetting_factor
-        p_old = self._p[rows]
-        theta = self._theta_ls[rows]
-        loss = self._loss[rows]
-        tau = self._tau[rows]
-        # g = P(t-1) phi(t); s = lambda + phi' g; e = y(t) - phi' theta(t-1)
-        g = _matvec(p_old, phi)
-        s = lam + _rowdot(phi, g)
-        e = y - _rowdot(phi, theta)
-        e2 = e * e
-        # the ordinary steps: no risk to P, and an error the gate accepts (or does not test)
-        ordinary = (s < CAREFUL_GAIN * lam) & (e2 < math.inf) & (s > 0.0)
-        tested = tau >= self._gate_from
-        # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)], only read where tested (tau > 0)
-        z2 = e2 / ((loss / np.maximum(tau, 1.0) + self._variance_floor[rows]) * (s + 1.0 - lam))
-        ordinary &= ~tested | (z2 <= self._gate_limit2)
-        if self._scoring:
-            self._decay_scores(self._indices(rows)[ordinary & tested])
-        if ordinary.all():
-            theta, p_new, loss, tau, updates = self._commit(rows, theta, p_old, g, s, e, loss,
-                                                            tau)
-            self._after_ls_step(rows, theta, p_new, loss, tau, y, phi)
-        else:
-            plants = self._indices(rows)
-            if ordinary.any():
-                self._commit(plants[ordinary], theta[ordinary], p_old[ordinary], g[ordinary],
-                             s[ordinary], e[ordinary], loss[ordinary], tau[ordinary])
-            others = [plant for plant, y_k, phi_k in zip(
-                plants[~ordinary], y[~ordinary].tolist(), phi[~ordinary])
-                if self._plant_step(plant, y_k, phi_k)]
-            stepped = np.sort(np.r_[np.flatnonzero(ordinary), np.searchsorted(
-                plants, np.array(others, dtype=np.intp))])
-            rows = plants[stepped]
-            if not rows.size:
-                return
-            theta, p_new = self._theta_ls[rows], self._p[rows]
-            loss, tau, updates = self._loss[rows], self._tau[rows], self._updates[rows]
-            self._after_ls_step(rows, theta, p_new, loss, tau, y[stepped], phi[stepped])
-        due = updates >= self._next_check[rows]
-        if due.any():
-            self._check_validity(self._indices(rows)[due])
+            self._choose_scales(rows)
+        settings = LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
+                              self._trace_limit, self.initial_covariance)
+        outcome = ls_step_rows(self._plants, rows, y, phi, settings)
+        for key, where in outcome.events.items():
+            self._flag(key, rows, where)
+        if 'plant_change' in outcome.events:
+            self._forget_residuals(rows[outcome.events['plant_change']])
+        if outcome.restart.any():
+            self._clear_regressors(rows[outcome.restart])
+        if outcome.relearn.any():
+            self._restart_learning(rows[outcome.relearn])
+        stepped = outcome.stepped
+        if stepped.any():
+            rows = rows[stepped]
+            self._after_ls_step(rows, y[stepped], phi[stepped])
+            # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
+            tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
+            if tested.any():
+                self._record_residuals(rows[tested], y[stepped][tested], phi[stepped][tested],
+                                       u[stepped][tested], outcome.errors[stepped][tested])
+            due = rows[self._updates[rows] >= self._next_check[rows]]
+            if due.size:
+                self._check_validity(due)
 
-    def _commit(self, rows: Rows, theta: np.ndarray, p_old: np.ndarray, g: np.ndarray,
-                s: np.ndarray, e: np.ndarray, loss: np.ndarray,
-                tau: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Make the step (47)-(50) of ``rows``; return their theta, P, J, tau and counts."""
-        lam = self._forgetting_factor
-        # theta(t) = theta(t-1) + g e / s   (a new array: nothing is written before the end)
-        theta = theta + g * (e / s)[:, None]
-        # P(t) = P(t-1) - h h', h = g / sqrt(s)
-        h = g * (1.0 / np.sqrt(s))[:, None]
-        p_new = p_old - h[:, :, None] * h[:, None, :]
-        # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
-        loss = lam * (loss + e * e / s)
-        tau = lam * tau + 1.0
-        if lam < 1.0:
-            self._forget(rows, p_new)
-        updates = self._updates[rows] + 1
-        self._theta_ls[rows] = theta
-        self._p[rows] = p_new
-        self._loss[rows] = loss
-        self._tau[rows] = tau
-        self._updates[rows] = updates
-        if self._undone_any:
-            self._undone_in_row[rows] = 0
-            self._undone_any = bool(self._undone_in_row.any())
-        due = updates % HEALTH_CHECK_PERIOD == 0
-        if due.any():
-            self._check_covariance(self._indices(rows)[due])
-            p_new = self._p[rows]
-        return theta, p_new, loss, tau, updates
-
-    def _after_ls_step(self, rows: Rows, theta_ls: np.ndarray, p: np.ndarray,
-                       loss: np.ndarray, tau: np.ndarray, y: np.ndarray,
-                       phi: np.ndarray) -> None:
+    def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Extend the LS step of ``rows`` on (y, phi) (the compensation of subclasses)."""
 
-    def _forget(self, rows: Rows, p: np.ndarray) -> None:
-        """Apply P(t) <- P(t) / lambda in place, per plant unless that winds P up."""
-        weighted = _rowdot(np.diagonal(p, axis1=1, axis2=2), self._trace_weights[rows])
-        within = weighted < self._trace_limit
-        p *= np.where(within, 1.0 / self._forgetting_factor, 1.0)[:, None, None]
-        if not within.all():
-            self._flag('windup_limited', rows, ~within)
+    def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                          u: np.ndarray, errors: np.ndarray) -> None:
+        """Give the residual tests and the HAC the equation errors of ``rows``."""
+        self._monitor.record_rows(rows, errors, u)
+        self._hac.record_rows(rows, phi * errors[:, None])
 
-    def _check_covariance(self, plants: np.ndarray) -> None:
-        """Check P of ``plants`` by Cholesky; repair those that lost definiteness."""
-        try:
-            np.linalg.cholesky(self._p[plants])
-        except np.linalg.LinAlgError:
-            for plant in plants:
-                try:
-                    np.linalg.cholesky(self._p[plant])
-                except np.linalg.LinAlgError:
-                    self._repair_covariance(np.array([plant]))
+    def _forget_residuals(self, rows: np.ndarray) -> None:
+        """Start the residual tests (and the HAC) of ``rows`` afresh (Rls._forget_residuals)."""
+        self._monitor.clear(rows)
+        if self._hac is not None:
+            self._hac.clear(rows)
+        if hasattr(self, '_output_errors'):
+            self._output_errors[rows] = 0.0
 
-    def _repair_covariance(self, plants: np.ndarray) -> None:
-        """Rebuild P of ``plants`` as the nearest symmetric positive definite matrices."""
-        self._flag('covariance_repaired', plants)
-        for plant in plants:
-            scale = self._component_scale[plant]
-            self._p[plant] = repair_covariance(
-                self._p[plant], np.diag(self.initial_covariance / scale ** 2), scale)
-
-    # ----------------------------------------- one plant's step, when not ordinary
-    def _plant_step(self, plant: int, y: float, phi: np.ndarray) -> bool:
-        """Do plant k's step as the single-plant ``Rls._ls_step`` does; return whether it did."""
-        lam = self._forgetting_factor
-        g = self._p[plant].dot(phi)
-        s = lam + float(phi.dot(g))
-        e = y - float(phi.dot(self._theta_ls[plant]))
-        if not (s < CAREFUL_GAIN * lam and e * e < math.inf):
-            return self._plant_careful_step(plant, phi, e, g, s)
-        if not s > 0.0:
-            self._repair_covariance(np.array([plant]))
-            return False
-        tau = float(self._tau[plant])
-        if tau >= self._gate_from:
-            if not self._plant_gate(plant, self._plant_z2(plant, e, s)):
-                return False
-            if self._tau[plant] != tau:
-                # a plant change cut the memory (P grew): redo the a-priori part
-                g = self._p[plant].dot(phi)
-                s = lam + float(phi.dot(g))
-        self._plant_commit(plant, e, g, s)
-        self._undone_in_row[plant] = 0
-        return True
-
-    def _plant_z2(self, plant: int, e: float, s: float) -> float:
-        """Return plant k's squared normalised prediction error (see the class docstring)."""
-        scaled = float(self._loss[plant]) / float(self._tau[plant])
-        return e * e / ((scaled + float(self._variance_floor[plant]))
-                        * (s + 1.0 - self._forgetting_factor))
-
-    def _plant_careful_step(self, plant: int, phi: np.ndarray, e: float, g: np.ndarray,
-                            s: float) -> bool:
-        """Make plant k's step that may break P as a transaction; return whether it was kept."""
-        lam = self._forgetting_factor
-        if s <= 0.0:
-            self._repair_covariance(np.array([plant]))
-            return False
-        if not (s < math.inf and e * e < math.inf):
-            self._undo(plant, 'update_undone')
-            return False
-        if self._tau[plant] >= self._gate_from:
-            if not self._plant_gate(plant, self._plant_z2(plant, e, s)):
-                return False
-            g = self._p[plant].dot(phi)
-            s = lam + float(phi.dot(g))
-        saved = (self._theta_ls[plant].copy(), self._p[plant].copy(), self._loss[plant],
-                 self._tau[plant], self._updates[plant])
-        self._plant_commit(plant, e, g, s)
-        if self._sound_covariance(plant) and np.isfinite(self._theta_ls[plant]).all():
-            self._undone_in_row[plant] = 0
-            return True
-        (self._theta_ls[plant], self._p[plant], self._loss[plant], self._tau[plant],
-         self._updates[plant]) = saved
-        self._undone_in_row[plant] += 1
-        self._undone_any = True
-        if self._undone_in_row[plant] >= 3:
-            # three in a row: the signal level is far from the scales of the first
-            # samples; what was learnt at that level is numerically worthless
-            self._restart_learning(plant)
-            return False
-        self._undo(plant, 'update_undone')
-        return False
-
-    def _plant_commit(self, plant: int, e: float, g: np.ndarray, s: float) -> None:
-        """Make plant k's step (47)-(50) with the single-plant BLAS kernels."""
-        lam = self._forgetting_factor
-        theta = self._theta_ls[plant].copy()
-        self._p[plant] = rls_step(theta, self._p[plant].copy(), g, s, e)
-        self._theta_ls[plant] = theta
-        self._loss[plant] = lam * (float(self._loss[plant]) + e * e / s)
-        self._tau[plant] = lam * float(self._tau[plant]) + 1.0
-        if lam < 1.0:
-            self._forget(slice(plant, plant + 1), self._p[plant:plant + 1])
-        self._updates[plant] += 1
-        if self._updates[plant] % HEALTH_CHECK_PERIOD == 0:
-            self._check_covariance(np.array([plant]))
-
-    def _sound_covariance(self, plant: int) -> bool:
-        """Whether plant k's normalised P is positive definite with a condition within 1e13."""
-        scale = self._component_scale[plant]
-        scaled = self._p[plant] * np.outer(scale, scale)
-        try:
-            factor = np.linalg.cholesky(scaled)
-        except np.linalg.LinAlgError:
-            return False
-        pivots = np.diagonal(factor) ** 2
-        return bool(pivots.min() > 1e-13 * scaled.diagonal().max())
-
-    def _plant_gate(self, plant: int, z2: float) -> bool:
-        """Return whether plant k uses a sample of squared normalised error ``z2`` (_gate)."""
-        score = float(self._change_score[plant])
-        if z2 <= self._gate_limit2:
-            if score:
-                score *= CHANGE_DECAY
-                self._change_score[plant] = score if score > 1e-3 else 0.0
-            return True
-        score = score * CHANGE_DECAY + 1.0
-        if score >= CHANGE_SCORE:
-            self._change_score[plant] = 0.0
-            self._flag('plant_change', np.array([plant]))
-            self._accept_change(plant)
-            return True
-        self._change_score[plant] = score
-        self._scoring = True
-        self._undo(plant, 'outlier_rejected')
-        return False
-
-    def _decay_scores(self, plants: np.ndarray) -> None:
-        """Decay the change scores of ``plants``, whose tested samples the gate accepted."""
-        score = self._change_score[plants] * CHANGE_DECAY
-        self._change_score[plants] = np.where(score > 1e-3, score, 0.0)
-        self._scoring = bool(self._change_score.any())
-
-    def _accept_change(self, plant: int) -> None:
-        """Cut plant k's memory to CHANGE_MEMORY p samples: one extra forgetting step."""
-        tau = float(self._tau[plant])
-        keep = CHANGE_MEMORY * self.num_parameters / tau if tau > 0 else 1.0
-        if keep < 1.0:
-            self._p[plant] *= 1.0 / keep
-            self._loss[plant] *= keep
-            self._tau[plant] *= keep
-
-    def _undo(self, plant: int, flag: str) -> None:
-        """Count a refused step of plant k and restart its regressor."""
-        self._flag(flag, np.array([plant]))
-        self._clear_regressors(np.array([plant]))
-
-    def _restart_learning(self, plant: int) -> None:
-        """Start plant k afresh with scales chosen from the samples now in its regressor."""
-        self._flag('rescaled', np.array([plant]))
-        self._reset_learning(np.array([plant]))
-        self._choose_scales(np.array([plant]))
+    def _restart_learning(self, plants: np.ndarray) -> None:
+        """Start ``plants`` afresh with scales chosen from the samples now in their regressors."""
+        self._flag('rescaled', plants)
+        self._reset_learning(plants)
+        self._choose_scales(plants)
 
     # ------------------------------------------------------------ the units
     def _choose_scales(self, plants: np.ndarray) -> None:
@@ -796,39 +510,28 @@ class BatchedRls:
         plants = plants[self._scales_pending[plants]]
         if not plants.size:
             return
-        peaks = np.abs(self._history[plants]).max(axis=1)
         scales = self._signal_scale[plants]
-        new = (scales == 0.0) & (peaks > 0.0)
+        new = rules.choose_scales(scales, np.abs(self._history[plants]).max(axis=1))
         if new.any():
-            chosen = _powers_of_two_at_least(peaks)
-            with np.errstate(all='ignore'):
-                factor = np.where(new, 1.0 / (chosen * chosen), 1.0)
-            # exact: the components of a new channel were zero in every update so far,
-            # so their rows and columns of P are still p0 (times 1 / lambda^k) on the diagonal
-            diagonal = self._diagonal
-            self._p[plants[:, None], diagonal, diagonal] *= factor[:, self._channel]
-            self._signal_scale[plants] = np.where(new, chosen, scales)
+            p = self._p[plants]
+            rules.rescale_new_channels(p, new, scales, self._channel)
+            self._p[plants], self._signal_scale[plants] = p, scales
         self._set_scale_dependents(plants)
 
     def _set_scale_dependents(self, rows: Rows) -> None:
         scales = self._signal_scale[rows]
         self._scales_pending[rows] = (scales == 0.0).any(axis=1)
         self._pending_any = bool(self._scales_pending.any())
-        component = scales[:, self._channel]
-        component_scale = np.where(component > 0.0, component, 1.0)
-        self._component_scale[rows] = component_scale
-        self._trace_weights[rows] = component_scale ** 2
-        y_scale = np.where(scales[:, 0] > 0.0, scales[:, 0], 1.0)
-        self._variance_floor[rows] = (VARIANCE_FLOOR * y_scale) ** 2
+        self._component_scale[rows], self._variance_floor[rows] = scale_dependents(
+            scales, self._channel)
 
     # --------------------------------------------------------- the validity
     def _check_validity(self, plants: np.ndarray) -> None:
         """Re-evaluate the validity reasons of ``plants``."""
-        self._next_check[plants] = self._updates[plants] + VALIDITY_PERIOD
+        self._next_check[plants] = self._updates[plants] + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
             found = self._find_problems(plants)
-        has = np.array([bool(reasons) for reasons in found])
-        self._has_reasons[plants] = has
+        self._has_reasons[plants] = [bool(reasons) for reasons in found]
         for plant, reasons in zip(plants.tolist(), found):
             if reasons:
                 self._reasons[plant] = tuple(reasons)
@@ -837,29 +540,12 @@ class BatchedRls:
 
     def _find_problems(self, plants: np.ndarray) -> list[list[str]]:
         """Return the reasons not to trust each of ``plants`` now (Rls._find_problems)."""
-        reasons: list[list[str]] = [[] for _ in range(plants.size)]
-        power = self._output_power(plants)
-        bounded = ~(power > GROWTH * self._last_power[plants])
+        power = rules.output_powers(self._p[plants], self._tau[plants], self.order)
+        reasons = rules.unstable_models(self._theta()[plants, :self.order], power,
+                                        self._last_power[plants])
         self._last_power[plants] = power
-        radius = _spectral_radii(self._theta()[plants, :self.order])
-        for i in np.flatnonzero(~(radius <= UNSTABLE_RADIUS) & bounded):
-            reasons[i].append(f'unstable model (pole radius {radius[i]:.3g}) on bounded data')
-        return reasons
-
-    def _output_power(self, plants: np.ndarray) -> np.ndarray:
-        """Return the weighted mean square of y over each memory, from P^-1."""
-        n = self.order
-        try:
-            information = np.linalg.inv(self._p[plants])
-        except np.linalg.LinAlgError:
-            information = np.full((plants.size,) + self._p.shape[1:], np.inf)
-            for i, plant in enumerate(plants):
-                try:
-                    information[i] = np.linalg.inv(self._p[plant])
-                except np.linalg.LinAlgError:
-                    pass
-        trace = np.trace(information[:, :n, :n], axis1=1, axis2=2)
-        return trace / (n * np.maximum(self._tau[plants], 1.0))
+        return [found + residual_reasons(self._monitor, plant)
+                for found, plant in zip(reasons, plants.tolist())]
 
     # ----------------------------------------------------------- the helpers
     def _plant_rows(self, plants: Any) -> Rows:
@@ -902,7 +588,6 @@ class BatchedRls:
         self._signal_scale = np.zeros((plants, 1 + self.num_inputs))
         self._scales_pending = np.ones(plants, dtype=bool)
         self._component_scale = np.ones((plants, p))
-        self._trace_weights = np.ones((plants, p))
         self._variance_floor = np.zeros(plants)
         self._undone_in_row = np.zeros(plants, dtype=np.int64)
         self._change_score = np.zeros(plants)
@@ -910,7 +595,15 @@ class BatchedRls:
         self._last_power = np.zeros(plants)
         self._has_reasons = np.zeros(plants, dtype=bool)
         self._reasons: dict[int, tuple[str, ...]] = {}
-        self._undone_any = False
+        # the LS state as the step function sees it (the same arrays)
+        self._plants = LsPlants(self._theta_ls, self._p, self._loss, self._tau, self._updates,
+                                self._undone_in_row, self._change_score, self._variance_floor,
+                                self._component_scale)
+        # each plant's residual tests and HAC
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor, plants=plants)
+        self._hac = (HacCovariance(dimension=p, forgetting_factor=self._forgetting_factor,
+                                   plants=plants) if self.hac_std else None)
 
     def _reset_learning(self, rows: Rows) -> None:
         """Return what ``rows`` learnt to the start (``Rls._reset`` but the regressor)."""
@@ -927,33 +620,31 @@ class BatchedRls:
         self._has_reasons[rows] = False
         for plant in self._indices(rows).tolist():
             self._reasons.pop(plant, None)
+        self._forget_residuals(self._indices(rows))
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of plant k as in the single-plant snapshot (not copied)."""
-        arrays = {'theta_ls': self._theta_ls[plant], 'p': self._p[plant],
-                  'signal_scale': self._signal_scale[plant]}
-        scalars = {'loss': float(self._loss[plant]), 'tau': float(self._tau[plant]),
-                   'updates': int(self._updates[plant]),
-                   'undone_in_row': int(self._undone_in_row[plant]),
-                   'next_check': int(self._next_check[plant]),
-                   'last_power': float(self._last_power[plant]),
-                   'reasons': self._reasons.get(plant, ())}
-        return arrays, scalars
+        arrays = {key: getattr(self, '_' + key)[plant] for key in self._SNAPSHOT_ARRAYS}
+        scalars = {key: kind(getattr(self, '_' + key)[plant])
+                   for key, kind in self._SNAPSHOT_SCALARS.items()}
+        scalars['reasons'] = self._reasons.get(plant, ())
+        residual_arrays, residual_scalars = residual_items(
+            self._monitor.plant_state(plant),
+            None if self._hac is None else self._hac.plant_state(plant))
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
         """Take over plant k's (arrays, scalars) of a single-plant snapshot."""
-        self._theta_ls[plant] = arrays['theta_ls']
-        self._p[plant] = arrays['p']
-        self._signal_scale[plant] = arrays['signal_scale']
+        for key in self._SNAPSHOT_ARRAYS:
+            getattr(self, '_' + key)[plant] = arrays[key]
+        for key, kind in self._SNAPSHOT_SCALARS.items():
+            getattr(self, '_' + key)[plant] = kind(scalars[key])
         self._set_scale_dependents(np.array([plant]))
-        self._loss[plant] = float(scalars['loss'])
-        self._tau[plant] = float(scalars['tau'])
-        self._updates[plant] = int(scalars['updates'])
-        self._undone_in_row[plant] = int(scalars['undone_in_row'])
-        self._undone_any = bool(self._undone_in_row.any())
-        self._next_check[plant] = int(scalars['next_check'])
-        self._last_power[plant] = float(scalars['last_power'])
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.load_plant(plant, monitor)
+        if self._hac is not None:
+            self._hac.load_plant(plant, hac)
         reasons = tuple(scalars['reasons'])
         self._has_reasons[plant] = bool(reasons)
         if reasons:
@@ -967,32 +658,21 @@ class BatchedBcrls(BatchedRls):
     K independent BCRLS estimators of one structure, updated together.
 
     The LS part is :class:`BatchedRls`; after each plant's LS step comes the
-    compensation of :class:`~bcid_ros.estimators.bcrls.Bcrls`, with
-    :math:`\Lambda = \mathrm{diag}(I_n, 0)`:
-
-    .. math::
-
-        \hat\sigma_k^2(t) &= \frac{J_k(t)}{\tau_k(t)\,[1 + \hat\theta_{c,k}^T(t-1)
-            \Lambda\hat\theta_{LS,k}(t)]} && \text{(51)} \\
-        \hat\theta_{c,k}(t) &= \hat\theta_{LS,k}(t)
-            + \tau_k(t)\,\hat\sigma_k^2(t)\,P_k(t)\Lambda\hat\theta_{c,k}(t-1)
-            && \text{(46)}
-
-    with the same safeguards, per plant: ``sigma2_denominator`` (the
-    denominator of (51) below ``DENOMINATOR_MIN``: the previous
-    :math:`\hat\sigma_k^2` is kept) and ``compensation_reset`` (a
-    non-finite or runaway compensated estimate restarts from
-    :math:`\hat\theta_{LS,k}(t)`); and the same validity, per plant: besides
-    :class:`BatchedRls`'s, an ill-conditioned compensation (contraction
-    :math:`\rho_k = \tau_k\hat\sigma_k^2\lambda_{max}(P_{k,aa})` above
-    ``CONTRACTION_MAX``, which an over-specified order drives to 1), a
-    compensation that runs away from the LS estimate, or a
-    ``compensation_reset`` since the last check. See :class:`BatchedRls` for
-    the parameters and the sample policy.
+    compensation of :class:`~bcid_ros.estimators.bcrls.Bcrls`, eqs. (51) and
+    (46) with :math:`\Lambda = \mathrm{diag}(I_n, 0)`, by its batched twin
+    :func:`~bcid_ros.estimators.bcrls.compensate_rows`, with the same
+    safeguards (``sigma2_denominator``, ``compensation_reset``), the same
+    validity (:func:`~bcid_ros.estimators.bcrls.compensation_problems`) and
+    the same sandwich covariance (:class:`~bcid_ros.estimators.bcrls.LaggedMoments`),
+    per plant. See :class:`BatchedRls` for the parameters and the sample policy.
     """
 
     name: ClassVar[str] = 'bcrls'
     noise_names: ClassVar[tuple[str, ...]] = ('sigma2',)
+    _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c', 'output_errors')
+    _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int}
+    adequacy_model = Bcrls.adequacy_model
+    hac_std = Bcrls.hac_std
 
     @property
     def sigma2(self) -> np.ndarray:
@@ -1004,125 +684,78 @@ class BatchedBcrls(BatchedRls):
         """Return the noise estimates ``sigma2``, shape ``(K, 1)``."""
         return self._sigma2[:, None].copy()
 
-    def _after_ls_step(self, rows: Rows, theta_ls: np.ndarray, p: np.ndarray,
-                       loss: np.ndarray, tau: np.ndarray, y: np.ndarray,
-                       phi: np.ndarray) -> None:
+    def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Apply eqs. (51) and (46) to the plants ``rows``; keep z = [phi; y] for the moments."""
         self._record_moments(rows, y, phi)
-        # Lambda theta_c(t-1)
-        previous = self._lambda_theta_c[rows]
-        # denominator of (51): 1 + theta_c(t-1)' Lambda theta_LS(t)
-        denominator = 1.0 + _rowdot(previous, theta_ls)
-        accepted = denominator >= DENOMINATOR_MIN
-        if accepted.all():
-            # sigma2(t) = J(t) / (tau(t) * denominator)          (51)
-            sigma2 = loss / (tau * denominator)
-        else:
-            self._flag('sigma2_denominator', rows, ~accepted)
-            sigma2 = self._sigma2[rows].copy()
-            sigma2[accepted] = loss[accepted] / (tau[accepted] * denominator[accepted])
+        sigma2, compensated, low, reset = compensate_rows(
+            self._theta_ls[rows], self._p[rows], self._loss[rows], self._tau[rows],
+            self._lambda_theta_c[rows], self._sigma2[rows])
+        if low.any():
+            self._flag('sigma2_denominator', rows, low)
+        if reset.any():
+            self._flag('compensation_reset', rows, reset)
         self._sigma2[rows] = sigma2
-        # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46)
-        compensated = theta_ls + (tau * sigma2)[:, None] * _matvec(p, previous)
-        size = _rowdot(compensated, compensated)
-        limit = COMPENSATION_MAX ** 2
-        # all below the absolute limit (the common case, one comparison) or each checked
-        if not size.max() <= limit:
-            kept = (size <= limit) | (size <= limit * (1.0 + _rowdot(theta_ls, theta_ls)))
-            if not kept.all():
-                self._flag('compensation_reset', rows, ~kept)
-                compensated[~kept] = theta_ls[~kept]
         self._theta_c[rows] = compensated
         self._lambda_theta_c[rows] = compensated * self._lambda_diagonal
 
     def _find_problems(self, plants: np.ndarray) -> list[list[str]]:
-        """Add the conditioning and the size of the compensation (Bcrls._find_problems)."""
+        """Add the conditioning and the convergence of the compensation (Bcrls._find_problems)."""
         reasons = super()._find_problems(plants)
-        n = self.order
-        block = self._p[plants, :n, :n]
-        largest = np.full(plants.size, np.nan)
-        finite = np.isfinite(block).all(axis=(1, 2))
-        if finite.any():
-            largest[finite] = np.linalg.eigvalsh(block[finite])[:, -1]
-        contraction = self._tau[plants] * self._sigma2[plants] * largest
-        for i in np.flatnonzero(~(contraction <= CONTRACTION_MAX)):
-            reasons[i].append(f'ill-conditioned compensation (contraction '
-                              f'{contraction[i]:.3g} > {CONTRACTION_MAX})')
-        scale = self._component_scale[plants]
-        theta_ls = self._theta_ls[plants]
-        difference = scale * (self._theta_c[plants] - theta_ls)
-        shift = np.sqrt(_rowdot(difference, difference))
-        scaled = scale * theta_ls
-        size = np.sqrt(_rowdot(scaled, scaled))
-        for i in np.flatnonzero(~(shift <= RUNAWAY * size)):
-            reasons[i].append(f'compensation runs away from LS ({shift[i] / size[i]:.3g} x '
-                              f'|theta_LS|)' if size[i] > 0 else
-                              'compensation runs away from LS')
-        resets = self.flags.get('compensation_reset')
-        if resets is not None:
-            resets = resets[plants]
-            for i in np.flatnonzero(resets > self._resets_checked[plants]):
-                reasons[i].append('compensation reset')
-            self._resets_checked[plants] = resets
-        return reasons
+        resets = self.flags.get('compensation_reset', np.zeros(self.num_plants, np.int64))[plants]
+        found, diverging = compensation_problems(
+            self._tau[plants], self._sigma2[plants], self._p[plants], self._theta_c[plants],
+            self._theta_ls[plants], self._component_scale[plants],
+            resets > self._resets_checked[plants], self.order,
+            lambda rows: self._covariances(plants[rows]))
+        self._resets_checked[plants] = resets
+        if diverging.any():
+            # (46) does not contract: restart it from theta_LS rather than follow it away
+            restart = plants[diverging]
+            self._flag('compensation_reset', restart)
+            self._resets_checked[restart] += 1
+            self._theta_c[restart] = self._theta_ls[restart]
+            self._lambda_theta_c[restart] = self._theta_c[restart] * self._lambda_diagonal
+        return [mine + theirs for mine, theirs in zip(reasons, found)]
+
+    def _covariances(self, plants: np.ndarray) -> np.ndarray:
+        """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""
+        return self.parameter_covariance[plants]
+
+    def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                          u: np.ndarray, errors: np.ndarray) -> None:
+        """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
+        theta = self._theta_c[rows]
+        past = self._output_errors[rows]
+        error = y - rowdot(phi, theta)
+        for i in range(self.order):
+            error -= theta[:, i] * past[:, i]
+        bounded = np.abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[rows, 0]
+        past[:, 1:] = past[:, :-1]
+        past[:, 0] = error
+        past[~bounded] = 0.0
+        self._output_errors[rows] = past
+        if bounded.any():
+            self._monitor.record_rows(rows[bounded], error[bounded], u[bounded])
 
     def _theta(self) -> np.ndarray:
         return self._theta_c
 
     # ------------------------------------------------------- the uncertainty
-    def _record_moments(self, rows: Rows, y: np.ndarray, phi: np.ndarray) -> None:
+    def _record_moments(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Keep z = [phi; y] of the plants ``rows``; sum a plant's block when it is full."""
-        plants = self._indices(rows)
-        slots = self.order + self._moment_pending[plants]
-        p = self.num_parameters
-        self._moment_ring[plants, slots, :p] = phi
-        self._moment_ring[plants, slots, p] = y
-        self._moment_pending[plants] += 1
-        full = plants[self._moment_pending[plants] == MOMENT_BLOCK]
+        full = self._moments.record(rows, y, phi)
         if full.size:
-            self._flush_moments(full)
-
-    def _flush_moments(self, plants: np.ndarray) -> None:
-        """Add full blocks to the lagged moment sums (``Bcrls._flush_moments``), per plant."""
-        n = self.order
-        ring = self._moment_ring[plants]
-        self._moment_sums[plants], self._moment_weight[plants] = add_lagged_moments(
-            self._moment_sums[plants], self._moment_weight[plants], ring, n,
-            self._forgetting_factor)
-        # the last n rows are the lag context of the next block
-        self._moment_ring[plants, :n] = ring[:, MOMENT_BLOCK:]
-        self._moment_pending[plants] = 0
-        p = self.num_parameters
-        snapshot = self._moment_snapshot
-        snapshot[plants, 0, :p] = self._theta_c[plants]
-        snapshot[plants, 0, p] = self._sigma2[plants]
-        snapshot[plants, 1, :p] = self._component_scale[plants]
-        y_scale = self._signal_scale[plants, 0]
-        snapshot[plants, 1, p] = np.where(y_scale > 0.0, y_scale, 1.0)
-        self._sandwich_due[plants] = True
+            self._moments.flush(full, self._forgetting_factor, self._theta_c[full],
+                                self._sigma2[full], self._component_scale[full],
+                                self._signal_scale[full, 0])
 
     def _parameter_covariance(self) -> np.ndarray:
         """Return each plant's sandwich covariance (``Bcrls._parameter_covariance``)."""
-        known = (self._updates >= self.num_parameters) & (self._moment_weight > 0.0)
-        due = np.flatnonzero(known & self._sandwich_due)
-        if due.size:
-            # all plants whose block ended since the last read, in one batched evaluation;
-            # a singular one (LinAlgError) is evaluated alone, and stays unknown
-            try:
-                self._sandwich[due] = block_sandwich(
-                    self._moment_sums[due], self._moment_weight[due],
-                    self._moment_snapshot[due], self.order)
-            except np.linalg.LinAlgError:
-                for plant in due.tolist():
-                    self._sandwich[plant] = sandwich_or_nan(
-                        self._moment_sums[plant], self._moment_weight[plant],
-                        self._moment_snapshot[plant], self.order)
-            self._sandwich_due[due] = False
+        known = (self._updates >= self.num_parameters) & (self._moments.weight > 0.0)
         tau = self._tau
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
         factor = np.full(self.num_plants, np.nan)
-        factor[known] = ratio[known] / tau[known]
-        return factor[:, None, None] * self._sandwich
+        factor[known] = weighted_square_ratio(tau[known], self._forgetting_factor) / tau[known]
+        return factor[:, None, None] * self._moments.sandwiches(known)
 
     def _allocate(self) -> None:
         super()._allocate()
@@ -1134,17 +767,9 @@ class BatchedBcrls(BatchedRls):
         self._lambda_theta_c = np.zeros((plants, p))
         self._sigma2 = np.zeros(plants)
         self._resets_checked = np.zeros(plants, dtype=np.int64)
-        # per plant as in Bcrls: the lag context (n rows) then the rows z = [phi; y] not yet
-        # summed; the sums of w_t z_t z_{t-k}' (k = 0..n) and of w_t; the estimates and
-        # scales at the last block; the sandwich H^-1 S H^-T of that block, when computed
-        width = p + 1
-        self._moment_ring = np.zeros((plants, self.order + MOMENT_BLOCK, width))
-        self._moment_pending = np.zeros(plants, dtype=np.intp)
-        self._moment_sums = np.zeros((plants, self.order + 1, width, width))
-        self._moment_weight = np.zeros(plants)
-        self._moment_snapshot = np.zeros((plants, 2, width))
-        self._sandwich = np.full((plants, p, p), np.nan)
-        self._sandwich_due = np.zeros(plants, dtype=bool)
+        self._moments = LaggedMoments(plants, self.order, p)
+        # e_oe(t-1) ... e_oe(t-n) of each plant, newest first (Bcrls._record_residual)
+        self._output_errors = np.zeros((plants, self.order))
 
     def _reset_learning(self, rows: Rows) -> None:
         super()._reset_learning(rows)
@@ -1152,62 +777,19 @@ class BatchedBcrls(BatchedRls):
         self._lambda_theta_c[rows] = 0.0
         self._sigma2[rows] = 0.0
         self._resets_checked[rows] = 0
-        self._moment_ring[rows] = 0.0
-        self._moment_pending[rows] = 0
-        self._moment_sums[rows] = 0.0
-        self._moment_weight[rows] = 0.0
-        self._moment_snapshot[rows] = 0.0
-        self._sandwich[rows] = np.nan
-        self._sandwich_due[rows] = False
+        self._moments.clear(rows)
+        self._output_errors[rows] = 0.0
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._plant_items(plant)
-        arrays['theta_c'] = self._theta_c[plant]
-        scalars['sigma2'] = float(self._sigma2[plant])
-        scalars['resets_checked'] = int(self._resets_checked[plant])
-        # the moments in Bcrls's layout: the ring holds the context, then the pending rows
-        ring = self._moment_ring[plant].copy()
-        ring[self.order + int(self._moment_pending[plant]):] = 0.0
-        arrays['moment_ring'] = ring
-        arrays['moment_sums'] = self._moment_sums[plant]
-        arrays['moment_snapshot'] = self._moment_snapshot[plant]
-        scalars['moment_pending'] = int(self._moment_pending[plant])
-        scalars['moment_weight'] = float(self._moment_weight[plant])
-        return arrays, scalars
+        moment_arrays, moment_scalars = self._moments.plant_items(plant)
+        return {**arrays, **moment_arrays}, {**scalars, **moment_scalars}
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
         super()._load_plant(plant, arrays, scalars)
-        self._theta_c[plant] = arrays['theta_c']
         self._lambda_theta_c[plant] = self._theta_c[plant] * self._lambda_diagonal
-        self._sigma2[plant] = float(scalars['sigma2'])
-        self._resets_checked[plant] = int(scalars['resets_checked'])
-        self._moment_ring[plant] = arrays['moment_ring']
-        self._moment_pending[plant] = int(scalars['moment_pending'])
-        self._moment_sums[plant] = arrays['moment_sums']
-        self._moment_weight[plant] = float(scalars['moment_weight'])
-        self._moment_snapshot[plant] = arrays['moment_snapshot']
-        self._sandwich_due[plant] = self._moment_weight[plant] > 0.0
+        self._moments.load_plant(plant, arrays, scalars)
 
 
-#: Registry name of the single-plant estimator -> its batched form.
-BATCHED_ESTIMATORS: dict[str, type[BatchedRls]] = {'rls': BatchedRls, 'bcrls': BatchedBcrls}
-
-
-def make_batched_estimator(name: str, num_plants: int, **settings: Any) -> BatchedRls:
-    """
-    Build the batched form of estimator ``name`` over ``num_plants`` plants.
-
-    Raises
-    ------
-    ValueError
-        If ``name`` has no batched form (only rls and bcrls have one).
-
-    """
-    if name not in BATCHED_ESTIMATORS:
-        raise ValueError(f'estimator must be one of {", ".join(BATCHED_ESTIMATORS)} for '
-                         f'many plants; got {name!r}')
-    return BATCHED_ESTIMATORS[name](num_plants, **settings)
-
-
-__all__ = ['BATCHED_ESTIMATORS', 'BatchedBcrls', 'BatchedRls', 'make_batched_estimator']
+__all__ = ['BatchedBcrls', 'BatchedRls']

@@ -9,12 +9,12 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from bcid_ros.estimators.base import weighted_square_ratio
-from bcid_ros.estimators.rls import load_blas, ls_batch, Rls
+from bcid_ros.estimators.rls import load_blas, ls_batch, matvec, Rls, rowdot
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
 #: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which
@@ -28,9 +28,18 @@ COMPENSATION_MAX = 1e6
 #: Above this the fixed point amplifies the LS error by 1 / (1 - rho) > 5: an
 #: over-specified order drives it to 1 (docs/estimators.md).
 CONTRACTION_MAX = 0.8
-#: A compensation larger than this times |theta_LS| (normalised units) has
-#: run away from the LS estimate.
+#: A compensation larger than this times |theta_LS| (normalised units) is
+#: checked against its fixed point (see compensation_problems).
 RUNAWAY = 1.0
+#: An estimate whose normalised std exceeds this share of its size is not
+#: determined by the data: it is not three std away from zero.
+DETERMINED = 1.0 / 3.0
+#: A compensated estimate more than this many std from the fixed point of the
+#: current statistics has not converged (about 3 in 1000 under normal errors).
+CONVERGED = 3.0
+#: An output error beyond this times the output scale means an unstable A: the
+#: filter that makes it from the equation error restarts.
+OUTPUT_ERROR_LIMIT = 1e6
 #: The extended regressors z = [phi; y] of this many updates are kept, then
 #: added to the lagged moments of the covariance in one product per lag.
 MOMENT_BLOCK = 64
@@ -92,7 +101,10 @@ class Bcrls(Rls):
 
     name = 'bcrls'
     noise_names = ('sigma2',)
-    options: tuple[str, ...] = ()
+    #: The residual tests take the output error, which Ding et al.'s model says is white.
+    adequacy_model = 'oe_white'
+    #: The std is bcrls's own sandwich (white output noise, which the residual tests check).
+    hac_std = False
 
     def __init__(self, **settings: Any) -> None:
         # scipy's BLAS loads with the first estimator, not with the module
@@ -128,6 +140,29 @@ class Bcrls(Rls):
         self._theta_c = compensated
         self._lambda_theta_c = compensated * self._lambda_diagonal
 
+    def _record_residual(self, y: float, phi: np.ndarray, u: np.ndarray) -> None:
+        """
+        Give the residual tests this step's output error y - B/A u of the compensated model.
+
+        The output error is the equation error of theta_c filtered by 1 / A:
+        e_oe(t) = e(t) - a_1 e_oe(t-1) - ... - a_n e_oe(t-n), with the current
+        a. An unstable A makes it grow without bound: a value beyond
+        ``OUTPUT_ERROR_LIMIT`` times the output scale (or not finite) restarts
+        the filter and is not recorded. The covariance is bcrls's own
+        sandwich, not the HAC.
+        """
+        theta = self._theta_c
+        past = self._output_errors
+        error = y - float(phi.dot(theta))
+        for a, previous in zip(theta[:self.order].tolist(), past):
+            error -= a * previous
+        if not abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[0]:
+            self._output_errors = [0.0] * self.order
+            return
+        past.pop()
+        past.insert(0, error)
+        self._monitor.record(error, u)
+
     @property
     def sigma2(self) -> float:
         """Return the noise variance estimate of eq. (51)."""
@@ -140,24 +175,33 @@ class Bcrls(Rls):
         return np.array([self._sigma2])
 
     def _find_problems(self) -> list[str]:
-        """Add the conditioning and the size of the compensation to the RLS reasons."""
+        """Add the conditioning and the convergence of the compensation to the RLS reasons."""
         reasons = super()._find_problems()
-        n = self.order
-        contraction = self._tau * self._sigma2 * float(np.linalg.eigvalsh(self._p[:n, :n])[-1])
-        if not contraction <= CONTRACTION_MAX:
-            reasons.append(f'ill-conditioned compensation (contraction {contraction:.3g} '
-                           f'> {CONTRACTION_MAX})')
-        scale = self._component_scale
-        shift = np.linalg.norm(scale * (self._theta_c - self._theta_ls))
-        size = np.linalg.norm(scale * self._theta_ls)
-        if not shift <= RUNAWAY * size:
-            reasons.append(f'compensation runs away from LS ({shift / size:.3g} x |theta_LS|)'
-                           if size > 0 else 'compensation runs away from LS')
         resets = self.flags.get('compensation_reset', 0)
-        if resets > self._resets_checked:
-            reasons.append('compensation reset')
+        found, diverging = compensation_problems(
+            np.array([self._tau]), np.array([self._sigma2]), self._p[None],
+            self._theta_c[None], self._theta_ls[None], self._component_scale[None],
+            np.array([resets > self._resets_checked]), self.order, self._covariances)
         self._resets_checked = resets
-        return reasons
+        if diverging[0]:
+            # (46) does not contract: restart it from theta_LS rather than follow it away
+            self._flag('compensation_reset')
+            self._resets_checked += 1
+            self._theta_c = self._theta_ls.copy()
+            self._lambda_theta_c = self._theta_c * self._lambda_diagonal
+        return reasons + found[0]
+
+    def _covariances(self, rows: np.ndarray) -> np.ndarray:
+        """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""
+        covariance = self.parameter_covariance
+        if covariance is None:
+            return np.full((1, self.num_parameters, self.num_parameters), np.nan)
+        return covariance[None]
+
+    def _forget_residuals(self) -> None:
+        super()._forget_residuals()
+        # e_oe(t-1) ... e_oe(t-n), newest first
+        self._output_errors = [0.0] * self.order
 
     def _reset(self) -> None:
         super()._reset()
@@ -173,12 +217,14 @@ class Bcrls(Rls):
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._state_items()
         moment_arrays, moment_scalars = self._moment_state()
-        return {**arrays, 'theta_c': self._theta_c, **moment_arrays}, {
+        return {**arrays, 'theta_c': self._theta_c, 'output_errors': np.array(
+            self._output_errors), **moment_arrays}, {
             **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked,
             **moment_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
+        self._output_errors = arrays['output_errors'].tolist()
         self._theta_c = arrays['theta_c']
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
@@ -187,64 +233,33 @@ class Bcrls(Rls):
 
     # ------------------------------------------------------- the uncertainty
     def _reset_moments(self) -> None:
-        n, width = self.order, self.num_parameters + 1
-        # z of the last n steps already summed (the lag context; zeros at the start)
-        self._moment_context = np.zeros((n, width))
-        # z of the steps not yet summed, as [phi] and [y] lists
+        self._moments = LaggedMoments(1, self.order, self.num_parameters)
+        # z of the steps not yet handed to the moments, as [phi] and [y] lists
         self._moment_phi: list[np.ndarray] = []
         self._moment_y: list[float] = []
-        # sum over t of w_t z_t z_{t-k}', k = 0..n, and the sum of the weights w_t
-        self._moment_sums = np.zeros((n + 1, width, width))
-        self._moment_weight = 0.0
-        # [theta_c, sigma2] and [scales of phi, scale of y] at the last flush
-        self._moment_snapshot = np.zeros((2, width))
-        self._sandwich: np.ndarray | None = None
-
-    def _pending_moments(self) -> np.ndarray:
-        """Return the lag context and the rows z not yet summed, oldest first."""
-        if not self._moment_y:
-            return self._moment_context
-        n = self.order
-        ring = np.empty((n + len(self._moment_y), self.num_parameters + 1))
-        ring[:n] = self._moment_context
-        ring[n:, :-1] = np.array(self._moment_phi)  # one copy (a list of rows converts slowly)
-        ring[n:, -1] = self._moment_y
-        return ring
 
     def _flush_moments(self) -> None:
-        """Add the pending rows to the moment sums; keep the last n rows as lag context."""
-        ring = self._pending_moments()
-        self._moment_sums, self._moment_weight = add_lagged_moments(
-            self._moment_sums, self._moment_weight, ring, self.order, self._forgetting_factor)
-        self._moment_context = ring[ring.shape[0] - self.order:].copy()
-        self._moment_phi = []
-        self._moment_y = []
-        y_scale = self._signal_scale[0] if self._signal_scale[0] > 0.0 else 1.0
-        snapshot = self._moment_snapshot = np.empty((2, self.num_parameters + 1))
-        snapshot[0, :-1] = self._theta_c
-        snapshot[0, -1] = self._sigma2
-        snapshot[1, :-1] = self._component_scale
-        snapshot[1, -1] = y_scale
-        self._sandwich = None
+        """Hand a full block of rows z to the moments and sum it."""
+        moments, n = self._moments, self.order
+        moments.ring[0, n:, :-1] = np.array(self._moment_phi)  # a list of rows converts slowly
+        moments.ring[0, n:, -1] = self._moment_y
+        self._moment_phi, self._moment_y = [], []
+        moments.flush(_ONE, self._forgetting_factor, self._theta_c, self._sigma2,
+                      self._component_scale, self._signal_scale[:1])
 
     def _moment_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        ring = np.zeros((self.order + MOMENT_BLOCK, self.num_parameters + 1))
-        pending = self._pending_moments()
-        ring[:pending.shape[0]] = pending
-        return ({'moment_ring': ring, 'moment_sums': self._moment_sums,
-                 'moment_snapshot': self._moment_snapshot},
-                {'moment_pending': len(self._moment_y), 'moment_weight': self._moment_weight})
+        moments, n, m = self._moments, self.order, len(self._moment_y)
+        if m:  # the rows not yet handed over go into the snapshot's ring
+            moments.ring[0, n:n + m, :-1] = np.array(self._moment_phi)
+            moments.ring[0, n:n + m, -1] = self._moment_y
+        moments.pending[0] = m
+        return moments.plant_items(0)
 
     def _load_moments(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
-        n, ring = self.order, arrays['moment_ring']
-        end = n + int(scalars['moment_pending'])
-        self._moment_context = ring[:n].copy()
-        self._moment_phi = list(ring[n:end, :-1].copy())
-        self._moment_y = ring[n:end, -1].tolist()
-        self._moment_sums = arrays['moment_sums']
-        self._moment_weight = float(scalars['moment_weight'])
-        self._moment_snapshot = arrays['moment_snapshot']
-        self._sandwich = None
+        self._moments.load_plant(0, arrays, scalars)
+        n, end = self.order, self.order + int(scalars['moment_pending'])
+        self._moment_phi = list(self._moments.ring[0, n:end, :-1].copy())
+        self._moment_y = self._moments.ring[0, n:end, -1].tolist()
 
     def _parameter_covariance(self) -> np.ndarray | None:
         r"""
@@ -281,13 +296,228 @@ class Bcrls(Rls):
         :math:`\tau_2/\tau^2` is the current one. None before ready and before
         the first block.
         """
-        if self._updates < self.num_parameters or not self._moment_weight > 0.0:
+        known = np.array([self._updates >= self.num_parameters and self._moments.weight[0] > 0.0])
+        if not known[0]:
             return None
-        if self._sandwich is None:
-            self._sandwich = sandwich_or_nan(self._moment_sums, self._moment_weight,
-                                             self._moment_snapshot, self.order)
         ratio = weighted_square_ratio(self._tau, self._forgetting_factor)
-        return self._sandwich * (ratio / self._tau)
+        return self._moments.sandwiches(known)[0] * (ratio / self._tau)
+
+
+#: The one plant of a single-plant estimator, as rows (a slice: views, not copies).
+_ONE = slice(0, 1)
+
+
+def compensate_rows(theta_ls: np.ndarray, p: np.ndarray, loss: np.ndarray, tau: np.ndarray,
+                    previous: np.ndarray, sigma2: np.ndarray,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    r"""
+    Apply eqs. (51) and (46) to K plants at once: the batched form of :meth:`Bcrls._after_ls_step`.
+
+    ``theta_ls`` ``(K, p)``, ``p`` ``(K, p, p)``, ``loss`` and ``tau``
+    ``(K,)`` after the LS step; ``previous`` ``(K, p)`` is
+    :math:`\Lambda\hat\theta_c(t-1)` and ``sigma2`` ``(K,)`` the previous
+    noise variances. numpy element-wise and matmul where the single plant
+    calls BLAS dgemv: the two agree within rounding. Returns the new sigma2,
+    the compensated estimates, where the denominator of (51) broke down
+    (sigma2 kept) and where the compensation was reset to theta_LS.
+    """
+    # denominator of (51): 1 + theta_c(t-1)' Lambda theta_LS(t)
+    denominator = 1.0 + rowdot(previous, theta_ls)
+    low = ~(denominator >= DENOMINATOR_MIN)
+    sigma2 = sigma2.copy()
+    # sigma2(t) = J(t) / (tau(t) * denominator)          (51)
+    sigma2[~low] = loss[~low] / (tau[~low] * denominator[~low])
+    # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46)
+    compensated = theta_ls + (tau * sigma2)[:, None] * matvec(p, previous)
+    size = rowdot(compensated, compensated)
+    limit = COMPENSATION_MAX ** 2
+    reset = np.zeros(size.shape[0], dtype=bool)
+    # all below the absolute limit (the common case, one comparison) or each checked
+    if not size.max() <= limit:
+        reset = ~((size <= limit) | (size <= limit * (1.0 + rowdot(theta_ls, theta_ls))))
+        compensated[reset] = theta_ls[reset]
+    return sigma2, compensated, low, reset
+
+
+def compensation_problems(tau: np.ndarray, sigma2: np.ndarray, p: np.ndarray,
+                          theta_c: np.ndarray, theta_ls: np.ndarray,
+                          component_scale: np.ndarray, reset: np.ndarray, order: int,
+                          covariance_of: Callable[[np.ndarray], np.ndarray],
+                          ) -> tuple[list[list[str]], np.ndarray]:
+    r"""
+    Return, per plant, the reasons not to trust a compensated estimate, and which diverge.
+
+    (46) is the iteration :math:`\theta_c \leftarrow \hat\theta_{LS} + M\theta_c`
+    with :math:`M = \tau\hat\sigma^2 P\Lambda`, of spectral radius (contraction)
+    :math:`\rho = \tau\hat\sigma^2\lambda_{max}(P_{aa})`:
+
+    * :math:`\rho \ge 1`: the recursion diverges; the plant is returned in the
+      mask (its caller restarts the compensation from theta_LS);
+    * an ill-conditioned compensation, judged by the estimate's own
+      uncertainty where it could be one (:math:`\rho >` ``CONTRACTION_MAX`` or
+      the compensation larger than theta_LS): no covariance (the sandwich's
+      bread is singular, as an over-specified order makes it) or, in
+      normalised units, a standard deviation above ``DETERMINED`` of the
+      estimate's size (the data do not determine it);
+    * a compensation that has not converged: it is larger than theta_LS
+      (normalised) and more than ``CONVERGED`` std away from the fixed point
+      :math:`(I - M)^{-1}\hat\theta_{LS}` of the current statistics;
+    * a ``compensation_reset`` since the last check (``reset``).
+
+    ``covariance_of(plants)`` returns the covariances ``(k, p, p)`` of those
+    plants (NaN where none); it is called only for plants that need it.
+    Arrays have a leading plant axis ``(K, ...)``.
+    """
+    count = tau.shape[0]
+    block = p[:, :order, :order]
+    largest = np.full(count, np.nan)
+    finite = np.isfinite(block).all(axis=(1, 2))
+    if finite.any():
+        largest[finite] = np.linalg.eigvalsh(block[finite])[:, -1]
+    contraction = tau * sigma2 * largest
+    shift = np.sqrt(rowdot(*(component_scale * (theta_c - theta_ls),) * 2))
+    size = np.sqrt(rowdot(*(component_scale * theta_ls,) * 2))
+    diverging = contraction >= 1.0
+    large = ~(shift <= RUNAWAY * size)
+    doubtful = np.flatnonzero(~diverging & ((contraction > CONTRACTION_MAX) | large))
+    reasons: list[list[str]] = [[] for _ in range(count)]
+    for k in np.flatnonzero(diverging | ~np.isfinite(contraction)):
+        reasons[k].append(f'compensation diverges (contraction {contraction[k]:.3g})')
+    if doubtful.size:
+        covariance = covariance_of(doubtful)
+        a_columns = _a_columns(p.shape[1], order)
+        for k, matrix in zip(doubtful.tolist(), covariance):
+            # I - M, M = tau sigma2 P Lambda: its solve is the fixed point
+            iteration = np.eye(p.shape[1]) - tau[k] * sigma2[k] * p[k] * a_columns
+            reasons[k] += _uncertain_compensation(matrix, theta_c[k], component_scale[k],
+                                                  large[k], iteration, theta_ls[k])
+    for k in np.flatnonzero(reset):
+        reasons[k].append('compensation reset')
+    return reasons, diverging
+
+
+def _a_columns(width: int, order: int) -> np.ndarray:
+    """Return the diagonal of Lambda = diag(I_n, 0) as a row, for P Lambda."""
+    row = np.zeros(width)
+    row[:order] = 1.0
+    return row
+
+
+def _uncertain_compensation(covariance: np.ndarray, theta_c: np.ndarray,
+                            scale: np.ndarray, large: bool, contraction: np.ndarray,
+                            theta_ls: np.ndarray) -> list[str]:
+    """Return the reasons of :func:`compensation_problems` that need the covariance."""
+    std = np.sqrt(np.maximum(np.diagonal(covariance), 0.0))
+    if not np.isfinite(covariance).all():
+        return ['ill-conditioned compensation (no covariance: the data do not determine it)']
+    relative = float(np.linalg.norm(scale * std) / np.linalg.norm(scale * theta_c))
+    if not relative <= DETERMINED:
+        return [f'ill-conditioned compensation (std {relative:.3g} of the estimate)']
+    if large:
+        try:
+            fixed_point = np.linalg.solve(contraction, theta_ls)
+        except np.linalg.LinAlgError:
+            return ['ill-conditioned compensation (no fixed point)']
+        away = float(np.max(np.abs(theta_c - fixed_point) / np.maximum(std, 1e-300)))
+        if not away <= CONVERGED:
+            return [f'compensation has not converged ({away:.3g} std from its fixed point)']
+    return []
+
+
+class LaggedMoments:
+    """
+    The lagged moments of z = [phi; y] of K plants, kept for the sandwich covariance.
+
+    Per plant: a ring holding the lag context (the last n rows already summed)
+    and up to ``MOMENT_BLOCK`` rows not yet summed; the weighted sums of
+    z_t z_{t-k}' (k = 0..n) and of the weights; the estimates and scales at
+    the last flush; and the sandwich of that block once computed. A full
+    block is summed at once (:func:`add_lagged_moments`); the sandwich
+    (:func:`block_sandwich`) is evaluated only when read. Bcrls holds one
+    with K = 1 (its hot path collects the rows in lists, then hands over a
+    full block), BatchedBcrls one over its plants.
+    """
+
+    def __init__(self, plants: int, order: int, num_parameters: int) -> None:
+        self.order = order
+        width = num_parameters + 1
+        self.ring = np.zeros((plants, order + MOMENT_BLOCK, width))
+        self.pending = np.zeros(plants, dtype=np.intp)
+        self.sums = np.zeros((plants, order + 1, width, width))
+        self.weight = np.zeros(plants)
+        self.snapshot = np.zeros((plants, 2, width))
+        self.sandwich = np.full((plants, num_parameters, num_parameters), np.nan)
+        self.due = np.zeros(plants, dtype=bool)
+
+    def clear(self, rows: Any) -> None:
+        """Forget the moments of ``rows``."""
+        for array in (self.ring, self.pending, self.sums, self.weight, self.snapshot):
+            array[rows] = 0
+        self.sandwich[rows] = np.nan
+        self.due[rows] = False
+
+    def record(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        """Keep z = [phi; y] of ``rows``; return the plants whose block is now full."""
+        slots = self.order + self.pending[rows]
+        self.ring[rows, slots, :-1] = phi
+        self.ring[rows, slots, -1] = y
+        self.pending[rows] += 1
+        return rows[self.pending[rows] == MOMENT_BLOCK]
+
+    def flush(self, rows: np.ndarray | slice, forgetting_factor: float, theta_c: np.ndarray,
+              sigma2: np.ndarray, component_scale: np.ndarray, y_scale: np.ndarray) -> None:
+        """Sum the full blocks of ``rows``; keep their estimates and scales for the sandwich."""
+        n, ring = self.order, self.ring[rows]
+        self.sums[rows], self.weight[rows] = add_lagged_moments(
+            self.sums[rows], self.weight[rows], ring, n, forgetting_factor)
+        # the last n rows are the lag context of the next block
+        self.ring[rows, :n] = ring[:, MOMENT_BLOCK:]
+        self.pending[rows] = 0
+        self.snapshot[rows, 0, :-1] = theta_c
+        self.snapshot[rows, 0, -1] = sigma2
+        self.snapshot[rows, 1, :-1] = component_scale
+        self.snapshot[rows, 1, -1] = np.where(y_scale > 0.0, y_scale, 1.0)
+        self.due[rows] = True
+
+    def sandwiches(self, known: np.ndarray) -> np.ndarray:
+        """
+        Return H^-1 S H^-T of each plant's last block, ``(K, p, p)``; NaN where ``known`` is not.
+
+        All plants whose block ended since the last read are evaluated in one
+        batched call; a singular one (LinAlgError) is evaluated alone and
+        stays NaN.
+        """
+        due = np.flatnonzero(known & self.due)
+        if due.size:
+            try:
+                self.sandwich[due] = block_sandwich(self.sums[due], self.weight[due],
+                                                    self.snapshot[due], self.order)
+            except np.linalg.LinAlgError:
+                for plant in due.tolist():
+                    self.sandwich[plant] = sandwich_or_nan(
+                        self.sums[plant], self.weight[plant], self.snapshot[plant], self.order)
+            self.due[due] = False
+        return np.where(known[:, None, None], self.sandwich, np.nan)
+
+    def plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return plant k's moments as a single-plant snapshot's (arrays, scalars)."""
+        ring = self.ring[plant].copy()
+        ring[self.order + int(self.pending[plant]):] = 0.0
+        return ({'moment_ring': ring, 'moment_sums': self.sums[plant],
+                 'moment_snapshot': self.snapshot[plant]},
+                {'moment_pending': int(self.pending[plant]),
+                 'moment_weight': float(self.weight[plant])})
+
+    def load_plant(self, plant: int, arrays: dict[str, np.ndarray],
+                   scalars: dict[str, Any]) -> None:
+        """Take over plant k's moments from a snapshot made by :meth:`plant_items`."""
+        self.ring[plant] = arrays['moment_ring']
+        self.pending[plant] = int(scalars['moment_pending'])
+        self.sums[plant] = arrays['moment_sums']
+        self.weight[plant] = float(scalars['moment_weight'])
+        self.snapshot[plant] = arrays['moment_snapshot']
+        self.sandwich[plant] = np.nan
+        self.due[plant] = self.weight[plant] > 0.0
 
 
 def add_lagged_moments(sums: np.ndarray, weight: Any, ring: np.ndarray, order: int,

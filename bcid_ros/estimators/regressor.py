@@ -16,6 +16,13 @@ from typing import Any
 import numpy as np
 
 
+def phi_channels(order: int, num_inputs: int, feedthrough: bool) -> np.ndarray:
+    """Return the signal channel (0 = y, i = u_i) of each component of phi(t), shape ``(p,)``."""
+    lags = order + (1 if feedthrough else 0)
+    return np.array([0] * order + [i for i in range(1, num_inputs + 1) for _ in range(lags)],
+                    dtype=np.intp)
+
+
 class ArxRegressor:
     """
     Ring buffer of the last n+1+max(d_i) samples that yields phi(t) with one gather.

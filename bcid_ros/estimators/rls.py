@@ -9,6 +9,7 @@ exciting.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.machinery
 import importlib.util
 import math
@@ -18,9 +19,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bcid_ros.estimators.base import (power_of_two_at_least, RecursiveEstimator,
-                                      weighted_square_ratio)
-from bcid_ros.estimators.regressor import ArxRegressor
+from bcid_ros.estimators import adequacy, lagged, rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor, MonitorState
+from bcid_ros.estimators.base import RecursiveEstimator
+from bcid_ros.estimators.hac import HacCovariance, HacState
+from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
+# the names bciv and cl_bcls still take from here
+from bcid_ros.estimators.rules import (CHANGE_MEMORY, GATE_WARMUP, GROWTH,  # noqa: F401
+                                       spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD)
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
 HEALTH_CHECK_PERIOD = 1000
@@ -28,20 +34,11 @@ HEALTH_CHECK_PERIOD = 1000
 #: information of the memory) is checked before it is kept: its downdate
 #: cancels about 8 digits of P. Normalised data start near p0 |phi|^2 ~ 1e6.
 CAREFUL_GAIN = 1e8
-#: The gate tests samples once tau >= GATE_WARMUP * p (J / tau is then a variance).
-GATE_WARMUP = 10
-#: A detected plant change cuts the weighted memory tau to this many times p.
-CHANGE_MEMORY = 4
-#: Validity is re-evaluated every this many updates (its cost is amortised).
-VALIDITY_PERIOD = 100
-#: A model pole beyond this radius makes the model unstable.
-UNSTABLE_RADIUS = 1.01
-#: Output power growing by more than this between two validity checks means
-#: the data are not bounded (an unstable estimate may then be right).
-GROWTH = 4.0
 #: Floor of the prediction error standard deviation, relative to the y scale,
 #: so that noise-free data do not divide by zero in the gate.
 VARIANCE_FLOOR = 2.0 ** -40
+#: A plant whose steps are undone this many times in a row starts afresh with new scales.
+UNDONE_LIMIT = 3
 
 #: BLAS level-1/2 kernels, loaded from scipy on first use (see :func:`load_blas`).
 _BLAS: dict[str, Any] = {}
@@ -162,28 +159,285 @@ def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
     return blas['dger'](-1.0, h, h, 1, 1, p.T, 0, 0, 1).T
 
 
+def rls_steps(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: np.ndarray,
+              e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r"""
+    Make the RLS step (47)-(49) of K plants at once, without the division by :math:`\lambda`.
+
+    The batched form of :func:`rls_step` (the same algebra, in numpy
+    element-wise operations, which round in other places than the BLAS
+    kernels: the two agree within rounding, not bit for bit). ``theta``
+    ``(K, p)``, ``p`` ``(K, p, p)``, ``g`` ``(K, p)``, ``s`` and ``e``
+    ``(K,)``, from :func:`rls_innovation` per plant. Returns new arrays.
+    """
+    # theta(t) = theta(t-1) + g e / s
+    theta = theta + g * (e / s)[:, None]
+    # P(t) = P(t-1) - h h', h = g / sqrt(s): symmetric to the last bit
+    h = g * (1.0 / np.sqrt(s))[:, None]
+    return theta, p - h[:, :, None] * h[:, None, :]
+
+
+def matvec(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """Return ``matrices[k] @ vectors[k]`` for every k, shape ``(K, p)``."""
+    return np.matmul(matrices, vectors[:, :, None])[:, :, 0]
+
+
+def rowdot(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Return ``left[k] . right[k]`` for every k, shape ``(K,)``."""
+    return np.vecdot(left, right)
+
+
 def repair_covariance(p: np.ndarray, fallback: np.ndarray,
                       weights: np.ndarray | None = None) -> np.ndarray:
+    """Return the nearest symmetric positive definite matrix to one ``p`` (see rules)."""
+    return rules.repair_covariances(p[None], fallback[None],
+                                    None if weights is None else weights[None])[0]
+
+
+@dataclasses.dataclass
+class LsPlants:
     """
-    Return the nearest symmetric positive definite matrix to ``p``.
+    The least-squares state of K plants, arrays with a leading plant axis.
 
-    The symmetric part is diagonally scaled by ``weights`` (the inverse
-    signal scales, so that the eigenvalue floor is relative in normalised
-    units), its eigenvalues are clipped at 1e-12 of the largest (at least
-    1e-12) and the scaling is undone. A non-finite ``p`` is replaced by
-    ``fallback`` (a copy).
+    The batched estimators hold one over all their plants; a single-plant
+    :class:`Rls` makes one over itself (K = 1, views of its arrays) for the
+    rare samples that need more than the plain step (:func:`ls_step_rows`).
+
+    Attributes
+    ----------
+    theta : numpy.ndarray, shape ``(K, p)``
+        The LS estimates.
+    p : numpy.ndarray, shape ``(K, p, p)``
+        Their P.
+    loss, tau : numpy.ndarray, shape ``(K,)``
+        J and the weighted count of eq. (50).
+    updates, undone : numpy.ndarray of int, shape ``(K,)``
+        Updates made, and steps undone in a row.
+    score : numpy.ndarray, shape ``(K,)``
+        The gate's change score (:func:`~bcid_ros.estimators.rules.gate`).
+    variance_floor : numpy.ndarray, shape ``(K,)``
+        Floor of the prediction-error variance (VARIANCE_FLOOR times the y scale, squared).
+    component_scale : numpy.ndarray, shape ``(K, p)``
+        The signal scale of each component of phi.
+
     """
-    sym = 0.5 * (p + p.T)
-    if not np.isfinite(sym).all():
-        return fallback.copy()
-    w = np.ones(p.shape[0]) if weights is None else weights
-    values, vectors = np.linalg.eigh(sym * np.outer(w, w))
-    floor = max(values.max(), 1.0) * 1e-12
-    vectors = vectors / w[:, None]
-    return (vectors * np.maximum(values, floor)) @ vectors.T
+
+    theta: np.ndarray
+    p: np.ndarray
+    loss: np.ndarray
+    tau: np.ndarray
+    updates: np.ndarray
+    undone: np.ndarray
+    score: np.ndarray
+    variance_floor: np.ndarray
+    component_scale: np.ndarray
 
 
-class Rls(RecursiveEstimator):
+@dataclasses.dataclass(frozen=True)
+class LsSettings:
+    """What :func:`ls_step_rows` needs of the estimator's settings (shared by its plants)."""
+
+    forgetting_factor: float
+    gate_limit2: float
+    gate_from: float
+    trace_limit: float
+    initial_covariance: float
+
+
+@dataclasses.dataclass
+class StepOutcome:
+    """
+    What happened to each plant of a :func:`ls_step_rows` call (masks over its rows).
+
+    ``stepped``: the LS step was made; ``events``: flag name -> where it
+    occurred; ``restart``: the regressor must restart (a step undone or a
+    sample refused); ``relearn``: the plant starts afresh with new scales;
+    ``errors``: the a-priori prediction errors (the equation errors).
+    """
+
+    stepped: np.ndarray
+    events: dict[str, np.ndarray]
+    restart: np.ndarray
+    relearn: np.ndarray
+    errors: np.ndarray
+
+
+def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                 settings: LsSettings) -> StepOutcome:
+    """
+    Do the guarded and gated RLS step (47)-(50) of plants ``rows`` (indices), in place.
+
+    Per plant, as :class:`Rls` describes: a step with s <= 0 repairs P
+    instead (``covariance_repaired``); one with a non-finite s or e^2 is
+    undone (``update_undone``); once tau >= GATE_WARMUP p the gate decides
+    (:func:`~bcid_ros.estimators.rules.gate`: ``outlier_rejected``, or
+    ``plant_change`` with the memory cut); a risky step (s / lambda above
+    CAREFUL_GAIN) is kept only if S P S stays sound and theta finite, and
+    UNDONE_LIMIT such failures in a row start the plant afresh; forgetting
+    stops while the normalised trace exceeds p0 p (``windup_limited``); every
+    HEALTH_CHECK_PERIOD updates P is checked by Cholesky and repaired if
+    needed. ``y`` ``(R,)`` and ``phi`` ``(R, p)`` are the rows' samples.
+    """
+    lam = settings.forgetting_factor
+    count = rows.shape[0]
+    theta, p_old = plants.theta[rows], plants.p[rows]
+    loss, tau = plants.loss[rows], plants.tau[rows]
+    # g = P(t-1) phi(t); s = lambda + phi' g; e = y(t) - phi' theta(t-1)
+    g = matvec(p_old, phi)
+    s = lam + rowdot(phi, g)
+    e = y - rowdot(phi, theta)
+    e2 = e * e
+    events: dict[str, np.ndarray] = {}
+    with np.errstate(invalid='ignore'):
+        careful = ~((s < CAREFUL_GAIN * lam) & (e2 < math.inf))
+        repair = s <= 0.0
+        broken = careful & ~repair & ~((s < math.inf) & (e2 < math.inf))
+    refused = np.zeros(count, dtype=bool)
+    tested = ~(repair | broken) & (tau >= settings.gate_from)
+    if tested.any():
+        # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)]: the error over its variance
+        z2 = e2[tested] / ((loss[tested] / tau[tested] + plants.variance_floor[rows[tested]])
+                           * (s[tested] + 1.0 - lam))
+        used, plants.score[rows[tested]], change = rules.gate(
+            z2, settings.gate_limit2, plants.score[rows[tested]])
+        refused[tested] = ~used
+        if change.any():
+            changed = np.flatnonzero(tested)[change]
+            events['plant_change'] = _mask(count, changed)
+            cut = rows[changed]
+            p_cut, loss_cut, tau_cut = plants.p[cut], plants.loss[cut], plants.tau[cut]
+            rules.cut_memory(p_cut, loss_cut, tau_cut, theta.shape[1])
+            plants.p[cut], plants.loss[cut], plants.tau[cut] = p_cut, loss_cut, tau_cut
+            # the memory was cut (P grew): redo the a-priori part
+            p_old[changed], loss[changed], tau[changed] = p_cut, loss_cut, tau_cut
+            g[changed] = matvec(p_cut, phi[changed])
+            s[changed] = lam + rowdot(phi[changed], g[changed])
+    commit = ~(repair | broken | refused)
+    stepped = commit.copy()
+    if commit.any():
+        kept, windup, repaired = _commit_rows(
+            plants, rows[commit], theta[commit], p_old[commit], g[commit], s[commit], e[commit],
+            loss[commit], tau[commit], careful[commit], settings)
+        stepped[commit] = kept
+        for key, where in (('windup_limited', windup), ('covariance_repaired', repaired)):
+            if where.any():
+                events[key] = _mask(count, np.flatnonzero(commit)[where])
+    if repair.any():
+        repair_rows(plants, rows[repair], settings.initial_covariance)
+        events['covariance_repaired'] = events.get('covariance_repaired',
+                                                   np.zeros(count, dtype=bool)) | repair
+    relearn = np.zeros(count, dtype=bool)
+    unsound = commit & ~stepped
+    if unsound.any():
+        # three undone in a row: the signal level is far from the scales of the first
+        # samples, and what was learnt at that level is numerically worthless
+        relearn[unsound] = plants.undone[rows[unsound]] >= UNDONE_LIMIT
+    undone = broken | (unsound & ~relearn)
+    if undone.any():
+        events['update_undone'] = undone
+    if refused.any():
+        events['outlier_rejected'] = refused
+    return StepOutcome(stepped, events, undone | refused, relearn, e)
+
+
+def _mask(count: int, where: np.ndarray) -> np.ndarray:
+    mask = np.zeros(count, dtype=bool)
+    mask[where] = True
+    return mask
+
+
+def _commit_rows(plants: LsPlants, rows: np.ndarray, theta: np.ndarray, p_old: np.ndarray,
+                 g: np.ndarray, s: np.ndarray, e: np.ndarray, loss: np.ndarray,
+                 tau: np.ndarray, careful: np.ndarray,
+                 settings: LsSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Commit the step of ``rows``; undo the careful ones that broke P.
+
+    Return masks over ``rows``: the steps kept, where forgetting was limited
+    (windup) and where the health check repaired P.
+    """
+    lam = settings.forgetting_factor
+    theta_new, p_new = rls_steps(theta, p_old, g, s, e)
+    windup = np.zeros(rows.shape[0], dtype=bool)
+    if lam < 1.0:
+        # P(t) <- P(t) / lambda unless that would wind the normalised P up past its start
+        weighted = rowdot(np.diagonal(p_new, axis1=1, axis2=2), plants.component_scale[rows] ** 2)
+        windup = ~(weighted < settings.trace_limit)
+        p_new *= np.where(windup, 1.0, 1.0 / lam)[:, None, None]
+    plants.theta[rows], plants.p[rows] = theta_new, p_new
+    # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
+    plants.loss[rows] = lam * (loss + e * e / s)
+    plants.tau[rows] = lam * tau + 1.0
+    updates = plants.updates[rows] + 1
+    plants.updates[rows] = updates
+    repaired = np.zeros(rows.shape[0], dtype=bool)
+    due = updates % HEALTH_CHECK_PERIOD == 0
+    if due.any():
+        repaired[due] = ~rules.definite(p_new[due])
+        if repaired.any():
+            repair_rows(plants, rows[repaired], settings.initial_covariance)
+    kept = np.ones(rows.shape[0], dtype=bool)
+    if careful.any():
+        risky = rows[careful]
+        kept[careful] = rules.sound_covariances(plants.p[risky], plants.component_scale[risky]) \
+            & np.isfinite(plants.theta[risky]).all(axis=1)
+        back = ~kept
+        if back.any():
+            lost = rows[back]
+            plants.theta[lost], plants.p[lost] = theta[back], p_old[back]
+            plants.loss[lost], plants.tau[lost] = loss[back], tau[back]
+            plants.updates[lost] -= 1
+            plants.undone[lost] += 1
+    plants.undone[rows[kept]] = 0
+    return kept, windup, repaired
+
+
+def repair_rows(plants: LsPlants, rows: np.ndarray, initial_covariance: float) -> None:
+    """Rebuild P of ``rows`` as the nearest symmetric positive definite matrices."""
+    scale = plants.component_scale[rows]
+    fallback = initial_covariance / scale ** 2
+    plants.p[rows] = rules.repair_covariances(
+        plants.p[rows], fallback[:, :, None] * np.eye(scale.shape[1]), scale)
+
+
+#: No event (a mask of one False).
+_NO = np.zeros(1, dtype=bool)
+
+
+def scale_dependents(scales: np.ndarray,
+                     channel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return each plant's component scales ``(K, p)`` and variance floor ``(K,)``.
+
+    ``scales`` ``(K, 1 + r)`` are the signal scales (0: not chosen yet, taken
+    as 1), ``channel`` the channel of each component of phi
+    (:func:`~bcid_ros.estimators.regressor.phi_channels`).
+    """
+    component = scales[:, channel]
+    y_scale = np.where(scales[:, 0] > 0.0, scales[:, 0], 1.0)
+    return np.where(component > 0.0, component, 1.0), (VARIANCE_FLOOR * y_scale) ** 2
+
+
+class LsAccessors:
+    """The accessors of a least-squares state, for one plant and for K (a leading axis)."""
+
+    @property
+    def signal_scale(self) -> np.ndarray:
+        """Return the scales of y, u_1 ... u_r (0 while a channel has only seen zeros)."""
+        return self._signal_scale.copy()
+
+    @property
+    def initial_covariance_diagonal(self) -> np.ndarray:
+        """Return the diagonal of P(0) = p0 S^-2 in the user's units."""
+        return self.initial_covariance / self._component_scale ** 2
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Return the covariance matrix P(t) (a copy)."""
+        return self._p.copy()
+
+
+class Rls(LsAccessors, RecursiveEstimator):
     r"""
     Recursive least squares with forgetting, guarded, gated and unit-free.
 
@@ -229,8 +483,9 @@ class Rls(RecursiveEstimator):
       mean the signal level is far from that of the first samples: the
       estimator starts afresh with new scales (``rescaled``);
     * gate: :math:`z^2 = e^2 / [(J/\tau)(1 + \varphi^T P \varphi)]`, the
-      squared prediction error over its variance, goes to the base class's
-      gate (``outlier_rejected``, ``plant_change``) once
+      squared prediction error over its variance, goes to the rulebook's
+      gate (:func:`~bcid_ros.estimators.rules.gate`: ``outlier_rejected``,
+      ``plant_change``) once
       :math:`\tau \ge` ``GATE_WARMUP`` p. A detected plant change cuts the
       memory to ``CHANGE_MEMORY`` p samples: :math:`P \leftarrow P/\kappa`,
       :math:`J \leftarrow \kappa J`, :math:`\tau \leftarrow \kappa\tau`, one
@@ -244,6 +499,12 @@ class Rls(RecursiveEstimator):
     ``UNSTABLE_RADIUS``) while the output power over the memory did not
     grow by ``GROWTH`` since the last check (bounded data).
 
+    The plain step is the hot path, written here on floats and BLAS; a
+    sample that needs any safeguard (a risky gain, a non-finite error, the
+    gate refusing or scoring, s <= 0) goes through :func:`ls_step_rows`, the
+    rules of every plant of the batched estimators, with this one plant as
+    K = 1: the two take the same decisions by construction.
+
     Parameters
     ----------
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
@@ -256,18 +517,18 @@ class Rls(RecursiveEstimator):
 
     name = 'rls'
     noise_names = ('residual_variance',)
-    #: Extra constructor keywords (ROS parameter names) beyond the base ones.
-    options: tuple[str, ...] = ()
+    #: The residual the model says is white, for the residual tests
+    #: (:data:`~bcid_ros.estimators.adequacy.MODEL_TESTS`): the equation error.
+    adequacy_model = 'arx'
+    #: Whether the published std is the HAC sandwich of the equation error's scores.
+    hac_std = True
 
     def __init__(self, **settings: Any) -> None:
         super().__init__(**settings)
         self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough,
                                        self.input_delay)
         self._trace_limit = self.initial_covariance * self.num_parameters
-        # the signal channel (0 = y, i = u_i) of each component of phi
-        lags = self.order + (1 if self.feedthrough else 0)
-        self._channel = np.array([0] * self.order + [
-            i for i in range(1, self.num_inputs + 1) for _ in range(lags)], dtype=np.intp)
+        self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         self._reset()
 
     # ------------------------------------------------------------- the step
@@ -277,6 +538,8 @@ class Rls(RecursiveEstimator):
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step(y, phi)
+            if self._tau >= self._gate_from and not self._quiet_left:
+                self._record_residual(y, phi, u)
             if self._updates >= self._next_check:
                 self._check_validity()
 
@@ -312,6 +575,8 @@ class Rls(RecursiveEstimator):
                 self._update(y, u)
             elif self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
+                if self._tau >= self._gate_from and not self._quiet_left:
+                    self._record_residual(y, phi, u)
                 if self._updates >= self._next_check:
                     self._check_validity()
 
@@ -324,30 +589,37 @@ class Rls(RecursiveEstimator):
     def _after_ls_step(self, y: float, phi: np.ndarray) -> None:
         """Extend the LS step on (y, phi) (the bias compensation of subclasses); nothing here."""
 
+    def _record_residual(self, y: float, phi: np.ndarray, u: np.ndarray) -> None:
+        """
+        Give the residual tests and the HAC covariance this step's equation error.
+
+        From the gate's warm-up on (tau >= GATE_WARMUP p), as the gate: the
+        a-priori errors of the first, converging steps are correlated with the
+        inputs by design (docs/trust.md). Not while a huge value (beyond
+        2^450) is in the regressor: its products would overflow the tests' sums.
+        """
+        error = self._error
+        self._monitor.record(error, u)
+        # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
+        self._hac.record_product(phi, error)
+
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
         lam = self._forgetting_factor
         g = self._p.dot(phi)
         s = lam + float(phi.dot(g))
         e = y - float(phi.dot(self._theta_ls))
-        if not (s < CAREFUL_GAIN * lam and e * e < math.inf):
-            return self._careful_step(phi, e, g, s)
-        if not s > 0.0:
-            self._repair_covariance()
-            return False
+        if not (s < CAREFUL_GAIN * lam and e * e < math.inf and s > 0.0):
+            return self._rare_step(y, phi)
         tau = self._tau
-        if tau >= self._gate_from:
-            z2 = e * e / ((self._loss / tau + self._variance_floor) * (s + 1.0 - lam))
-            if not z2 <= self._gate_limit2 or self._change_score:
-                if not self._gate(z2):
-                    return False
-                if self._tau != tau:
-                    # a plant change cut the memory (P grew): redo the a-priori part
-                    g = self._p.dot(phi)
-                    s = lam + float(phi.dot(g))
-                    tau = self._tau
-        # the commit, inlined (see _commit)
+        # the gate's quiet case (rules.gate: used, nothing changes) on floats; any other
+        # tested sample goes to the rules
+        if tau >= self._gate_from and (self._change_score or not e * e / (
+                (self._loss / tau + self._variance_floor) * (s + 1.0 - lam)) <= self._gate_limit2):
+            return self._rare_step(y, phi)
+        self._error = e
         self._p = rls_step(self._theta_ls, self._p, g, s, e)
+        # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * tau + 1.0
         if lam < 1.0:
@@ -358,49 +630,41 @@ class Rls(RecursiveEstimator):
         self._undone_in_row = 0
         return True
 
-    def _commit(self, e: float, g: np.ndarray, s: float) -> None:
-        """Make the step (47)-(50) with the a-priori quantities of :func:`rls_innovation`."""
-        lam = self._forgetting_factor
-        self._p = rls_step(self._theta_ls, self._p, g, s, e)
-        # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
-        self._loss = lam * (self._loss + e * e / s)
-        self._tau = lam * self._tau + 1.0
-        if lam < 1.0:
-            self._forget()
-        self._updates += 1
-        if self._updates % HEALTH_CHECK_PERIOD == 0:
-            self._check_covariance()
-
-    def _careful_step(self, phi: np.ndarray, e: float, g: np.ndarray, s: float) -> bool:
-        """Make a step that may break P (huge s) as a transaction; return whether it was kept."""
-        lam = self._forgetting_factor
-        if s <= 0.0:
-            self._repair_covariance()
-            return False
-        if not (s < math.inf and e * e < math.inf):
-            self._undo('update_undone')
-            return False
-        if self._tau >= self._gate_from:
-            z2 = e * e / ((self._loss / self._tau + self._variance_floor) * (s + 1.0 - lam))
-            if not self._gate(z2):
-                return False
-            g = self._p.dot(phi)
-            s = lam + float(phi.dot(g))
-        saved = (self._theta_ls.copy(), self._p.copy(), self._loss, self._tau, self._updates)
-        self._commit(e, g, s)
-        if self._sound_covariance() and np.isfinite(self._theta_ls).all():
-            self._undone_in_row = 0
-            return True
-        self._theta_ls[:] = saved[0]
-        self._p, self._loss, self._tau, self._updates = saved[1:]
-        self._undone_in_row += 1
-        if self._undone_in_row >= 3:
-            # three in a row: the signal level is far from the scales of the first
-            # samples; what was learnt at that level is numerically worthless
+    def _rare_step(self, y: float, phi: np.ndarray) -> bool:
+        """Do the step by :func:`ls_step_rows` (this plant as K = 1); return whether it did."""
+        plants = self._as_plants()
+        outcome = ls_step_rows(plants, np.zeros(1, dtype=np.intp), np.array([y]), phi[None],
+                               self._ls_settings())
+        self._take_scalars(plants)
+        self._error = float(outcome.errors[0])
+        for key, where in outcome.events.items():
+            if where[0]:
+                self._flag(key)
+        if outcome.events.get('plant_change', _NO)[0]:
+            self._forget_residuals()
+        if outcome.restart[0]:
+            self._refused += 1
+            self._restart_regressor()
+        if outcome.relearn[0]:
             self._restart_learning()
-            return False
-        self._undo('update_undone')
-        return False
+        return bool(outcome.stepped[0])
+
+    def _as_plants(self) -> LsPlants:
+        """Return this estimator's LS state as one plant (views of theta and P)."""
+        return LsPlants(self._theta_ls[None], self._p[None], np.array([self._loss]),
+                        np.array([self._tau]), np.array([self._updates]),
+                        np.array([self._undone_in_row]), np.array([self._change_score]),
+                        np.array([self._variance_floor]), self._component_scale[None])
+
+    def _take_scalars(self, plants: LsPlants) -> None:
+        """Take back the scalars of :meth:`_as_plants` (theta and P were views)."""
+        self._loss, self._tau = float(plants.loss[0]), float(plants.tau[0])
+        self._updates, self._undone_in_row = int(plants.updates[0]), int(plants.undone[0])
+        self._change_score = float(plants.score[0])
+
+    def _ls_settings(self) -> LsSettings:
+        return LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
+                          self._trace_limit, self.initial_covariance)
 
     def _restart_learning(self) -> None:
         """Start afresh with scales chosen from the samples now in the regressor."""
@@ -413,16 +677,6 @@ class Rls(RecursiveEstimator):
         regressor.filled, regressor.position = filled, position
         self._choose_scales()
 
-    def _sound_covariance(self) -> bool:
-        """Whether the normalised P is positive definite with a condition within 1e13."""
-        scaled = self._p * self._scale_outer
-        try:
-            factor = np.linalg.cholesky(scaled)
-        except np.linalg.LinAlgError:
-            return False
-        pivots = np.diagonal(factor) ** 2
-        return bool(pivots.min() > 1e-13 * scaled.diagonal().max())
-
     def _forget(self) -> None:
         """Apply P(t) <- P(t) / lambda unless that would wind P up past its start."""
         if self._p.diagonal().dot(self._trace_weights) < self._trace_limit:
@@ -430,24 +684,15 @@ class Rls(RecursiveEstimator):
         else:
             self._flag('windup_limited')
 
-    def _accept_change(self) -> None:
-        """Cut the memory to CHANGE_MEMORY p samples: one extra forgetting step."""
-        keep = CHANGE_MEMORY * self.num_parameters / self._tau if self._tau > 0 else 1.0
-        if keep < 1.0:
-            self._p *= 1.0 / keep
-            self._loss *= keep
-            self._tau *= keep
-
     def _check_covariance(self) -> None:
-        try:
-            np.linalg.cholesky(self._p)
-        except np.linalg.LinAlgError:
+        """Repair P if it lost definiteness (the health check of the plain step)."""
+        if not rules.definite(self._p[None])[0]:
             self._repair_covariance()
 
     def _repair_covariance(self) -> None:
         """Rebuild P as the nearest symmetric positive definite matrix."""
         self._flag('covariance_repaired')
-        self._p = repair_covariance(self._p, self._initial_p(), self._component_scale)
+        repair_rows(self._as_plants(), np.zeros(1, dtype=np.intp), self.initial_covariance)
 
     # ------------------------------------------------------------ the units
     def _initial_p(self) -> np.ndarray:
@@ -456,26 +701,15 @@ class Rls(RecursiveEstimator):
 
     def _choose_scales(self) -> None:
         """Give each channel still without a scale the one of the data in the regressor."""
-        peaks = self._regressor.peaks()
-        scales = self._signal_scale
-        for channel in np.flatnonzero((scales == 0.0) & (peaks > 0.0)):
-            scale = power_of_two_at_least(float(peaks[channel]))
-            scales[channel] = scale
-            # exact: the components of this channel were zero in every update so far,
-            # so their rows and columns of P are still p0 (times 1 / lambda^k) on the diagonal
-            for k in np.flatnonzero(self._channel == channel):
-                self._p[k, k] *= 1.0 / (scale * scale)
+        new = rules.choose_scales(self._signal_scale[None], self._regressor.peaks()[None])
+        rules.rescale_new_channels(self._p[None], new, self._signal_scale[None], self._channel)
         self._set_scale_dependents()
 
     def _set_scale_dependents(self) -> None:
-        scales = self._signal_scale
-        self._scales_pending = bool((scales == 0.0).any())
-        component = scales[self._channel]
-        self._component_scale = np.where(component > 0.0, component, 1.0)
+        self._scales_pending = bool((self._signal_scale == 0.0).any())
+        component, floor = scale_dependents(self._signal_scale[None], self._channel)
+        self._component_scale, self._variance_floor = component[0], float(floor[0])
         self._trace_weights = self._component_scale ** 2
-        self._scale_outer = np.outer(self._component_scale, self._component_scale)
-        y_scale = scales[0] if scales[0] > 0.0 else 1.0
-        self._variance_floor = (VARIANCE_FLOOR * y_scale) ** 2
 
     # --------------------------------------------------------- the validity
     def _check_validity(self) -> None:
@@ -485,23 +719,11 @@ class Rls(RecursiveEstimator):
 
     def _find_problems(self) -> list[str]:
         """Return the reasons not to trust the estimate now (see the class docstring)."""
-        reasons = []
-        power = self._output_power()
-        bounded = not power > GROWTH * self._last_power
-        self._last_power = power
-        radius = spectral_radius(self._theta()[:self.order])
-        if not radius <= UNSTABLE_RADIUS and bounded:
-            reasons.append(f'unstable model (pole radius {radius:.3g}) on bounded data')
-        return reasons
-
-    def _output_power(self) -> float:
-        """Return the weighted mean square of y over the memory, from P^-1."""
-        n = self.order
-        try:
-            information = np.linalg.inv(self._p)
-        except np.linalg.LinAlgError:
-            return math.inf
-        return float(np.trace(information[:n, :n])) / (n * max(self._tau, 1.0))
+        power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
+        reasons = rules.unstable_models(self._theta()[None, :self.order], power,
+                                        np.array([self._last_power]))[0]
+        self._last_power = float(power[0])
+        return reasons + residual_reasons(self._monitor)
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -523,21 +745,6 @@ class Rls(RecursiveEstimator):
         return self._updates
 
     @property
-    def signal_scale(self) -> np.ndarray:
-        """Return the scales of y, u_1 ... u_r (0 while a channel has only seen zeros)."""
-        return self._signal_scale.copy()
-
-    @property
-    def initial_covariance_diagonal(self) -> np.ndarray:
-        """Return the diagonal of P(0) = p0 S^-2 in the user's units."""
-        return self.initial_covariance / self._component_scale ** 2
-
-    @property
-    def covariance(self) -> np.ndarray:
-        """Return the covariance matrix P(t), shape ``(p, p)`` (a copy)."""
-        return self._p.copy()
-
-    @property
     def covariance_trace(self) -> float:
         """Return tr P(t)."""
         return float(np.trace(self._p))
@@ -555,27 +762,21 @@ class Rls(RecursiveEstimator):
     # ------------------------------------------------------- the uncertainty
     def _parameter_covariance(self) -> np.ndarray | None:
         r"""
-        Return the LS covariance :math:`\hat\sigma_e^2 P \tau_2/\tau` (None before ready).
+        Return the HAC sandwich covariance of the LS estimate (None before its first block).
 
-        For an ARX plant (white equation error of variance :math:`\sigma_e^2`),
-        the weighted LS estimate has the sandwich covariance
-        :math:`\sigma_e^2 P (\sum w_i^2\varphi\varphi^T) P`, which is
-        :math:`\sigma_e^2 P\,\tau_2/\tau` for stationary data
-        (:func:`~bcid_ros.estimators.base.weighted_square_ratio`; 1 without
-        forgetting). :math:`\hat\sigma_e^2 = J / (\tau - p\,\tau_2/\tau)`,
-        the weighted residual sum over its expected value per unit variance
-        (:math:`J/(N - p)` without forgetting). Not calibrated for coloured
-        equation error (output-error data): use bcrls there.
+        The LS estimate solves :math:`\sum_t w_t\varphi_t(y_t - \varphi_t^T\theta) = 0`,
+        so :math:`\hat\theta - \theta \approx P\sum_t w_t\varphi_t e_t` and its
+        covariance is :math:`P\,\mathrm{var}(\sum_t w_t s_t)\,P` with the scores
+        :math:`s_t = \varphi_t e_t`. :class:`~bcid_ros.estimators.hac.HacCovariance`
+        estimates the middle from the scores' lagged products, prewhitened and
+        windowed (Andrews 1991; Andrews and Monahan 1992): calibrated whether
+        the equation error is white (an ARX plant) or coloured (docs/trust.md).
+        The scores count from the gate's warm-up on; the first block of 64
+        gives the first covariance.
         """
-        tau = self._tau
-        p = self.num_parameters
-        if self._updates < p or not tau > 0.0:
+        if self._updates < self.num_parameters:
             return None
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
-        dof = tau - p * ratio
-        if not dof > 0.0:
-            return None
-        return (self._loss / dof * ratio) * self._p
+        return self._hac.covariance(self._p)
 
     def _theta(self) -> np.ndarray:
         return self._theta_ls
@@ -597,11 +798,21 @@ class Rls(RecursiveEstimator):
         self._updates = 0
         self._signal_scale = np.zeros(1 + self.num_inputs)
         self._set_scale_dependents()
-        self._gate_from = GATE_WARMUP * p
+        self._gate_from = rules.GATE_WARMUP * p
         self._undone_in_row = 0
         self._next_check = p
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
+        self._error = 0.0
+        self._forget_residuals()
+
+    def _forget_residuals(self) -> None:
+        """Start the residual tests and the HAC afresh (at a reset and after a plant change)."""
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor)
+        self._hac = (HacCovariance(dimension=self.num_parameters,
+                                   forgetting_factor=self._forgetting_factor)
+                     if self.hac_std else None)
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
@@ -615,7 +826,9 @@ class Rls(RecursiveEstimator):
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
                    'last_power': self._last_power, 'reasons': self._reasons}
-        return arrays, scalars
+        residual_arrays, residual_scalars = residual_items(
+            self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -633,26 +846,84 @@ class Rls(RecursiveEstimator):
         self._next_check = int(scalars['next_check'])
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.set_state(monitor)
+        if self._hac is not None:
+            self._hac.set_state(hac)
 
 
-def spectral_radius(a: np.ndarray) -> float:
-    """Return the largest pole magnitude of A(q) = 1 + a_1 q^-1 + ... + a_n q^-n."""
-    if a.shape[0] == 1:
-        return abs(float(a[0]))
-    if a.shape[0] == 2:  # the quadratic's roots: a twentieth of eigvals' cost
-        a1, a2 = float(a[0]), float(a[1])
-        discriminant = a1 * a1 - 4.0 * a2
-        if 0.0 <= discriminant < math.inf:  # real poles (-a1 +- sqrt(d)) / 2
-            return 0.5 * (abs(a1) + math.sqrt(discriminant))
-        if discriminant < 0.0:  # a complex pair, |z|^2 = a2
-            return math.sqrt(a2)
-        # NaN or an overflow: the general way
-    companion = np.zeros((a.shape[0], a.shape[0]))
-    companion[0] = -a
-    companion[1:, :-1] = np.eye(a.shape[0] - 1)
-    if not np.isfinite(companion).all():
-        return math.inf
-    return float(np.abs(np.linalg.eigvals(companion)).max())
+def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list[str]:
+    """
+    Return the reasons of the residual tests of one plant (``plant`` None: a one-plant monitor).
+
+    Until the tests have a window of SAMPLES_PER_LAG samples per lag, that is a
+    reason itself: a model the data have not yet been able to contradict is
+    not yet trusted.
+    """
+    ready = monitor.ready if plant is None else monitor.ready[plant]
+    if not ready:
+        size = monitor.effective_samples if plant is None else monitor.effective_samples[plant]
+        return [f'residual tests not ready ({size:.0f} of '
+                f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)']
+    return list(monitor.reasons if plant is None else monitor.reasons_of(plant))
+
+
+def residual_items(monitor: MonitorState, hac: HacState | None,
+                   ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """
+    Return the state of the residual tests (and of the HAC) as snapshot (arrays, scalars).
+
+    Their pending rows are padded to a block, so that the snapshot's arrays
+    have the same shapes whatever the moment (a state file is checked by shape).
+    """
+    arrays = {f'adequacy_{field.name}': getattr(monitor, field.name)
+              for field in dataclasses.fields(monitor)
+              if isinstance(getattr(monitor, field.name), np.ndarray)}
+    # the ring's last block is scratch space (the pending samples are apart): zeros
+    arrays['adequacy_ring'] = monitor.ring.copy()
+    arrays['adequacy_ring'][:, -adequacy.BLOCK:] = 0.0
+    arrays['adequacy_pending_residuals'] = _padded(monitor.pending_residuals, adequacy.BLOCK)
+    arrays['adequacy_pending_inputs'] = _padded(monitor.pending_inputs, adequacy.BLOCK)
+    scalars = {'adequacy_pending': monitor.pending_residuals.shape[0],
+               'adequacy_weights': [float(value) for value in monitor.weights],
+               'adequacy_checks': int(monitor.checks), 'adequacy_blocks': int(monitor.blocks)}
+    if hac is not None:
+        products = hac.products
+        arrays.update((f'hac_{key}', value) for key, value in products.items()
+                      if isinstance(value, np.ndarray))
+        arrays['hac_pending'] = _padded(products['pending'], lagged.BLOCK)
+        scalars.update(hac_pending=products['pending'].shape[0],
+                       hac_weight=float(products['weight']),
+                       hac_squared_weight=float(products['squared_weight']),
+                       hac_count=int(products['count']))
+    return arrays, scalars
+
+
+def residual_states(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
+                    ) -> tuple[MonitorState, HacState | None]:
+    """Return the states of the residual tests and of the HAC in a :func:`residual_items`."""
+    pending = int(scalars['adequacy_pending'])
+    fields = {field.name: arrays.get(f'adequacy_{field.name}')
+              for field in dataclasses.fields(MonitorState)}
+    fields.update(pending_residuals=arrays['adequacy_pending_residuals'][:pending],
+                  pending_inputs=arrays['adequacy_pending_inputs'][:pending],
+                  weights=tuple(scalars['adequacy_weights']),
+                  checks=int(scalars['adequacy_checks']), blocks=int(scalars['adequacy_blocks']))
+    hac = None
+    if 'hac_sums' in arrays:
+        hac = HacState(products={
+            'sums': arrays['hac_sums'], 'context': arrays['hac_context'],
+            'pending': arrays['hac_pending'][:int(scalars['hac_pending'])],
+            'weight': scalars['hac_weight'], 'squared_weight': scalars['hac_squared_weight'],
+            'count': scalars['hac_count']})
+    return MonitorState(**fields), hac
+
+
+def _padded(rows: np.ndarray, count: int) -> np.ndarray:
+    """Return ``rows`` ``(m, ...)`` with zero rows added up to ``count``."""
+    padded = np.zeros((count,) + rows.shape[1:])
+    padded[:rows.shape[0]] = rows
+    return padded
 
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,

@@ -1,7 +1,7 @@
 """
 What both nodes share: QoS profiles, parameter declaration from the tables, main().
 
-The parameter tables live in :mod:`bcid_ros.parameters` (pure Python), so
+The parameter tables live in :mod:`bcid_ros.identifier.parameters` (pure Python), so
 the offline tools use the same names, defaults and ranges.
 """
 
@@ -20,7 +20,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from bcid_ros.parameters import ParameterSpec
+from bcid_ros.parameter_spec import ParameterSpec
 
 #: Sample topics: reliable and volatile, deep enough for bursts of 1 kHz data.
 SAMPLES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,

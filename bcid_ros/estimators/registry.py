@@ -1,0 +1,230 @@
+"""
+The estimator registry: everything the rest of bcid_ros asks about an estimator.
+
+One :class:`EstimatorEntry` per estimator, by the name the ``estimator``
+parameter takes. It names the single-plant class and the batched (many
+plants) class, the estimator's own options with their parameter specs, its
+model kind and the identifier input modes it supports. Every other list of
+estimator names in the package derives from :data:`REGISTRY` (the parameter
+table, the CLI's choices, the joint-state mode, the analysis): a new
+estimator is its module plus one entry here.
+
+The classes are imported when first asked for, so that reading the registry
+imports no estimator module (and no scipy).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Any
+
+from bcid_ros.parameter_spec import parameter, ParameterSpec
+
+#: The model kinds: what the estimator assumes about the plant and its noise.
+#: ``arx``: A y = B u + e, e white (equation error); ``output_error``:
+#: y = B/A u + v (the simulated output's error is what the model explains);
+#: ``errors_in_variables``: both y and u measured with noise; ``closed_loop``:
+#: the plant under a known feedback controller.
+MODEL_KINDS = ('arx', 'output_error', 'errors_in_variables', 'closed_loop')
+#: The identifier's input modes (the ``input_mode`` parameter).
+INPUT_MODES = ('combined', 'separate', 'joint_state')
+#: Model kinds identified from open-loop input/output data as they come.
+OPEN_LOOP_KINDS = ('arx', 'output_error')
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorEntry:
+    """
+    One registered estimator.
+
+    Attributes
+    ----------
+    name : str
+        The value of the ``estimator`` parameter.
+    single : str
+        ``'module:Class'`` of the single-plant estimator.
+    batched : str or None
+        ``'module:Class'`` of the form that runs many plants at once, or None.
+    model : str
+        One of :data:`MODEL_KINDS`.
+    options : tuple of ParameterSpec
+        The estimator's own constructor keywords, as identifier parameters
+        (default None: the class's default).
+    summary : str
+        One line for the docs and the command-line help.
+
+    """
+
+    name: str
+    single: str
+    batched: str | None
+    model: str
+    options: tuple[ParameterSpec, ...] = ()
+    summary: str = ''
+
+    @property
+    def input_modes(self) -> tuple[str, ...]:
+        """Return the identifier input modes this estimator runs in."""
+        return INPUT_MODES if self.batched else INPUT_MODES[:2]
+
+    @property
+    def option_names(self) -> tuple[str, ...]:
+        """Return the names of the estimator's own options."""
+        return tuple(spec.name for spec in self.options)
+
+    @property
+    def open_loop(self) -> bool:
+        """Whether the estimator identifies open-loop input/output data as they come."""
+        return self.model in OPEN_LOOP_KINDS
+
+
+_BCIV_OPTIONS = (
+    parameter('iv_lag', 'integer', None, 'bciv: IV lag l (the IV vector has n + 2l past inputs; '
+              'colored input noise needs l >= 2n). Unset: the estimator default.',
+              low=1, high=1000),
+    parameter('input_noise', 'string', None, 'bciv: input measurement noise model. Unset: the '
+              'estimator default.', choices=('colored', 'white')),
+    parameter('idle_samples', 'integer', None, 'bciv: idle period L, samples before the bias '
+              'compensation starts. Unset: the estimator default.', low=0, high=1e9),
+    parameter('bciv_iterations', 'integer', None, 'bciv: alternations K of the compensation '
+              'per sample. Unset: the estimator default.', low=1, high=10000),
+    parameter('bciv_update', 'string', None, 'bciv: converged (K alternations from the IV '
+              'estimate) or printed (the paper\'s one-step recursion). Unset: the estimator '
+              'default.', choices=('converged', 'printed')),
+    parameter('allow_underdetermined', 'bool', None, 'bciv: allow l < 2n with colored input '
+              'noise (under-determined, poor). Unset: the estimator default.'),
+)
+
+_CL_BCLS_OPTIONS = (
+    parameter('controller_numerator', 'double_array', None, 'cl_bcls: controller numerator '
+              'b_c in descending powers of q.'),
+    parameter('controller_denominator', 'double_array', None, 'cl_bcls: controller '
+              'denominator a_c in descending powers of q.'),
+    parameter('controller_sign', 'string', None, 'cl_bcls: negative means u = (b_c/a_c)(r - y), '
+              'positive means u = (b_c/a_c)(y - r). Unset: the estimator default (negative).',
+              choices=('negative', 'positive')),
+    parameter('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f(q): one '
+              'pole [p] for (q - p)^n, or its n + 1 coefficients in descending powers of q. '
+              'Unset: the estimator default.'),
+    parameter('window', 'integer', None, 'cl_bcls: 0 (the estimator default) compensates over '
+              'every sample since the last controller change (recursive moments); > 0 over the '
+              'last window samples, for slowly varying plants. Unset: the estimator default.',
+              low=0, high=1e9),
+    parameter('redesign_period', 'integer', None, 'cl_bcls: samples between compensations and '
+              'prefilter redesigns. Unset: the estimator default.', low=1, high=1e9),
+    parameter('max_iterations', 'integer', None, 'cl_bcls: most prefilter redesign iterations '
+              'per redesign. Unset: the estimator default.', low=1, high=10000),
+    parameter('tolerance', 'double', None, 'cl_bcls: stop redesigning when the estimate moves '
+              'less than this. Unset: the estimator default.', low=0.0, high=1e6,
+              low_open=True),
+)
+
+_RPEM_OPTIONS = (
+    parameter('model', 'string', None, 'rpem: oe (output error y = sum B_i/F u_i + v, v of any '
+              'colour) or armax (A y = sum B_i u_i + C e; adds c1..cn). Unset: the estimator '
+              'default (oe).', choices=('oe', 'armax')),
+)
+
+#: The registered estimators, by name, in the order the docs list them.
+REGISTRY: dict[str, EstimatorEntry] = {entry.name: entry for entry in (
+    EstimatorEntry('rls', 'bcid_ros.estimators.rls:Rls', 'bcid_ros.estimators.batched:BatchedRls',
+                   'arx', summary='recursive least squares (the biased baseline)'),
+    EstimatorEntry('bcrls', 'bcid_ros.estimators.bcrls:Bcrls',
+                   'bcid_ros.estimators.batched:BatchedBcrls', 'output_error',
+                   summary='bias-compensated RLS, MISO output error (Ding et al. 2006)'),
+    EstimatorEntry('bciv', 'bcid_ros.estimators.bciv:Bciv', None, 'errors_in_variables',
+                   _BCIV_OPTIONS, summary='recursive bias-compensated IV, errors in variables '
+                   '(Ikenoue et al. 2008)'),
+    EstimatorEntry('cl_bcls', 'bcid_ros.estimators.cl_bcls:ClosedLoopBcls', None,
+                   'closed_loop', _CL_BCLS_OPTIONS, summary='BCLS in closed loop with '
+                   'prefilter redesign (Ikeda 2008)'),
+    EstimatorEntry('rpem', 'bcid_ros.estimators.rpem:Rpem', None, 'output_error', _RPEM_OPTIONS,
+                   summary='recursive prediction-error method, OE or ARMAX, with a '
+                   'batch-refined start (Ljung and Soderstrom 1983)'),
+)}
+
+#: The registered names, in registry order.
+ESTIMATOR_NAMES = tuple(REGISTRY)
+
+
+def entry(name: str) -> EstimatorEntry:
+    """
+    Return the registry entry of estimator ``name``.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not registered.
+
+    """
+    if name not in REGISTRY:
+        raise ValueError(f'estimator must be one of {", ".join(REGISTRY)}; got {name!r}')
+    return REGISTRY[name]
+
+
+def names_where(**conditions: Any) -> tuple[str, ...]:
+    """
+    Return the names of the estimators whose entry has every attribute value given.
+
+    ``names_where(open_loop=True)``, ``names_where(model='arx')``; an
+    attribute that is a tuple (``input_modes``) matches when it contains the
+    value.
+    """
+    def matches(item: EstimatorEntry) -> bool:
+        for key, wanted in conditions.items():
+            value = getattr(item, key)
+            if not (wanted in value if isinstance(value, tuple) else value == wanted):
+                return False
+        return True
+
+    return tuple(name for name, item in REGISTRY.items() if matches(item))
+
+
+def option_specs() -> tuple[ParameterSpec, ...]:
+    """Return every registered estimator's options, each name once, in registry order."""
+    specs: dict[str, ParameterSpec] = {}
+    for item in REGISTRY.values():
+        for spec in item.options:
+            specs.setdefault(spec.name, spec)
+    return tuple(specs.values())
+
+
+def _load(location: str) -> Any:
+    module, name = location.split(':')
+    return getattr(importlib.import_module(module), name)
+
+
+def estimator_class(name: str) -> Any:
+    """
+    Return the single-plant class of estimator ``name`` (its module imported on first use).
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not registered.
+
+    """
+    return _load(entry(name).single)
+
+
+def batched_class(name: str) -> Any:
+    """
+    Return the many-plants class of estimator ``name``.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not registered or has no batched form.
+
+    """
+    location = entry(name).batched
+    if location is None:
+        batched = ', '.join(names_where(input_modes='joint_state'))
+        raise ValueError(f'estimator must be one of {batched} for many plants; got {name!r}')
+    return _load(location)
+
+
+__all__ = ['ESTIMATOR_NAMES', 'EstimatorEntry', 'INPUT_MODES', 'MODEL_KINDS', 'OPEN_LOOP_KINDS',
+           'REGISTRY', 'batched_class', 'entry', 'estimator_class', 'names_where',
+           'option_specs']

@@ -1,0 +1,343 @@
+"""
+The rulebook: the safeguards every estimator shares, each written once.
+
+Every estimator of bcid_ros runs the same rules around its own equations
+(docs/estimators.md, "Estimates you can trust"): the outlier gate and its
+detection of a real plant change, the warm-up before the gate tests, the
+memory cut after a change, the choice of signal scales, the check and
+repair of a covariance matrix, and the validity checks of a published model.
+They are written here over a **leading plant axis**: arrays of shape
+``(K, ...)`` for K plants, so a single-plant estimator (K = 1, in its rare
+paths) and the batched estimators (K plants at once) call the same
+functions and take the same decisions. The estimators keep only their own
+equations and their bookkeeping (flags, regressors).
+
+Each function is pure: it takes arrays and returns new arrays or masks; where
+it says "in place" it changes the arrays it is given.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+#: Normalised prediction error beyond which a sample is refused even with the
+#: gate off (``outlier_threshold`` = 0): no Gaussian noise produces it, and
+#: taking it would move the estimate by a million standard deviations.
+IMPLAUSIBLE_ERROR = 1e6
+#: The change score of the gate: +1 per refused sample, times CHANGE_DECAY per
+#: tested sample; three refusals in a row (1 + 0.8 + 0.64 = 2.44) reach it.
+CHANGE_SCORE = 2.4
+#: See CHANGE_SCORE.
+CHANGE_DECAY = 0.8
+#: A decayed score below this is 0 again (about 31 accepted samples after one refusal).
+SCORE_FLOOR = 1e-3
+#: The gate tests samples once the weighted count reaches GATE_WARMUP times
+#: the number of parameters (its variance estimate is then a variance).
+GATE_WARMUP = 10
+#: A detected plant change cuts the weighted memory to this many times p.
+CHANGE_MEMORY = 4
+#: Validity is re-evaluated every this many updates (its cost is amortised).
+VALIDITY_PERIOD = 100
+#: A model pole beyond this radius makes the model unstable.
+UNSTABLE_RADIUS = 1.01
+#: Output power growing by more than this between two validity checks means
+#: the data are not bounded (an unstable estimate may then be right).
+GROWTH = 4.0
+#: A covariance whose normalised Cholesky pivots fall below this times its
+#: largest diagonal entry is numerically singular (condition beyond 1e13).
+CONDITION_FLOOR = 1e-13
+
+
+# ------------------------------------------------------------------ the gate
+def gate_limit2(outlier_threshold: float) -> float:
+    """Return the squared limit of the normalised prediction error (0 = gate off)."""
+    return (outlier_threshold or IMPLAUSIBLE_ERROR) ** 2
+
+
+def gate(z2: Any, limit2: float, score: Any) -> tuple[Any, Any, Any]:
+    r"""
+    Decide which samples are used, from their squared normalised prediction errors.
+
+    A sample with :math:`z^2` above ``limit2`` is refused. Refusals raise a
+    change score that decays by ``CHANGE_DECAY`` per tested sample (to 0
+    below ``SCORE_FLOOR``); when it reaches ``CHANGE_SCORE`` (three refusals
+    in a row) the errors are taken as a real change of the plant: the sample
+    is used, the score restarts at 0, and the caller cuts the memory
+    (:func:`memory_keep`).
+
+    Parameters
+    ----------
+    z2 : float or numpy.ndarray, shape ``(K,)``
+        :math:`e^2 / \mathrm{var}(e)` of each plant's tested sample.
+    limit2 : float
+        :func:`gate_limit2` of the threshold.
+    score : float or numpy.ndarray, shape ``(K,)``
+        The change scores before the sample.
+
+    Returns
+    -------
+    used, score, change
+        Whether each sample is used, the new scores, and whether the sample
+        marks a plant change (used, with the memory to be cut). Booleans and
+        floats for scalar input, arrays for arrays.
+
+    """
+    accepted = np.less_equal(z2, limit2)
+    decayed = np.multiply(score, CHANGE_DECAY)
+    raised = decayed + 1.0
+    change = np.logical_and(np.logical_not(accepted), raised >= CHANGE_SCORE)
+    kept = np.where(decayed > SCORE_FLOOR, decayed, 0.0)
+    score = np.where(accepted, kept, np.where(change, 0.0, raised))
+    used = np.logical_or(accepted, change)
+    if np.ndim(used) == 0:
+        return bool(used), float(score), bool(change)
+    return used, score, change
+
+
+def memory_keep(tau: Any, count: int) -> Any:
+    """
+    Return the factor that cuts a weighted memory ``tau`` to CHANGE_MEMORY times ``count``.
+
+    Below 1 where the memory is longer; 1 where it is not (nothing to cut). The
+    estimator applies it as one extra forgetting step on what it learnt
+    (a covariance grows by 1 / keep, sums and counts shrink by keep), which
+    keeps every mean and the covariance-times-count.
+    """
+    tau = np.asarray(tau, dtype=float)
+    with np.errstate(divide='ignore'):
+        keep = np.where(tau > 0.0, CHANGE_MEMORY * count / np.where(tau > 0.0, tau, 1.0), 1.0)
+    keep = np.minimum(keep, 1.0)
+    return float(keep) if keep.ndim == 0 else keep
+
+
+def cut_memory(p: np.ndarray, loss: np.ndarray, tau: np.ndarray, count: int) -> np.ndarray:
+    """
+    Cut the memories of least-squares states to CHANGE_MEMORY times ``count``, in place.
+
+    ``p`` ``(K, p, p)`` grows by 1 / keep, ``loss`` and ``tau`` ``(K,)`` shrink
+    by keep (:func:`memory_keep`): J / tau and tau P stay as they were.
+    Returns the factors.
+    """
+    keep = memory_keep(tau, count)
+    cut = keep < 1.0
+    if cut.any():
+        p[cut] *= (1.0 / keep[cut])[:, None, None]
+        loss[cut] *= keep[cut]
+        tau[cut] *= keep[cut]
+    return keep
+
+
+# ---------------------------------------------------------------- the units
+def powers_of_two_at_least(values: Any) -> Any:
+    """
+    Return the smallest power of two >= each value > 0 (1.0 for 0 or non-finite).
+
+    Scaling by such a number is exact in binary floating point, so signals
+    divided by these scales keep every bit.
+    """
+    values = np.asarray(values, dtype=float)
+    usable = (values > 0.0) & np.isfinite(values)
+    mantissa, exponent = np.frexp(np.where(usable, values, 1.0))
+    scale = np.where(usable, np.ldexp(1.0, np.where(mantissa == 0.5, exponent - 1, exponent)),
+                     1.0)
+    return float(scale) if scale.ndim == 0 else scale
+
+
+def choose_scales(scales: np.ndarray, peaks: np.ndarray) -> np.ndarray:
+    """
+    Give each channel still without a scale (0) the scale of its peak, in place.
+
+    ``scales`` and ``peaks`` are ``(K, channels)``; a channel whose peak is
+    still 0 keeps scale 0 (it gets one when it first is not). Returns the
+    mask of the channels that got a scale now.
+    """
+    new = (scales == 0.0) & (peaks > 0.0)
+    if new.any():
+        scales[new] = powers_of_two_at_least(peaks[new])
+    return new
+
+
+def rescale_new_channels(p: np.ndarray, new: np.ndarray, scales: np.ndarray,
+                         channel: np.ndarray) -> None:
+    """
+    Divide the diagonal of P by the square of each new channel's scale, in place.
+
+    Exact, and all a new scale needs: the components of a new channel were
+    zero in every update so far, so their rows and columns of P are still
+    p0 (times 1 / lambda^k) on the diagonal. ``p`` ``(K, p, p)``, ``new`` and
+    ``scales`` ``(K, channels)``, ``channel`` ``(p,)`` the channel of each
+    component.
+    """
+    with np.errstate(divide='ignore'):
+        factor = np.where(new, 1.0 / (scales * scales), 1.0)[:, channel]
+    diagonal = np.arange(p.shape[-1])
+    p[:, diagonal, diagonal] *= factor
+
+
+# ------------------------------------------------------------ the covariance
+def definite(p: np.ndarray) -> np.ndarray:
+    """Return whether each matrix of ``p`` ``(K, p, p)`` has a Cholesky factor."""
+    try:
+        np.linalg.cholesky(p)
+        return np.ones(p.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        return np.array([_factor(matrix) is not None for matrix in p], dtype=bool)
+
+
+def sound_covariances(p: np.ndarray, component_scale: np.ndarray) -> np.ndarray:
+    """
+    Return whether each normalised P is positive definite with a condition within 1e13.
+
+    ``p`` ``(K, p, p)`` in the user's units, ``component_scale`` ``(K, p)``
+    the scale of each component of phi: S P S is checked, whose conditioning
+    does not depend on the units.
+    """
+    scaled = p * (component_scale[:, :, None] * component_scale[:, None, :])
+    sound = np.zeros(p.shape[0], dtype=bool)
+    for k, matrix in enumerate(scaled):
+        factor = _factor(matrix)
+        if factor is not None:
+            pivots = np.diagonal(factor) ** 2
+            sound[k] = pivots.min() > CONDITION_FLOOR * matrix.diagonal().max()
+    return sound
+
+
+def _factor(matrix: np.ndarray) -> np.ndarray | None:
+    """Return the Cholesky factor of one matrix, or None."""
+    try:
+        return np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def repair_covariances(p: np.ndarray, fallback: np.ndarray,
+                       weights: np.ndarray | None = None) -> np.ndarray:
+    """
+    Return the nearest symmetric positive definite matrices to those of ``p``.
+
+    Per matrix ``(K, p, p)``: the symmetric part is diagonally scaled by
+    ``weights`` ``(K, p)`` (the inverse signal scales, so that the eigenvalue
+    floor is relative in normalised units), its eigenvalues are clipped at
+    1e-12 of the largest (at least 1e-12) and the scaling is undone. A matrix
+    with a non-finite entry is replaced by its ``fallback`` ``(K, p, p)``.
+    """
+    repaired = np.empty_like(p)
+    for k, matrix in enumerate(p):
+        sym = 0.5 * (matrix + matrix.T)
+        if not np.isfinite(sym).all():
+            repaired[k] = fallback[k]
+            continue
+        w = np.ones(p.shape[-1]) if weights is None else weights[k]
+        values, vectors = np.linalg.eigh(sym * np.outer(w, w))
+        floor = max(values.max(), 1.0) * 1e-12
+        vectors = vectors / w[:, None]
+        repaired[k] = (vectors * np.maximum(values, floor)) @ vectors.T
+    return repaired
+
+
+# -------------------------------------------------------------- the validity
+def spectral_radii(a: np.ndarray) -> np.ndarray:
+    """
+    Return the largest pole magnitude of each A_k(q) = 1 + a_k1 q^-1 + ... (rows of ``a``).
+
+    Closed forms for n <= 2 (a twentieth of the eigenvalues' cost); a row
+    with a non-finite coefficient has radius inf.
+    """
+    count, order = a.shape
+    if count == 1 and order <= 2:  # one plant: the closed forms on floats, ten times cheaper
+        return np.array([_radius_of_one(a[0].tolist())])
+    radius = np.full(count, math.inf)
+    general = np.isfinite(a).all(axis=1)
+    if order == 1:
+        radius[general] = np.abs(a[general, 0])
+        return radius
+    if order == 2:
+        with np.errstate(over='ignore', invalid='ignore'):
+            discriminant = a[:, 0] * a[:, 0] - 4.0 * a[:, 1]
+        closed = general & np.isfinite(discriminant)  # an overflow takes the general way
+        a1, a2, d = a[closed, 0], a[closed, 1], discriminant[closed]
+        # real poles (-a1 +- sqrt(d)) / 2, or a complex pair with |z|^2 = a2 (> 0 there)
+        radius[closed] = np.where(d >= 0.0, 0.5 * (np.abs(a1) + np.sqrt(np.abs(d))),
+                                  np.sqrt(np.abs(a2)))
+        general &= ~closed
+    if general.any():
+        radius[general] = _companion_radii(a[general])
+    return radius
+
+
+def _radius_of_one(a: list[float]) -> float:
+    """Return :func:`spectral_radii` of one A(q) of order 1 or 2, on floats."""
+    if len(a) == 1:
+        return abs(a[0]) if math.isfinite(a[0]) else math.inf
+    a1, a2 = a
+    if not (math.isfinite(a1) and math.isfinite(a2)):
+        return math.inf
+    discriminant = a1 * a1 - 4.0 * a2
+    if not math.isfinite(discriminant):  # an overflow: the general way
+        return float(_companion_radii(np.array([a]))[0])
+    if discriminant >= 0.0:
+        return 0.5 * (abs(a1) + math.sqrt(discriminant))
+    return math.sqrt(abs(a2))
+
+
+def _companion_radii(a: np.ndarray) -> np.ndarray:
+    """Return the largest eigenvalue magnitude of each row's companion matrix (finite rows)."""
+    count, order = a.shape
+    companion = np.zeros((count, order, order))
+    companion[:, 0] = -a
+    companion[:, 1:, :-1] = np.eye(order - 1)
+    return np.abs(np.linalg.eigvals(companion)).max(axis=1)
+
+
+def spectral_radius(a: np.ndarray) -> float:
+    """Return the largest pole magnitude of one A(q) = 1 + a_1 q^-1 + ... + a_n q^-n."""
+    return float(spectral_radii(np.asarray(a, dtype=float)[None, :])[0])
+
+
+def output_powers(p: np.ndarray, tau: np.ndarray, order: int) -> np.ndarray:
+    """
+    Return the weighted mean square of y over each memory, from P^-1 (inf where singular).
+
+    The first n components of phi are the past outputs, so the trace of the
+    a-block of the information P^-1, over n and the weighted count, is their
+    weighted mean square.
+    """
+    try:
+        information = np.linalg.inv(p)
+    except np.linalg.LinAlgError:
+        information = np.full(p.shape, np.inf)
+        for k, matrix in enumerate(p):
+            try:
+                information[k] = np.linalg.inv(matrix)
+            except np.linalg.LinAlgError:
+                pass
+    trace = information[:, :order, :order].diagonal(axis1=1, axis2=2).sum(axis=1)
+    return trace / (order * np.maximum(tau, 1.0))
+
+
+def unstable_models(a: np.ndarray, power: np.ndarray,
+                    last_power: np.ndarray) -> list[list[str]]:
+    """
+    Return, per plant, the reason not to trust an unstable model of bounded data.
+
+    ``a`` ``(K, n)`` are the published denominators, ``power`` the output
+    power now and ``last_power`` at the last check (:func:`output_powers`). A
+    pole beyond ``UNSTABLE_RADIUS`` is a reason unless the power grew by more
+    than ``GROWTH`` (unbounded data: an unstable model may then be right).
+    """
+    radius = spectral_radii(a)
+    # NaN compares false: an unknown radius is unstable, an unknown power bounded
+    unstable = ~(radius <= UNSTABLE_RADIUS) & ~(power > GROWTH * last_power)
+    return [[f'unstable model (pole radius {radius[k]:.3g}) on bounded data'] if flag else []
+            for k, flag in enumerate(unstable.tolist())]
+
+
+__all__ = ['CHANGE_DECAY', 'CHANGE_MEMORY', 'CHANGE_SCORE', 'CONDITION_FLOOR', 'GATE_WARMUP',
+           'GROWTH', 'IMPLAUSIBLE_ERROR', 'SCORE_FLOOR', 'UNSTABLE_RADIUS', 'VALIDITY_PERIOD',
+           'choose_scales', 'cut_memory', 'definite', 'gate', 'gate_limit2', 'memory_keep',
+           'output_powers', 'powers_of_two_at_least', 'repair_covariances',
+           'rescale_new_channels', 'sound_covariances', 'spectral_radii', 'spectral_radius',
+           'unstable_models']
