@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 from scipy import signal
 
-from bcid_ros.estimators import cl_bcls_batch as batch
+from bcid_ros.estimators import cl_bcls
 from bcid_ros.estimators.lti import Controller
 from bcid_ros.markdown import markdown_table
 from bcid_ros.reproduction.common import mean_and_stderr, pyplot
@@ -105,21 +105,21 @@ def study_71(runs: int, seed: int = SEED_71, samples: int = SAMPLES,
     loop = IkedaClosedLoop(reference_amplitude=0.0)
     controller = loop.controller
     truth = loop.truth().parameters
-    f_bc = batch.prefilter_polynomial(PREFILTER_72, 1)
-    f_opt = batch.prefilter_polynomial(TRUE_POLE, 1)
+    f_bc = cl_bcls.prefilter_polynomial(PREFILTER_72, 1)
+    f_opt = cl_bcls.prefilter_polynomial(TRUE_POLE, 1)
     # true P12, P22 and h for f = 0.5                           (33), (36), (43), (44)
-    direction, beta = batch.bias_terms(truth, f_bc, controller)
+    direction, beta = cl_bcls.bias_terms(truth, f_bc, controller)
     bc, optimal, sigma2 = np.empty((runs, 2)), np.empty((runs, 2)), np.empty(runs)
     information = np.zeros((2, 2))
     regression = np.zeros((2, 2))
     for run in progress(range(runs), runs, '7.1'):
         y, u = loop.simulate(samples, seed + run)
         u = u[:, 0]
-        ls = batch.prefiltered_ls(y, u, f_bc)
-        theta, sigma2[run] = batch.compensated_estimate(ls, direction, beta)
-        bc[run] = _pole_b(batch.plant_from_regression(theta, f_bc))
-        ls_opt = batch.prefiltered_ls(y, u, f_opt)
-        optimal[run] = _pole_b(batch.plant_from_regression(ls_opt.theta, f_opt))
+        ls = cl_bcls.prefiltered_ls(y, u, f_bc)
+        theta, sigma2[run] = cl_bcls.compensated_estimate(ls, direction, beta)
+        bc[run] = _pole_b(cl_bcls.plant_from_regression(theta, f_bc))
+        ls_opt = cl_bcls.prefiltered_ls(y, u, f_opt)
+        optimal[run] = _pole_b(cl_bcls.plant_from_regression(ls_opt.theta, f_opt))
         regression += ls_opt.information
         # psi_b = 1/(q - a) u, psi_a = b/(q - a)^2 u
         psi_b = signal.lfilter([0.0, 1.0], [1.0, -TRUE_POLE], u)
@@ -142,7 +142,7 @@ class Study72:
     failures: dict[int, int]
 
 
-def plug_in_sequence(ls: batch.PrefilteredLs, prefilter: np.ndarray, controller: Controller,
+def plug_in_sequence(ls: cl_bcls.PrefilteredLs, prefilter: np.ndarray, controller: Controller,
                      steps: int) -> list[np.ndarray]:
     """
     Return the plant estimates after 1..``steps`` plug-in compensations at fixed f.
@@ -152,15 +152,15 @@ def plug_in_sequence(ls: batch.PrefilteredLs, prefilter: np.ndarray, controller:
     step 1 is the compensation section 7.2 describes). A failed step ends
     the list early.
     """
-    estimate = batch.plant_from_regression(ls.theta, prefilter)
+    estimate = cl_bcls.plant_from_regression(ls.theta, prefilter)
     sequence = []
     for _ in range(steps):
         try:
-            direction, beta = batch.bias_terms(estimate, prefilter, controller)
-            theta, _ = batch.compensated_estimate(ls, direction, beta)
-        except batch.CompensationFailure:
+            direction, beta = cl_bcls.bias_terms(estimate, prefilter, controller)
+            theta, _ = cl_bcls.compensated_estimate(ls, direction, beta)
+        except cl_bcls.CompensationFailure:
             break
-        estimate = batch.plant_from_regression(theta, prefilter)
+        estimate = cl_bcls.plant_from_regression(theta, prefilter)
         sequence.append(estimate)
     return sequence
 
@@ -170,13 +170,13 @@ def study_72(runs: int, seed: int = SEED_72, samples: int = SAMPLES,
              progress: Callable = lambda it, total, what='': it) -> Study72:
     """Run section 7.2 on ``runs`` realisations (seeds ``seed + k``)."""
     loop = IkedaClosedLoop()
-    prefilter = batch.prefilter_polynomial(PREFILTER_72, 1)
+    prefilter = cl_bcls.prefilter_polynomial(PREFILTER_72, 1)
     ls_estimates = np.empty((runs, 2))
     plug_in = {j: np.full((runs, 2), np.nan) for j in steps}
     for run in progress(range(runs), runs, '7.2'):
         y, u = loop.simulate(samples, seed + run)
-        ls = batch.prefiltered_ls(y, u[:, 0], prefilter)
-        ls_estimates[run] = _pole_b(batch.plant_from_regression(ls.theta, prefilter))
+        ls = cl_bcls.prefiltered_ls(y, u[:, 0], prefilter)
+        ls_estimates[run] = _pole_b(cl_bcls.plant_from_regression(ls.theta, prefilter))
         sequence = plug_in_sequence(ls, prefilter, loop.controller, max(steps))
         for j in steps:
             if len(sequence) >= j:
@@ -218,7 +218,7 @@ def study_73(runs: int, seed: int = SEED_72, samples: int = SAMPLES,
         y, u = loop.simulate(samples, seed + run)
         for key in ('bc', 'plain'):
             start = time.process_time()
-            result = batch.closed_loop_bcls(y, u, bias_compensation=key == 'bc', **settings)
+            result = cl_bcls.closed_loop_bcls(y, u, bias_compensation=key == 'bc', **settings)
             cpu[key] += time.process_time() - start
             out[key][run] = _pole_b(result.theta)
             iterations[key][run] = result.iterations

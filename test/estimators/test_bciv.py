@@ -208,7 +208,7 @@ def test_fallback_on_zero_b_and_recovery(settings):
 
 def test_ill_conditioned_noise_system_falls_back(monkeypatch):
     z, w, _ = section('ikenoue_colored', 600)
-    monkeypatch.setattr('bcid_ros.estimators.bciv.CONDITION_MAX', 1.0)
+    monkeypatch.setattr('bcid_ros.estimators.bciv.solver.CONDITION_MAX', 1.0)
     est = Bciv(order=2, idle_samples=0, **COLORED)
     trajectory = est.run(z, w)
     assert est.flags['fallback_iv'] == est.samples

@@ -8,7 +8,6 @@ import scipy.linalg
 from scipy import signal
 
 from bcid_ros.estimators import cl_bcls as cl
-from bcid_ros.estimators import cl_bcls_batch as batch
 from bcid_ros.estimators import estimator_class, lti, make_estimator
 from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
                                             load_yaml_parameters)
@@ -87,10 +86,10 @@ def test_registry_options_and_names():
 
 
 def test_prefilter_from_a_pole_or_coefficients():
-    np.testing.assert_allclose(batch.prefilter_polynomial(0.5, 1), [1.0, -0.5])
-    np.testing.assert_allclose(batch.prefilter_polynomial([0.5], 2), [1.0, -1.0, 0.25])
-    np.testing.assert_allclose(batch.prefilter_polynomial([2.0, -1.0, 0.18], 2), [1.0, -0.5, 0.09])
-    np.testing.assert_allclose(batch.prefilter_polynomial(0.0, 3), [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(cl.prefilter_polynomial(0.5, 1), [1.0, -0.5])
+    np.testing.assert_allclose(cl.prefilter_polynomial([0.5], 2), [1.0, -1.0, 0.25])
+    np.testing.assert_allclose(cl.prefilter_polynomial([2.0, -1.0, 0.18], 2), [1.0, -0.5, 0.09])
+    np.testing.assert_allclose(cl.prefilter_polynomial(0.0, 3), [1.0, 0.0, 0.0, 0.0])
 
 
 # ------------------------------------------------- the linear-algebra pieces
@@ -106,14 +105,14 @@ def test_sylvester_and_lyapunov_pieces_match_the_full_lyapunov_eq36(seed):
     def pieces(closed_loop, prefilter, h):
         a_cl, b_cl = lti.controller_canonical(np.r_[1.0, closed_loop])
         f_matrix, g = lti.controller_canonical(np.r_[1.0, prefilter])
-        p22 = batch.solve_p22(f_matrix, g)
+        p22 = cl.solve_p22(f_matrix, g)
         return {'p22': p22, 'lyapunov p22': p22,
-                'p12': batch.solve_p12(a_cl, b_cl, f_matrix, g, h, p22)}
+                'p12': cl.solve_p12(a_cl, b_cl, f_matrix, g, h, p22)}
 
     def scipy_solutions(closed_loop, prefilter, h):
         a_cl, b_cl = lti.controller_canonical(np.r_[1.0, closed_loop])
         f_matrix, g = lti.controller_canonical(np.r_[1.0, prefilter])
-        full = batch.noise_state_covariance(a_cl, b_cl, f_matrix, g, h)  # scipy, eq. (36)
+        full = cl.noise_state_covariance(a_cl, b_cl, f_matrix, g, h)  # scipy, eq. (36)
         return {'p22': full[k:, k:], 'p12': full[:k, k:],
                 'lyapunov p22': scipy.linalg.solve_discrete_lyapunov(f_matrix, np.outer(g, g))}
 
@@ -161,7 +160,7 @@ def test_bias_terms_are_the_noise_moments_of_theorem1(seed, sign):
         b_p = rng.uniform(-1, 1, n)
         controller = lti.make_controller(rng.uniform(-0.5, 0.5, m + 1),
                                          random_stable_polynomial(rng, m), sign)
-        d_cl, *_ = batch.closed_loop_realisation(a_p, b_p, controller)
+        d_cl, *_ = cl.closed_loop_realisation(a_p, b_p, controller)
         if lti.is_stable(d_cl, 0.1):
             break
     prefilter = random_stable_polynomial(rng, n)
@@ -169,8 +168,8 @@ def test_bias_terms_are_the_noise_moments_of_theorem1(seed, sign):
 
     def theorem(a_p, b_p, numerator, denominator, prefilter):
         controller = lti.make_controller(numerator, np.r_[1.0, denominator], sign)
-        direction, beta = batch.bias_terms(np.concatenate((a_p, b_p)), np.r_[1.0, prefilter],
-                                           controller)
+        direction, beta = cl.bias_terms(np.concatenate((a_p, b_p)), np.r_[1.0, prefilter],
+                                        controller)
         return {'direction': direction, 'beta': beta}
 
     def sums(a_p, b_p, numerator, denominator, prefilter):
@@ -191,16 +190,16 @@ def test_bias_terms_are_the_noise_moments_of_theorem1(seed, sign):
 
 def test_bias_terms_refuse_an_unstable_estimated_loop():
     controller = lti.make_controller([5.0], [1.0, -0.09])
-    with pytest.raises(batch.CompensationFailure, match='estimated closed loop') as info:
-        batch.bias_terms(np.array([-0.8, 5.0]), np.array([1.0, -0.5]), controller)
+    with pytest.raises(cl.CompensationFailure, match='estimated closed loop') as info:
+        cl.bias_terms(np.array([-0.8, 5.0]), np.array([1.0, -0.5]), controller)
     assert info.value.flag == 'unstable_closed_loop'
 
 
 def test_negative_argument_of_eq58_is_refused():
     y, u = PAPER.simulate(500, 1)
-    ls = batch.prefiltered_ls(y, u[:, 0], np.array([1.0, -0.5]))
-    with pytest.raises(batch.CompensationFailure) as info:
-        batch.compensated_estimate(ls, np.array([1e3, 1e3]), 1.0)
+    ls = cl.prefiltered_ls(y, u[:, 0], np.array([1.0, -0.5]))
+    with pytest.raises(cl.CompensationFailure) as info:
+        cl.compensated_estimate(ls, np.array([1e3, 1e3]), 1.0)
     assert info.value.flag == 'negative_variance_argument'
 
 
@@ -208,11 +207,11 @@ def test_negative_argument_of_eq58_is_refused():
 def test_prefiltered_ls_solves_the_normal_equations():
     y, u = PAPER.simulate(300, 2)
     prefilter = np.array([1.0, -0.5])
-    ls = batch.prefiltered_ls(y, u[:, 0], prefilter)
+    ls = cl.prefiltered_ls(y, u[:, 0], prefilter)
     assert ls.count == 299
 
     def normal_equations(y, u):
-        ls = batch.prefiltered_ls(y, u, prefilter)
+        ls = cl.prefiltered_ls(y, u, prefilter)
         return {'theta': ls.theta, 'loss': ls.loss}
 
     def lstsq(y, u):
@@ -237,9 +236,9 @@ def test_prefiltered_ls_solves_the_normal_equations():
 
 def test_algorithm1_converges_and_bias_compensation_saves_iterations():
     y, u = PAPER.simulate(4096, 11)
-    bc = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7, **CONTROLLER)
-    plain = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7,
-                                   bias_compensation=False, **CONTROLLER)
+    bc = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7, **CONTROLLER)
+    plain = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.7,
+                                bias_compensation=False, **CONTROLLER)
     assert bc.converged and plain.converged and bc.failure is None
     assert bc.iterations < plain.iterations
     assert bc.iterations == len(bc.history)
@@ -252,9 +251,9 @@ def test_algorithm1_converges_and_bias_compensation_saves_iterations():
 
 def test_algorithm1_first_iteration_failure_is_raised():
     y, u = PAPER.simulate(1000, 3)
-    with pytest.raises(batch.CompensationFailure) as info:
-        batch.closed_loop_bcls(y, u, order=1, controller_numerator=[50.0],
-                               controller_denominator=[1.0, -0.09])
+    with pytest.raises(cl.CompensationFailure) as info:
+        cl.closed_loop_bcls(y, u, order=1, controller_numerator=[50.0],
+                            controller_denominator=[1.0, -0.09])
     assert info.value.flag == 'unstable_closed_loop'
 
 
@@ -264,9 +263,9 @@ def test_algorithm1_follows_remark3_for_an_unstable_plant():
                            controller_denominator=[1.0, -0.09], noise_variance=0.25)
     settings = loop.estimator_settings()
     y, u = loop.simulate(4096, 0)
-    result = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, tolerance=1e-6,
-                                    controller_numerator=settings['controller_numerator'],
-                                    controller_denominator=settings['controller_denominator'])
+    result = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, tolerance=1e-6,
+                                 controller_numerator=settings['controller_numerator'],
+                                 controller_denominator=settings['controller_denominator'])
     assert result.converged
     # 40 runs gave std 0.003 (pole) and 0.005 (b); 5 std as bounds for one run
     assert abs(result.theta[0] + 1.2) < 0.02 and abs(result.theta[1] - 0.5) < 0.03
@@ -311,7 +310,7 @@ def batch_checkpoints(y, u, est, controller, kinds):
     for k, kind in sorted(kinds.items()):
         start = kind[1]
         if kind[0] == 'redesign':
-            last = batch.closed_loop_bcls(
+            last = cl.closed_loop_bcls(
                 y[start:k + 1], u[start:k + 1], order=est.order,
                 prefilter_initial=kind[2] if prefilter is None else prefilter,
                 max_iterations=est.max_iterations, tolerance=est.tolerance, **controller)
@@ -319,10 +318,10 @@ def batch_checkpoints(y, u, est, controller, kinds):
             figures[k] = {'theta': last.theta, 'ls': last.theta_ls, 'sigma2': last.sigma2,
                           'iterations': last.iterations}
         else:
-            ls = batch.prefiltered_ls(y[start:k + 1], u[start:k + 1], prefilter)
-            theta, sigma2 = batch.compensated_estimate(ls, last.direction, last.beta)
-            figures[k] = {'theta': batch.plant_from_regression(theta, prefilter),
-                          'ls': batch.plant_from_regression(ls.theta, prefilter),
+            ls = cl.prefiltered_ls(y[start:k + 1], u[start:k + 1], prefilter)
+            theta, sigma2 = cl.compensated_estimate(ls, last.direction, last.beta)
+            figures[k] = {'theta': cl.plant_from_regression(theta, prefilter),
+                          'ls': cl.plant_from_regression(ls.theta, prefilter),
                           'sigma2': sigma2}
     return figures
 
@@ -474,7 +473,7 @@ def test_lyapunov_failure_is_flagged_and_held(monkeypatch):
     def broken(*_):
         raise np.linalg.LinAlgError('singular Kronecker system')
 
-    monkeypatch.setattr(batch, 'solve_stein', broken)
+    monkeypatch.setattr('bcid_ros.estimators.cl_bcls.bias.solve_stein', broken)
     trajectory = est.run(y[300:], u[300:])
     assert_no_nan(trajectory)
     assert est.flags == {'lyapunov_failed': 1} and est.holding
@@ -484,8 +483,9 @@ def test_lyapunov_failure_is_flagged_and_held(monkeypatch):
 
 def test_unstable_redesigned_prefilter_stops_the_iteration(monkeypatch):
     y, u = PAPER.simulate(400, 8)
-    monkeypatch.setattr(batch, 'stable_reflection', lambda a_p: np.array([1.0, -1.0]))
-    result = batch.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, **CONTROLLER)
+    monkeypatch.setattr('bcid_ros.estimators.cl_bcls.batch.stable_reflection',
+                        lambda a_p: np.array([1.0, -1.0]))
+    result = cl.closed_loop_bcls(y, u, order=1, prefilter_initial=0.5, **CONTROLLER)
     assert result.failure == 'unstable_prefilter' and result.iterations == 1
     np.testing.assert_array_equal(result.next_prefilter, [1.0, -0.5])
     est = make(window=400, redesign_period=200, prefilter_initial=0.5)
@@ -595,10 +595,10 @@ def test_scenario_positive_sign_and_zero_reference():
 # ------------------------------------------- regression: drifting first redesign
 def test_is_contracting_compares_the_last_step_with_the_first():
     steps = [np.array([0.0, 0.0]), np.array([0.1, 0.0]), np.array([0.15, 0.0])]
-    assert batch.is_contracting(steps)
+    assert cl.is_contracting(steps)
     drifting = [np.array([0.0, 0.0]), np.array([0.05, 0.0]), np.array([0.2, 0.0])]
-    assert not batch.is_contracting(drifting)
-    assert batch.is_contracting(drifting[:2]) and batch.is_contracting(drifting[:1])
+    assert not cl.is_contracting(drifting)
+    assert cl.is_contracting(drifting[:2]) and cl.is_contracting(drifting[:1])
 
 
 def config_estimator(**overrides):
@@ -644,8 +644,8 @@ def test_seed_1082_drifting_first_redesign_is_dropped_and_flagged():
     at_1000 = est.theta
     # the next redesign starts again from f = q - 0.7, on 2000 samples
     rest = est.run(y[1000:2000], u[1000:2000])
-    offline = batch.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
-                                     max_iterations=est.max_iterations, **CONTROLLER)
+    offline = cl.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
+                                  max_iterations=est.max_iterations, **CONTROLLER)
     assert est.valid and offline.converged
 
     def online_form(y, u):
@@ -657,15 +657,15 @@ def test_seed_1082_drifting_first_redesign_is_dropped_and_flagged():
 
     # the running LS started from P(0) = p0 S^-2 (the scales the run chose): its batch
     # form is the LS regularised by P(0)^-1
-    regularisation = np.diag(1.0 / est._initial_p().diagonal())
+    regularisation = np.diag(1.0 / est._units.initial_p().diagonal())
 
     def batch_form(y, u):
         prefilter = np.array([1.0, -0.7])
-        phi, target, _ = batch.prefiltered_regression(y[:1000], u[:1000], prefilter)
+        phi, target, _ = cl.prefiltered_regression(y[:1000], u[:1000], prefilter)
         ls = np.linalg.solve(phi.T @ phi + regularisation, phi.T @ target)
-        offline = batch.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
-                                         max_iterations=est.max_iterations, **CONTROLLER)
-        return {'LS at 1000': batch.plant_from_regression(ls, prefilter),
+        offline = cl.closed_loop_bcls(y[:2000], u[:2000], order=1, prefilter_initial=0.7,
+                                      max_iterations=est.max_iterations, **CONTROLLER)
+        return {'LS at 1000': cl.plant_from_regression(ls, prefilter),
                 'theta at 2000': offline.theta}
 
     # RLS steps against the batch LS, and Algorithm 1 on a strided against a contiguous

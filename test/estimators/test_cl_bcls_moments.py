@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import cl_bcls as cl
-from bcid_ros.estimators import cl_bcls_batch as batch
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.lti import make_controller
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
@@ -70,20 +69,20 @@ def single_prefilter_batch(y, u, checkpoints):
     figures, direction, beta, theta = {}, None, None, None
     for k in sorted(set(checkpoints) | set(REDESIGNS)):
         # the LS over all samples so far (sample k completes row k)
-        ls = batch.prefiltered_ls(y[:k + 1], u[:k + 1], prefilter)
-        ls_plant = batch.plant_from_regression(ls.theta, prefilter)
+        ls = cl.prefiltered_ls(y[:k + 1], u[:k + 1], prefilter)
+        ls_plant = cl.plant_from_regression(ls.theta, prefilter)
         if k in REDESIGNS:
             # one iteration of Algorithm 1 on the moments: the bias terms of eq. (37), (57)
             # at the compensated estimate of this row (the LS at the first redesign)
             if direction is not None:
-                theta, _ = batch.compensated_estimate(ls, direction, beta)
-            start = ls_plant if direction is None else batch.plant_from_regression(
+                theta, _ = cl.compensated_estimate(ls, direction, beta)
+            start = ls_plant if direction is None else cl.plant_from_regression(
                 theta, prefilter)
-            direction, beta = batch.bias_terms(start, prefilter, controller)
+            direction, beta = cl.bias_terms(start, prefilter, controller)
         # eqs. (53), (56)-(59) with the c, beta of the last redesign
-        theta, sigma2 = batch.compensated_estimate(ls, direction, beta)
+        theta, sigma2 = cl.compensated_estimate(ls, direction, beta)
         if k in checkpoints:
-            figures[k] = {'theta': batch.plant_from_regression(theta, prefilter),
+            figures[k] = {'theta': cl.plant_from_regression(theta, prefilter),
                           'ls': ls_plant, 'sigma2': sigma2}
     return figures
 
@@ -159,8 +158,8 @@ def test_all_data_since_the_change_is_as_good_as_the_batch_algorithm(seed):
     y, u = PAPER.simulate(20000, seed)
     est = make(prefilter_initial=0.7)
     est.run(y, u)
-    offline = batch.closed_loop_bcls(y, u[:, 0], order=1, prefilter_initial=0.7,
-                                     max_iterations=50, **CONTROLLER)
+    offline = cl.closed_loop_bcls(y, u[:, 0], order=1, prefilter_initial=0.7,
+                                  max_iterations=50, **CONTROLLER)
     assert est.valid
     # both estimate the same quantity from the same data: they differ by much less than the
     # spread over seeds (about 2 % delta at this length)

@@ -12,11 +12,10 @@ import contextlib
 import numpy as np
 import pytest
 
-from bcid_ros.estimators import cl_bcls as cl_bcls_module
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.base import all_finite
 from bcid_ros.estimators.bciv import Bciv
-from bcid_ros.estimators.cl_bcls import update_is_safe
+from bcid_ros.estimators.cl_bcls import running_ls, update_is_safe
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
 
@@ -132,13 +131,13 @@ def test_an_undone_cl_bcls_step_leaves_the_state_it_found(settings, at):
 @contextlib.contextmanager
 def non_finite_update_once(est):
     """Make the next RLS update of a cl_bcls step look non-finite to its check."""
-    saved = cl_bcls_module.update_is_safe, cl_bcls_module.all_finite
-    cl_bcls_module.update_is_safe = lambda *args: False
-    cl_bcls_module.all_finite = lambda *vectors: False
+    saved = running_ls.update_is_safe, running_ls.all_finite
+    running_ls.update_is_safe = lambda *args: False
+    running_ls.all_finite = lambda *vectors: False
     try:
         yield
     finally:
-        cl_bcls_module.update_is_safe, cl_bcls_module.all_finite = saved
+        running_ls.update_is_safe, running_ls.all_finite = saved
 
 
 @pytest.mark.parametrize('settings', WINDOWS)

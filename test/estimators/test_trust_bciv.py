@@ -239,7 +239,7 @@ def test_an_ill_conditioned_compensation_is_not_valid(monkeypatch):
     z, w = ikenoue('colored', 1000)
     est = bciv('colored')
     est.run(z[:600], w[:600])
-    monkeypatch.setattr('bcid_ros.estimators.bciv.CONDITION_MAX', 1.0)
+    monkeypatch.setattr('bcid_ros.estimators.bciv.solver.CONDITION_MAX', 1.0)
     est.update(z[600], w[600])
     # at once: the estimate of this sample fell back to theta_IV
     assert not est.valid

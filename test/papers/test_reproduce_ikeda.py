@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.cl_bcls_batch import closed_loop_bcls
+from bcid_ros.estimators.cl_bcls import closed_loop_bcls
 from bcid_ros.reproduction.common import mean_and_stderr
 from bcid_ros.reproduction.ikeda import (MAX_ITERATIONS_73, PREFILTER_73, reproduce, SAMPLES,
                                          SEED_72, study_71, study_72, study_73, TOLERANCE_73)
