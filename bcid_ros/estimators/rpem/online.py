@@ -398,23 +398,20 @@ class Rpem(RecursiveEstimator):
         self._watch.restarted()
 
     def _accept_change(self) -> None:
-        """Cut the memory (rules.memory_keep) and restart the fits after the change."""
+        """Cut the memory (rules.cut_memory) and restart the fits after the change."""
         self._changes += 1
         self._forget_residuals()
-        keep = rules.memory_keep(self._tau, self.num_parameters)
-        if keep < 1.0:
-            # one extra forgetting step: P / kappa, kappa J, kappa tau
-            self._p *= 1.0 / keep
-            self._loss *= keep
-            self._tau *= keep
+        # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
+        loss, tau = np.array([self._loss]), np.array([self._tau])
+        rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
+        self._loss, self._tau = float(loss[0]), float(tau[0])
         # the stored samples are of the old plant: the fits start again from here
         self._store.restart_schedule()
 
     # --------------------------------------------------- health and validity
     def _check_covariance(self) -> None:
-        try:
-            np.linalg.cholesky(self._p)
-        except np.linalg.LinAlgError:
+        """Repair P if it lost definiteness (every HEALTH_CHECK_PERIOD updates)."""
+        if not rules.definite(self._p[None])[0]:
             self._repair_covariance()
 
     def _repair_covariance(self) -> None:

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from bcid_ros.estimators.base import power_of_two_at_least
+from bcid_ros.estimators import rules
 from bcid_ros.estimators.rpem.fit import BatchFit, FitResult
 
 #: The first batch fit waits for this many usable samples (at least) ...
@@ -220,12 +220,8 @@ class SampleStore:
     @staticmethod
     def _scales(rows: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """Return per channel the power of two at or above its robust size (else ``scale``)."""
-        scale = scale.copy()
-        for channel in range(rows.shape[1]):
-            size = signal_size(rows[:, channel])
-            if size > 0.0:
-                scale[channel] = power_of_two_at_least(size)
-        return scale
+        sizes = np.array([signal_size(rows[:, channel]) for channel in range(rows.shape[1])])
+        return np.where(sizes > 0.0, rules.powers_of_two_at_least(sizes), scale)
 
     @staticmethod
     def _segments(rows: np.ndarray, breaks: np.ndarray, excluded: np.ndarray,
