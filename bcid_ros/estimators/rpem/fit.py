@@ -1,0 +1,408 @@
+r"""
+The batch prediction-error fit of RPEM's stored samples: its starts and its Gauss-Newton search.
+
+Ljung, *System Identification*, 2nd ed. (1999), ch. 10 (sec. 10.2, the
+Gauss-Newton search with a line search, started here by instrumental-variable
+iterations): the ARX least-squares estimate, ``IV_ITERATIONS``
+Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterates, and the
+given candidates are each pulled into the stability region D_M
+(:mod:`~bcid_ros.estimators.rpem.stability`); the best are refined by
+Gauss-Newton (or Levenberg-Marquardt) steps on the loss of the predictor of
+:mod:`~bcid_ros.estimators.rpem.segment`, with the nuisance (initial state,
+offset) projected out (Kaufman's variable projection). :class:`FitResult`
+carries what the recursion continues with.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from bcid_ros.estimators.rpem.segment import SegmentPredictor, solve_regularised
+from bcid_ros.estimators.rpem.stability import HALVINGS, inside, pull_inside
+
+#: Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterations of a fit.
+IV_ITERATIONS = 8
+#: Gauss-Newton (or Levenberg-Marquardt) iterations of a fit.
+LM_ITERATIONS = 20
+#: Samples weighing less than this in a fit (forgetting) are not tested for outliers.
+OUTLIER_WEIGHT = 0.01
+#: Relative loss decrease below which the Gauss-Newton search stops.
+LM_TOLERANCE = 1e-10
+
+
+class FitResult:
+    """
+    A batch prediction-error fit of the stored samples, in normalised units.
+
+    Attributes
+    ----------
+    theta : numpy.ndarray, shape ``(p,)``
+        The estimate.
+    information : numpy.ndarray, shape ``(q, q)``
+        sum_t w_t psi(t) psi(t)^T at theta (q = p + 1 with the offset last).
+    loss, weight : float
+        sum_t w_t eps(t)^2 and sum_t w_t over the usable samples.
+    arx : numpy.ndarray, shape ``(p,)``
+        The least-squares ARX estimate of the same samples (c = 0 for ARMAX).
+    tail_x, tail_e : numpy.ndarray
+        x (w for OE, y for ARMAX) and e of the last segment's samples.
+    tail_psi : numpy.ndarray, shape ``(n, q)``
+        psi(t-1) ... psi(t-n) at the end (zeros where the segment is shorter;
+        OE keeps the offset's column at 0, its gradient is not filtered).
+    offset : float
+        The output (OE) or equation (ARMAX) offset of the last segment.
+
+    """
+
+    def __init__(self, theta: np.ndarray, information: np.ndarray, loss: float, weight: float,
+                 arx: np.ndarray, tail_x: np.ndarray, tail_e: np.ndarray,
+                 tail_psi: np.ndarray, offset: float) -> None:
+        self.theta = theta
+        self.information = information
+        self.loss = loss
+        self.weight = weight
+        self.arx = arx
+        self.tail_x = tail_x
+        self.tail_e = tail_e
+        self.tail_psi = tail_psi
+        self.offset = offset
+
+    def covariance(self, initial_covariance: float) -> np.ndarray | None:
+        """
+        Return the P to continue the recursion with: (information + I / p0)^-1, C-ordered.
+
+        Symmetrised; None if it cannot be inverted or it or the fit is not finite.
+        """
+        information = self.information + np.eye(self.information.shape[0]) / initial_covariance
+        try:
+            covariance = np.linalg.inv(information)
+        except np.linalg.LinAlgError:
+            return None
+        if not (np.isfinite(covariance).all() and np.isfinite(self.theta).all()
+                and math.isfinite(self.loss) and self.weight > 0.0):
+            return None
+        return np.ascontiguousarray(0.5 * (covariance + covariance.T))
+
+
+class BatchFit:
+    r"""
+    Batch prediction-error fit of the OE or ARMAX model over stored segments (normalised).
+
+    The same predictor as the recursion with the parameters held fixed
+    (Ljung 1999, ch. 10; :class:`~bcid_ros.estimators.rpem.segment.SegmentPredictor`):
+    per segment, the first ``span`` samples fill the lags, then
+
+    * OE: :math:`w = \sum_i B_i u_i / F` plus the free response of F from a
+      fitted initial state, :math:`\varepsilon = y - w - c`,
+      :math:`\psi = \varphi(w) / F`;
+    * ARMAX: :math:`\varepsilon = (A y - \sum_i B_i u_i - d) / C` from rest,
+      :math:`\psi = \varphi / C`;
+
+    with the offset (c, or d) only with ``offset`` (``detrend: mean``: the
+    sample means of a finite record of a slow plant leave the output off
+    G(q) times the input by a constant). The initial state and the offset
+    enter linearly and are fitted by least squares at every theta (variable
+    projection), not searched.
+
+    :meth:`fit` starts from the best of the given candidates, and from the
+    best of the ARX least-squares estimate and ``IV_ITERATIONS``
+    Steiglitz-McBride (OE; instruments :math:`\psi`, regressors of the data
+    filtered by :math:`1/\hat F`) or extended least-squares (ARMAX) iterates,
+    each pulled into the stability region; it refines both by Gauss-Newton
+    steps that keep every iterate stable and returns the lower.
+    """
+
+    def __init__(self, order: int, num_inputs: int, feedthrough: bool,
+                 input_delay: tuple[int, ...], armax: bool, offset: bool) -> None:
+        from scipy import signal  # only a fit needs it
+
+        self._signal = signal
+        self._predictor = predictor = SegmentPredictor(order, num_inputs, feedthrough,
+                                                       input_delay, armax, offset)
+        self.order = order
+        self.armax = armax
+        self.offset = offset
+        self.span = predictor.span
+        self.num_b = predictor.num_b
+        self.num_parameters = predictor.num_parameters
+
+    # -------------------------------------------------------------- the fit
+    def fit(self, segments: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+            candidates: list[np.ndarray], prior: float) -> FitResult | None:
+        """
+        Fit the segments ``(y, u, weights)`` (normalised); None if none is usable.
+
+        ``prior`` is the information 1/p0 added to every diagonal entry.
+        """
+        usable = [(y, u, w, self._predictor.input_columns(u)) for y, u, w in segments
+                  if y.shape[0] > self.span]
+        if not usable:
+            return None
+        arx = self._arx(usable)
+        # two starts: the best given candidate, and the best of ARX and its IV iterates
+        starts = [self._best([theta for theta in candidates if np.isfinite(theta).all()],
+                             usable), self._best(self._iv_path(arx, usable), usable)]
+        best_theta, best_loss = None, math.inf
+        for theta, loss in starts:
+            if theta is None:
+                continue
+            theta, loss = self._search(theta, loss, usable, prior)
+            if loss < best_loss:
+                best_theta, best_loss = theta, loss
+        if best_theta is None:
+            return None
+        return self._result(best_theta, segments, usable, arx)
+
+    def outliers(self, theta: np.ndarray, segments: list, limit: float) -> np.ndarray:
+        """
+        Return the rows (over all segments) whose prediction error exceeds ``limit`` scales.
+
+        The scale is 1.4826 times the median absolute prediction error at
+        ``theta`` (the standard deviation for Gaussian errors, robust to the
+        outliers themselves), over the samples weighing at least
+        OUTLIER_WEIGHT.
+        """
+        errors, rows = [], []
+        first = 0
+        for y, u, weights in segments:
+            if y.shape[0] > self.span:
+                # the start-up transient free (no prior): a transient is no outlier
+                eps = self._predictor.predict(theta, y, u, weights, gradient=False,
+                                              prior=0.0).eps
+                # only the samples the fit weighs (forgetting leaves the old ones out)
+                weighed = weights[self.span:] >= OUTLIER_WEIGHT
+                errors.append(eps[weighed])
+                rows.append(np.arange(first + self.span, first + y.shape[0])[weighed])
+            first += y.shape[0]
+        if not errors:
+            return np.zeros(0, dtype=np.intp)
+        error = np.abs(np.concatenate(errors))
+        scale = 1.4826 * float(np.median(error))
+        if not scale > 0.0:
+            return np.zeros(0, dtype=np.intp)
+        return np.concatenate(rows)[~(error <= limit * scale)]
+
+    def _best(self, thetas: list[np.ndarray],
+              usable: list) -> tuple[np.ndarray | None, float]:
+        """Return the one of ``thetas`` (stabilised) with the smallest loss, and its loss."""
+        best_theta, best_loss = None, math.inf
+        for theta in thetas:
+            theta = self._stabilised(theta)
+            loss = self._loss(theta, usable)
+            if loss < best_loss:
+                best_theta, best_loss = theta, loss
+        return best_theta, best_loss
+
+    def _iv_path(self, arx: np.ndarray, usable: list) -> list[np.ndarray]:
+        """Return the ARX estimate and its IV_ITERATIONS IV iterates (each stabilised)."""
+        path = [self._stabilised(arx)]
+        for _ in range(IV_ITERATIONS):
+            theta = self._iv_step(path[-1], usable)
+            if theta is None:
+                break
+            path.append(self._stabilised(theta))
+        return path
+
+    def _stabilised(self, theta: np.ndarray) -> np.ndarray:
+        """Return theta with F (or A and C) pulled into the stability region."""
+        n = self.order
+        theta = theta.copy()
+        if not inside(theta[:n]):
+            theta[:n] = pull_inside(theta[:n])
+        if self.armax and not inside(theta[n + self.num_b:]):
+            theta[n + self.num_b:] = pull_inside(theta[n + self.num_b:])
+        return theta
+
+    def _is_inside(self, theta: np.ndarray) -> bool:
+        n = self.order
+        return inside(theta[:n]) and (not self.armax or inside(theta[n + self.num_b:]))
+
+    def _arx(self, usable: list) -> np.ndarray:
+        """Return the weighted least-squares ARX estimate (c = 0 for ARMAX, offset dropped)."""
+        start = self.span
+        p_ab = self.order + self.num_b
+        gram = np.zeros((p_ab + self.offset, p_ab + self.offset))
+        moment = np.zeros(p_ab + self.offset)
+        predictor = self._predictor
+        for y, _, weights, inputs in usable:
+            regressors = predictor.with_constant(np.column_stack((predictor.output_columns(y),
+                                                                  inputs)))[start:]
+            weighted = regressors * weights[start:, None]
+            gram += weighted.T.dot(regressors)
+            moment += weighted.T.dot(y[start:])
+        theta = np.zeros(self.num_parameters)
+        solution = solve_regularised(gram, moment)
+        if solution is not None:
+            theta[:p_ab] = solution[:p_ab]
+        return theta
+
+    def _loss(self, theta: np.ndarray, usable: list) -> float:
+        total = 0.0
+        for y, u, weights, inputs in usable:
+            eps = self._predictor.predict(theta, y, u, weights, inputs, gradient=False).eps
+            total += float(weights[self.span:].dot(eps * eps))
+        return total if math.isfinite(total) else math.inf
+
+    def _iv_step(self, theta: np.ndarray, usable: list) -> np.ndarray | None:
+        """Return one Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterate."""
+        lfilter = self._signal.lfilter
+        predictor = self._predictor
+        n, start = self.order, self.span
+        size = self.num_parameters + self.offset
+        gram = np.zeros((size, size))
+        moment = np.zeros(size)
+        for y, u, weights, inputs in usable:
+            if self.armax:
+                # regress y on [-y lags, u lags, eps lags] with eps of the current model
+                e = predictor.predict(theta, y, u, weights, inputs, gradient=False).e
+                regressors = predictor.with_constant(np.column_stack((
+                    predictor.output_columns(y), inputs, predictor.residual_columns(e))))[start:]
+                weighted = regressors * weights[start:, None]
+                gram += weighted.T.dot(regressors)
+                moment += weighted.T.dot(y[start:])
+                continue
+            f_poly = np.concatenate(([1.0], theta[:n]))
+            # data filtered by 1 / F: y_f(t) = F(q)^-1 y(t), u_f(t) = F(q)^-1 u(t)
+            y_filtered = lfilter([1.0], f_poly, y)
+            regressors = predictor.with_constant(np.column_stack((
+                predictor.output_columns(y_filtered), lfilter([1.0], f_poly, inputs, axis=0))))[
+                start:]
+            # instruments: psi(t) = phi(w)(t) / F(q), the noise-free regressors (from rest:
+            # the initial state fitted to a poor model would carry the noise into them)
+            psi = predictor.predict(theta, y, u, weights, inputs, False).psi
+            instruments = predictor.with_constant(psi) * weights[start:, None]
+            gram += instruments.T.dot(regressors)
+            moment += instruments.T.dot(y_filtered[start:])
+        new = solve_regularised(gram, moment)
+        return new[:self.num_parameters] if new is not None and np.isfinite(new).all() \
+            else None
+
+    def _gradient(self, theta: np.ndarray, usable: list, prior: float,
+                  concentrated: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+        """
+        Return the loss, the Gauss-Newton information and the gradient at theta.
+
+        ``concentrated``: of the loss with the nuisance (initial state,
+        offset) re-fitted at every theta (the search), for theta alone;
+        otherwise the information of theta and the offset with the nuisance
+        held (what the recursion continues with: it never re-fits the
+        initial state, and it carries the offset as a parameter).
+        """
+        p = self.num_parameters
+        size = p if concentrated else p + self.offset
+        information = np.zeros((size, size))
+        gradient = np.zeros(size)
+        loss = 0.0
+        for y, u, weights, inputs in usable:
+            prediction = self._predictor.predict(theta, y, u, weights, inputs)
+            psi = prediction.psi
+            if concentrated and prediction.nuisance is not None:
+                psi = self._without_nuisance(psi, prediction.nuisance, weights[self.span:])
+            elif not concentrated and self.offset:
+                psi = np.column_stack((psi, prediction.offset_gradient))
+            weighted = psi * weights[self.span:, None]
+            information += weighted.T.dot(psi)
+            gradient += weighted.T.dot(prediction.eps)
+            loss += float(weights[self.span:].dot(prediction.eps ** 2))
+        information[np.diag_indices(size)] += prior
+        return loss, information, gradient
+
+    @staticmethod
+    def _without_nuisance(psi: np.ndarray, nuisance: np.ndarray,
+                          weights: np.ndarray) -> np.ndarray:
+        r"""
+        Return psi minus its weighted projection on the nuisance columns (Kaufman's VarPro).
+
+        The nuisance (initial state, offset) is re-fitted at every theta, so
+        the gradient of the concentrated loss is that of psi orthogonal to its
+        columns :math:`N`: :math:`\psi - N(N^TWN)^{-1}N^TW\psi` (Golub and
+        Pereyra 2003; Kaufman 1975).
+        """
+        weighted = nuisance * weights[:, None]
+        coefficients = solve_regularised(weighted.T.dot(nuisance), weighted.T.dot(psi))
+        return psi if coefficients is None else psi - nuisance.dot(coefficients)
+
+    def _search(self, theta: np.ndarray, loss: float, usable: list,
+                prior: float) -> tuple[np.ndarray, float]:
+        """
+        Refine theta by Gauss-Newton steps that keep it stable and lower the loss.
+
+        Each iteration tries the Gauss-Newton step halved up to ``HALVINGS``
+        times (Ljung 1999, sec. 10.2, with a line search), then, if none is
+        accepted, Levenberg-Marquardt steps (H + mu diag H) with mu growing
+        tenfold; it stops when no step lowers the loss by LM_TOLERANCE. The
+        plain direction matters: the valley of an oversampled plant is
+        conditioned like 1e10, where diagonal damping crawls (a hundred
+        iterations where Gauss-Newton takes five, measured).
+        """
+        for _ in range(LM_ITERATIONS):
+            loss, information, gradient = self._gradient(theta, usable, prior)
+            step = solve_regularised(information, gradient)
+            if step is None:
+                break
+            candidate, new_loss = self._line_search(theta, step, loss, usable)
+            if candidate is None:
+                candidate, new_loss = self._damped_step(theta, loss, information, gradient,
+                                                        usable)
+            if candidate is None:
+                break
+            improvement = loss - new_loss
+            theta, loss = candidate, new_loss
+            if not improvement > LM_TOLERANCE * loss:
+                break
+        return theta, loss
+
+    def _line_search(self, theta: np.ndarray, step: np.ndarray, loss: float,
+                     usable: list) -> tuple[np.ndarray | None, float]:
+        """Return theta + mu step, mu = 1, 1/2, ..., the first stable one with a lower loss."""
+        scale = 1.0
+        for _ in range(HALVINGS + 1):
+            candidate = theta + scale * step
+            if self._is_inside(candidate):
+                new_loss = self._loss(candidate, usable)
+                if new_loss < loss:
+                    return candidate, new_loss
+            scale *= 0.5
+        return None, loss
+
+    def _damped_step(self, theta: np.ndarray, loss: float, information: np.ndarray,
+                     gradient: np.ndarray, usable: list) -> tuple[np.ndarray | None, float]:
+        """Return a Levenberg-Marquardt step (H + mu diag H) that lowers the loss, or None."""
+        diagonal = np.diag(information).copy()
+        damping = 1e-3
+        for _ in range(8):
+            step = solve_regularised(information + damping * np.diag(diagonal), gradient)
+            if step is None:
+                break
+            candidate = theta + step
+            if self._is_inside(candidate):
+                new_loss = self._loss(candidate, usable)
+                if new_loss < loss:
+                    return candidate, new_loss
+            damping *= 10.0
+        return None, loss
+
+    def _result(self, theta: np.ndarray, segments: list, usable: list,
+                arx: np.ndarray) -> FitResult:
+        """Return the fit at theta with the predictor state at the end of the last segment."""
+        loss, information, _ = self._gradient(theta, usable, 0.0, concentrated=False)
+        weight = float(sum(w[self.span:].sum() for _, _, w, _ in usable))
+        n, p = self.order, self.num_parameters
+        y, u, weights = segments[-1]
+        tail_psi = np.zeros((n, p + self.offset))
+        offset = 0.0
+        if y.shape[0] > self.span:
+            prediction = self._predictor.predict(theta, y, u, weights)
+            x, e, offset = prediction.x, prediction.e, prediction.offset
+            rows = prediction.psi[::-1][:n]
+            tail_psi[:rows.shape[0], :p] = rows
+            if self.armax and self.offset:  # the offset's gradient is filtered by 1 / C
+                tail = prediction.offset_gradient[::-1][:n]
+                tail_psi[:tail.shape[0], p] = tail
+        else:
+            x, e = y, np.zeros(y.shape[0])
+            if usable:  # the offset of the newest usable segment
+                offset = self._predictor.predict(theta, *usable[-1][:3], gradient=False).offset
+        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset)

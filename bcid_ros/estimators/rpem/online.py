@@ -1,0 +1,597 @@
+r"""
+The online RPEM estimator: the recursion, its gate, its hand-over from the fits, and its state.
+
+Ljung and Söderström (1983), *Theory and Practice of Recursive
+Identification* (L&S): the recursive prediction-error algorithm in its
+Gauss-Newton form with the output-error and the recursive
+maximum-likelihood (ARMAX) predictors, projected into D_M; Ljung, *System
+Identification*, 2nd ed. (1999), sec. 11.4. :class:`Rpem` holds theta, P,
+J and tau; the predictor's lags, the stored samples with their fits and the
+restart monitors are its collaborators (``history``, ``store``, ``watch``);
+the gate, warm-up, memory cut, covariance check and repair and validity
+period are the rulebook's. Equation numbers are not given: the books were
+not at hand to check them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from bcid_ros.estimators import rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor
+from bcid_ros.estimators.base import RecursiveEstimator
+from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.rls import (HEALTH_CHECK_PERIOD, load_blas, repair_covariance,
+                                     residual_items, residual_reasons, residual_states)
+from bcid_ros.estimators.rpem.fit import FitResult
+from bcid_ros.estimators.rpem.history import RecursivePredictor
+from bcid_ros.estimators.rpem.stability import HALVINGS, inside
+from bcid_ros.estimators.rpem.store import SampleStore, Segment
+from bcid_ros.estimators.rpem.uncertainty import parameter_covariance
+from bcid_ros.estimators.rpem.watch import RestartWatch, VARIANCE_FLOOR
+
+#: Values of the ``model`` option.
+MODELS = ('oe', 'armax')
+#: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
+#: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
+LAMBDA_START = 1.0
+#: See LAMBDA_START.
+LAMBDA_RATE = 0.99
+
+
+class Rpem(RecursiveEstimator):
+    r"""
+    Recursive prediction-error method for the OE or ARMAX model, with a batch-refined start.
+
+    **Models** (``model``), with :math:`d_i` the dead time of input i:
+
+    * ``'oe'``: :math:`y(t) = \sum_i B_i(q)/F(q)\,u_i(t) + v(t)`, v of any
+      colour. Predictor: the simulated output :math:`w(t) = \varphi^T(t)\theta`,
+      :math:`\varphi(t) = [-w(t-1) \dots -w(t-n), u_i(t-d_i-1) \dots]`
+      (L&S, the output-error model); gradient filter :math:`D = F`.
+    * ``'armax'``: :math:`A(q)y(t) = \sum_i B_i(q)u_i(t) + C(q)e(t)`, e
+      white. :math:`\varphi(t) = [-y(t-1) \dots, u_i(t-d_i-1) \dots,
+      \bar\varepsilon(t-1) \dots \bar\varepsilon(t-n)]` (the recursive ML
+      method of L&S); gradient filter :math:`D = C`.
+
+    **The recursion** (L&S, the Gauss-Newton direction; Ljung 1999, sec.
+    11.4), in normalised units:
+
+    .. math::
+
+        \hat y(t) &= \varphi^T(t)\hat\theta(t-1), \qquad
+            \varepsilon(t) = y(t) - \hat y(t) \\
+        \psi(t) &= \varphi(t) - d_1\psi(t-1) - \dots - d_n\psi(t-n)
+            && \psi = \varphi / D(q) \\
+        s(t) &= \lambda(t) + \psi^T(t)P(t-1)\psi(t) \\
+        \hat\theta(t) &= \big[\hat\theta(t-1) + \mu\,P(t-1)\psi(t)\,\varepsilon(t)/s(t)
+            \big]_{D_M} && \text{(projected step)} \\
+        P(t) &= \frac{1}{\lambda(t)}\Big[P(t-1) - \frac{P(t-1)\psi(t)\psi^T(t)P(t-1)}{s(t)}
+            \Big] && \text{(Gauss-Newton P)} \\
+        w(t) &= \varphi^T(t)\hat\theta(t) \ \text{(OE)}, \qquad
+            \bar\varepsilon(t) = y(t) - \varphi^T(t)\hat\theta(t) \ \text{(ARMAX)} \\
+        J(t) &= \lambda J(t-1) + \lambda\varepsilon^2(t)/s(t), \qquad
+            \tau(t) = \lambda\tau(t-1) + 1
+
+    :math:`[\cdot]_{D_M}`: the projection into the stability region (L&S;
+    Ljung 1999, ch. 11): :math:`\mu` = 1, 1/2, ... (``HALVINGS``
+    times) until every root of F (ARMAX: of A and C) lies within
+    ``STABILITY_RADIUS``; if none does, :math:`\hat\theta(t) = \hat\theta(t-1)`
+    (flag ``stability_projection``). So no estimate, published or internal,
+    ever has an unstable F (or A, C). :math:`\sigma^2 = J/\tau` is the
+    published ``sigma2``: the weighted mean square one-step prediction error
+    (OE: the output error, i.e. the variance of v, coloured or not; ARMAX:
+    the innovation variance of e).
+
+    **The start.** A recursion started far from the optimum of an oversampled
+    plant (poles near 1) feeds its own errors back through w and psi and drifts
+    away (docs/estimators.md, "RPEM", measured), so the recursion never starts
+    cold. The samples are stored; after ``max(FIRST_FIT_SAMPLES,
+    FIRST_FIT_PER_PARAMETER p)`` of them, and again each time their count has
+    grown by ``FIT_GROWTH`` up to ``BATCH_LIMIT``,
+    :class:`~bcid_ros.estimators.rpem.fit.BatchFit` fits the model to all
+    stored samples (ARX least squares and Steiglitz-McBride or extended LS
+    iterations, the current estimate too, then Gauss-Newton on the prediction
+    error with the start-up transient and the offset fitted at every step;
+    samples the gate would refuse are then excluded) and the recursion
+    continues from it with :math:`P = (\sum_t w_t\psi\psi^T + I/p_0)^{-1}`, its
+    :math:`J`, :math:`\tau`, w and psi: what the recursion would hold had it
+    run over the same samples at that estimate. Beyond ``BATCH_LIMIT`` samples
+    it is the plain recursion; the last ``BATCH_LIMIT`` samples stay stored for
+    a restart. The estimator is not :attr:`ready` before the first fit. With
+    forgetting, sample t weighs :math:`\lambda^{T-t}` in a fit.
+
+    **Units.** Each fit takes per channel (y, each u_i) the smallest power of
+    two at or above a robust size of the stored samples
+    (:func:`~bcid_ros.estimators.rpem.store.signal_size`) as its scale, and the
+    recursion runs on the scaled signals: the estimates do not depend on the
+    units of y and u (bit for bit for power-of-two units), and
+    ``initial_covariance`` p0 is the prior variance of the parameters of
+    signals of unit size (the fits add :math:`I/p_0` to the information).
+
+    **Offset** (``detrend: mean``). A fit re-centres the stored samples on
+    the current means; the model carries an offset c, the last internal
+    parameter (OE: y - m_y = G (u - m_u) + c + v; ARMAX: an equation offset
+    d, c = d / A(1)), regressed on a constant 1 in phi, not published;
+    :attr:`operating_point` is (m_y + c, m_u).
+
+    **Annealed forgetting.** After each fit :math:`\lambda(t)` starts at
+    :math:`\min(\lambda, \text{LAMBDA\_START})` and tends to the user's
+    :math:`\lambda` by :math:`\lambda(t) \leftarrow \lambda - \text{LAMBDA\_RATE}
+    (\lambda - \lambda(t-1))` (the forgetting profile of L&S). Measured after a
+    batch start it only loses information, so LAMBDA_START = 1 (off).
+
+    **Safeguards**, each counted in :attr:`flags`:
+
+    * the transaction: a step with a non-finite or non-positive s(t) or a
+      non-finite error is not taken (``update_undone``; the regressor
+      restarts);
+    * the gate: :math:`z^2 = \varepsilon^2/[(J/\tau)(s + 1 - \lambda)]`
+      goes to the rulebook's gate once :math:`\tau \ge` ``GATE_WARMUP`` p;
+      a refused sample keeps the predictor running with its prediction in
+      place of y (OE: it is stored with weight 0); a plant change cuts the
+      memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
+      and restarts the fit schedule on the samples after the change;
+    * restart (``restarted``, and a validity reason until the next check):
+      a new fit of the stored samples when ``PROJECTION_RESTART`` steps in a
+      row left D_M, when ``UNDONE_RESTART`` steps in a row were undone, or
+      when the mean square prediction error over about ``DRIFT_MEMORY``
+      updates exceeds ``DRIFT_FACTOR`` times the variance of the last fit;
+    * anti-windup as in Rls (no division by :math:`\lambda` while
+      :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
+      ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
+
+    **Validity**, every ``VALIDITY_PERIOD`` updates: not valid after a
+    restart, or when the projection refused more than ``PROJECTION_SHARE``
+    of the steps (the data push the model to the stability boundary: a
+    wrong order, an integrator, a plant in feedback).
+
+    ``theta_uncompensated`` is the ARX least-squares estimate of the samples
+    of the last fit (c = 0 for ARMAX), the start of its IV iterations.
+
+    Parameters
+    ----------
+    model : str
+        ``'oe'`` (default) or ``'armax'``.
+    order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+    input_delay, detrend, adapt
+        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
+
+    Raises
+    ------
+    ValueError
+        If ``model`` or a base setting is not allowed; the message names it.
+
+    """
+
+    name = 'rpem'
+    noise_names = ('sigma2',)
+
+    def __init__(self, *, model: str = 'oe', **settings: Any) -> None:
+        if model not in MODELS:
+            raise ValueError(f"model must be 'oe' or 'armax', got {model!r}")
+        self.model = model
+        self._armax = model == 'armax'
+        # the residual tests: an OE model's output error may be coloured (only its
+        # correlation with past inputs contradicts the model); ARMAX's innovation is white
+        self.adequacy_model = model
+        self._blas = load_blas()
+        super().__init__(**settings)
+        n, r = self.order, self.num_inputs
+        if self._armax:
+            self.parameter_names = self.parameter_names + tuple(
+                f'c{k}' for k in range(1, n + 1))
+            self.num_parameters = len(self.parameter_names)
+        self._lags = n + (1 if self.feedthrough else 0)
+        self._num_b = r * self._lags
+        # with detrend: mean the model carries an offset, the last internal parameter
+        self._offset = self._means is not None
+        self._size = self.num_parameters + self._offset
+        # the signal channel (0 = y, i = u_i) of each parameter: b's scale with u_i / y
+        self._channel = np.array([0] * n + [i for i in range(1, r + 1)
+                                            for _ in range(self._lags)]
+                                 + ([0] * n if self._armax else []), dtype=np.intp)
+        self._filter_slice = slice(n + self._num_b, 2 * n + self._num_b) if self._armax \
+            else slice(0, n)
+        # the lags of the predictor and of its gradient, and the samples kept for the fits
+        self._predictor = RecursivePredictor(n, r, self.feedthrough, self.input_delay,
+                                             self._armax, self._offset, self._size,
+                                             self._filter_slice)
+        self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
+                                  self._offset, self._channel)
+        self._watch = RestartWatch()
+        self._reset()
+
+    # ------------------------------------------------------------- the step
+    def _update(self, y: float, u: np.ndarray) -> None:
+        if self._fitted:
+            self._step(y, u)
+        else:
+            self._predictor.fill(y, u)
+            self._keep(y, u)
+
+    #: _step checks before it commits: the exact form of the transaction.
+    _guarded_update = _update
+
+    def _step(self, y: float, u: np.ndarray) -> None:
+        """Make one recursion step on a checked sample (the class docstring's equations)."""
+        scale = self._inverse_scale
+        yn = y * scale[0]
+        theta = self._theta_n
+        # phi(t) and psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
+        regressors = self._predictor.regressors(yn, u * scale[1:], theta)
+        if regressors is None:  # refilling the lags after a restart
+            self._keep(y, u)
+            return
+        phi, psi = regressors
+        lam = self._lambda_t
+        # e(t) = y(t) - phi(t)' theta(t-1)
+        e = yn - float(phi.dot(theta))
+        # g = P(t-1) psi(t) ; s(t) = lambda + psi' P psi
+        g = self._p.dot(psi)
+        s = lam + float(psi.dot(g))
+        if not (0.0 < s < math.inf and e * e < math.inf):
+            self._refuse(s)
+            return
+        if self._tau >= self._gate_from:
+            changes = self._changes
+            # z^2 = e^2 / [(J / tau) (s + 1 - lambda)]
+            z2 = e * e / ((self._loss / self._tau + VARIANCE_FLOOR ** 2) * (s + 1.0 - lam))
+            self._gating = (phi, psi, y, u)
+            accepted = self._gate(z2)
+            self._gating = None
+            if not accepted:
+                return
+            if self._changes != changes:  # the memory was cut: P changed
+                g = self._p.dot(psi)
+                s = lam + float(psi.dot(g))
+                if not 0.0 < s < math.inf:
+                    self._refuse(s)
+                    return
+        taken = self._move_theta(theta, g, e / s)
+        self._commit_covariance(g, s, lam)
+        # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
+        self._loss = lam * (self._loss + e * e / s)
+        self._tau = lam * self._tau + 1.0
+        self._predictor.advance(yn, phi, psi, theta)
+        self._watch.stepped(e * e, taken)
+        self._lambda_t = self._forgetting_factor - LAMBDA_RATE * (
+            self._forgetting_factor - lam)
+        self._updates += 1
+        self._keep(y, u)
+        if self._tau >= self._gate_from and not self._quiet_left:
+            # the residual tests take the prediction error; the HAC its score psi e
+            self._monitor.record(e, u)
+            self._hac.record_product(psi, e)
+        if self._updates % HEALTH_CHECK_PERIOD == 0:
+            self._check_covariance()
+        if self._updates >= self._watch.next_check:
+            self._check_validity()
+
+    def _move_theta(self, theta: np.ndarray, g: np.ndarray, gain: float) -> bool:
+        """Take theta + mu g gain with mu = 1, 1/2, ... inside D_M, or stay (False)."""
+        n = self.order
+        armax = self._armax
+        noise = self._filter_slice
+        for _ in range(HALVINGS + 1):
+            # theta(t) = theta(t-1) + mu P psi e / s
+            new = theta + g * gain
+            if inside(new[:n]) and (not armax or inside(new[noise])):
+                theta[:] = new
+                return True
+            gain *= 0.5
+        self._flag('stability_projection')
+        return False
+
+    def _commit_covariance(self, g: np.ndarray, s: float, lam: float) -> None:
+        """Apply P(t) = [P - g g' / s] / lambda in place, without winding up."""
+        # h = g / sqrt(s); P <- P - h h'   (BLAS rank-1 update of the C-ordered P in place)
+        h = g * (1.0 / math.sqrt(s))
+        self._p = self._blas['dger'](-1.0, h, h, 1, 1, self._p.T, 0, 0, 1).T
+        if lam < 1.0:
+            if float(np.trace(self._p)) < self._trace_limit:
+                self._p *= 1.0 / lam
+            else:
+                self._flag('windup_limited')
+
+    def _refuse(self, s: float) -> None:
+        """Refuse a step with a non-finite error or gain (repair P first if s <= 0)."""
+        if s <= 0.0:
+            self._repair_covariance()
+        reason = self._watch.undone()  # UNDONE_RESTART in a row restart from a fit
+        if reason:
+            self._restart(reason)
+        self._undo('update_undone')
+
+    def _undo(self, flag: str) -> None:
+        """
+        Refuse a step; a sample the gate refuses keeps the predictor running without its y.
+
+        The output lag of the refused sample becomes its prediction (OE: the
+        simulated output w(t), which needs no y; ARMAX: y(t) replaced by
+        y^(t), residual 0), so the predictor state survives an output spike
+        where a restarted one would take the following samples for outliers
+        too. Other refusals restart the regressor (base class).
+        """
+        gating = self._gating
+        if gating is None or flag != 'outlier_rejected':
+            super()._undo(flag)
+            return
+        self._flag(flag)
+        self._refused += 1
+        phi, psi, y, u = gating
+        # y(t) unknown: its prediction in its place, residual 0
+        theta = self._theta_n
+        self._predictor.advance(float(phi.dot(theta)), phi, psi, theta)
+        if self._armax:
+            self._store.break_pending = True  # y(t) is a lag of the next samples
+        else:
+            self._keep(y, u, excluded=True)  # u(t) drives the simulation on
+
+    def _hold(self, y: float, u: np.ndarray) -> None:
+        """Move the predictor on with theta held: w (or the residual) and psi keep running."""
+        self._store.break_pending = True
+        if not self._fitted:
+            self._predictor.fill(y, u)
+            return
+        scale = self._inverse_scale
+        yn = y * scale[0]
+        theta = self._theta_n
+        regressors = self._predictor.regressors(yn, u * scale[1:], theta)
+        if regressors is not None:
+            self._predictor.advance(yn, *regressors, theta)
+
+    # ------------------------------------------------------------- the fits
+    def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
+        """Store the sample for the fits (:meth:`SampleStore.add`); fit when one is due."""
+        self._samples += 1
+        if self._store.add(y, u, None if self._means is None else self._means.mean, excluded):
+            self._fit()
+
+    def _fit(self) -> bool:
+        """Fit the stored samples and continue the recursion from the fit (False: no fit)."""
+        fitted = self._store.fit(None if self._means is None else self._means.mean,
+                                 self._signal_scale,
+                                 self._theta_n[:self.num_parameters] if self._fitted else None,
+                                 self._forgetting_factor, 1.0 / self.initial_covariance,
+                                 math.sqrt(self._gate_limit2))
+        for _ in range(fitted.outliers):
+            self._flag('outlier_excluded')
+        if fitted.result is None or not self._take_fit(fitted.result, fitted.segments,
+                                                       fitted.scale):
+            return False
+        self._fits += 1
+        return True
+
+    def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray) -> bool:
+        """Continue from the fit: theta, P, J, tau, the lags and psi; False if unsound."""
+        p = result.covariance(self.initial_covariance)
+        if p is None:
+            return False
+        self._p = p
+        self._theta_n[:self.num_parameters] = result.theta
+        if self._offset:
+            self._theta_n[-1] = result.offset
+        self._loss = result.loss
+        self._tau = result.weight
+        self._signal_scale = scale
+        self._set_scale_dependents()
+        self._arx = result.arx * self._unscale
+        # the predictor's lags: those of the last segment's newest samples
+        self._predictor.load(result.tail_x, segments[-1][1], result.tail_e, result.tail_psi)
+        self._watch.fitted(result.loss / result.weight)
+        self._lambda_t = min(self._forgetting_factor, LAMBDA_START)
+        self._fitted = True
+        return True
+
+    def _restart(self, reason: str) -> None:
+        """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
+        self._flag('restarted')
+        self._watch.restarting(reason)
+        # the residuals so far are of the model that drifted
+        self._forget_residuals()
+        self._fit()
+        self._watch.restarted()
+
+    def _accept_change(self) -> None:
+        """Cut the memory (rules.cut_memory) and restart the fits after the change."""
+        self._changes += 1
+        self._forget_residuals()
+        # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
+        loss, tau = np.array([self._loss]), np.array([self._tau])
+        rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
+        self._loss, self._tau = float(loss[0]), float(tau[0])
+        # the stored samples are of the old plant: the fits start again from here
+        self._store.restart_schedule()
+
+    # --------------------------------------------------- health and validity
+    def _check_covariance(self) -> None:
+        """Repair P if it lost definiteness (every HEALTH_CHECK_PERIOD updates)."""
+        if not rules.definite(self._p[None])[0]:
+            self._repair_covariance()
+
+    def _repair_covariance(self) -> None:
+        """Rebuild P as the nearest symmetric positive definite matrix (covariance_repaired)."""
+        self._flag('covariance_repaired')
+        self._p = np.ascontiguousarray(repair_covariance(
+            self._p, np.eye(self._size) * self.initial_covariance))
+
+    def _check_validity(self) -> None:
+        """Re-evaluate drift and the validity reasons (every VALIDITY_PERIOD updates)."""
+        watch = self._watch
+        steps = watch.start_period(self._updates)
+        reason = watch.restart_reason()
+        if reason:
+            self._restart(reason)
+        self._reasons = tuple(watch.reasons(steps) + residual_reasons(self._monitor))
+
+    def _validity_reasons(self) -> tuple[str, ...]:
+        return self._reasons
+
+    # --------------------------------------------------------- the accessors
+    @property
+    def ready(self) -> bool:
+        """Whether the first fit is made (and at least p samples were used)."""
+        return self._fitted and self._samples >= self.num_parameters
+
+    @property
+    def valid(self) -> bool:
+        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
+        return self.ready and not self._reasons
+
+    @property
+    def samples(self) -> int:
+        """Count the samples used (stored for the fits or stepped on) since the last reset."""
+        return self._samples
+
+    @property
+    def fits(self) -> int:
+        """Count the batch fits made since the last reset (restarts included)."""
+        return self._fits
+
+    @property
+    def signal_scale(self) -> np.ndarray:
+        """Return the scales of y, u_1 ... u_r of the last fit (1 before the first)."""
+        return self._signal_scale.copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Return the theta block of P(t) in the units of theta, shape ``(p, p)`` (a copy)."""
+        p = self.num_parameters
+        return self._p[:p, :p] * np.outer(self._unscale, self._unscale)
+
+    @property
+    def covariance_trace(self) -> float:
+        """Return the trace of the theta block of P(t) in the units of theta."""
+        return float(np.diagonal(self._p)[:self.num_parameters].dot(self._unscale ** 2))
+
+    @property
+    def weighted_count(self) -> float:
+        """Return tau(t), the weighted count of the samples learnt from."""
+        return self._tau
+
+    def _parameter_covariance(self) -> np.ndarray | None:
+        """Return the HAC covariance of the estimate (:mod:`.uncertainty`; None before ready)."""
+        if not self.ready or not self._tau > 0.0:
+            return None
+        return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
+                                    self.num_parameters, self._unscale)
+
+    def _theta(self) -> np.ndarray:
+        return self._theta_n[:self.num_parameters] * self._unscale
+
+    def _theta_uncompensated(self) -> np.ndarray:
+        return self._arx
+
+    def _noise(self) -> np.ndarray:
+        if not self._tau > 0.0:
+            return np.zeros(1)
+        return np.array([self._loss / self._tau * self._signal_scale[0] ** 2])
+
+    @property
+    def operating_point(self) -> np.ndarray | None:
+        """
+        Return ``[y0, u1, ..., ur]``: the recursive means, y0 moved by the model's offset.
+
+        With ``detrend: mean`` the model is y - m_y = G(q)(u - m_u) + c (OE;
+        ARMAX: the equation offset d, c = d / A(1)), so the operating point of
+        the estimate is (m_y + c, m_u): the point to simulate the model around.
+        """
+        point = super().operating_point
+        if point is None or not self._fitted:
+            return point
+        offset = float(self._theta_n[-1]) * self._signal_scale[0]
+        if self._armax:  # A(1) > 0 for a stable A
+            offset /= 1.0 + float(self._theta_n[:self.order].sum())
+        point[0] += offset
+        return point
+
+    def __repr__(self) -> str:
+        return (f'Rpem(model={self.model!r}, order={self.order}, num_inputs={self.num_inputs}, '
+                f'feedthrough={self.feedthrough}, '
+                f'forgetting_factor={self._forgetting_factor})')
+
+    # -------------------------------------------------------------- the state
+    def _set_scale_dependents(self) -> None:
+        scale = self._signal_scale
+        self._inverse_scale = 1.0 / scale
+        # theta in the user's units: theta_k s_y / s_channel(k)
+        self._unscale = scale[0] / scale[self._channel]
+
+    def _reset(self) -> None:
+        p, size = self.num_parameters, self._size
+        self._predictor.clear()
+        self._store.clear()
+        # theta in normalised units, and the offset last with detrend: mean
+        self._theta_n = np.zeros(size)
+        self._p = self.initial_covariance * np.eye(size)
+        self._arx = np.zeros(p)
+        self._signal_scale = np.ones(1 + self.num_inputs)
+        self._set_scale_dependents()
+        self._trace_limit = self.initial_covariance * size
+        self._fitted = False
+        self._fits = 0
+        self._samples = 0
+        self._updates = 0
+        self._loss = 0.0
+        self._tau = 0.0
+        self._lambda_t = self._forgetting_factor
+        self._watch.clear()
+        self._gate_from = rules.GATE_WARMUP * p
+        self._changes = 0
+        self._reasons: tuple[str, ...] = ()
+        # (phi, psi, y, u) of the step whose sample the gate is testing
+        self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
+        self._forget_residuals()
+
+    def _forget_residuals(self) -> None:
+        """Start the residual tests and the HAC afresh (at a reset and at a plant change)."""
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor)
+        self._hac = HacCovariance(dimension=self._size,
+                                  forgetting_factor=self._forgetting_factor)
+
+    def _restart_regressor(self) -> None:
+        self._predictor.clear()
+        self._store.break_pending = True
+
+    #: The scalars of the recursion; the predictor and the store name theirs.
+    _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
+                'forgetting_factor')
+    #: The type of each scalar that is no int.
+    _KINDS: dict[str, Callable[[Any], Any]] = {
+        'loss': float, 'tau': float, 'lambda_t': float, 'forgetting_factor': float,
+        'fitted': bool}
+
+    def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        lag_arrays, lag_scalars = self._predictor.state_items()
+        stored_arrays, stored_scalars = self._store.state_items()
+        arrays = {'theta_n': self._theta_n, 'p': self._p,
+                  'psi_history': lag_arrays['psi_history'], 'arx': self._arx,
+                  'signal_scale': self._signal_scale, **stored_arrays,
+                  'history': lag_arrays['history']}
+        scalars = {**stored_scalars,
+                   **{name: getattr(self, '_' + name) for name in self._SCALARS},
+                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons)}
+        residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
+                                                           self._hac.get_state())
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+
+    def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
+        self._signal_scale = arrays['signal_scale']
+        self._p = np.ascontiguousarray(arrays['p'])
+        self._predictor.load_state(arrays, scalars)
+        self._store.load_state(arrays, scalars)
+        self._watch.load_state(scalars)
+        for name in self._SCALARS:
+            setattr(self, '_' + name, self._KINDS.get(name, int)(scalars[name]))
+        self._reasons = tuple(scalars['reasons'])
+        self._set_scale_dependents()
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.set_state(monitor)
+        self._hac.set_state(hac)
