@@ -37,8 +37,8 @@ from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_prob
                                        LaggedMoments, OUTPUT_ERROR_LIMIT)
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import phi_channels
-from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings,
-                                     residual_items, residual_reasons, residual_states, Rls,
+from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings, Rls,
                                      rowdot, scale_dependents)
 
 Rows = slice | np.ndarray

@@ -10,20 +10,18 @@ exciting.
 from __future__ import annotations
 
 import dataclasses
-import importlib.machinery
-import importlib.util
 import math
-import os
-import sys
 from typing import Any, Callable
 
 import numpy as np
 
-from bcid_ros.estimators import adequacy, lagged, rules
-from bcid_ros.estimators.adequacy import AdequacyMonitor, MonitorState
+from bcid_ros.estimators import rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
-from bcid_ros.estimators.hac import HacCovariance, HacState
+from bcid_ros.estimators.blas import KERNELS, load_blas
+from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
+from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
 # the names bciv and cl_bcls still take from here
 from bcid_ros.estimators.rules import (CHANGE_MEMORY, GATE_WARMUP, GROWTH,  # noqa: F401
                                        spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD)
@@ -39,62 +37,6 @@ CAREFUL_GAIN = 1e8
 VARIANCE_FLOOR = 2.0 ** -40
 #: A plant whose steps are undone this many times in a row starts afresh with new scales.
 UNDONE_LIMIT = 3
-
-#: BLAS level-1/2 kernels, loaded from scipy on first use (see :func:`load_blas`).
-_BLAS: dict[str, Any] = {}
-
-
-def load_blas() -> dict[str, Any]:
-    """
-    Return scipy's BLAS kernels daxpy, dgemv, dger and dscal, importing scipy on first call.
-
-    The estimators call it when they are built, so that importing a module
-    of this package does not import scipy. The kernels are called with
-    positional arguments: f2py parses keywords at a cost comparable to the
-    kernel at p = 6.
-    """
-    if not _BLAS:
-        blas = fblas_module()
-        _BLAS.update((name, getattr(blas, name)) for name in ('daxpy', 'dgemv', 'dger', 'dscal'))
-    return _BLAS
-
-
-def fblas_module() -> Any:
-    """
-    Return scipy's compiled BLAS wrappers, loaded without all of ``scipy.linalg`` if possible.
-
-    ``scipy.linalg.blas`` re-exports the f2py extension ``scipy/linalg/_fblas``,
-    but importing it runs ``scipy/linalg/__init__.py``, which imports the whole
-    of ``scipy.linalg`` and, through scipy's array-API layer, ``numpy.testing``
-    and ``numpy.f2py``: 0.17 s, half of a replay's start-up. The extension needs
-    only numpy, so until something imports ``scipy.linalg`` it is loaded from
-    its file (the same functions, a few ms). A scipy laid out otherwise, or one
-    whose extension does not load that way, gets the normal import.
-    """
-    try:
-        return _fblas_from_file()
-    except (ImportError, OSError):
-        from scipy.linalg import blas
-        return blas
-
-
-def _fblas_from_file() -> Any:
-    """Load ``scipy.linalg._fblas`` from its file, without importing ``scipy.linalg``."""
-    name = 'scipy.linalg._fblas'
-    if name in sys.modules:  # scipy.linalg was imported: take its own
-        return sys.modules[name]
-    import scipy  # its __init__ prepares the shared libraries where a platform needs it
-
-    for folder in scipy.__path__:
-        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-            path = os.path.join(folder, 'linalg', '_fblas' + suffix)
-            if os.path.isfile(path):
-                loader = importlib.machinery.ExtensionFileLoader(name, path)
-                spec = importlib.util.spec_from_file_location(name, path, loader=loader)
-                module = importlib.util.module_from_spec(spec)
-                loader.exec_module(module)
-                return module
-    raise ImportError(f'no {name} extension file in {list(scipy.__path__)}')
 
 
 def rls_innovation(theta: np.ndarray, p: np.ndarray, phi: np.ndarray, y: float,
@@ -149,7 +91,7 @@ def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
         is C-contiguous).
 
     """
-    blas = _BLAS or load_blas()
+    blas = KERNELS or load_blas()
     # theta(t) = theta(t-1) + g e / s   (BLAS axpy in place: daxpy(x, y, n, a))
     blas['daxpy'](g, theta, g.shape[0], e / s)
     # h = g / sqrt(s), in place (a scaling into a new array costs twice as much)
@@ -850,80 +792,6 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._monitor.set_state(monitor)
         if self._hac is not None:
             self._hac.set_state(hac)
-
-
-def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list[str]:
-    """
-    Return the reasons of the residual tests of one plant (``plant`` None: a one-plant monitor).
-
-    Until the tests have a window of SAMPLES_PER_LAG samples per lag, that is a
-    reason itself: a model the data have not yet been able to contradict is
-    not yet trusted.
-    """
-    ready = monitor.ready if plant is None else monitor.ready[plant]
-    if not ready:
-        size = monitor.effective_samples if plant is None else monitor.effective_samples[plant]
-        return [f'residual tests not ready ({size:.0f} of '
-                f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)']
-    return list(monitor.reasons if plant is None else monitor.reasons_of(plant))
-
-
-def residual_items(monitor: MonitorState, hac: HacState | None,
-                   ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """
-    Return the state of the residual tests (and of the HAC) as snapshot (arrays, scalars).
-
-    Their pending rows are padded to a block, so that the snapshot's arrays
-    have the same shapes whatever the moment (a state file is checked by shape).
-    """
-    arrays = {f'adequacy_{field.name}': getattr(monitor, field.name)
-              for field in dataclasses.fields(monitor)
-              if isinstance(getattr(monitor, field.name), np.ndarray)}
-    # the ring's last block is scratch space (the pending samples are apart): zeros
-    arrays['adequacy_ring'] = monitor.ring.copy()
-    arrays['adequacy_ring'][:, -adequacy.BLOCK:] = 0.0
-    arrays['adequacy_pending_residuals'] = _padded(monitor.pending_residuals, adequacy.BLOCK)
-    arrays['adequacy_pending_inputs'] = _padded(monitor.pending_inputs, adequacy.BLOCK)
-    scalars = {'adequacy_pending': monitor.pending_residuals.shape[0],
-               'adequacy_weights': [float(value) for value in monitor.weights],
-               'adequacy_checks': int(monitor.checks), 'adequacy_blocks': int(monitor.blocks)}
-    if hac is not None:
-        products = hac.products
-        arrays.update((f'hac_{key}', value) for key, value in products.items()
-                      if isinstance(value, np.ndarray))
-        arrays['hac_pending'] = _padded(products['pending'], lagged.BLOCK)
-        scalars.update(hac_pending=products['pending'].shape[0],
-                       hac_weight=float(products['weight']),
-                       hac_squared_weight=float(products['squared_weight']),
-                       hac_count=int(products['count']))
-    return arrays, scalars
-
-
-def residual_states(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
-                    ) -> tuple[MonitorState, HacState | None]:
-    """Return the states of the residual tests and of the HAC in a :func:`residual_items`."""
-    pending = int(scalars['adequacy_pending'])
-    fields = {field.name: arrays.get(f'adequacy_{field.name}')
-              for field in dataclasses.fields(MonitorState)}
-    fields.update(pending_residuals=arrays['adequacy_pending_residuals'][:pending],
-                  pending_inputs=arrays['adequacy_pending_inputs'][:pending],
-                  weights=tuple(scalars['adequacy_weights']),
-                  checks=int(scalars['adequacy_checks']), blocks=int(scalars['adequacy_blocks']))
-    hac = None
-    if 'hac_sums' in arrays:
-        hac = HacState(products={
-            'sums': arrays['hac_sums'], 'context': arrays['hac_context'],
-            'pending': arrays['hac_pending'][:int(scalars['hac_pending'])],
-            'weight': scalars['hac_weight'], 'squared_weight': scalars['hac_squared_weight'],
-            'count': scalars['hac_count']})
-    return MonitorState(**fields), hac
-
-
-def _padded(rows: np.ndarray, count: int) -> np.ndarray:
-    """Return ``rows`` ``(m, ...)`` with zero rows added up to ``count``."""
-    padded = np.zeros((count,) + rows.shape[1:])
-    padded[:rows.shape[0]] = rows
-    return padded
 
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,

@@ -106,7 +106,7 @@ def test_bad_samples_are_refused_and_leave_the_state_alone(name):
 BLAS_CHECK = """
 import sys
 import numpy as np
-from bcid_ros.estimators.rls import load_blas
+from bcid_ros.estimators.blas import load_blas
 kernels = load_blas()
 assert 'scipy.linalg' not in sys.modules, 'the kernels imported all of scipy.linalg'
 from scipy.linalg import blas
@@ -134,14 +134,14 @@ def test_blas_kernels_load_without_scipy_linalg_and_equal_its_own():
 def test_blas_kernels_fall_back_to_scipy_linalg(monkeypatch):
     from scipy.linalg import blas
 
-    from bcid_ros.estimators import rls
+    from bcid_ros.estimators import blas as kernels
 
     def missing():
         raise ImportError('no extension file')
 
-    assert rls.fblas_module() is sys.modules['scipy.linalg._fblas']
-    monkeypatch.setattr(rls, '_fblas_from_file', missing)
-    assert rls.fblas_module() is blas
+    assert kernels.fblas_module() is sys.modules['scipy.linalg._fblas']
+    monkeypatch.setattr(kernels, '_fblas_from_file', missing)
+    assert kernels.fblas_module() is blas
 
 
 def test_spectral_radius_of_a_quadratic_equals_the_companion_eigenvalues():

@@ -24,8 +24,9 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.rls import (HEALTH_CHECK_PERIOD, load_blas, repair_covariance,
-                                     residual_items, residual_reasons, residual_states)
+from bcid_ros.estimators.blas import load_blas
+from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.rls import HEALTH_CHECK_PERIOD, repair_covariance
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, inside
