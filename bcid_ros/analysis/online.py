@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from typing import Any, Callable, Sequence
 import warnings
 
@@ -39,7 +38,6 @@ class OnlineResult:
     stable: bool = False
     fit: float = float('nan')
     operating_point: np.ndarray | None = None
-    seconds: float = 0.0
     simulated: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     @property
@@ -54,8 +52,7 @@ class OnlineResult:
         out: dict[str, Any] = {
             'fit': finite(self.fit) if self.stable else None, 'valid': self.valid,
             'stable': self.stable, 'validity_reasons': list(self.reasons),
-            'parameters': {k: finite(v) for k, v in zip(self.parameter_names, self.theta)},
-            'seconds': self.seconds}
+            'parameters': {k: finite(v) for k, v in zip(self.parameter_names, self.theta)}}
         if self.operating_point is not None:
             names = ['y'] + [f'u{i}' for i in range(1, self.operating_point.size)]
             out['operating_point'] = dict(zip(names, map(float, self.operating_point)))
@@ -79,7 +76,6 @@ def run_online(record: Record, name: str, values: dict[str, Any], chosen: Candid
     settings = {**values, 'estimator': name, 'order': chosen.order,
                 'num_inputs': record.num_inputs, 'input_delay': list(chosen.delays),
                 'detrend': detrend}
-    started = time.process_time()
     try:
         estimator = estimator_from_parameters(settings)
         with warnings.catch_warnings():
@@ -90,7 +86,6 @@ def run_online(record: Record, name: str, values: dict[str, Any], chosen: Candid
     except (ValueError, ArithmeticError, RuntimeError, np.linalg.LinAlgError) as error:
         result.error = f'{type(error).__name__}: {error}'
         return result
-    result.seconds = time.process_time() - started
     structure = Structure(chosen.order, record.num_inputs, chosen.delays,
                           values.get('feedthrough', False))
     theta = np.asarray(estimator.theta, dtype=float)
