@@ -6,7 +6,7 @@ fresh realisations of the bag's length (seeds 1000 ... 1000 + M - 1, never the
 bag's own seed) and print the mean, standard deviation and largest value of
 the relative error delta = ||theta_hat - theta|| / ||theta|| of the final
 estimate, compensated and uncompensated: mean, std, median, 99th percentile
-and largest value. ``test/test_bag.py`` bounds the committed bag's delta by
+and largest value. ``test/bag/test_bag.py`` bounds the committed bag's delta by
 the 99th percentile (some of these distributions are heavy-tailed, so a
 mean + k std bound would mean little).
 
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from bcid_ros.parameters import estimator_from_parameters, load_yaml_parameters
+from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
 from bcid_ros.reproduction.common import markdown_table
 from bcid_ros.simulation import make_scenario
 

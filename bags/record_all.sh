@@ -40,7 +40,7 @@ record_one() {
 import sys
 import numpy as np
 from bcid_ros.bag.reader import BagReader
-from bcid_ros.samples import decode_samples
+from bcid_ros.identifier.layouts import decode_samples
 from bcid_ros.simulation import make_scenario
 name, count, seed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 rows = [decode_samples(m) for _, _, m in BagReader(f'bags/{name}').decoded(['/samples'])]

@@ -28,7 +28,7 @@ HANDLERS = {
     'record': 'bcid_ros.bag.commands:record',
     'play': 'bcid_ros.bag.commands:play',
     'info': 'bcid_ros.bag.commands:info',
-    'demo': 'bcid_ros.nodes.demo:run',
+    'demo': 'bcid_ros.cli:demo',
     'analyze': 'bcid_ros.analysis.command:run',
     'import': 'bcid_ros.bag.commands:import_csv',
 }
@@ -219,6 +219,15 @@ def reproduce(args: argparse.Namespace) -> int:
     for path in run(args.paper, args.runs, args.quick, args.out_dir):
         print(f'wrote {path}')
     return 0
+
+
+def demo(args: argparse.Namespace) -> int:
+    """Run ``bcid demo``: a scenario's simulator and identifier, or the adaptive loop's three."""
+    if args.scenario == 'adaptive_loop':
+        from bcid_ros.nodes.demo_loop import run_adaptive_loop as run
+    else:
+        from bcid_ros.nodes.demo import run
+    return run(args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,10 +4,11 @@ The parameter-spec machinery: one declared parameter, its checks, and parameter 
 A :class:`ParameterSpec` says everything about one ROS parameter: type,
 default, description, allowed values or range, and whether it may change
 while a node runs. The tables built from it (the identifier's and the
-simulator's in :mod:`bcid_ros.parameters`, the estimators' options in the
+simulator's in :mod:`bcid_ros.identifier.parameters`, the estimators' options in the
 estimator registry) declare the nodes' ROS parameters, check values offline
 and online with the same messages, and generate the docs' tables. Pure
-Python, no ROS, and nothing above it in the package: every layer may use it.
+Python, no ROS, and nothing above it in the package but its Markdown
+table writer (:mod:`bcid_ros.markdown`): every layer may use it.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import dataclasses
 import math
 from pathlib import Path
 from typing import Any
+
+from bcid_ros.markdown import markdown_table as table_of
 
 #: Parameter types, named as the ROS parameter types they become.
 TYPES = ('bool', 'integer', 'double', 'string', 'double_array', 'string_array',
@@ -160,13 +163,11 @@ def spec_by_name(table: tuple[ParameterSpec, ...]) -> dict[str, ParameterSpec]:
 
 def markdown_table(table: tuple[ParameterSpec, ...]) -> str:
     """Return a parameter table as the Markdown table of docs/nodes.md."""
-    lines = ['| parameter | type | default | allowed | live | description |',
-             '|---|---|---|---|---|---|']
-    for spec in table:
-        default = 'estimator default' if spec.default is None else spec.default
-        lines.append(f'| `{spec.name}` | {spec.type} | {default} | {spec.allowed()} | '
-                     f'{"no" if spec.read_only else "yes"} | {spec.description} |')
-    return '\n'.join(lines)
+    rows = [(f'`{spec.name}`', spec.type,
+             'estimator default' if spec.default is None else spec.default, spec.allowed(),
+             'no' if spec.read_only else 'yes', spec.description) for spec in table]
+    return table_of(('parameter', 'type', 'default', 'allowed', 'live', 'description'),
+                    rows).rstrip('\n')
 
 
 def check_parameters(values: dict[str, Any],

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 load_yaml_parameters)
+from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                            load_yaml_parameters)
 from bcid_ros.resources import config_file
 from bcid_ros.simulation import make_scenario
 

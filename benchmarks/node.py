@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from benchmarks.common import Result
-from bcid_ros.nodes.interface import DiagnosticKey
+from bcid_ros.identifier.interface import DiagnosticKey
 
 SECTION = 'node throughput and latency'
 ROOT = Path(__file__).resolve().parent.parent
@@ -56,7 +56,7 @@ class Bench:
         from diagnostic_msgs.msg import DiagnosticArray
         from std_msgs.msg import Float64MultiArray
 
-        from bcid_ros.nodes import interface
+        from bcid_ros.identifier import interface
         from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS
 
         self.rclpy = rclpy
@@ -271,8 +271,8 @@ def frame_callback_capacity(bench: Bench, rows: np.ndarray, frame: int,
     from rclpy.serialization import deserialize_message, serialize_message
     from std_msgs.msg import Float64MultiArray
 
+    from bcid_ros.identifier.parameters import load_yaml_parameters
     from bcid_ros.nodes.identifier_node import IdentifierNode
-    from bcid_ros.parameters import load_yaml_parameters
 
     values = load_yaml_parameters(CONFIG)
     # In a namespace of its own, so that the benchmark's node does not hear its estimates.
@@ -307,8 +307,9 @@ def callback_parts(values: dict, rows: np.ndarray, messages: list) -> tuple[floa
     ``update_trusted`` loop over ``rows`` and ``SampleFeeder.take_message`` on
     each message (what the callback does before it publishes).
     """
-    from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
-    from bcid_ros.samples import SampleFeeder
+    from bcid_ros.identifier.feeder import SampleFeeder
+    from bcid_ros.identifier.parameters import (check_identifier_parameters,
+                                                estimator_from_parameters)
 
     checked = check_identifier_parameters(values)
     update = estimator_from_parameters(checked).update_trusted
@@ -388,8 +389,8 @@ class JointsBench:
         from diagnostic_msgs.msg import DiagnosticArray
         from sensor_msgs.msg import JointState
 
-        from bcid_ros.joint_feeder import JOINT_STATES
-        from bcid_ros.nodes import interface
+        from bcid_ros.identifier import interface
+        from bcid_ros.identifier.joint_feeder import JOINT_STATES
         from bcid_ros.nodes.common import SAMPLES_QOS
 
         self.rclpy = rclpy
@@ -458,8 +459,8 @@ class JointsBench:
         """Subscribe to every joint's latched estimate and return the latest of each."""
         from std_msgs.msg import Float64MultiArray
 
-        from bcid_ros.joint_feeder import joint_topic
-        from bcid_ros.nodes import interface
+        from bcid_ros.identifier import interface
+        from bcid_ros.identifier.joint_feeder import joint_topic
         from bcid_ros.nodes.common import LATCHED_QOS
 
         received: dict[str, np.ndarray] = {}
@@ -546,8 +547,8 @@ def joints_case(bench: JointsBench, joints: int, rate: float, seconds: float,
         estimates = bench.estimates(list(scenario.joint_names))
     finally:
         stop(node)
-    # the node's estimates against the same samples run offline (each joint equals its
-    # single-plant run to 1e-12, test_batched.py), and both against the truth
+    # the node's estimates against the same samples run offline (the same code path: the
+    # same bits), and both against the truth
     offline = make_batched_estimator('bcrls', joints, order=2)
     for t in range(samples):
         offline.update(y[t], u[t])
@@ -592,8 +593,8 @@ def joints_baseline_rss(bench: JointsBench, directory: Path) -> float:
 def joints_diagnostics_cost(count: int, repeats: int = 10) -> Result:
     """Time one 1 Hz /diagnostics message of ``count`` joints: compose and serialise."""
     from bcid_ros.estimators import make_batched_estimator
-    from bcid_ros.joint_feeder import JointFeeder
-    from bcid_ros.nodes.diagnostics_cdr import DiagnosticArrayEncoder
+    from bcid_ros.identifier.cdr import DiagnosticArrayEncoder
+    from bcid_ros.identifier.joint_feeder import JointFeeder
     from bcid_ros.nodes.joint_diagnostics import JointStatuses
     from bcid_ros.simulation import make_scenario
 

@@ -41,7 +41,7 @@ from bcid_ros.analysis.metrics import nrmse_fit
 from bcid_ros.analysis.pem import fit_oe, simulate_oe, Structure
 from bcid_ros.estimators import ESTIMATORS, make_estimator
 from bcid_ros.estimators.lti import is_stable
-from bcid_ros.reproduction.common import markdown_table
+from bcid_ros.markdown import markdown_table
 
 #: A structure within this many fit points of the best one counts as as good.
 MARGIN = 1.0

@@ -5,7 +5,7 @@ Usage: ``.venv/bin/python -m benchmarks.realistic [--count 40] [--seed 0]
 [--estimators rls,bcrls] [--all-estimators] [--json OUT]`` from the repository root
 (docs/accuracy.md). Progress goes to stderr, the markdown table to stdout.
 
-For every case of :func:`bcid_ros.simulation.realistic.realistic_family` the batch
+For every case of :func:`bcid_ros.analysis.realistic.realistic_family` the batch
 output-error fit with the true structure (:func:`bcid_ros.analysis.pem.fit_oe`; with the
 sample means removed and an output offset fitted when the record has an operating point)
 gives the
@@ -43,10 +43,11 @@ import warnings
 import numpy as np
 
 from bcid_ros.analysis.pem import fit_arx, fit_oe, Structure
+from bcid_ros.analysis.realistic import realistic_family, RealisticCase
 from bcid_ros.estimators import ESTIMATORS, make_estimator
 from bcid_ros.estimators.registry import names_where
-from bcid_ros.reproduction.common import markdown_table, relative_error
-from bcid_ros.simulation.realistic import realistic_family, RealisticCase
+from bcid_ros.markdown import markdown_table
+from bcid_ros.reproduction.common import relative_error
 
 #: delta at or below this counts as accurate whatever delta_ref is.
 ACCURATE_FLOOR = 0.01

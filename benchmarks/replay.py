@@ -60,7 +60,7 @@ def bare_update_rate(estimator: str, samples: int = 100_000) -> float:
     """Return the samples/s of a bare ``update_trusted`` loop over Ding MISO samples."""
     import numpy as np
 
-    from bcid_ros.parameters import estimator_from_parameters, load_yaml_parameters
+    from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
     from bcid_ros.simulation import make_scenario
 
     y, u = make_scenario('ding_miso').simulate(samples, 3)

@@ -16,7 +16,7 @@ from pathlib import Path
 import platform
 import sys
 
-from bcid_ros.reproduction.common import markdown_table
+from bcid_ros.markdown import markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SECTIONS = ('estimators', 'replay', 'csv_logs', 'node', 'reproduce', 'pem')

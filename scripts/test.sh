@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # The README's test command: set up .venv, then run the whole test suite.
 # Extra arguments go to pytest (for example: scripts/test.sh -k bcrls).
+# --fast first: the inner loop, without the tests that start a ROS graph, the Monte Carlo
+# checks, the papers' studies and the slow tests (the folders of test/ are the markers).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup_venv.sh
@@ -9,4 +11,8 @@ scripts/setup_venv.sh
 # (test/conftest.py): runs at once on one machine need ids that differ modulo 33.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
+if [ "${1:-}" = "--fast" ]; then
+  shift
+  set -- -m "not ros and not statistical and not papers and not slow" "$@"
+fi
 exec .venv/bin/python -m pytest "$@"

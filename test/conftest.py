@@ -2,6 +2,7 @@
 
 import itertools
 import os
+from pathlib import Path
 import time
 
 import pytest
@@ -37,16 +38,60 @@ def suite_domains(caller):
 _SUITE_DOMAINS = suite_domains(_caller_domain())
 _sequence = itertools.count()
 
+#: The test folder: every test module lives in a folder below it that says its kind.
+TEST_DIR = Path(__file__).resolve().parent
+
+#: The folders and the marker each gives its tests (the folder's name). ``-m`` selects
+#: by kind: ``scripts/test.sh --fast`` leaves out ros, statistical, papers and slow.
+KINDS = ('estimators', 'simulation', 'identifier', 'bag', 'control', 'analysis', 'nodes',
+         'cli', 'equivalence', 'statistical', 'papers', 'ros', 'lint')
+
 #: Test modules that read data made on another machine (committed bags, saved
-#: references). `.ci/run` runs them a second time with numpy's highest SIMD
-#: targets disabled, so a test that depends on the CPU fails on any machine.
-RECORDED_DATA_MODULES = {'test_bag.py', 'test_bag_ros.py', 'test_bciv_speed_equivalence.py'}
+#: references), as paths below test/. `.ci/run` runs them a second time with numpy's
+#: highest SIMD targets disabled, so a test that depends on the CPU fails on any machine.
+RECORDED_DATA_MODULES = {'bag/test_bag.py', 'ros/test_bag_ros.py',
+                         'equivalence/test_bciv_speed_equivalence.py'}
+
+
+def pytest_configure(config):
+    """Refuse a RECORDED_DATA_MODULES entry that names no file (a moved test)."""
+    missing = sorted(name for name in RECORDED_DATA_MODULES if not (TEST_DIR / name).is_file())
+    if missing:
+        raise pytest.UsageError(f'RECORDED_DATA_MODULES in test/conftest.py names no file: '
+                                f'{missing}')
+
+
+def kind_of(path):
+    """
+    Return the kind of a test module: the folder below test/ that holds it.
+
+    Raises
+    ------
+    pytest.UsageError
+        For a module directly in test/ or in a folder that is not one of :data:`KINDS`.
+
+    """
+    parts = Path(path).resolve().relative_to(TEST_DIR).parts
+    if len(parts) < 2 or parts[0] not in KINDS:
+        raise pytest.UsageError(f'{path}: a test module lives in one of the folders '
+                                f'test/{{{",".join(KINDS)}}}/')
+    return parts[0]
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of :data:`RECORDED_DATA_MODULES` as ``recorded_data``."""
+    """
+    Mark each test with its folder's kind, and ``recorded_data`` where it reads such data.
+
+    A test marked ``ros`` (it starts a ROS graph) outside test/ros/ is refused, so
+    that ``-m "not ros"`` and the folder agree.
+    """
     for item in items:
-        if item.path.name in RECORDED_DATA_MODULES:
+        kind = kind_of(item.path)
+        item.add_marker(getattr(pytest.mark, kind))
+        if kind != 'ros' and item.get_closest_marker('ros') is not None:
+            raise pytest.UsageError(f'{item.nodeid} starts a ROS graph (marker ros): move '
+                                    'its module to test/ros/')
+        if item.path.resolve().relative_to(TEST_DIR).as_posix() in RECORDED_DATA_MODULES:
             item.add_marker(pytest.mark.recorded_data)
 
 

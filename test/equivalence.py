@@ -15,6 +15,12 @@ last-bit difference (through the ill-conditioned start, the conditioning of
 P and the number of steps), measured in the same test on the same machine,
 so the bound is as tight as the problem allows and no tighter. Each test
 that uses it also shows that one changed sample breaks it.
+
+Where both sides are computed in the test (an estimator against its batch
+formula, a solver against another), :func:`two_path_spread` adds the spreads of
+both paths. Where a bound follows more simply from the sizes of the numbers (a
+sum of N terms, one step, a solve of known condition), the test writes it down
+with its reason and checks it with :func:`assert_within`.
 """
 
 from __future__ import annotations
@@ -33,6 +39,8 @@ PATH_FACTOR = 256.0
 #: Nudged runs whose largest deviation is the spread: two, so that a
 #: perturbation that happens to cancel in one quantity is not the measure.
 NUDGED_RUNS = 2
+#: The unit roundoff of a float64 operation is EPS / 2; bounds here are written in EPS.
+EPS = float(np.finfo(float).eps)
 
 
 def nudged(values: Any, rng: np.random.Generator) -> np.ndarray:
@@ -82,6 +90,22 @@ def rounding_spread(compute: Callable[..., dict[str, Any]], *data: Any,
     return spread
 
 
+def two_path_spread(first: Callable[..., dict[str, Any]],
+                    second: Callable[..., dict[str, Any]], *data: Any,
+                    seed: int = 0) -> dict[str, np.ndarray]:
+    """
+    Return the rounding spreads of two paths on the same ``data``, added per quantity.
+
+    Each path rounds its own way, so the difference of their results may hold
+    the amplified last-bit errors of both: the sum of the two spreads of
+    :func:`rounding_spread` (``first`` and ``second`` return dicts with the same
+    keys).
+    """
+    one = rounding_spread(first, *data, seed=seed)
+    other = rounding_spread(second, *data, seed=seed + 1)
+    return {key: one[key] + other[key] for key in one}
+
+
 def path_bound(expected: Any, spread: Any, steps: int) -> np.ndarray:
     """
     Return the bound of |actual - expected| per row, for ``expected`` and its ``spread``.
@@ -99,15 +123,19 @@ def path_bound(expected: Any, spread: Any, steps: int) -> np.ndarray:
 
 
 def assert_paths_agree(actual: dict[str, Any], expected: dict[str, Any],
-                       spread: dict[str, Any], steps: int, what: str = '') -> None:
+                       spread: dict[str, Any], steps: int, what: str = '',
+                       allowance: dict[str, Any] | None = None) -> None:
     """
     Assert that every quantity of two paths agrees within :func:`path_bound`.
 
     ``steps`` is the number of samples the paths went through; ``spread``
     comes from :func:`rounding_spread` (or is 0 where no arithmetic separates
-    the two). NaN must sit in the same entries in both, and None where the
+    the two). ``allowance`` adds, per quantity (and row), what separates the
+    paths besides rounding, derived by the test (an iteration's stopping
+    tolerance). NaN must sit in the same entries in both, and None where the
     other is None.
     """
+    allowance = allowance or {}
     assert actual.keys() == expected.keys(), (what, actual.keys() ^ expected.keys())
     for key, value in expected.items():
         if value is None or actual[key] is None:
@@ -117,7 +145,8 @@ def assert_paths_agree(actual: dict[str, Any], expected: dict[str, Any],
         assert mine.shape == theirs.shape, f'{what} {key}: shape {mine.shape} {theirs.shape}'
         np.testing.assert_array_equal(np.isnan(mine), np.isnan(theirs),
                                       err_msg=f'{what} {key}: NaN entries')
-        deviation, bound = row_deviation(mine, theirs), path_bound(theirs, spread[key], steps)
+        deviation = row_deviation(mine, theirs)
+        bound = path_bound(theirs, spread[key], steps) + allowance.get(key, 0.0)
         # where the bound is 0 (exact zeros both), any deviation is too much
         excess = np.divide(deviation, bound, out=np.where(deviation > 0.0, np.inf, 0.0),
                            where=bound > 0.0)
@@ -125,3 +154,26 @@ def assert_paths_agree(actual: dict[str, Any], expected: dict[str, Any],
         assert not excess[worst] > 1.0, (
             f'{what} {key}: the paths differ by {excess[worst]:.3g} times the bound '
             f'({PATH_FACTOR:g} x the rounding spread) in row {worst}')
+
+
+def assert_within(actual: Any, expected: Any, bound: Any, what: str = '') -> None:
+    """
+    Assert that ``|actual - expected| <= bound`` in every entry (``bound`` broadcasts).
+
+    For bounds derived a priori (the test states how). NaN must sit in the
+    same entries in both; the message gives the worst ratio of the deviation
+    to the bound.
+    """
+    actual, expected = np.asarray(actual, float), np.asarray(expected, float)
+    assert actual.shape == expected.shape, f'{what}: shape {actual.shape} {expected.shape}'
+    np.testing.assert_array_equal(np.isnan(actual), np.isnan(expected),
+                                  err_msg=f'{what}: NaN entries')
+    with np.errstate(invalid='ignore', divide='ignore'):
+        deviation = np.where(actual == expected, 0.0, np.abs(actual - expected))
+        deviation[np.isnan(deviation)] = 0.0
+        excess = np.where(deviation > 0.0, deviation / np.broadcast_to(bound, deviation.shape),
+                          0.0)
+    worst = float(excess.max(initial=0.0))
+    assert not worst > 1.0, (
+        f'{what}: the two differ by {worst:.3g} times the bound at '
+        f'{np.unravel_index(int(np.argmax(excess)), excess.shape)}')

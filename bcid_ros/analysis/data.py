@@ -10,7 +10,7 @@ import numpy as np
 from bcid_ros.bag.csv_samples import CsvSamples, samples_source
 from bcid_ros.bag.reader import BagReader, FLOAT64_MULTI_ARRAY
 from bcid_ros.errors import BcidError
-from bcid_ros.samples import decode_samples
+from bcid_ros.identifier.layouts import decode_samples
 
 SAMPLES_TOPIC = '/samples'
 

@@ -22,7 +22,7 @@ from bcid_ros.analysis import metrics
 from bcid_ros.analysis.batch import Candidate, finite, Record
 from bcid_ros.analysis.pem import simulate_oe, Structure
 from bcid_ros.estimators.lti import is_stable
-from bcid_ros.parameters import estimator_from_parameters
+from bcid_ros.identifier.parameters import estimator_from_parameters
 
 
 @dataclasses.dataclass

@@ -23,7 +23,7 @@ from bcid_ros.analysis.online import compare_online, OnlineResult, recommend_est
 from bcid_ros.analysis.threads import single_threaded_blas
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import names_where
-from bcid_ros.parameters import check_identifier_parameters
+from bcid_ros.identifier.parameters import check_identifier_parameters
 
 #: A candidate is "as good as the best" when its validation RMS error is at
 #: most (1 + FIT_MARGIN) times the best one's (docs/analyze.md).

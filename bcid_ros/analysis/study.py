@@ -16,11 +16,10 @@ results of the default study.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import io
 import json
 from pathlib import Path
+import subprocess
 import sys
 import tempfile
 from typing import Any, Callable
@@ -30,7 +29,7 @@ from scipy import signal
 
 from bcid_ros.bag.qos import LATCHED
 from bcid_ros.bag.writer import BagWriter, FLOAT64_MULTI_ARRAY, float64_multi_array
-from bcid_ros.samples import estimate_layout, samples_layout
+from bcid_ros.identifier.layouts import estimate_layout, samples_layout
 from bcid_ros.simulation.custom import CustomScenario
 
 #: Pole magnitudes are drawn in this range: slower poles need longer records,
@@ -143,14 +142,13 @@ def write_bag(scenario: CustomScenario, samples: int, seed: int, out: Path,
 
 def analyze_bag(bag: Path, params: Path, extra: list[str]) -> dict[str, Any]:
     """Run the ``bcid analyze`` command on a bag, as a user would, and return its JSON."""
-    from bcid_ros.cli import main
-
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        code = main(['analyze', str(bag), '--params', str(params), '--json', *extra])
-    if code != 0:
-        raise RuntimeError(f'bcid analyze failed on {bag}: {stderr.getvalue().strip()}')
-    return json.loads(stdout.getvalue())
+    # a process of its own: the study is a user of the command line, which stands above it
+    done = subprocess.run([sys.executable, '-m', 'bcid_ros.cli', 'analyze', str(bag),
+                           '--params', str(params), '--json', *extra],
+                          capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f'bcid analyze failed on {bag}: {done.stderr.strip()}')
+    return json.loads(done.stdout)
 
 
 def run_study(orders: range, seeds: range, *, samples: int = 3000, snr_db: float = 20.0,

@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 import numpy as np
 
-from bcid_ros.bag.cdr import decode_head, Float64MultiArray
+from bcid_ros.identifier.cdr import decode_head, Float64MultiArray
 
 #: MCAP opcodes.
 MESSAGE, CHUNK, MESSAGE_INDEX = 0x05, 0x06, 0x07
@@ -112,7 +112,7 @@ def topic_blocks(stream: Any, summary: Any, channel_ids: set[int],
         The topic's channels.
     fallback : callable
         ``fallback(raw)`` decodes a message that
-        :func:`~bcid_ros.bag.cdr.decode_head` refuses (``mcap_ros2``).
+        :func:`~bcid_ros.identifier.cdr.decode_head` refuses (``mcap_ros2``).
     order : OrderReport
         Updated with the messages read and moved.
 

@@ -87,7 +87,7 @@ def import_csv(args: argparse.Namespace) -> int:
     """Run ``bcid import``: write the samples of a CSV log to a rosbag2 MCAP bag."""
     from bcid_ros.bag.csv_samples import read_csv_samples, write_samples_bag
     from bcid_ros.bag.replay import SAMPLES_TOPIC
-    from bcid_ros.samples import sample_label
+    from bcid_ros.identifier.layouts import sample_label
 
     samples = read_csv_samples(args.csv, args.columns, args.time_column, args.rate)
     out = write_samples_bag(samples, args.out)

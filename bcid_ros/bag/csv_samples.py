@@ -12,7 +12,7 @@ k / rate, at :data:`DEFAULT_RATE_HZ` unless a rate is given.
 ``[y, u1, ..., ur]`` and their time stamps, and as :meth:`CsvSamples.blocks`
 the one-sample messages a bag of the same samples holds, so ``bcid replay``
 feeds a CSV through the same per-message rule as a bag
-(:meth:`bcid_ros.samples.SampleFeeder.take_messages`), and
+(:meth:`bcid_ros.identifier.feeder.SampleFeeder.take_messages`), and
 :func:`write_samples_bag` (``bcid import``) writes exactly those messages to
 a rosbag2 MCAP bag.
 
@@ -46,9 +46,9 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from bcid_ros.bag.blocks import MessageBlock
-from bcid_ros.bag.cdr import Dimension, Layout
 from bcid_ros.errors import BcidError
-from bcid_ros.samples import sample_label
+from bcid_ros.identifier.cdr import Dimension, Layout
+from bcid_ros.identifier.layouts import sample_label
 
 #: The file name suffix that makes ``bcid replay`` and ``bcid analyze`` read a CSV file.
 CSV_SUFFIX = '.csv'
@@ -115,7 +115,7 @@ class CsvSamples:
 
         The layout is that of a one-sample message, ``dim[0] = {label:
         'y,u1,...,ur', size: 1 + r, stride: 1 + r}``
-        (:func:`bcid_ros.samples.samples_layout`), the time stamps are
+        (:func:`bcid_ros.identifier.layouts.samples_layout`), the time stamps are
         :attr:`times_ns`: the messages that
         :meth:`bcid_ros.bag.reader.BagReader.blocks` yields for the bag that
         :func:`write_samples_bag` writes, in blocks of :data:`BLOCK_ROWS`
@@ -474,10 +474,9 @@ def write_samples_bag(samples: CsvSamples, out: str | Path) -> Path:
         If ``out`` exists.
 
     """
-    from bcid_ros.bag.replay import SAMPLES_TOPIC
-    from bcid_ros.bag.simulate import SAMPLES_QOS
+    from bcid_ros.bag.simulate import SAMPLES_QOS, SAMPLES_TOPIC
     from bcid_ros.bag.writer import BagWriter
-    from bcid_ros.nodes.interface import FLOAT64_MULTI_ARRAY
+    from bcid_ros.identifier.interface import FLOAT64_MULTI_ARRAY
 
     out = Path(out)
     with BagWriter(out) as writer:
@@ -492,15 +491,16 @@ def _serialised(rows: np.ndarray) -> Iterator[bytes]:
     Yield the CDR bytes of a one-sample ``samples`` message per row.
 
     rosbags serialises the first row; every message has the same layout, so
-    the same bytes up to the values (the CDR *head*, :func:`~bcid_ros.bag.cdr.decode_head`),
-    and the others are that head and their values as little-endian doubles
-    (the first message's encapsulation is CDR_LE). Where the first message
+    the same bytes up to the values (the CDR *head*,
+    :func:`~bcid_ros.identifier.cdr.decode_head`), and the others are that
+    head and their values as little-endian doubles (the first message's
+    encapsulation is CDR_LE). Where the first message
     does not end in its values so (another serialiser), each row is
     serialised by rosbags.
     """
     from bcid_ros.bag.writer import float64_multi_array, TYPESTORE
-    from bcid_ros.nodes.interface import FLOAT64_MULTI_ARRAY
-    from bcid_ros.samples import samples_layout
+    from bcid_ros.identifier.interface import FLOAT64_MULTI_ARRAY
+    from bcid_ros.identifier.layouts import samples_layout
 
     width = rows.shape[1]
     layout = samples_layout(1, width - 1)

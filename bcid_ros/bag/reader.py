@@ -30,9 +30,10 @@ import zstandard
 from bcid_ros.bag.blocks import MessageBlock, ordered_blocks, OrderReport, topic_blocks
 from bcid_ros.bag.summary import read_header, read_summary
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
-                                      TRUE_PARAMETERS)
-from bcid_ros.samples import parse_names_label
+from bcid_ros.identifier.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
+                                           TRUE_PARAMETERS)
+from bcid_ros.identifier.layouts import parse_names_label
+from bcid_ros.simulation.base import Truth
 
 #: Failures of the MCAP and CDR layers that mean "this file is broken" (and ``mcap``'s
 #: McapError where ``mcap`` reads: :func:`read_errors`).
@@ -84,13 +85,8 @@ class TopicInfo:
 
 
 @dataclasses.dataclass(frozen=True)
-class BagTruth:
+class BagTruth(Truth):
     """The simulator's truth as recorded in a bag (empty names when absent)."""
-
-    parameter_names: tuple[str, ...]
-    parameters: np.ndarray
-    noise_names: tuple[str, ...]
-    noise: np.ndarray
 
     def as_dict(self) -> dict[str, dict[str, float]]:
         """Return ``{'parameters': {name: value}, 'noise': {name: value}}``."""

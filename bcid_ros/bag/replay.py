@@ -2,18 +2,19 @@
 Offline replay: run the identifier's estimator over a bag's samples, no ROS graph.
 
 The estimator is built from the same parameter file through
-:func:`bcid_ros.parameters.estimator_from_parameters`, and every message
+:func:`bcid_ros.identifier.parameters.estimator_from_parameters`, and every message
 goes through the node's own per-message rule,
-:class:`bcid_ros.samples.SampleFeeder`, which also decides the samples where
+:class:`bcid_ros.identifier.feeder.SampleFeeder`, which also decides the samples where
 estimates are published. So the replay's final estimate equals what
-``identifier_node`` publishes for the same bag, to the last bit.
+``identifier_node`` publishes for the same bag on the same machine, to the
+last bit (another CPU may get other BLAS and SIMD kernels).
 
 The bag is read in blocks (:meth:`bcid_ros.bag.reader.BagReader.blocks`):
 runs of messages with the same layout, in log-time order, fed with
-:meth:`~bcid_ros.samples.SampleFeeder.take_messages`, which applies the
+:meth:`~bcid_ros.identifier.feeder.SampleFeeder.take_messages`, which applies the
 per-message rule to a whole block in one loop. A block whose layout is
 wrong goes message by message through
-:meth:`~bcid_ros.samples.SampleFeeder.take_message`, as the node would. A CSV
+:meth:`~bcid_ros.identifier.feeder.SampleFeeder.take_message`, as the node would. A CSV
 log (:mod:`bcid_ros.bag.csv_samples`) comes in blocks of one-sample messages,
 the messages of the bag that ``bcid import`` writes from it.
 """
@@ -31,10 +32,11 @@ from bcid_ros.bag.blocks import MessageBlock
 from bcid_ros.bag.csv_samples import CsvSamples, is_csv, read_csv_samples
 from bcid_ros.bag.reader import BagReader, BagTruth
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
-                                      PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
-from bcid_ros.parameters import check_identifier_parameters, estimator_from_parameters
-from bcid_ros.samples import decode_samples, estimate_layout, SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
+                                           PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
+from bcid_ros.identifier.layouts import decode_samples, estimate_layout
+from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: The topic the identifier reads (combined input mode).
 SAMPLES_TOPIC = resolve(SAMPLES, IDENTIFIER_NODE)
@@ -100,7 +102,8 @@ class ReplayResult:
         Return the ``bcid replay --json`` object (docs/bags.md).
 
         Keys: ``estimator``, ``samples``, ``valid`` (whether the final
-        estimate is valid, as ``~/valid`` would say), ``parameters``,
+        estimate is valid, as ``~/valid`` would say), ``validity_reasons`` (why it
+        is not, as /diagnostics says; empty when valid), ``parameters``,
         ``uncompensated``, ``noise``, ``flags`` (the estimator's flag counts,
         ``{name: count}``), ``std`` (the standard deviations of the final
         parameters, for estimators that have them: rls, bcrls), with ``detrend: mean``
@@ -112,6 +115,7 @@ class ReplayResult:
             'estimator': self.estimator,
             'samples': self.samples,
             'valid': self.valid,
+            'validity_reasons': list(self.validity_reasons),
             'parameters': _named(self.parameter_names, self.theta),
             'uncompensated': _named(self.parameter_names, self.theta_uncompensated),
             'noise': _named(self.noise_names, self.noise),
@@ -256,7 +260,7 @@ def _block_rows(block: MessageBlock, num_inputs: int) -> tuple[np.ndarray | None
     Return the rows of all the messages of a block and the samples per message.
 
     The messages share their layout and length, so the first one's decoding
-    (:func:`~bcid_ros.samples.decode_samples`) holds for all. ``(None, 0)``
+    (:func:`~bcid_ros.identifier.layouts.decode_samples`) holds for all. ``(None, 0)``
     if that decoding fails: the block then goes message by message.
     """
     try:

@@ -16,9 +16,9 @@ from pathlib import Path
 from bcid_ros.bag.qos import LATCHED, make_qos
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes.interface import (FLOAT64_MULTI_ARRAY, resolve, SAMPLES, SIMULATOR_NODE,
-                                      TRUE_NOISE_VARIANCE, TRUE_PARAMETERS)
-from bcid_ros.samples import estimate_layout, samples_layout
+from bcid_ros.identifier.interface import (FLOAT64_MULTI_ARRAY, resolve, SAMPLES, SIMULATOR_NODE,
+                                           TRUE_NOISE_VARIANCE, TRUE_PARAMETERS)
+from bcid_ros.identifier.layouts import estimate_layout, samples_layout
 from bcid_ros.simulation import make_scenario
 
 SAMPLES_TOPIC = resolve(SAMPLES, SIMULATOR_NODE)

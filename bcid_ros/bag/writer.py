@@ -26,7 +26,7 @@ from rosbags.typesys import get_typestore, Stores
 
 from bcid_ros.bag.qos import Qos
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes.interface import FLOAT64_MULTI_ARRAY
+from bcid_ros.identifier.interface import FLOAT64_MULTI_ARRAY
 
 #: The message definitions of ROS 2 Jazzy (std_msgs, diagnostic_msgs, sensor_msgs, ...).
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)

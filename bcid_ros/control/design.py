@@ -363,6 +363,28 @@ def pole_distance(achieved: Sequence[complex], target: Sequence[complex]) -> flo
     return float(max(gaps.min(axis=1).max(), gaps.min(axis=0).max()))
 
 
+def format_poles(poles: Sequence[complex] | None, number: str = '.4g',
+                 missing: str = '?') -> str:
+    """
+    Return poles as text, largest real part first, a complex one as a+bj.
+
+    Parameters
+    ----------
+    poles : sequence of complex or None
+        The poles; None gives ``missing``.
+    number : str
+        The format of each real and imaginary part (``'.3f'``, ``'.4g'``).
+    missing : str
+        The text for no poles (None).
+
+    """
+    if poles is None:
+        return missing
+    return ', '.join(f'{p.real:{number}}' if abs(p.imag) < 1e-9 else
+                     f'{p.real:{number}}{p.imag:+{number}}j'
+                     for p in sorted(np.asarray(poles, complex), key=lambda p: -p.real))
+
+
 def controller_degree(structure: ModelStructure, *, strictly_proper: bool) -> int:
     """Return the smallest m = deg R' of a causal design (module docstring, Degrees)."""
     must_be_strict = strictly_proper or structure.lags[0] == 0
@@ -490,5 +512,6 @@ def place_poles(plant: Plant, poles: Sequence[float], *, integral: bool = False,
 
 __all__ = ['CONTROLLER_LABELS', 'Controller', 'DEFAULT_MAX_CONDITION', 'DesignRefused',
            'ModelStructure', 'Plant', 'check_estimate', 'closed_loop_polynomial',
-           'closed_loop_poles', 'controller_degree', 'controller_from_message', 'parse_names',
-           'place_poles', 'pole_distance', 'required_pole_count', 'sylvester_matrix']
+           'closed_loop_poles', 'controller_degree', 'controller_from_message', 'format_poles',
+           'parse_names', 'place_poles', 'pole_distance', 'required_pole_count',
+           'sylvester_matrix']

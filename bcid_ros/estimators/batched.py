@@ -30,12 +30,16 @@ from typing import Any, ClassVar
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_SCREEN, parameter_names,
+from bcid_ros.estimators.adequacy import AdequacyMonitor
+from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
                                       SharedSettings, weighted_square_ratio)
-from bcid_ros.estimators.bcrls import compensate_rows, compensation_problems, LaggedMoments
+from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
+                                       LaggedMoments, OUTPUT_ERROR_LIMIT)
+from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings,
-                                     scale_dependents)
+                                     residual_items, residual_reasons, residual_states, Rls,
+                                     rowdot, scale_dependents)
 
 Rows = slice | np.ndarray
 
@@ -95,6 +99,8 @@ class BatchedRls(LsAccessors, SharedSettings):
     _SNAPSHOT_SCALARS: ClassVar[dict[str, type]] = {
         'loss': float, 'tau': float, 'updates': int, 'undone_in_row': int, 'next_check': int,
         'last_power': float}
+    adequacy_model: ClassVar[str] = Rls.adequacy_model
+    hac_std: ClassVar[bool] = Rls.hac_std
 
     def __init__(self, num_plants: int, *, order: int, num_inputs: int = 1,
                  feedthrough: bool = False, initial_covariance: float = 1e6,
@@ -118,7 +124,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._phi_index = np.array(index, dtype=np.intp)
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         # a value at or above this may overflow in a step: see RecursiveEstimator.update
-        self._huge = 1.0 / (HUGE_SCREEN * width)
+        self._huge = HUGE_VALUE / width
         #: Samples of each plant that were missing / not finite (not used).
         self.missing = np.zeros(self.num_plants, dtype=np.int64)
         self.nonfinite = np.zeros(self.num_plants, dtype=np.int64)
@@ -170,12 +176,14 @@ class BatchedRls(LsAccessors, SharedSettings):
             if self._quiet_left:
                 # a huge value is in some regressor: its overflow is refused, not warned about
                 self._quiet_left -= 1
+                np.maximum(self._quiet - 1, 0, out=self._quiet)
                 with np.errstate(all='ignore'):
-                    self._step(rows, y[rows], phi)
+                    self._step(rows, y[rows], phi, u[rows])
             else:
-                self._step(rows, y[rows], phi)
+                self._step(rows, y[rows], phi, u[rows])
         elif self._quiet_left:
             self._quiet_left -= 1
+            np.maximum(self._quiet - 1, 0, out=self._quiet)
         return self.valid
 
     def reset(self, plants: Any = None) -> None:
@@ -189,6 +197,7 @@ class BatchedRls(LsAccessors, SharedSettings):
             self.flags: dict[str, np.ndarray] = {}
             self._allocate()
             self._quiet_left = 0
+            self._quiet = np.zeros(self.num_plants, dtype=np.int64)
         for counts in self.flags.values():
             counts[rows] = 0
         self._change_score[rows] = 0.0
@@ -286,23 +295,27 @@ class BatchedRls(LsAccessors, SharedSettings):
         return np.sqrt(np.diagonal(self.parameter_covariance, axis1=1, axis2=2))
 
     def _parameter_covariance(self) -> np.ndarray:
-        """Return sigma_e^2 P_k tau_2 / tau per plant (``Rls._parameter_covariance``)."""
-        p, tau = self.num_parameters, self._tau
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
-        dof = tau - p * ratio
-        known = (self._updates >= p) & (tau > 0.0) & (dof > 0.0)
-        factor = np.full(self.num_plants, np.nan)
-        factor[known] = self._loss[known] / dof[known] * ratio[known]
-        return factor[:, None, None] * self._p
+        """Return the HAC covariance per plant (``Rls._parameter_covariance``), NaN where none."""
+        covariance = self._hac.covariance(self._p)
+        covariance[self._updates < self.num_parameters] = np.nan
+        return covariance
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the per-plant state arrays (all plants), for sizing."""
-        holders = [self] + [value for value in vars(self).values() if hasattr(value, 'pending')]
-        arrays = {id(value): value for holder in holders for value in vars(holder).values()
-                  if isinstance(value, np.ndarray) and value.base is None
-                  and value.shape[:1] == (self.num_plants,)}
-        return sum(array.nbytes for array in list(arrays.values()) + list(self.flags.values()))
+        """Bytes of every array this estimator holds, its helpers' included, for sizing."""
+        arrays: dict[int, np.ndarray] = {}
+        holders, seen = [self], set()
+        while holders:  # the estimator, its helpers (moments, tests, HAC) and theirs
+            holder = holders.pop()
+            seen.add(id(holder))
+            for value in vars(holder).values():
+                if isinstance(value, np.ndarray):
+                    arrays[id(value)] = value if value.base is None else value.base
+                elif hasattr(value, '__dict__') and id(value) not in seen and \
+                        type(value).__module__.startswith('bcid_ros.estimators'):
+                    holders.append(value)
+        owned = {id(array): array for array in arrays.values() if isinstance(array, np.ndarray)}
+        return sum(array.nbytes for array in list(owned.values()) + list(self.flags.values()))
 
     def plant_flags(self, plant: int) -> dict[str, int]:
         """Return the flags counted for one plant (only those that occurred)."""
@@ -406,11 +419,14 @@ class BatchedRls(LsAccessors, SharedSettings):
             usable &= present
         else:
             self.nonfinite += ~usable
-        with np.errstate(invalid='ignore'):
-            huge = usable & ~((np.abs(y) < self._huge) & (np.abs(u) < self._huge).all(axis=1))
+        with np.errstate(invalid='ignore', over='ignore'):
+            # the single plant's screen: the sum of the magnitudes (RecursiveEstimator.update)
+            huge = usable & ~(np.abs(y) + np.abs(u).sum(axis=1) < HUGE_VALUE)
         if huge.any():
-            # the order + 2 steps whose regressors can hold it run with warnings off
+            # the order + 2 steps whose regressors can hold it run with warnings off, and
+            # those plants' residual tests skip them (as Rls._record_residual's)
             self._quiet_left = self.order + 2
+            self._quiet[huge] = self.order + 2
         return None if usable.all() else np.flatnonzero(~usable)
 
     def _push(self, y: np.ndarray, u: np.ndarray) -> None:
@@ -436,7 +452,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         return ready if ready.size else None
 
     # ------------------------------------------------------------- the step
-    def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray) -> None:
+    def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray, u: np.ndarray) -> None:
         """Do one step of the plants ``rows``, whose regressors ``phi`` are filled."""
         rows = self._indices(rows)
         if self._pending_any:
@@ -446,6 +462,8 @@ class BatchedRls(LsAccessors, SharedSettings):
         outcome = ls_step_rows(self._plants, rows, y, phi, settings)
         for key, where in outcome.events.items():
             self._flag(key, rows, where)
+        if 'plant_change' in outcome.events:
+            self._forget_residuals(rows[outcome.events['plant_change']])
         if outcome.restart.any():
             self._clear_regressors(rows[outcome.restart])
         if outcome.relearn.any():
@@ -454,12 +472,31 @@ class BatchedRls(LsAccessors, SharedSettings):
         if stepped.any():
             rows = rows[stepped]
             self._after_ls_step(rows, y[stepped], phi[stepped])
+            # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
+            tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
+            if tested.any():
+                self._record_residuals(rows[tested], y[stepped][tested], phi[stepped][tested],
+                                       u[stepped][tested], outcome.errors[stepped][tested])
             due = rows[self._updates[rows] >= self._next_check[rows]]
             if due.size:
                 self._check_validity(due)
 
     def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Extend the LS step of ``rows`` on (y, phi) (the compensation of subclasses)."""
+
+    def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                          u: np.ndarray, errors: np.ndarray) -> None:
+        """Give the residual tests and the HAC the equation errors of ``rows``."""
+        self._monitor.record_rows(rows, errors, u)
+        self._hac.record_rows(rows, phi * errors[:, None])
+
+    def _forget_residuals(self, rows: np.ndarray) -> None:
+        """Start the residual tests (and the HAC) of ``rows`` afresh (Rls._forget_residuals)."""
+        self._monitor.clear(rows)
+        if self._hac is not None:
+            self._hac.clear(rows)
+        if hasattr(self, '_output_errors'):
+            self._output_errors[rows] = 0.0
 
     def _restart_learning(self, plants: np.ndarray) -> None:
         """Start ``plants`` afresh with scales chosen from the samples now in their regressors."""
@@ -507,7 +544,8 @@ class BatchedRls(LsAccessors, SharedSettings):
         reasons = rules.unstable_models(self._theta()[plants, :self.order], power,
                                         self._last_power[plants])
         self._last_power[plants] = power
-        return reasons
+        return [found + residual_reasons(self._monitor, plant)
+                for found, plant in zip(reasons, plants.tolist())]
 
     # ----------------------------------------------------------- the helpers
     def _plant_rows(self, plants: Any) -> Rows:
@@ -561,6 +599,11 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._plants = LsPlants(self._theta_ls, self._p, self._loss, self._tau, self._updates,
                                 self._undone_in_row, self._change_score, self._variance_floor,
                                 self._component_scale)
+        # each plant's residual tests and HAC
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor, plants=plants)
+        self._hac = (HacCovariance(dimension=p, forgetting_factor=self._forgetting_factor,
+                                   plants=plants) if self.hac_std else None)
 
     def _reset_learning(self, rows: Rows) -> None:
         """Return what ``rows`` learnt to the start (``Rls._reset`` but the regressor)."""
@@ -577,6 +620,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._has_reasons[rows] = False
         for plant in self._indices(rows).tolist():
             self._reasons.pop(plant, None)
+        self._forget_residuals(self._indices(rows))
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of plant k as in the single-plant snapshot (not copied)."""
@@ -584,7 +628,10 @@ class BatchedRls(LsAccessors, SharedSettings):
         scalars = {key: kind(getattr(self, '_' + key)[plant])
                    for key, kind in self._SNAPSHOT_SCALARS.items()}
         scalars['reasons'] = self._reasons.get(plant, ())
-        return arrays, scalars
+        residual_arrays, residual_scalars = residual_items(
+            self._monitor.plant_state(plant),
+            None if self._hac is None else self._hac.plant_state(plant))
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
@@ -594,6 +641,10 @@ class BatchedRls(LsAccessors, SharedSettings):
         for key, kind in self._SNAPSHOT_SCALARS.items():
             getattr(self, '_' + key)[plant] = kind(scalars[key])
         self._set_scale_dependents(np.array([plant]))
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.load_plant(plant, monitor)
+        if self._hac is not None:
+            self._hac.load_plant(plant, hac)
         reasons = tuple(scalars['reasons'])
         self._has_reasons[plant] = bool(reasons)
         if reasons:
@@ -618,8 +669,10 @@ class BatchedBcrls(BatchedRls):
 
     name: ClassVar[str] = 'bcrls'
     noise_names: ClassVar[tuple[str, ...]] = ('sigma2',)
-    _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c',)
+    _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c', 'output_errors')
     _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int}
+    adequacy_model = Bcrls.adequacy_model
+    hac_std = Bcrls.hac_std
 
     @property
     def sigma2(self) -> np.ndarray:
@@ -646,15 +699,43 @@ class BatchedBcrls(BatchedRls):
         self._lambda_theta_c[rows] = compensated * self._lambda_diagonal
 
     def _find_problems(self, plants: np.ndarray) -> list[list[str]]:
-        """Add the conditioning and the size of the compensation (Bcrls._find_problems)."""
+        """Add the conditioning and the convergence of the compensation (Bcrls._find_problems)."""
         reasons = super()._find_problems(plants)
         resets = self.flags.get('compensation_reset', np.zeros(self.num_plants, np.int64))[plants]
-        found = compensation_problems(
+        found, diverging = compensation_problems(
             self._tau[plants], self._sigma2[plants], self._p[plants], self._theta_c[plants],
             self._theta_ls[plants], self._component_scale[plants],
-            resets > self._resets_checked[plants], self.order)
+            resets > self._resets_checked[plants], self.order,
+            lambda rows: self._covariances(plants[rows]))
         self._resets_checked[plants] = resets
+        if diverging.any():
+            # (46) does not contract: restart it from theta_LS rather than follow it away
+            restart = plants[diverging]
+            self._flag('compensation_reset', restart)
+            self._resets_checked[restart] += 1
+            self._theta_c[restart] = self._theta_ls[restart]
+            self._lambda_theta_c[restart] = self._theta_c[restart] * self._lambda_diagonal
         return [mine + theirs for mine, theirs in zip(reasons, found)]
+
+    def _covariances(self, plants: np.ndarray) -> np.ndarray:
+        """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""
+        return self.parameter_covariance[plants]
+
+    def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                          u: np.ndarray, errors: np.ndarray) -> None:
+        """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
+        theta = self._theta_c[rows]
+        past = self._output_errors[rows]
+        error = y - rowdot(phi, theta)
+        for i in range(self.order):
+            error -= theta[:, i] * past[:, i]
+        bounded = np.abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[rows, 0]
+        past[:, 1:] = past[:, :-1]
+        past[:, 0] = error
+        past[~bounded] = 0.0
+        self._output_errors[rows] = past
+        if bounded.any():
+            self._monitor.record_rows(rows[bounded], error[bounded], u[bounded])
 
     def _theta(self) -> np.ndarray:
         return self._theta_c
@@ -687,6 +768,8 @@ class BatchedBcrls(BatchedRls):
         self._sigma2 = np.zeros(plants)
         self._resets_checked = np.zeros(plants, dtype=np.int64)
         self._moments = LaggedMoments(plants, self.order, p)
+        # e_oe(t-1) ... e_oe(t-n) of each plant, newest first (Bcrls._record_residual)
+        self._output_errors = np.zeros((plants, self.order))
 
     def _reset_learning(self, rows: Rows) -> None:
         super()._reset_learning(rows)
@@ -695,6 +778,7 @@ class BatchedBcrls(BatchedRls):
         self._sigma2[rows] = 0.0
         self._resets_checked[rows] = 0
         self._moments.clear(rows)
+        self._output_errors[rows] = 0.0
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._plant_items(plant)

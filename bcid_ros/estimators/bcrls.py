@@ -9,7 +9,7 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -28,9 +28,18 @@ COMPENSATION_MAX = 1e6
 #: Above this the fixed point amplifies the LS error by 1 / (1 - rho) > 5: an
 #: over-specified order drives it to 1 (docs/estimators.md).
 CONTRACTION_MAX = 0.8
-#: A compensation larger than this times |theta_LS| (normalised units) has
-#: run away from the LS estimate.
+#: A compensation larger than this times |theta_LS| (normalised units) is
+#: checked against its fixed point (see compensation_problems).
 RUNAWAY = 1.0
+#: An estimate whose normalised std exceeds this share of its size is not
+#: determined by the data: it is not three std away from zero.
+DETERMINED = 1.0 / 3.0
+#: A compensated estimate more than this many std from the fixed point of the
+#: current statistics has not converged (about 3 in 1000 under normal errors).
+CONVERGED = 3.0
+#: An output error beyond this times the output scale means an unstable A: the
+#: filter that makes it from the equation error restarts.
+OUTPUT_ERROR_LIMIT = 1e6
 #: The extended regressors z = [phi; y] of this many updates are kept, then
 #: added to the lagged moments of the covariance in one product per lag.
 MOMENT_BLOCK = 64
@@ -92,6 +101,10 @@ class Bcrls(Rls):
 
     name = 'bcrls'
     noise_names = ('sigma2',)
+    #: The residual tests take the output error, which Ding et al.'s model says is white.
+    adequacy_model = 'oe_white'
+    #: The std is bcrls's own sandwich (white output noise, which the residual tests check).
+    hac_std = False
 
     def __init__(self, **settings: Any) -> None:
         # scipy's BLAS loads with the first estimator, not with the module
@@ -127,6 +140,29 @@ class Bcrls(Rls):
         self._theta_c = compensated
         self._lambda_theta_c = compensated * self._lambda_diagonal
 
+    def _record_residual(self, y: float, phi: np.ndarray, u: np.ndarray) -> None:
+        """
+        Give the residual tests this step's output error y - B/A u of the compensated model.
+
+        The output error is the equation error of theta_c filtered by 1 / A:
+        e_oe(t) = e(t) - a_1 e_oe(t-1) - ... - a_n e_oe(t-n), with the current
+        a. An unstable A makes it grow without bound: a value beyond
+        ``OUTPUT_ERROR_LIMIT`` times the output scale (or not finite) restarts
+        the filter and is not recorded. The covariance is bcrls's own
+        sandwich, not the HAC.
+        """
+        theta = self._theta_c
+        past = self._output_errors
+        error = y - float(phi.dot(theta))
+        for a, previous in zip(theta[:self.order].tolist(), past):
+            error -= a * previous
+        if not abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[0]:
+            self._output_errors = [0.0] * self.order
+            return
+        past.pop()
+        past.insert(0, error)
+        self._monitor.record(error, u)
+
     @property
     def sigma2(self) -> float:
         """Return the noise variance estimate of eq. (51)."""
@@ -139,15 +175,33 @@ class Bcrls(Rls):
         return np.array([self._sigma2])
 
     def _find_problems(self) -> list[str]:
-        """Add the conditioning and the size of the compensation to the RLS reasons."""
+        """Add the conditioning and the convergence of the compensation to the RLS reasons."""
         reasons = super()._find_problems()
         resets = self.flags.get('compensation_reset', 0)
-        reasons += compensation_problems(
+        found, diverging = compensation_problems(
             np.array([self._tau]), np.array([self._sigma2]), self._p[None],
             self._theta_c[None], self._theta_ls[None], self._component_scale[None],
-            np.array([resets > self._resets_checked]), self.order)[0]
+            np.array([resets > self._resets_checked]), self.order, self._covariances)
         self._resets_checked = resets
-        return reasons
+        if diverging[0]:
+            # (46) does not contract: restart it from theta_LS rather than follow it away
+            self._flag('compensation_reset')
+            self._resets_checked += 1
+            self._theta_c = self._theta_ls.copy()
+            self._lambda_theta_c = self._theta_c * self._lambda_diagonal
+        return reasons + found[0]
+
+    def _covariances(self, rows: np.ndarray) -> np.ndarray:
+        """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""
+        covariance = self.parameter_covariance
+        if covariance is None:
+            return np.full((1, self.num_parameters, self.num_parameters), np.nan)
+        return covariance[None]
+
+    def _forget_residuals(self) -> None:
+        super()._forget_residuals()
+        # e_oe(t-1) ... e_oe(t-n), newest first
+        self._output_errors = [0.0] * self.order
 
     def _reset(self) -> None:
         super()._reset()
@@ -163,12 +217,14 @@ class Bcrls(Rls):
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._state_items()
         moment_arrays, moment_scalars = self._moment_state()
-        return {**arrays, 'theta_c': self._theta_c, **moment_arrays}, {
+        return {**arrays, 'theta_c': self._theta_c, 'output_errors': np.array(
+            self._output_errors), **moment_arrays}, {
             **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked,
             **moment_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
+        self._output_errors = arrays['output_errors'].tolist()
         self._theta_c = arrays['theta_c']
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
@@ -285,43 +341,87 @@ def compensate_rows(theta_ls: np.ndarray, p: np.ndarray, loss: np.ndarray, tau: 
 
 def compensation_problems(tau: np.ndarray, sigma2: np.ndarray, p: np.ndarray,
                           theta_c: np.ndarray, theta_ls: np.ndarray,
-                          component_scale: np.ndarray, reset: np.ndarray,
-                          order: int) -> list[list[str]]:
+                          component_scale: np.ndarray, reset: np.ndarray, order: int,
+                          covariance_of: Callable[[np.ndarray], np.ndarray],
+                          ) -> tuple[list[list[str]], np.ndarray]:
     r"""
-    Return, per plant, the reasons not to trust a compensated estimate (the validity of Bcrls).
+    Return, per plant, the reasons not to trust a compensated estimate, and which diverge.
 
-    An ill-conditioned compensation: the contraction
-    :math:`\rho = \tau\hat\sigma^2\lambda_{max}(P_{aa})` of the iteration
-    (46) above ``CONTRACTION_MAX``; a compensation that runs away from the LS
-    estimate (normalised, more than ``RUNAWAY`` times its size); a
-    ``compensation_reset`` since the last check (``reset``). Arrays with a
-    leading plant axis ``(K, ...)``.
+    (46) is the iteration :math:`\theta_c \leftarrow \hat\theta_{LS} + M\theta_c`
+    with :math:`M = \tau\hat\sigma^2 P\Lambda`, of spectral radius (contraction)
+    :math:`\rho = \tau\hat\sigma^2\lambda_{max}(P_{aa})`:
+
+    * :math:`\rho \ge 1`: the recursion diverges; the plant is returned in the
+      mask (its caller restarts the compensation from theta_LS);
+    * an ill-conditioned compensation, judged by the estimate's own
+      uncertainty where it could be one (:math:`\rho >` ``CONTRACTION_MAX`` or
+      the compensation larger than theta_LS): no covariance (the sandwich's
+      bread is singular, as an over-specified order makes it) or, in
+      normalised units, a standard deviation above ``DETERMINED`` of the
+      estimate's size (the data do not determine it);
+    * a compensation that has not converged: it is larger than theta_LS
+      (normalised) and more than ``CONVERGED`` std away from the fixed point
+      :math:`(I - M)^{-1}\hat\theta_{LS}` of the current statistics;
+    * a ``compensation_reset`` since the last check (``reset``).
+
+    ``covariance_of(plants)`` returns the covariances ``(k, p, p)`` of those
+    plants (NaN where none); it is called only for plants that need it.
+    Arrays have a leading plant axis ``(K, ...)``.
     """
+    count = tau.shape[0]
     block = p[:, :order, :order]
-    if np.isfinite(block).all():
-        largest = np.linalg.eigvalsh(block)[:, -1]
-    else:  # eigvalsh refuses non-finite matrices: those plants' contraction is unknown
-        finite = np.isfinite(block).all(axis=(1, 2))
-        largest = np.full(tau.shape[0], np.nan)
+    largest = np.full(count, np.nan)
+    finite = np.isfinite(block).all(axis=(1, 2))
+    if finite.any():
         largest[finite] = np.linalg.eigvalsh(block[finite])[:, -1]
-    contraction = (tau * sigma2 * largest).tolist()
-    difference = component_scale * (theta_c - theta_ls)
-    shift = np.sqrt(rowdot(difference, difference)).tolist()
-    scaled = component_scale * theta_ls
-    size = np.sqrt(rowdot(scaled, scaled)).tolist()
-    reasons: list[list[str]] = []
-    for rho, moved, big, was_reset in zip(contraction, shift, size, reset.tolist()):
-        found = []
-        if not rho <= CONTRACTION_MAX:
-            found.append(f'ill-conditioned compensation (contraction {rho:.3g} '
-                         f'> {CONTRACTION_MAX})')
-        if not moved <= RUNAWAY * big:
-            found.append(f'compensation runs away from LS ({moved / big:.3g} x |theta_LS|)'
-                         if big > 0 else 'compensation runs away from LS')
-        if was_reset:
-            found.append('compensation reset')
-        reasons.append(found)
-    return reasons
+    contraction = tau * sigma2 * largest
+    shift = np.sqrt(rowdot(*(component_scale * (theta_c - theta_ls),) * 2))
+    size = np.sqrt(rowdot(*(component_scale * theta_ls,) * 2))
+    diverging = contraction >= 1.0
+    large = ~(shift <= RUNAWAY * size)
+    doubtful = np.flatnonzero(~diverging & ((contraction > CONTRACTION_MAX) | large))
+    reasons: list[list[str]] = [[] for _ in range(count)]
+    for k in np.flatnonzero(diverging | ~np.isfinite(contraction)):
+        reasons[k].append(f'compensation diverges (contraction {contraction[k]:.3g})')
+    if doubtful.size:
+        covariance = covariance_of(doubtful)
+        a_columns = _a_columns(p.shape[1], order)
+        for k, matrix in zip(doubtful.tolist(), covariance):
+            # I - M, M = tau sigma2 P Lambda: its solve is the fixed point
+            iteration = np.eye(p.shape[1]) - tau[k] * sigma2[k] * p[k] * a_columns
+            reasons[k] += _uncertain_compensation(matrix, theta_c[k], component_scale[k],
+                                                  large[k], iteration, theta_ls[k])
+    for k in np.flatnonzero(reset):
+        reasons[k].append('compensation reset')
+    return reasons, diverging
+
+
+def _a_columns(width: int, order: int) -> np.ndarray:
+    """Return the diagonal of Lambda = diag(I_n, 0) as a row, for P Lambda."""
+    row = np.zeros(width)
+    row[:order] = 1.0
+    return row
+
+
+def _uncertain_compensation(covariance: np.ndarray, theta_c: np.ndarray,
+                            scale: np.ndarray, large: bool, contraction: np.ndarray,
+                            theta_ls: np.ndarray) -> list[str]:
+    """Return the reasons of :func:`compensation_problems` that need the covariance."""
+    std = np.sqrt(np.maximum(np.diagonal(covariance), 0.0))
+    if not np.isfinite(covariance).all():
+        return ['ill-conditioned compensation (no covariance: the data do not determine it)']
+    relative = float(np.linalg.norm(scale * std) / np.linalg.norm(scale * theta_c))
+    if not relative <= DETERMINED:
+        return [f'ill-conditioned compensation (std {relative:.3g} of the estimate)']
+    if large:
+        try:
+            fixed_point = np.linalg.solve(contraction, theta_ls)
+        except np.linalg.LinAlgError:
+            return ['ill-conditioned compensation (no fixed point)']
+        away = float(np.max(np.abs(theta_c - fixed_point) / np.maximum(std, 1e-300)))
+        if not away <= CONVERGED:
+            return [f'compensation has not converged ({away:.3g} std from its fixed point)']
+    return []
 
 
 class LaggedMoments:

@@ -120,6 +120,12 @@ _CL_BCLS_OPTIONS = (
               low_open=True),
 )
 
+_RPEM_OPTIONS = (
+    parameter('model', 'string', None, 'rpem: oe (output error y = sum B_i/F u_i + v, v of any '
+              'colour) or armax (A y = sum B_i u_i + C e; adds c1..cn). Unset: the estimator '
+              'default (oe).', choices=('oe', 'armax')),
+)
+
 #: The registered estimators, by name, in the order the docs list them.
 REGISTRY: dict[str, EstimatorEntry] = {entry.name: entry for entry in (
     EstimatorEntry('rls', 'bcid_ros.estimators.rls:Rls', 'bcid_ros.estimators.batched:BatchedRls',
@@ -133,6 +139,9 @@ REGISTRY: dict[str, EstimatorEntry] = {entry.name: entry for entry in (
     EstimatorEntry('cl_bcls', 'bcid_ros.estimators.cl_bcls:ClosedLoopBcls', None,
                    'closed_loop', _CL_BCLS_OPTIONS, summary='BCLS in closed loop with '
                    'prefilter redesign (Ikeda 2008)'),
+    EstimatorEntry('rpem', 'bcid_ros.estimators.rpem:Rpem', None, 'output_error', _RPEM_OPTIONS,
+                   summary='recursive prediction-error method, OE or ARMAX, with a '
+                   'batch-refined start (Ljung and Soderstrom 1983)'),
 )}
 
 #: The registered names, in registry order.

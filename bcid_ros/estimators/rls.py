@@ -19,8 +19,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bcid_ros.estimators import rules
-from bcid_ros.estimators.base import RecursiveEstimator, weighted_square_ratio
+from bcid_ros.estimators import adequacy, lagged, rules
+from bcid_ros.estimators.adequacy import AdequacyMonitor, MonitorState
+from bcid_ros.estimators.base import RecursiveEstimator
+from bcid_ros.estimators.hac import HacCovariance, HacState
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 # the names bciv and cl_bcls still take from here
 from bcid_ros.estimators.rules import (CHANGE_MEMORY, GATE_WARMUP, GROWTH,  # noqa: F401
@@ -249,13 +251,15 @@ class StepOutcome:
 
     ``stepped``: the LS step was made; ``events``: flag name -> where it
     occurred; ``restart``: the regressor must restart (a step undone or a
-    sample refused); ``relearn``: the plant starts afresh with new scales.
+    sample refused); ``relearn``: the plant starts afresh with new scales;
+    ``errors``: the a-priori prediction errors (the equation errors).
     """
 
     stepped: np.ndarray
     events: dict[str, np.ndarray]
     restart: np.ndarray
     relearn: np.ndarray
+    errors: np.ndarray
 
 
 def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
@@ -333,7 +337,7 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
         events['update_undone'] = undone
     if refused.any():
         events['outlier_rejected'] = refused
-    return StepOutcome(stepped, events, undone | refused, relearn)
+    return StepOutcome(stepped, events, undone | refused, relearn, e)
 
 
 def _mask(count: int, where: np.ndarray) -> np.ndarray:
@@ -394,6 +398,10 @@ def repair_rows(plants: LsPlants, rows: np.ndarray, initial_covariance: float) -
     fallback = initial_covariance / scale ** 2
     plants.p[rows] = rules.repair_covariances(
         plants.p[rows], fallback[:, :, None] * np.eye(scale.shape[1]), scale)
+
+
+#: No event (a mask of one False).
+_NO = np.zeros(1, dtype=bool)
 
 
 def scale_dependents(scales: np.ndarray,
@@ -509,6 +517,11 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     name = 'rls'
     noise_names = ('residual_variance',)
+    #: The residual the model says is white, for the residual tests
+    #: (:data:`~bcid_ros.estimators.adequacy.MODEL_TESTS`): the equation error.
+    adequacy_model = 'arx'
+    #: Whether the published std is the HAC sandwich of the equation error's scores.
+    hac_std = True
 
     def __init__(self, **settings: Any) -> None:
         super().__init__(**settings)
@@ -525,6 +538,8 @@ class Rls(LsAccessors, RecursiveEstimator):
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step(y, phi)
+            if self._tau >= self._gate_from and not self._quiet_left:
+                self._record_residual(y, phi, u)
             if self._updates >= self._next_check:
                 self._check_validity()
 
@@ -560,6 +575,8 @@ class Rls(LsAccessors, RecursiveEstimator):
                 self._update(y, u)
             elif self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
+                if self._tau >= self._gate_from and not self._quiet_left:
+                    self._record_residual(y, phi, u)
                 if self._updates >= self._next_check:
                     self._check_validity()
 
@@ -571,6 +588,20 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _after_ls_step(self, y: float, phi: np.ndarray) -> None:
         """Extend the LS step on (y, phi) (the bias compensation of subclasses); nothing here."""
+
+    def _record_residual(self, y: float, phi: np.ndarray, u: np.ndarray) -> None:
+        """
+        Give the residual tests and the HAC covariance this step's equation error.
+
+        From the gate's warm-up on (tau >= GATE_WARMUP p), as the gate: the
+        a-priori errors of the first, converging steps are correlated with the
+        inputs by design (docs/trust.md). Not while a huge value (beyond
+        2^450) is in the regressor: its products would overflow the tests' sums.
+        """
+        error = self._error
+        self._monitor.record(error, u)
+        # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
+        self._hac.record_product(phi, error)
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
@@ -586,6 +617,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         if tau >= self._gate_from and (self._change_score or not e * e / (
                 (self._loss / tau + self._variance_floor) * (s + 1.0 - lam)) <= self._gate_limit2):
             return self._rare_step(y, phi)
+        self._error = e
         self._p = rls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
@@ -604,9 +636,12 @@ class Rls(LsAccessors, RecursiveEstimator):
         outcome = ls_step_rows(plants, np.zeros(1, dtype=np.intp), np.array([y]), phi[None],
                                self._ls_settings())
         self._take_scalars(plants)
+        self._error = float(outcome.errors[0])
         for key, where in outcome.events.items():
             if where[0]:
                 self._flag(key)
+        if outcome.events.get('plant_change', _NO)[0]:
+            self._forget_residuals()
         if outcome.restart[0]:
             self._refused += 1
             self._restart_regressor()
@@ -688,7 +723,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         reasons = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
         self._last_power = float(power[0])
-        return reasons
+        return reasons + residual_reasons(self._monitor)
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -727,27 +762,21 @@ class Rls(LsAccessors, RecursiveEstimator):
     # ------------------------------------------------------- the uncertainty
     def _parameter_covariance(self) -> np.ndarray | None:
         r"""
-        Return the LS covariance :math:`\hat\sigma_e^2 P \tau_2/\tau` (None before ready).
+        Return the HAC sandwich covariance of the LS estimate (None before its first block).
 
-        For an ARX plant (white equation error of variance :math:`\sigma_e^2`),
-        the weighted LS estimate has the sandwich covariance
-        :math:`\sigma_e^2 P (\sum w_i^2\varphi\varphi^T) P`, which is
-        :math:`\sigma_e^2 P\,\tau_2/\tau` for stationary data
-        (:func:`~bcid_ros.estimators.base.weighted_square_ratio`; 1 without
-        forgetting). :math:`\hat\sigma_e^2 = J / (\tau - p\,\tau_2/\tau)`,
-        the weighted residual sum over its expected value per unit variance
-        (:math:`J/(N - p)` without forgetting). Not calibrated for coloured
-        equation error (output-error data): use bcrls there.
+        The LS estimate solves :math:`\sum_t w_t\varphi_t(y_t - \varphi_t^T\theta) = 0`,
+        so :math:`\hat\theta - \theta \approx P\sum_t w_t\varphi_t e_t` and its
+        covariance is :math:`P\,\mathrm{var}(\sum_t w_t s_t)\,P` with the scores
+        :math:`s_t = \varphi_t e_t`. :class:`~bcid_ros.estimators.hac.HacCovariance`
+        estimates the middle from the scores' lagged products, prewhitened and
+        windowed (Andrews 1991; Andrews and Monahan 1992): calibrated whether
+        the equation error is white (an ARX plant) or coloured (docs/trust.md).
+        The scores count from the gate's warm-up on; the first block of 64
+        gives the first covariance.
         """
-        tau = self._tau
-        p = self.num_parameters
-        if self._updates < p or not tau > 0.0:
+        if self._updates < self.num_parameters:
             return None
-        ratio = weighted_square_ratio(tau, self._forgetting_factor)
-        dof = tau - p * ratio
-        if not dof > 0.0:
-            return None
-        return (self._loss / dof * ratio) * self._p
+        return self._hac.covariance(self._p)
 
     def _theta(self) -> np.ndarray:
         return self._theta_ls
@@ -774,6 +803,16 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = p
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
+        self._error = 0.0
+        self._forget_residuals()
+
+    def _forget_residuals(self) -> None:
+        """Start the residual tests and the HAC afresh (at a reset and after a plant change)."""
+        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
+                                        forgetting_factor=self._forgetting_factor)
+        self._hac = (HacCovariance(dimension=self.num_parameters,
+                                   forgetting_factor=self._forgetting_factor)
+                     if self.hac_std else None)
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
@@ -787,7 +826,9 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
                    'last_power': self._last_power, 'reasons': self._reasons}
-        return arrays, scalars
+        residual_arrays, residual_scalars = residual_items(
+            self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -805,6 +846,84 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = int(scalars['next_check'])
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
+        monitor, hac = residual_states(arrays, scalars)
+        self._monitor.set_state(monitor)
+        if self._hac is not None:
+            self._hac.set_state(hac)
+
+
+def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list[str]:
+    """
+    Return the reasons of the residual tests of one plant (``plant`` None: a one-plant monitor).
+
+    Until the tests have a window of SAMPLES_PER_LAG samples per lag, that is a
+    reason itself: a model the data have not yet been able to contradict is
+    not yet trusted.
+    """
+    ready = monitor.ready if plant is None else monitor.ready[plant]
+    if not ready:
+        size = monitor.effective_samples if plant is None else monitor.effective_samples[plant]
+        return [f'residual tests not ready ({size:.0f} of '
+                f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)']
+    return list(monitor.reasons if plant is None else monitor.reasons_of(plant))
+
+
+def residual_items(monitor: MonitorState, hac: HacState | None,
+                   ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """
+    Return the state of the residual tests (and of the HAC) as snapshot (arrays, scalars).
+
+    Their pending rows are padded to a block, so that the snapshot's arrays
+    have the same shapes whatever the moment (a state file is checked by shape).
+    """
+    arrays = {f'adequacy_{field.name}': getattr(monitor, field.name)
+              for field in dataclasses.fields(monitor)
+              if isinstance(getattr(monitor, field.name), np.ndarray)}
+    # the ring's last block is scratch space (the pending samples are apart): zeros
+    arrays['adequacy_ring'] = monitor.ring.copy()
+    arrays['adequacy_ring'][:, -adequacy.BLOCK:] = 0.0
+    arrays['adequacy_pending_residuals'] = _padded(monitor.pending_residuals, adequacy.BLOCK)
+    arrays['adequacy_pending_inputs'] = _padded(monitor.pending_inputs, adequacy.BLOCK)
+    scalars = {'adequacy_pending': monitor.pending_residuals.shape[0],
+               'adequacy_weights': [float(value) for value in monitor.weights],
+               'adequacy_checks': int(monitor.checks), 'adequacy_blocks': int(monitor.blocks)}
+    if hac is not None:
+        products = hac.products
+        arrays.update((f'hac_{key}', value) for key, value in products.items()
+                      if isinstance(value, np.ndarray))
+        arrays['hac_pending'] = _padded(products['pending'], lagged.BLOCK)
+        scalars.update(hac_pending=products['pending'].shape[0],
+                       hac_weight=float(products['weight']),
+                       hac_squared_weight=float(products['squared_weight']),
+                       hac_count=int(products['count']))
+    return arrays, scalars
+
+
+def residual_states(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
+                    ) -> tuple[MonitorState, HacState | None]:
+    """Return the states of the residual tests and of the HAC in a :func:`residual_items`."""
+    pending = int(scalars['adequacy_pending'])
+    fields = {field.name: arrays.get(f'adequacy_{field.name}')
+              for field in dataclasses.fields(MonitorState)}
+    fields.update(pending_residuals=arrays['adequacy_pending_residuals'][:pending],
+                  pending_inputs=arrays['adequacy_pending_inputs'][:pending],
+                  weights=tuple(scalars['adequacy_weights']),
+                  checks=int(scalars['adequacy_checks']), blocks=int(scalars['adequacy_blocks']))
+    hac = None
+    if 'hac_sums' in arrays:
+        hac = HacState(products={
+            'sums': arrays['hac_sums'], 'context': arrays['hac_context'],
+            'pending': arrays['hac_pending'][:int(scalars['hac_pending'])],
+            'weight': scalars['hac_weight'], 'squared_weight': scalars['hac_squared_weight'],
+            'count': scalars['hac_count']})
+    return MonitorState(**fields), hac
+
+
+def _padded(rows: np.ndarray, count: int) -> np.ndarray:
+    """Return ``rows`` ``(m, ...)`` with zero rows added up to ``count``."""
+    padded = np.zeros((count,) + rows.shape[1:])
+    padded[:rows.shape[0]] = rows
+    return padded
 
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,

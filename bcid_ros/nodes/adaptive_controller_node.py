@@ -16,18 +16,18 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
 from rclpy.node import Node
 from std_msgs.msg import Bool, Float64, Float64MultiArray, MultiArrayDimension
 
+from bcid_ros.control.design import format_poles
 from bcid_ros.control.loop import AdaptiveController, EVENTS, Outcome, REFUSALS
 from bcid_ros.control.parameters import CONTROLLER_PARAMETERS
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.layouts import parse_names_label
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, make_parameter_check, run_node,
                                    SAMPLES_QOS, Throttle, usage)
-from bcid_ros.nodes import interface
 from bcid_ros.nodes.diagnostics import DiagnosticsUpdater, OK, Status, WARN
 from bcid_ros.parameter_spec import spec_by_name
-from bcid_ros.samples import parse_names_label
 
 
 def controller_message(numerator: list[float], denominator: list[float]) -> Float64MultiArray:
@@ -44,14 +44,6 @@ def controller_message(numerator: list[float], denominator: list[float]) -> Floa
 def message_names(message: Float64MultiArray) -> tuple[str, ...]:
     """Return the parameter names in the label of an estimate message (empty if none)."""
     return parse_names_label(message.layout.dim[0].label) if message.layout.dim else ()
-
-
-def format_poles(poles: np.ndarray | None) -> str:
-    """Return poles as text, complex ones as a +- bj."""
-    if poles is None:
-        return 'unknown (no estimate yet)'
-    return ', '.join(f'{p.real:.4g}' if abs(p.imag) < 1e-9 else
-                     f'{p.real:.4g}{p.imag:+.4g}j' for p in np.asarray(poles, complex))
 
 
 class AdaptiveControllerNode(Node):
@@ -115,7 +107,7 @@ class AdaptiveControllerNode(Node):
         self.publish_controller()
         self.get_logger().info(
             f'pole placement for {",".join(self.loop.structure.names)} (from {prefix}) with '
-            f'poles {format_poles(np.array(self.loop.poles))}, integral action '
+            f'poles {format_poles(self.loop.poles)}, integral action '
             f'{str(settings["integral_action"]).lower()}; fallback controller until a '
             f'trusted estimate')
 
@@ -206,8 +198,9 @@ class AdaptiveControllerNode(Node):
             ('controller', 'designed' if loop.trusted else 'fallback'),
             ('controller numerator', ', '.join(f'{v:.6g}' for v in numerator)),
             ('controller denominator', ', '.join(f'{v:.6g}' for v in denominator)),
-            ('target poles', format_poles(np.array(loop.poles))),
-            ('poles with the latest estimate', format_poles(loop.predicted_poles())),
+            ('target poles', format_poles(loop.poles)),
+            ('poles with the latest estimate',
+             format_poles(loop.predicted_poles(), missing='unknown (no estimate yet)')),
             ('input (last)', loop.runtime.last_input),
             ('reference (last)', loop.last_reference),
             ('refusals (all reasons)', loop.refusals),

@@ -1,7 +1,7 @@
 """
 What both nodes share: QoS profiles, parameter declaration from the tables, main().
 
-The parameter tables live in :mod:`bcid_ros.parameters` (pure Python), so
+The parameter tables live in :mod:`bcid_ros.identifier.parameters` (pure Python), so
 the offline tools use the same names, defaults and ranges.
 """
 

@@ -1,10 +1,9 @@
 """
 ``bcid demo``: the simulator and identifier nodes, converging live.
 
-``bcid demo --scenario adaptive_loop`` runs the adaptive loop instead: the
-plant (``simulator_node``, ``mode: plant``), the identifier and
-``adaptive_controller_node`` as three processes with
-config/adaptive_loop.yaml (docs/adaptive_loop.md).
+``bcid demo --scenario adaptive_loop`` runs the adaptive loop instead
+(:mod:`bcid_ros.nodes.demo_loop`, docs/adaptive_loop.md); the two share the
+child processes and the watching node of :mod:`bcid_ros.nodes.demo_graph`.
 
 Starts ``simulator_node`` and ``identifier_node`` as two processes with the
 scenario's config file, as a user would, and watches them from a small
@@ -17,89 +16,24 @@ parameter trajectories. The child processes are stopped on every way out.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 from pathlib import Path
-import shutil
-import signal
-import subprocess
 import sys
 import time
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes import interface
-from bcid_ros.nodes.interface import COUNTERS, DiagnosticKey as Key
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.interface import COUNTERS, DiagnosticKey as Key
+from bcid_ros.nodes.demo_graph import (Child, demo_graph, DEMO_DEFAULTS, executable,
+                                       START_TIMEOUT)
 from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
-#: Per scenario: (samples, rate in Hz, frame size) that converge in well under a minute.
-DEMO_DEFAULTS = {
-    'ding_miso': (4000, 1000.0, 1),
-    'ding_miso_nonstationary': (4000, 1000.0, 1),
-    'ikenoue_colored': (10000, 2000.0, 20),
-    'ikenoue_white_input': (10000, 2000.0, 20),
-    'ikeda_closed_loop': (8192, 2000.0, 8),
-    'adaptive_loop': (12000, 500.0, 1),
-}
 #: Seconds to wait for the last estimate after the simulator has finished.
 SETTLE_TIMEOUT = 10.0
-#: Seconds to wait for a node to exit after SIGINT before it is killed.
-STOP_TIMEOUT = 5.0
-#: Seconds the simulator may take before its first sample (discovery included).
-START_TIMEOUT = 30.0
-
-
-def executable(name: str) -> list[str]:
-    """Return the command that runs the console script ``name`` of this installation."""
-    beside = Path(sys.executable).with_name(name)
-    if beside.is_file():
-        return [str(beside)]
-    found = shutil.which(name)
-    if found:
-        return [found]
-    module = {'identifier_node': 'bcid_ros.nodes.identifier_node',
-              'simulator_node': 'bcid_ros.nodes.simulator_node',
-              'adaptive_controller_node': 'bcid_ros.nodes.adaptive_controller_node'}[name]
-    return [sys.executable, '-m', module]
-
-
-class Child:
-    """A node process whose output goes to a log file; stopped with SIGINT, then SIGKILL."""
-
-    def __init__(self, name: str, command: list[str], log: Path) -> None:
-        self.name = name
-        self.log = log
-        self._file = open(log, 'w')
-        self.process = subprocess.Popen(command, stdout=self._file, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL)
-
-    def poll(self) -> int | None:
-        """Return the exit code, or None while running."""
-        return self.process.poll()
-
-    def tail(self, lines: int = 15) -> str:
-        """Return the last lines of the log."""
-        self._file.flush()
-        try:
-            text = self.log.read_text(errors='replace').splitlines()
-        except OSError:
-            return ''
-        return '\n'.join(text[-lines:])
-
-    def stop(self) -> int | None:
-        """Stop the process (SIGINT, then SIGKILL) and return its exit code."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self._file.close()
-        return self.process.returncode
 
 
 class Monitor:
@@ -152,7 +86,7 @@ class Monitor:
 
     def on_parameters(self, message: Any) -> None:
         """Keep the compensated estimate and its trajectory."""
-        from bcid_ros.samples import parse_names_label
+        from bcid_ros.identifier.layouts import parse_names_label
 
         self.names = parse_names_label(message.layout.dim[0].label)
         self.theta = np.array(message.data)
@@ -174,7 +108,7 @@ class Monitor:
 
     def on_true_noise(self, message: Any) -> None:
         """Keep the true noise figures and their names."""
-        from bcid_ros.samples import parse_names_label
+        from bcid_ros.identifier.layouts import parse_names_label
 
         self.true_noise = np.array(message.data)
         self.noise_names = parse_names_label(message.layout.dim[0].label)
@@ -212,7 +146,7 @@ def live_line(monitor: Monitor, total: int, elapsed: float) -> str:
 
 def summary(monitor: Monitor) -> str:
     """Return the final table: estimate and uncompensated estimate against the truth."""
-    from bcid_ros.reproduction.common import markdown_table
+    from bcid_ros.markdown import markdown_table
 
     rows = []
     for k, name in enumerate(monitor.names):
@@ -273,10 +207,6 @@ def _one_decimal(text: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``bcid demo``; return the exit code."""
-    if args.scenario == 'adaptive_loop':
-        from bcid_ros.nodes.demo_loop import run_adaptive_loop
-
-        return run_adaptive_loop(args)
     samples, rate, frame = DEMO_DEFAULTS[args.scenario]
     samples = args.samples or samples
     rate = args.rate or rate
@@ -351,39 +281,3 @@ def run(args: argparse.Namespace) -> int:
     print(f'wall time {wall:.1f} s; final delta {100 * monitor.delta(monitor.theta):.3f} %; '
           f'wrote {png}')
     return 0
-
-
-@contextlib.contextmanager
-def demo_graph() -> Iterator[tuple[Any, Any, list[Child]]]:
-    """
-    Yield the demo's own node, its executor and the list of its child processes.
-
-    The children a demo appends are stopped on the way out, SIGTERM is an
-    interrupt meanwhile (as Ctrl-C), and the node and its context go down.
-    """
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('bcid_demo', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    children: list[Child] = []
-    previous_handler = signal.signal(signal.SIGTERM, _interrupt)
-    try:
-        yield node, executor, children
-    finally:
-        for child in reversed(children):
-            child.stop()
-        signal.signal(signal.SIGTERM, previous_handler)
-        executor.remove_node(node)
-        node.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown(context=context)
-
-
-def _interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt

@@ -23,13 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.control.design import (closed_loop_poles, Controller, ModelStructure, Plant,
-                                     pole_distance)
+from bcid_ros.control.design import (closed_loop_poles, Controller, format_poles,
+                                     ModelStructure, Plant, pole_distance)
 from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.errors import BcidError
-from bcid_ros.nodes import interface
-from bcid_ros.nodes.demo import (Child, demo_graph, DEMO_DEFAULTS, executable,
-                                 START_TIMEOUT)
+from bcid_ros.identifier import interface
+from bcid_ros.nodes.demo_graph import (Child, demo_graph, DEMO_DEFAULTS, executable,
+                                       START_TIMEOUT)
 from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
@@ -160,14 +160,6 @@ def math_nan() -> float:
     return float('nan')
 
 
-def format_poles(poles: np.ndarray | None) -> str:
-    """Return poles as text, complex ones as a+bj."""
-    if poles is None:
-        return '?'
-    return ', '.join(f'{p.real:.3f}' if abs(p.imag) < 1e-9 else f'{p.real:.3f}{p.imag:+.3f}j'
-                     for p in sorted(np.asarray(poles, complex), key=lambda p: -p.real))
-
-
 def live_line(record: LoopRecord, total: int, elapsed: float, switches: int) -> str:
     """Return one status line: samples, estimate, delta, poles against the target."""
     sample = len(record.y)
@@ -179,15 +171,16 @@ def live_line(record: LoopRecord, total: int, elapsed: float, switches: int) -> 
         parts.append(f'delta {100 * record.delta(sample, values):6.2f} %')
     else:
         parts.append('no estimate yet')
-    parts.append(f'poles (true plant, controller) {format_poles(record.achieved_poles(sample))}'
-                 f' vs {format_poles(np.array(record.target))}')
+    achieved, target = record.achieved_poles(sample), record.target
+    parts.append(f'poles (true plant, controller) {format_poles(achieved, ".3f")}'
+                 f' vs {format_poles(target, ".3f")}')
     parts.append(f'{switches} switches')
     return '  '.join(parts)
 
 
 def summary(record: LoopRecord, rate: float) -> str:
     """Return the per-phase table: final estimate, delta, pole error, convergence time."""
-    from bcid_ros.reproduction.common import markdown_table
+    from bcid_ros.markdown import markdown_table
 
     rows = []
     for name, start, stop in record.phases():
@@ -198,7 +191,7 @@ def summary(record: LoopRecord, rate: float) -> str:
         rows.append([
             name, ' '.join(f'{v:+.4f}' for v in truth) if truth is not None else '?',
             estimate, '-' if last is None else f'{100 * record.delta(stop - 1, last[1]):.2f}',
-            format_poles(record.achieved_poles(stop - 1)),
+            format_poles(record.achieved_poles(stop - 1), '.3f'),
             f'{record.pole_error(stop - 1):.4f}',
             'never' if converged is None else
             f'{converged - start} samples ({(converged - start) / rate:.1f} s)'])

@@ -10,7 +10,7 @@ level and message into it (:meth:`Status.merge_summary`). A
 
 The identifier's three tasks follow: :class:`SampleRateTask`,
 :class:`CounterTask` and :class:`EstimatorTask`. Their keys are the
-constants of :mod:`bcid_ros.nodes.interface`.
+constants of :mod:`bcid_ros.identifier.interface`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from bcid_ros.nodes.interface import (BAD, COUNTERS, DIAGNOSTICS, DiagnosticKey as Key, DROPPED,
-                                      FAILING)
+from bcid_ros.identifier.interface import (BAD, COUNTERS, DiagnosticKey as Key, DIAGNOSTICS,
+                                           DROPPED, FAILING)
 
 #: Levels, as integers (``DiagnosticStatus`` holds them as one byte).
 OK, WARN, ERROR = 0, 1, 2
@@ -176,7 +176,7 @@ class CounterTask:
     Parameters
     ----------
     counters : dict
-        ``{counter: total}``, keys of :data:`~bcid_ros.nodes.interface.COUNTERS`.
+        ``{counter: total}``, keys of :data:`~bcid_ros.identifier.interface.COUNTERS`.
     excitation_lost : callable
         Whether the input is constant right now.
 

@@ -18,7 +18,7 @@ from std_msgs.msg import Bool, Float64MultiArray
 
 from bcid_ros.estimators import RecursiveEstimator
 from bcid_ros.estimators.base import standard_deviations
-from bcid_ros.nodes import interface
+from bcid_ros.identifier import interface
 from bcid_ros.nodes.common import LATCHED_QOS
 from bcid_ros.nodes.messages import (covariance_message, estimate_message, SerializedArray,
                                      valid_message)

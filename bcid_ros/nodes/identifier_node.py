@@ -3,9 +3,9 @@ The identification node: samples in, bias-compensated estimates out (docs/nodes.
 
 The node holds one estimator and does no numerics of its own. It is an
 adapter between rclpy and four ROS-free parts: the message table of
-:mod:`bcid_ros.nodes.interface` reads the separate topics,
-:class:`bcid_ros.nodes.pairing.Pairing` pairs them,
-:class:`bcid_ros.samples.SampleFeeder` feeds the samples with the same rule
+:mod:`bcid_ros.identifier.interface` reads the separate topics,
+:class:`bcid_ros.identifier.pairing.Pairing` pairs them,
+:class:`bcid_ros.identifier.feeder.SampleFeeder` feeds the samples with the same rule
 as the offline replay (so the node gives the same estimates as
 ``bcid replay`` on the same samples), and the tasks of
 :mod:`bcid_ros.nodes.diagnostics` report on ``/diagnostics``. Three helpers
@@ -31,7 +31,12 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from bcid_ros.nodes import interface
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
+from bcid_ros.identifier.layouts import names_label
+from bcid_ros.identifier.pairing import GAP, Paired, Pairing, SequenceTracker
+from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
+                                            IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
 from bcid_ros.nodes.common import (create_draining_subscription, declare_table,
                                    make_parameter_check, run_node, SAMPLES_QOS, Throttle,
                                    usage)
@@ -41,11 +46,7 @@ from bcid_ros.nodes.diagnostics import (CounterTask, DiagnosticsUpdater, Estimat
 from bcid_ros.nodes.estimate_publisher import EstimatePublisher
 from bcid_ros.nodes.joint_identifier import JointStateIdentifier
 from bcid_ros.nodes.messages import topic_class
-from bcid_ros.nodes.pairing import GAP, Paired, Pairing, SequenceTracker
 from bcid_ros.nodes.state_keeping import StateKeeper
-from bcid_ros.parameters import (check_identifier_parameters, estimator_from_parameters,
-                                 IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
-from bcid_ros.samples import FeedResult, names_label, SampleFeeder
 
 
 class IdentifierNode(Node):

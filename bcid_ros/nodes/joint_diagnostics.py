@@ -12,7 +12,7 @@ statuses; :class:`JointDiagnosticsUpdater` publishes all of them in one
 At a thousand joints the 1 Hz statuses are thousands of key-value pairs, so
 :class:`JointStatuses` computes every figure for all joints at once with
 numpy, gives a joint without trouble four values, and the statuses are
-serialised straight to CDR (:mod:`bcid_ros.nodes.diagnostics_cdr`) instead
+serialised straight to CDR (:mod:`bcid_ros.identifier.cdr`) instead
 of going through rclpy's message objects.
 """
 
@@ -23,10 +23,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from rclpy.node import Node
 
+from bcid_ros.identifier.cdr import DiagnosticArrayEncoder, StatusTuple
+from bcid_ros.identifier.interface import COUNTERS, DiagnosticKey as Key
 from bcid_ros.nodes.diagnostics import (DiagnosticsUpdater, ERROR, format_value, OK, Status,
                                         Task, WARN)
-from bcid_ros.nodes.diagnostics_cdr import DiagnosticArrayEncoder, StatusTuple
-from bcid_ros.nodes.interface import COUNTERS, DiagnosticKey as Key
 
 #: Joints named in a summary message before "and N more".
 NAMED_JOINTS = 5
@@ -228,7 +228,7 @@ class JointDiagnosticsUpdater(DiagnosticsUpdater):
 
     The node's status (composed of ``tasks``) comes first, then the joints'
     statuses, all in one ``DiagnosticArray`` serialised by
-    :class:`~bcid_ros.nodes.diagnostics_cdr.DiagnosticArrayEncoder`.
+    :class:`~bcid_ros.identifier.cdr.DiagnosticArrayEncoder`.
     """
 
     def __init__(self, node: Node, name: str, tasks: Sequence[Task],

@@ -1,7 +1,7 @@
 """
 The identifier node's ``input_mode: joint_state`` on rclpy (docs/nodes.md, "Many joints").
 
-A thin adapter: :class:`bcid_ros.joint_feeder.JointFeeder` does the work (the
+A thin adapter: :class:`bcid_ros.identifier.joint_feeder.JointFeeder` does the work (the
 demultiplexing by name, the batched update, the per-joint publication rule)
 and this class turns its results into ROS messages: it subscribes to
 ``joint_states``, publishes each joint's estimates and validity on its own
@@ -20,15 +20,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray
 from std_srvs.srv import Trigger
 
-from bcid_ros.joint_feeder import (joint_feeder_from_parameters, JOINT_STATES, JointFeedResult,
-                                   joint_topic)
-from bcid_ros.nodes import interface
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.joint_feeder import (joint_feeder_from_parameters, JOINT_STATES,
+                                              joint_topic, JointFeedResult)
+from bcid_ros.identifier.pairing import SequenceTracker
 from bcid_ros.nodes.common import (create_draining_subscription, LATCHED_QOS, SAMPLES_QOS,
                                    Throttle)
 from bcid_ros.nodes.diagnostics import CounterTask, SampleRateTask
 from bcid_ros.nodes.joint_diagnostics import JointDiagnosticsUpdater, JointStatuses, JointsTask
 from bcid_ros.nodes.messages import as_doubles, estimate_message, valid_message
-from bcid_ros.nodes.pairing import SequenceTracker
 
 #: No QoS event handlers on the per-joint publishers: rclpy's default ones (a warning
 #: for an incompatible subscriber) put two waitables per publisher into every wait of

@@ -1,7 +1,7 @@
 """
 The rclpy side of the nodes' messages: classes by type name, and building messages.
 
-The names and the message type table are in :mod:`bcid_ros.nodes.interface`
+The names and the message type table are in :mod:`bcid_ros.identifier.interface`
 (free of ROS); this module turns them into rclpy message classes and builds
 the messages both nodes publish.
 """
@@ -16,8 +16,8 @@ import numpy as np
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
 
-from bcid_ros.nodes.interface import covariance_layout, MESSAGE_TYPES
-from bcid_ros.samples import estimate_layout, samples_layout
+from bcid_ros.identifier.interface import MESSAGE_TYPES
+from bcid_ros.identifier.layouts import covariance_layout, estimate_layout, samples_layout
 
 
 def message_class(ros_type: str) -> type:
@@ -83,7 +83,7 @@ class SerializedArray:
     three times what publishing the serialised bytes costs. An estimate topic
     changes only its values, so rclpy serialises the message once per number
     of values, and the values' bytes are appended to that head afterwards.
-    ``test/test_nodes.py`` checks that rclpy reads the bytes back as the message.
+    ``test/ros/test_nodes.py`` checks that rclpy reads the bytes back as the message.
 
     Parameters
     ----------

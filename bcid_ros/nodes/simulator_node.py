@@ -27,15 +27,15 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
 
-from bcid_ros.joint_feeder import JOINT_STATES, joint_topic
-from bcid_ros.nodes import interface
+from bcid_ros.identifier import interface
+from bcid_ros.identifier.joint_feeder import JOINT_STATES, joint_topic
+from bcid_ros.identifier.layouts import samples_data
+from bcid_ros.identifier.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
+                                            OPERATING_POINT_SETTINGS, SIMULATOR_PARAMETERS)
 from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, run_node, SAMPLES_QOS,
                                    Throttle, usage)
 from bcid_ros.nodes.joint_identifier import QUIET_PUBLISHER
 from bcid_ros.nodes.messages import as_doubles, estimate_message, SamplesLayouts, topic_class
-from bcid_ros.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
-                                 OPERATING_POINT_SETTINGS, SIMULATOR_PARAMETERS)
-from bcid_ros.samples import samples_data
 from bcid_ros.simulation import make_scenario
 from bcid_ros.simulation.plant import HeldInputPlant, plant_pair
 

@@ -5,7 +5,8 @@ The identifier's ``state_file`` on rclpy (docs/nodes.md, "Keeping state: state_f
 estimator and the feeder from it at start, publish the restored estimate at
 once (latched), save every ``state_save_period`` seconds when the state has
 changed, and save once more when the node goes. The file format, the
-atomic write and the fingerprint check are :mod:`bcid_ros.persistence`'s.
+atomic write, the fingerprint check and restoring all sections or none
+are :mod:`bcid_ros.identifier.persistence`'s.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ from typing import Any, Callable
 import numpy as np
 from rclpy.node import Node
 
-from bcid_ros import persistence
 from bcid_ros.estimators import RecursiveEstimator
-from bcid_ros.samples import SampleFeeder
+from bcid_ros.identifier import persistence
+from bcid_ros.identifier.feeder import SampleFeeder
 
 
 class StateKeeper:
@@ -73,28 +74,14 @@ class StateKeeper:
             if sections is None:
                 logger.info(f'state file {self.path} does not exist yet; starting fresh')
                 return False
-            self._load_sections(sections)
+            persistence.restore_identifier(self._estimator, self._feeder, sections,
+                                           self._settings['forgetting_factor'], self.path)
         except persistence.StateRefused as error:
             logger.warning(f'{error}; starting fresh')
             return False
         logger.info(f'state restored from {self.path}: {self._feeder.used} samples used, '
                     f'{self._estimator.samples} since reset, valid {self._estimator.valid}')
         return True
-
-    def _load_sections(self, sections: dict[str, persistence.Section]) -> None:
-        """Restore every section, or nothing (StateRefused): a half-restored node is worse."""
-        fresh = self._feeder.get_state()
-        try:
-            persistence.restore_estimator(self._estimator, sections['estimator'])
-            self._feeder.set_state(sections['feeder'][1])
-            # a live parameter: the value the node starts with applies, as without a state
-            self._estimator.forgetting_factor = self._settings['forgetting_factor']
-        except Exception as error:  # a missing key, a shape, a value the estimator refuses
-            self._estimator.reset()
-            self._feeder.set_state(fresh)
-            raise persistence.StateRefused(
-                f'state file {self.path} does not fit this estimator '
-                f'({type(error).__name__}: {error})') from None
 
     def start(self, publish_estimates: Callable[[np.ndarray, np.ndarray, np.ndarray], None]
               ) -> None:
@@ -131,8 +118,7 @@ class StateKeeper:
     def _write(self) -> str | None:
         """Write the state file; return None, or the line that says why it failed."""
         signature = self._signature()
-        sections = {'estimator': persistence.estimator_section(self._estimator),
-                    'feeder': ({}, self._feeder.get_state())}
+        sections = persistence.identifier_sections(self._estimator, self._feeder)
         try:
             persistence.save_state(self.path, self._fingerprint, sections)
         except (OSError, TypeError, ValueError) as error:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Iterable, Sequence
+from typing import Iterable
 
 import numpy as np
 
@@ -44,13 +44,6 @@ class Progress:
                 self.stream.flush()
         if done == 0:
             self.stream.write(f'{tag}: nothing to do\n')
-
-
-def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
-    """Return a GitHub Markdown table; floats are printed as given (format them first)."""
-    lines = ['| ' + ' | '.join(headers) + ' |', '|' + '---|' * len(headers)]
-    lines.extend('| ' + ' | '.join(str(cell) for cell in row) + ' |' for row in rows)
-    return '\n'.join(lines) + '\n'
 
 
 def mean_and_stderr(values: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:

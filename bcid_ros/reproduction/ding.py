@@ -17,7 +17,8 @@ import numpy as np
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.bcrls import bcls_fixed_point
-from bcid_ros.reproduction.common import markdown_table, mean_and_stderr, pyplot, relative_error
+from bcid_ros.markdown import markdown_table
+from bcid_ros.reproduction.common import mean_and_stderr, pyplot, relative_error
 from bcid_ros.simulation import make_scenario
 
 CHECKPOINTS = (100, 200, 300, 500, 1000, 1500, 2000, 2500, 3000)

@@ -28,7 +28,8 @@ from scipy import signal
 
 from bcid_ros.estimators import cl_bcls_batch as batch
 from bcid_ros.estimators.lti import Controller
-from bcid_ros.reproduction.common import markdown_table, mean_and_stderr, pyplot
+from bcid_ros.markdown import markdown_table
+from bcid_ros.reproduction.common import mean_and_stderr, pyplot
 from bcid_ros.simulation.ikeda import IkedaClosedLoop
 
 SAMPLES = 4096

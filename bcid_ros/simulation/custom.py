@@ -21,6 +21,7 @@ import numpy as np
 from scipy import signal
 
 from bcid_ros.estimators.base import parameter_names
+from bcid_ros.estimators.lti import finite_vector
 from bcid_ros.simulation.base import SampleStream, Scenario, StreamingFilter, Truth
 
 #: Impulse-response length used for the stationary variance of C/D e.
@@ -28,12 +29,7 @@ VARIANCE_HORIZON = 20000
 
 
 def _polynomial(name: str, value: Any, monic: bool = False) -> np.ndarray:
-    try:
-        array = np.atleast_1d(np.asarray(value, dtype=float))
-    except (TypeError, ValueError):
-        raise ValueError(f'{name} must be a list of numbers, got {value!r}') from None
-    if array.ndim != 1 or array.size == 0 or not np.isfinite(array).all():
-        raise ValueError(f'{name} must be a non-empty list of finite numbers, got {value!r}')
+    array = finite_vector(name, value)
     if monic and array[0] != 1.0:
         raise ValueError(f'{name} must start with 1 (monic, ascending powers of z^-1), '
                          f'got {array.tolist()}')

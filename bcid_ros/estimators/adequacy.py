@@ -1,0 +1,787 @@
+r"""
+Online residual tests: whether the data contradict the estimator's model now.
+
+Each estimator's model says that one residual is white and uncorrelated with
+past inputs: the equation error for ARX (``rls``), the output error for an
+output-error model with white noise (``bcrls``, Ding et al. 2006), the
+innovation for ARMAX. For a prediction-error output-error model the noise
+may be coloured, and only the cross-correlation with past inputs tests the
+model (open loop). :class:`AdequacyMonitor` runs these tests over an
+exponentially weighted recent window, with thresholds from the chi-square
+null distribution (Ljung, System Identification, 2nd ed., sec. 16.6) at a
+stated false-alarm rate, and hysteresis. docs/trust.md has the derivation
+and the measured false-alarm rate and power.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from bcid_ros.estimators.lagged import decayed_weights, effective_size, PlantCursors
+
+#: The tests of each kind of model (docs/trust.md): (whiteness, residual may be coloured).
+MODEL_TESTS = {
+    'arx': (True, False),    # rls: white equation error
+    'oe': (False, True),     # prediction-error OE: cross-correlation only, any noise colour
+    'oe_white': (True, False),  # bcrls: white output error (Ding 2006)
+    'armax': (True, False),  # white innovation
+}
+#: Default number of lags M of both tests.
+LAGS = 10
+#: The default window is the estimator's memory 1/(1 - lambda), clipped to this range...
+MIN_WINDOW = 200
+#: ...(see MIN_WINDOW).
+MAX_WINDOW = 1000
+#: A window must give at least this many effective samples per lag.
+SAMPLES_PER_LAG = 20
+#: The alarm goes on at a p-value this many times below the one at which it goes off.
+HYSTERESIS = 4.0
+#: Order of the AR prewhitening filter of a coloured residual (model 'oe').
+PREWHITENING_ORDER = 2
+#: Lags of the prewhitened residual's own colour kept in the cross test's variance ('oe').
+COLOUR_LAGS = 3
+#: Samples are kept in lists and added to the moments this many at a time.
+BLOCK = 128
+#: The tests (about 150 function calls) run every so many blocks: as many as fit in
+#: half a window (at least one), and at the first block with a full enough window.
+CHECKS_PER_WINDOW = 2
+
+
+def chi2_survival(x: float, dof: int) -> float:
+    r"""
+    Return :math:`P(\chi^2_\nu > x)` for an integer :math:`\nu \ge 1`.
+
+    Abramowitz and Stegun 26.4.4 (odd :math:`\nu`) and 26.4.5 (even), finite
+    sums exact to rounding; no scipy.
+    """
+    if x <= 0.0:
+        return 1.0
+    half = 0.5 * x
+    if dof % 2 == 0:
+        # Q = exp(-x/2) sum_{r < nu/2} (x/2)^r / r!                      (26.4.5)
+        term, total = 1.0, 1.0
+        for r in range(1, dof // 2):
+            term *= half / r
+            total += term
+        return min(1.0, math.exp(-half) * total)
+    # Q = 2 Q_N(chi) + 2 Z(chi) sum_{r=1}^{(nu-1)/2} chi^(2r-1) / (1 3 ... (2r-1))   (26.4.4)
+    chi = math.sqrt(x)
+    term, total = chi, 0.0
+    for r in range(1, (dof - 1) // 2 + 1):
+        total += term
+        term *= x / (2 * r + 1)
+    density = math.exp(-half) / math.sqrt(2.0 * math.pi)
+    return min(1.0, math.erfc(chi / math.sqrt(2.0)) + 2.0 * density * total)
+
+
+def chi2_quantile(tail: float, dof: int) -> float:
+    """Return x with :func:`chi2_survival` (x, dof) = ``tail``, by bisection (relative 1e-12)."""
+    low, high = 0.0, float(dof) + 10.0
+    while chi2_survival(high, dof) > tail:
+        high *= 2.0
+    while high - low > 1e-12 * high:
+        middle = 0.5 * (low + high)
+        if chi2_survival(middle, dof) > tail:
+            low = middle
+        else:
+            high = middle
+    return 0.5 * (low + high)
+
+
+def default_window(forgetting_factor: float) -> float:
+    """Return the default window: the memory 1/(1 - lambda) within [MIN_WINDOW, MAX_WINDOW]."""
+    if forgetting_factor >= 1.0:
+        return float(MAX_WINDOW)
+    return float(min(max(1.0 / (1.0 - forgetting_factor), MIN_WINDOW), MAX_WINDOW))
+
+
+@dataclasses.dataclass(frozen=True)
+class MonitorState:
+    """A copy of an :class:`AdequacyMonitor`'s state (:meth:`AdequacyMonitor.get_state`)."""
+
+    residual_sums: np.ndarray
+    input_sums: np.ndarray
+    weights: tuple[Any, Any]
+    ring: np.ndarray
+    pending_residuals: np.ndarray
+    pending_inputs: np.ndarray
+    alarms: np.ndarray
+    statistics: np.ndarray
+    worst: np.ndarray
+    values: np.ndarray
+    checks: Any
+    #: K plants: each plant's pending samples, which sit in ``ring`` after the history
+    #: rows (``pending_residuals`` and ``pending_inputs`` are then empty). None: one
+    #: plant, whose pending samples are ``pending_residuals`` and ``pending_inputs``.
+    pending: np.ndarray | None = None
+    #: The blocks added (an int, or ``(K,)``): the tests run every ``check_period``.
+    blocks: Any = 0
+
+
+class AdequacyMonitor:
+    r"""
+    Whiteness and input cross-correlation tests of a residual over a recent window.
+
+    The residual :math:`\varepsilon_t` and the inputs :math:`u_t` are kept as
+    exponentially weighted lagged moments (weights :math:`w_t = \mu^{T-t}`,
+    :math:`\mu = 1 - 1/W`, W the ``window``),
+    :math:`\hat R_{xy}(k) = \sum_t w_t x_t y_{t-k} / \tau`,
+    :math:`\tau = \sum w_t`, whose variance is that of a mean over the
+    effective sample size :math:`N = \tau^2 / \sum w_t^2` (about 2W). Every
+    ``BLOCK`` samples, once :math:`N \ge` ``SAMPLES_PER_LAG`` M:
+
+    * **whiteness** (models 'arx', 'oe_white', 'armax'): with
+      :math:`\hat\rho_k = \hat R_\varepsilon(k) / \hat R_\varepsilon(0)`,
+
+      .. math:: Q_0 = N \sum_{k=1}^{M} \hat\rho_k^2 \sim \chi^2(M)
+
+      (Ljung, System Identification, 2nd ed., eq. (16.63));
+    * **cross-correlation with input i**, lags k = 1..M (past inputs: u(t)
+      itself is correlated with :math:`\varepsilon(t)` in closed loop under a
+      controller with a direct term, even for the right model), with
+      :math:`r_k = \hat R_{\tilde\varepsilon \tilde u_i}(k)`,
+
+      .. math::
+
+          Q_i = N\, r^T P^{-1} r \sim \chi^2(M), \qquad
+          P_{ab} = \sum_{|j| \le J} \kappa_j \hat R_{\tilde\varepsilon}(j)\,
+              \hat R_{\tilde u_i}(j - a + b),
+
+      Ljung's eq. (16.65)-(16.66) with :math:`P = \sigma^2 R_u` (J = 0, no
+      filter) when the residual is white, so that coloured inputs (held PRBS,
+      low-pass) are handled. For a residual that may be coloured (model
+      'oe') both series are first filtered by the AR(``PREWHITENING_ORDER``)
+      whitening filter of the residual, fitted from its autocovariances,
+      and J = ``COLOUR_LAGS`` lags of the whitened residual's remaining colour
+      enter P with Bartlett weights :math:`\kappa_j = 1 - |j|/(J + 1)`.
+
+    **Storage.** Each sample is kept as the row
+    :math:`z(t) = [e(t) \ldots e(t-E), u_1(t-1) \ldots u_1(t-U), \ldots]` with
+    the lags the tests need, and the monitor keeps :math:`\sum_t w_t z z^T`:
+    every product of a test, and every product of the filtered series (a
+    quadratic form in f), is then exact. Lagged moments
+    :math:`\hat R(k)` would shift the weights by k between two lags; a smooth
+    input's nearly singular :math:`R_u` and a strongly coloured residual's
+    cancelling filter amplify that into false alarms (docs/trust.md).
+
+    The worst lag of a test is the one with the largest standardised
+    correlation (:math:`|\hat\rho_k|`, or :math:`|r_k|/\sqrt{P_{kk}}`); the reason
+    gives it with its correlation coefficient.
+
+    **Thresholds.** With T tests and the stated ``false_alarm`` rate
+    :math:`\alpha`, each test has :math:`\alpha_T = 1 - (1-\alpha)^{1/T}`. A
+    test's alarm goes off at a check where :math:`Q < \chi^2_{M,1-\alpha_T}`
+    and on where :math:`Q > \chi^2_{M,1-\alpha_T/H}` (H = ``HYSTERESIS``), so it
+    does not flicker; an alarm on at a check has :math:`Q` above the lower
+    threshold, so under the null the monitor is in alarm at any moment with
+    probability at most :math:`\alpha` (docs/trust.md measures it). An alarm
+    clears when the window has forgotten the data that raised it.
+
+    **Plants.** With ``plants=K`` every result has a leading plant axis and
+    each plant keeps its own cursor: :meth:`record_rows` takes the samples
+    of the plants that step now (in a batched estimator a plant whose sample
+    is missing or refused, whose regressor refills, or which is still in its
+    warm-up does not), and a plant's block is added and its tests run when
+    its own ``BLOCK`` samples are in. Plant k's decisions (alarms, reasons,
+    ``ready``, ``checks``) are those of one monitor fed plant k's samples,
+    exactly, and its statistics equal them within rounding
+    (test/test_trust_plants.py). The plants whose blocks complete together
+    (in the common case all of them) are added and tested in one batched
+    call. :meth:`plant_state` and :meth:`load_plant` move one plant to and
+    from a single-plant monitor's :meth:`get_state`; :meth:`clear` restarts
+    plants.
+
+    Parameters
+    ----------
+    num_inputs : int
+        r, the number of inputs.
+    model : str
+        One of :data:`MODEL_TESTS`: which residual the model says is white.
+    lags : int
+        M, the lags of both tests.
+    window : float, optional
+        W, the time constant of the window in samples (>= SAMPLES_PER_LAG M / 2).
+        None: :func:`default_window` of ``forgetting_factor``.
+    forgetting_factor : float
+        The estimator's :math:`\lambda`, for the default window.
+    false_alarm : float
+        :math:`\alpha` in (0, 0.5): the largest probability, under the null,
+        that the monitor is in alarm at a given moment.
+    plants : int, optional
+        K: residuals ``(K,)`` and inputs ``(K, r)`` (:meth:`record`, every
+        plant) or ``(R,)`` and ``(R, r)`` (:meth:`record_rows`), results per
+        plant. None: one plant, a float residual and inputs ``(r,)``.
+    input_names : sequence of str, optional
+        Names of the inputs in the reasons (default u1, u2, ...).
+
+    Raises
+    ------
+    ValueError
+        If a setting is out of range.
+
+    """
+
+    def __init__(self, *, num_inputs: int, model: str = 'arx', lags: int = LAGS,
+                 window: float | None = None, forgetting_factor: float = 1.0,
+                 false_alarm: float = 0.01, plants: int | None = None,
+                 input_names: Any = None) -> None:
+        if model not in MODEL_TESTS:
+            raise ValueError(f'model must be one of {", ".join(MODEL_TESTS)}; got {model!r}')
+        if not (isinstance(num_inputs, int) and num_inputs >= 0):
+            raise ValueError(f'num_inputs must be an integer >= 0; got {num_inputs!r}')
+        if not (isinstance(lags, int) and lags >= 1):
+            raise ValueError(f'lags must be an integer >= 1; got {lags!r}')
+        if not 0.0 < forgetting_factor <= 1.0:
+            raise ValueError(f'forgetting_factor must be in (0, 1]; got {forgetting_factor!r}')
+        window = default_window(forgetting_factor) if window is None else float(window)
+        if not 0.5 * SAMPLES_PER_LAG * lags <= window < math.inf:
+            raise ValueError(f'window must be at least {0.5 * SAMPLES_PER_LAG * lags:g} '
+                             f'samples (SAMPLES_PER_LAG / 2 per lag); got {window!r}')
+        if not 0.0 < false_alarm < 0.5:
+            raise ValueError(f'false_alarm must be in (0, 0.5); got {false_alarm!r}')
+        if plants is not None and not (isinstance(plants, int) and plants >= 1):
+            raise ValueError(f'plants must be None or an integer >= 1; got {plants!r}')
+        names = ([f'u{i + 1}' for i in range(num_inputs)] if input_names is None
+                 else [str(name) for name in input_names])
+        if len(names) != num_inputs:
+            raise ValueError(f'input_names must have num_inputs = {num_inputs} names; '
+                             f'got {len(names)}')
+        self.num_inputs, self.model, self.lags = num_inputs, model, lags
+        self.window, self.false_alarm, self.plants = window, false_alarm, plants
+        self.input_names = tuple(names)
+        self.whiteness, self.coloured = MODEL_TESTS[model]
+        self._filter_order = PREWHITENING_ORDER if self.coloured else 0
+        self._colour_lags = COLOUR_LAGS if self.coloured else 0
+        # tests: whiteness (if any), then one per input
+        self.num_tests = int(self.whiteness) + num_inputs
+        per_test = 1.0 - (1.0 - false_alarm) ** (1.0 / max(self.num_tests, 1))
+        #: the statistic's thresholds: the alarm goes off below the first, on above the second
+        self.thresholds = (chi2_quantile(per_test, lags),
+                           chi2_quantile(per_test / HYSTERESIS, lags))
+        # each stored row is z(t) = [e(t) ... e(t - E), u1(t - 1) ... u1(t - U), u2(t - 1) ...]
+        # and the monitor keeps sum_t w_t z(t) z(t)': every product the tests need, exactly
+        # (docs/trust.md: the shift of the weights between lags, which lagged moments
+        # R(k) ignore, is amplified by a smooth input's R_u^-1 and a whitening filter)
+        q, colour = self._filter_order, self._colour_lags
+        self._residual_lags = max(lags if self.whiteness else 0, colour + q)
+        self._input_lags = lags + colour + q
+        self._decay = 1.0 - 1.0 / window
+        #: blocks between two runs of the tests (see CHECKS_PER_WINDOW)
+        self.check_period = max(1, int(window / (CHECKS_PER_WINDOW * BLOCK)))
+        self._plants = 1 if plants is None else plants
+        self._history = max(self._residual_lags, self._input_lags)
+        # z(t)[j] = channel _channels[j] at t - _lags[j]: e at lags 0..E, then each u_i at 1..U
+        self._lags = np.concatenate([np.arange(self._residual_lags + 1)] + [
+            np.arange(1, self._input_lags + 1)] * num_inputs)
+        self._channels = np.repeat(np.arange(1 + num_inputs),
+                                   [self._residual_lags + 1] + [self._input_lags] * num_inputs)
+        # where z(t)[j] is in a plant's ring (history rows, then the block), flattened
+        self._gather = ((self._history + np.arange(BLOCK)[:, None] - self._lags[None, :])
+                        * (1 + num_inputs) + self._channels[None, :]).ravel()
+        # w = mu^(age) of the rows of a block: the newest has weight 1
+        self._block_weights = self._decay ** np.arange(BLOCK - 1, -1, -1, dtype=float)
+        self.reset()
+
+    def __repr__(self) -> str:
+        return (f'AdequacyMonitor(num_inputs={self.num_inputs}, model={self.model!r}, '
+                f'lags={self.lags}, window={self.window:g}, false_alarm={self.false_alarm:g}, '
+                f'plants={self.plants})')
+
+    # ------------------------------------------------------------ the stream
+    def reset(self) -> None:
+        """Forget the data and clear the alarms (of every plant)."""
+        width, q = self._lags.shape[0], self._filter_order
+        # the products the tests read, summed with the weights over the blocks added:
+        # e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b), a, b = 1..U
+        self._residual_sums = np.zeros((self._plants, q + 1, width))
+        self._input_sums = np.zeros((self._plants, self.num_inputs, self._input_lags,
+                                     self._input_lags))
+        # the last rows [e, u] (zeros at the start), then room for a block
+        self._ring = np.zeros((self._plants, self._history + BLOCK, 1 + self.num_inputs))
+        if self.plants is None:
+            # sum w and sum w^2 over the blocks added
+            self._weight: Any = 0.0
+            self._squared_weight: Any = 0.0
+            # the pending samples: residuals in a list, inputs in a buffer
+            self._residuals: list[Any] = []
+            self._inputs = np.zeros((BLOCK, 1, self.num_inputs))
+        else:
+            self._weight = np.zeros(self._plants)
+            self._squared_weight = np.zeros(self._plants)
+            # each plant's pending samples sit in its ring after the history rows
+            self._cursors = PlantCursors(self._plants, BLOCK)
+        shape = (self._plants, self.num_tests)
+        self._alarms = np.zeros(shape, dtype=bool)
+        self._statistics = np.full(shape, np.nan)
+        # the worst lag of each test and its correlation, at the last check
+        self._worst = np.zeros(shape, dtype=np.intp)
+        self._values = np.zeros(shape)
+        self._checks = np.zeros(self._plants, dtype=np.int64)
+        self._blocks = np.zeros(self._plants, dtype=np.int64)
+
+    def clear(self, rows: Any) -> None:
+        """Forget the data and clear the alarms of the plants ``rows``: a restart of those."""
+        if self.plants is None:
+            self.reset()
+            return
+        for array in (self._residual_sums, self._input_sums, self._ring, self._weight,
+                      self._squared_weight, self._alarms, self._worst, self._values,
+                      self._checks, self._blocks):
+            array[rows] = 0
+        self._statistics[rows] = np.nan
+        self._cursors.set(rows, 0)
+
+    def record(self, residual: Any, inputs: Any) -> None:
+        """
+        Add one sample of every plant: the residual the model says is white, and the inputs.
+
+        ``residual`` is a float (one plant) or ``(K,)``; ``inputs`` ``(r,)`` or
+        ``(K, r)`` (copied). Every ``BLOCK`` samples the block is added and the
+        tests run. K plants: :meth:`record_rows` of every plant.
+        """
+        if self.plants is not None:
+            self.record_rows(_ALL, residual, inputs)
+            return
+        residuals = self._residuals
+        self._inputs[len(residuals)] = inputs
+        residuals.append(residual)
+        if len(residuals) == BLOCK:
+            ring = self._ring
+            ring[:, self._history:, 0] = np.reshape(residuals, (BLOCK, 1)).T
+            ring[:, self._history:, 1:] = np.swapaxes(self._inputs, 0, 1)
+            self._residuals = []
+            self._add_blocks(_ALL)
+            self._check(_ALL)
+
+    def record_rows(self, rows: Any, residual: Any, inputs: Any) -> None:
+        """
+        Add one sample of each plant in ``rows`` (K plants); the others do not step now.
+
+        Each plant keeps its own blocks: a plant's block is added and its tests
+        run when its own ``BLOCK`` samples are in, as for one plant fed that
+        plant's samples. The plants whose blocks fill together are added and
+        tested in one batched call.
+
+        Parameters
+        ----------
+        rows : numpy.ndarray or slice
+            The plants that record now: distinct indices, or a slice.
+        residual : numpy.ndarray, shape ``(R,)``
+            Their residuals, in the order of ``rows``.
+        inputs : numpy.ndarray, shape ``(R, r)``
+            Their inputs at the same time (copied).
+
+        Raises
+        ------
+        ValueError
+            If the monitor is of one plant (``plants=None``).
+
+        """
+        if self.plants is None:
+            raise ValueError('record_rows needs plants=K; one plant records with record()')
+        cursors, ring = self._cursors, self._ring
+        plants, positions = cursors.place(rows)
+        slots = self._history + positions
+        ring[plants, slots, 0] = residual
+        ring[plants, slots, 1:] = inputs
+        full = cursors.advance(plants)
+        if full is not None:
+            self._add_blocks(full)
+            self._check(full)
+
+    def _add_blocks(self, plants: Any) -> None:
+        """Add the full blocks of ``plants``, as rows z(t) with their lags, to their sums."""
+        history = self._history
+        ring = self._ring[plants]
+        count = ring.shape[0]
+        z = ring.reshape(count, -1).take(self._gather, axis=1).reshape(count, BLOCK, -1)
+        if not np.isfinite(z).all():  # a non-finite sample counts as zero
+            z = np.where(np.isfinite(z), z, 0.0)
+        weighted = z * self._block_weights[:, None]
+        first, q = 1 + self._residual_lags, self._filter_order
+        decay = self._decay ** BLOCK
+        # S <- mu^BLOCK S + sum_t w_t x(t) y(t)'
+        sums = self._residual_sums[plants]
+        sums *= decay
+        sums += np.swapaxes(weighted[:, :, :q + 1], -1, -2) @ z
+        self._residual_sums[plants] = sums
+        if self.num_inputs:
+            # (K, r, BLOCK, U): the lags of each input
+            lagged = np.moveaxis(z[:, :, first:].reshape(count, BLOCK, self.num_inputs, -1),
+                                 2, 1)
+            weighted = np.moveaxis(weighted[:, :, first:].reshape(lagged.shape[:1] + (
+                BLOCK, self.num_inputs, -1)), 2, 1)
+            sums = self._input_sums[plants]
+            sums *= decay
+            sums += np.swapaxes(weighted, -1, -2) @ lagged
+            self._input_sums[plants] = sums
+        if self.plants is None:
+            self._weight, self._squared_weight = decayed_weights(
+                self._weight, self._squared_weight, BLOCK, self._decay)
+        else:  # element-wise with one plant's scalar factors: its weights bit for bit
+            self._weight[plants], self._squared_weight[plants] = decayed_weights(
+                self._weight[plants], self._squared_weight[plants], BLOCK, self._decay)
+        self._ring[plants, :history] = ring[:, BLOCK:]
+
+    # ------------------------------------------------------------ the tests
+    @property
+    def effective_samples(self) -> Any:
+        """Return N = (sum w)^2 / sum w^2 over the samples in the tests so far (per plant)."""
+        return effective_size(self._weight, self._squared_weight)
+
+    @property
+    def ready(self) -> Any:
+        """Whether the window holds enough samples for the tests (N >= SAMPLES_PER_LAG M)."""
+        return self.effective_samples >= SAMPLES_PER_LAG * self.lags
+
+    def _sizes(self, plants: Any) -> np.ndarray:
+        """Return the effective sample sizes N of ``plants``, ``(R,)``."""
+        if self.plants is None:
+            return np.array([effective_size(self._weight, self._squared_weight)])
+        return effective_size(self._weight[plants], self._squared_weight[plants])
+
+    def _check(self, plants: Any) -> None:
+        """Run the tests of the ready ``plants`` on the moments of their windows; move alarms."""
+        self._blocks[plants] += 1
+        if self.check_period > 1:
+            # every check_period blocks, and at the first block a plant is ready
+            due = (self._blocks[plants] % self.check_period == 0) | (self._checks[plants] == 0)
+            if not due.all():
+                if not due.any():
+                    return
+                plants = np.arange(self._plants)[plants][due]
+        sizes = self._sizes(plants)
+        ready = sizes >= SAMPLES_PER_LAG * self.lags
+        if not ready.all():
+            if not ready.any():
+                return
+            plants, sizes = np.arange(self._plants)[plants][ready], sizes[ready]
+        self._checks[plants] += 1
+        statistics, worst, values = self._statistics_now(plants, sizes)
+        low, high = self.thresholds
+        # hysteresis: on above the high threshold, off below the low one
+        self._alarms[plants] = np.where(statistics > high, True,
+                                        np.where(statistics < low, False, self._alarms[plants]))
+        self._statistics[plants] = statistics
+        self._worst[plants] = worst
+        self._values[plants] = values
+
+    def _statistics_now(self, plants: Any, sizes: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return Q, the worst lag and its correlation of every test of ``plants``, ``(R, T)``."""
+        inputs, first, q = self.num_inputs, 1 + self._residual_lags, self._filter_order
+        weight = self._weight if self.plants is None else self._weight[plants]
+        scale = np.reshape(weight, (-1, 1, 1))
+        # means: e(t - a) z(t)', a = 0..q, and u_i(t - a) u_i(t - b)
+        residual = self._residual_sums[plants] / scale
+        count = residual.shape[0]
+        shape = (count, self.num_tests)
+        statistics, worst, values = np.empty(shape), np.empty(shape, dtype=np.intp), np.empty(
+            shape)
+        if self.whiteness:
+            statistics[:, 0], worst[:, 0], values[:, 0] = whiteness_statistic(
+                residual[:, 0, :first], self.lags, sizes)
+        if inputs:
+            whitening = (prewhitening_filter(residual[:, 0, :q + 1], q) if q
+                         else np.ones((count, 1)))
+            # e(t - a) u_i(t - b): (K, r, q + 1, U)
+            cross = np.moveaxis(residual[:, :, first:].reshape(count, q + 1, inputs, -1),
+                                2, 1)
+            tests = slice(int(self.whiteness), None)
+            statistics[:, tests], worst[:, tests], values[:, tests] = cross_statistics(
+                residual[:, :, :first], self._input_sums[plants] / scale[..., None], cross,
+                whitening, self.lags, sizes, self._colour_lags)
+        return statistics, worst, values
+
+    # ------------------------------------------------------------ the results
+    def reasons_of(self, plant: int) -> tuple[str, ...]:
+        """Return the reasons of plant k's alarms now (one plant: k = 0)."""
+        reasons = []
+        for test in np.flatnonzero(self._alarms[plant]):
+            lag, value = int(self._worst[plant, test]), float(self._values[plant, test])
+            if self.whiteness and test == 0:
+                reasons.append(f'residual not white (lag {lag}: {value:.2f})')
+            else:
+                name = self.input_names[test - int(self.whiteness)]
+                reasons.append(f'residual correlated with {name} at lag {lag} ({value:.2f})')
+        return tuple(reasons)
+
+    @property
+    def reasons(self) -> Any:
+        """Return the reasons of the alarms now: a tuple of str, or one per plant (a list)."""
+        if self.plants is None:
+            return self.reasons_of(0)
+        return [self.reasons_of(k) for k in range(self._plants)]
+
+    @property
+    def alarm(self) -> Any:
+        """Return whether any test is in alarm: a bool, or ``(K,)`` bools."""
+        alarm = self._alarms.any(axis=-1)
+        return bool(alarm[0]) if self.plants is None else alarm
+
+    @property
+    def statistics(self) -> np.ndarray:
+        """Return Q of each test at the last check, ``(T,)`` or ``(K, T)`` (NaN before it)."""
+        return self._statistics[0].copy() if self.plants is None else self._statistics.copy()
+
+    @property
+    def checks(self) -> Any:
+        """Count the checks made (one per BLOCK samples once ready): an int, or ``(K,)``."""
+        return int(self._checks[0]) if self.plants is None else self._checks.copy()
+
+    # ------------------------------------------------------------ the state
+    def get_state(self) -> MonitorState:
+        """Return a copy of the state (K plants: :meth:`plant_state` gives one plant's)."""
+        if self.plants is not None:
+            return MonitorState(
+                residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
+                weights=(self._weight.copy(), self._squared_weight.copy()),
+                ring=self._ring.copy(), pending_residuals=np.zeros((0, self._plants)),
+                pending_inputs=np.zeros((0, self._plants, self.num_inputs)),
+                alarms=self._alarms.copy(), statistics=self._statistics.copy(),
+                worst=self._worst.copy(), values=self._values.copy(),
+                checks=self._checks.copy(), pending=self._cursors.counts().copy(),
+                blocks=self._blocks.copy())
+        lead = (len(self._residuals), self._plants)
+        return MonitorState(
+            residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
+            weights=(self._weight, self._squared_weight),
+            ring=self._ring.copy(),
+            pending_residuals=np.array(self._residuals, dtype=float).reshape(lead),
+            pending_inputs=self._inputs[:lead[0]].copy(),
+            alarms=self._alarms.copy(), statistics=self._statistics.copy(),
+            worst=self._worst.copy(), values=self._values.copy(), checks=int(self._checks[0]),
+            blocks=int(self._blocks[0]))
+
+    def set_state(self, state: MonitorState) -> None:
+        """Continue from a :meth:`get_state` of a monitor with the same settings."""
+        self._residual_sums = state.residual_sums.copy()
+        self._input_sums = state.input_sums.copy()
+        self._ring = state.ring.copy()
+        self._alarms = state.alarms.copy()
+        self._statistics = state.statistics.copy()
+        self._worst = state.worst.copy()
+        self._values = state.values.copy()
+        lead = (self._plants,)
+        self._checks = np.broadcast_to(np.asarray(state.checks, dtype=np.int64), lead).copy()
+        self._blocks = np.broadcast_to(np.asarray(state.blocks, dtype=np.int64), lead).copy()
+        if self.plants is None:
+            self._weight, self._squared_weight = state.weights
+            self._residuals = [float(r[0]) for r in state.pending_residuals]
+            self._inputs[:len(self._residuals)] = state.pending_inputs
+            return
+        weight, squared = state.weights
+        self._weight = np.broadcast_to(np.asarray(weight, dtype=float), lead).copy()
+        self._squared_weight = np.broadcast_to(np.asarray(squared, dtype=float), lead).copy()
+        if state.pending is not None:
+            self._cursors.set(_ALL, state.pending)
+        else:  # pending samples (m, K) that all plants shared before the cursors
+            count = state.pending_residuals.shape[0]
+            slots = slice(self._history, self._history + count)
+            self._ring[:, slots, 0] = state.pending_residuals.T
+            self._ring[:, slots, 1:] = np.swapaxes(state.pending_inputs, 0, 1)
+            self._cursors.set(_ALL, count)
+
+    def plant_state(self, plant: int) -> MonitorState:
+        """Return plant k's state in the form of a single plant's :meth:`get_state` (K plants)."""
+        count = int(self._cursors.counts()[plant])
+        ring = self._ring[plant:plant + 1].copy()
+        pending = ring[0, self._history:self._history + count]
+        state = MonitorState(
+            residual_sums=self._residual_sums[plant:plant + 1].copy(),
+            input_sums=self._input_sums[plant:plant + 1].copy(),
+            weights=(float(self._weight[plant]), float(self._squared_weight[plant])),
+            ring=ring, pending_residuals=pending[:, :1].copy(),
+            pending_inputs=pending[:, None, 1:].copy(),
+            alarms=self._alarms[plant:plant + 1].copy(),
+            statistics=self._statistics[plant:plant + 1].copy(),
+            worst=self._worst[plant:plant + 1].copy(),
+            values=self._values[plant:plant + 1].copy(), checks=int(self._checks[plant]),
+            blocks=int(self._blocks[plant]))
+        ring[0, self._history:] = 0.0  # one plant keeps its pending samples in lists
+        return state
+
+    def load_plant(self, plant: int, state: MonitorState) -> None:
+        """Take over plant k from a single plant's :meth:`get_state` (K plants)."""
+        self._residual_sums[plant] = state.residual_sums[0]
+        self._input_sums[plant] = state.input_sums[0]
+        self._weight[plant], self._squared_weight[plant] = state.weights
+        count = state.pending_residuals.shape[0]
+        ring = self._ring[plant]
+        ring[:] = state.ring[0]
+        ring[self._history:self._history + count, 0] = state.pending_residuals[:, 0]
+        ring[self._history:self._history + count, 1:] = state.pending_inputs[:, 0]
+        self._cursors.set(plant, count)
+        self._alarms[plant] = state.alarms[0]
+        self._statistics[plant] = state.statistics[0]
+        self._worst[plant] = state.worst[0]
+        self._values[plant] = state.values[0]
+        self._checks[plant] = int(state.checks)
+        self._blocks[plant] = int(state.blocks)
+
+
+#: Every plant, as rows (a slice: views, not copies).
+_ALL = slice(None)
+
+
+def whiteness_statistic(autocovariance: np.ndarray, lags: int,
+                        size: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""
+    Return :math:`Q = N\sum_{k=1}^M \hat\rho_k^2`, the worst lag and its :math:`\hat\rho`.
+
+    ``autocovariance`` ``(K, L + 1)`` holds :math:`\hat R_\varepsilon(k)`,
+    k = 0..L >= M; N is the effective sample size, a float or one per
+    plant ``(K,)``. A residual with zero power gives Q = 0.
+    """
+    power = autocovariance[:, 0]
+    positive = power > 0.0
+    rho = autocovariance[:, 1:lags + 1] / np.where(positive, power, 1.0)[:, None]
+    rho[~positive] = 0.0
+    worst = np.argmax(np.abs(rho), axis=-1)
+    value = rho[np.arange(rho.shape[0]), worst]
+    return size * np.einsum('ki,ki->k', rho, rho), worst + 1, value
+
+
+def prewhitening_filter(autocovariance: np.ndarray, order: int) -> np.ndarray:
+    r"""
+    Return the AR whitening filter :math:`[1, f_1, \ldots, f_q]` of each residual, ``(K, q + 1)``.
+
+    Yule-Walker on :math:`\hat R_\varepsilon(0..q)` by the Levinson
+    recursion: the filter of the order-q linear predictor. A plant whose
+    recursion breaks down (a reflection coefficient not inside the unit
+    circle: not minimum phase) gets no filter (``[1, 0, ...]``).
+    """
+    count = autocovariance.shape[0]
+    result = np.zeros((count, order + 1))
+    result[:, 0] = 1.0
+    for k in range(count):
+        coefficients = levinson(autocovariance[k, :order + 1])
+        if coefficients is not None:
+            result[k] = coefficients
+    return result
+
+
+def levinson(autocovariance: np.ndarray) -> np.ndarray | None:
+    """Return the prediction-error filter of the Levinson recursion, or None if it breaks down."""
+    error = float(autocovariance[0])
+    if not error > 0.0:
+        return None
+    order = autocovariance.shape[0] - 1
+    a = np.zeros(order + 1)
+    a[0] = 1.0
+    for m in range(1, order + 1):
+        # reflection coefficient k_m = -(sum_j a_j R(m - j)) / E_{m-1}
+        reflection = -float(a[:m] @ autocovariance[m:0:-1]) / error
+        if not abs(reflection) < 1.0:
+            return None
+        # a_j <- a_j + k_m a_{m-j}, j = 1..m
+        a[1:m + 1] = a[1:m + 1] + reflection * a[m - 1::-1]
+        error *= 1.0 - reflection * reflection
+    return a
+
+
+def filter_rows(whitening: np.ndarray, rows: int, columns: int) -> np.ndarray:
+    r"""
+    Return :math:`\Phi` ``(K, rows, columns)`` with :math:`\Phi_{a, a + l} = f_l`.
+
+    For x the stored lags of a signal, ``[x(t - s), x(t - s - 1), ...]``,
+    row a of :math:`\Phi x` is the filtered
+    :math:`\tilde x(t - s - a) = \sum_l f_l x(t - s - a - l)`.
+    """
+    count, order = whitening.shape[0], whitening.shape[1] - 1
+    result = np.zeros((count, rows, columns))
+    for a in range(rows):
+        result[:, a, a:a + order + 1] = whitening
+    return result
+
+
+def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarray,
+                     whitening: np.ndarray, lags: int, size: Any, colour_lags: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""
+    Return :math:`Q_i = N r^T P^{-1} r` of each input, its worst lag and correlation, ``(K, r)``.
+
+    The weighted means are ``residual`` ``(K, q + 1, E + 1)``, of
+    :math:`e(t-a)e(t-b)`, ``signals`` ``(K, r, U, U)`` of
+    :math:`u_i(t-a)u_i(t-b)` and ``cross`` ``(K, r, q + 1, U)`` of
+    :math:`e(t-a)u_i(t-b)` (u from lag 1); ``whitening`` is the filter f
+    ``(K, q + 1)`` of both series (``[1]``: none), so that every filtered
+    moment is an exact quadratic form; ``size`` N, a float or ``(K,)``;
+    ``colour_lags`` J (see :class:`AdequacyMonitor`).
+    """
+    count, inputs, stored = signals.shape[0], signals.shape[1], signals.shape[-1]
+    span = lags + colour_lags
+    if whitening.shape[1] == 1 and colour_lags == 0:  # a white residual: no filter
+        colour = residual[:, 0, :1]
+        r = cross[:, :, 0, :lags]
+        products = signals[:, :, :lags, :lags]
+    else:
+        # e~(t - j), j = 0..J, and u~(t - a), a = 1..M + J: rows of filters on the stored lags
+        residual_filter = filter_rows(whitening, colour_lags + 1, residual.shape[-1])
+        input_filter = filter_rows(whitening, span, stored)
+        # R_e~(j) = mean e~(t) e~(t - j) = f' [e(t - a) e(t - j - b)] f
+        colour = np.einsum('ka,kab,kjb->kj', whitening, residual, residual_filter)
+        # r_k = mean e~(t) u~(t - k), k = 1..M
+        r = np.einsum('ka,kiac,kjc->kij', whitening, cross, input_filter[:, :lags])
+        # V(a, c) = mean u~(t - a) u~(t - c), a, c = 1..M + J
+        products = input_filter[:, None] @ signals @ np.swapaxes(input_filter, -1, -2)[:, None]
+    # P_ab = sum_{|j| <= J} kappa_j R_e~(j) V(a, b + j), V(a, c) for c < 1 from V(a + d, c + d)
+    if colour_lags == 0:
+        variance = colour[:, :1, None, None] * products[:, :, :lags, :lags]
+    else:
+        variance = np.zeros((count, inputs, lags, lags))
+        tests = np.arange(lags)
+        for j in range(-colour_lags, colour_lags + 1):
+            kappa = 1.0 - abs(j) / (colour_lags + 1)
+            column = tests[None, :] + j
+            shift = np.maximum(0, -column)
+            variance += (kappa * colour[:, abs(j)])[:, None, None, None] * products[
+                :, :, tests[:, None] + shift, column + shift]
+    sizes = np.repeat(np.broadcast_to(np.reshape(np.asarray(size, dtype=float), (-1,)),
+                                      (count,)), inputs)
+    statistic, standardised = quadratic_forms(variance.reshape(-1, lags, lags),
+                                              r.reshape(-1, lags), sizes)
+    worst = np.argmax(np.abs(standardised), axis=-1)
+    flat = r.reshape(-1, lags)[np.arange(count * inputs), worst].reshape(count, inputs)
+    scale = np.sqrt(np.maximum(colour[:, :1] * np.einsum('kiaa->kia', products)[:, :, 0], 0.0))
+    value = np.where(scale > 0.0, flat / np.where(scale > 0.0, scale, 1.0), 0.0)
+    return statistic.reshape(count, inputs), worst.reshape(count, inputs) + 1, value
+
+
+def quadratic_forms(variance: np.ndarray, r: np.ndarray, size: Any
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    r"""
+    Return :math:`N r^T P^{-1} r` on the chi-square(M) scale, and :math:`r_k/\sqrt{P_{kk}}`.
+
+    ``variance`` P ``(n, M, M)``, r ``(n, M)``, ``size`` N (a float or
+    ``(n,)``). P is inverted on the directions its window can estimate: an
+    eigenvalue below ``1 / N`` of the largest is below the precision of
+    moments from N samples (a multisine of a few sines, or a held input,
+    makes P nearly singular, and the colour terms can make it slightly
+    indefinite there), and a direction the input does not excite cannot
+    show a correlation anyway. On the k kept directions the statistic is
+    chi-square(k) under the null; it is mapped to the chi-square(M) value of
+    the same tail probability, so that one pair of thresholds serves. A P
+    without power gives 0: its test cannot see anything.
+    """
+    lags = r.shape[-1]
+    sizes = np.broadcast_to(np.asarray(size, dtype=float), r.shape[:1])
+    statistic = np.zeros(r.shape[0])
+    finite = np.isfinite(variance).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
+    for k in np.flatnonzero(finite).tolist():
+        values, vectors = np.linalg.eigh(0.5 * (variance[k] + variance[k].T))
+        if not values[-1] > 0.0:
+            continue
+        kept = values > values[-1] / max(sizes[k], 1.0)
+        projected = vectors[:, kept].T @ r[k]
+        value = sizes[k] * float(projected @ (projected / values[kept]))
+        rank = int(kept.sum())
+        statistic[k] = value if rank == lags else chi2_quantile(chi2_survival(value, rank), lags)
+    diagonal = np.einsum('kii->ki', variance)
+    good = finite & (diagonal > 0.0).all(axis=-1)
+    standardised = r / np.sqrt(np.where(good[:, None], diagonal, 1.0))
+    return statistic, np.where(good[:, None], standardised, 0.0)
