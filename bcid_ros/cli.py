@@ -168,7 +168,8 @@ def _analyze_arguments(analyze: argparse.ArgumentParser) -> None:
         'estimators on that structure beside it (docs/analyze.md).')
     analyze.add_argument('--params', type=Path, required=True,
                          help='identifier parameter YAML: the settings of the online '
-                         'estimators (order, input_delay and detrend are chosen here)')
+                         'estimators (order and input_delay come from the search; detrend is '
+                         'mean unless the file sets it)')
     analyze.add_argument('--orders', default='1-4', help='order range A-B')
     analyze.add_argument('--delays', default='0', help='dead-time range A-B in samples, '
                          'searched per input (all combinations for up to two inputs, one '
