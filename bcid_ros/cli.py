@@ -162,13 +162,21 @@ def _demo_arguments(demo: argparse.ArgumentParser) -> None:
 
 def _analyze_arguments(analyze: argparse.ArgumentParser) -> None:
     analyze.add_argument('bag', type=Path, help='rosbag2 directory, .mcap file or .csv log')
+    analyze.description = (
+        'Choose the order and the dead time of every input with batch output-error fits '
+        'validated on the end of the record, describe the chosen model, and run the online '
+        'estimators on that structure beside it (docs/analyze.md).')
     analyze.add_argument('--params', type=Path, required=True,
-                         help='identifier parameter YAML (its estimator and settings)')
+                         help='identifier parameter YAML: the settings of the online '
+                         'estimators (order and input_delay come from the search; detrend is '
+                         'mean unless the file sets it)')
     analyze.add_argument('--orders', default='1-4', help='order range A-B')
-    analyze.add_argument('--delays', default='0', help='dead-time range A-B in samples '
-                         '(single-input bags)')
+    analyze.add_argument('--delays', default='0', help='dead-time range A-B in samples, '
+                         'searched per input (all combinations for up to two inputs, one '
+                         'input at a time beyond)')
     analyze.add_argument('--estimator', choices=ESTIMATOR_NAMES,
-                         help='override the estimator of the parameter file')
+                         help='compare only this online estimator (default: every open-loop '
+                         'estimator and the parameter file\'s own)')
     analyze.add_argument('--validation', type=float, default=0.3,
                          help='fraction of the bag, at its end, kept for validation')
     analyze.add_argument('--sample-period', type=float, metavar='T',

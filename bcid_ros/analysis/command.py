@@ -1,4 +1,4 @@
-"""``bcid analyze``: order and delay search, validation and model properties of the samples."""
+"""``bcid analyze``: structure search, validation, model properties and online estimators."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 
 from bcid_ros.analysis.data import read_samples
 from bcid_ros.analysis.search import (Analysis, analyze, FIT_MARGIN, parse_delays,
-                                      parse_orders, short_error, WHITENESS_LEVEL)
+                                      parse_orders, short_error, TEST_LEVEL)
 from bcid_ros.errors import BcidError
 
 
@@ -36,8 +36,8 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         from bcid_ros.analysis.plot import write_plot
 
-        write_plot(analysis, args.plot, title=f'{args.bag.name}: {analysis.estimator}, '
-                   f'recommended order {_recommended(analysis)}')
+        write_plot(analysis, args.plot, title=f'{args.bag.name}: recommended '
+                   f'{_recommended(analysis)}')
         _progress(f'wrote {args.plot}')
     if args.json:
         print(json.dumps(analysis.summary()))
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _recommended(analysis: Analysis) -> str:
     chosen = analysis.recommended
-    return 'none' if chosen is None else f'{chosen.order}, delay {chosen.delay}'
+    return 'none' if chosen is None else f'order {chosen.order}, delay {chosen.delay_text}'
 
 
 def _number(value: Any, digits: int = 2) -> str:
@@ -57,35 +57,90 @@ def _number(value: Any, digits: int = 2) -> str:
     return f'{value:.{digits}f}'
 
 
+def _p_value(value: float) -> str:
+    return '-' if not math.isfinite(value) else f'{value:.3g}'
+
+
 def report(analysis: Analysis) -> str:
-    """Return the human-readable table and model description."""
-    lines = [f'{analysis.estimator}: {analysis.estimation_samples} samples for estimation, '
-             f'{analysis.validation_samples} for validation; whiteness of the '
-             f'{analysis.residual_kind}',
-             f'{"order":>5} {"delay":>5} {"fit %":>8} {"1-step %":>9} {"AIC":>11} '
-             f'{"MDL":>11} {"white p":>8} {"stable":>6}']
+    """Return the human-readable tables, the model and the identifier configuration."""
+    lines = [f'batch output-error fits: {analysis.estimation_samples} samples for estimation, '
+             f'{analysis.validation_samples} for validation; tests of the simulation error '
+             '(xcorr: against the present and past inputs; white: Ljung-Box)',
+             f'{"order":>5} {"delay":>7} {"fit %":>8} {"1-step %":>9} {"AIC":>11} '
+             f'{"MDL":>11} {"xcorr p":>8} {"white p":>8} {"stable":>6} redundant']
     for c in analysis.candidates:
         mark = ' *' if c is analysis.recommended else ''
         if c.error is not None:
-            lines.append(f'{c.order:5d} {c.delay:5d}  not fitted: {short_error(c.error)}')
+            lines.append(f'{c.order:5d} {c.delay_text:>7}  not fitted: {short_error(c.error)}')
             continue
         fit = _number(c.fit) if c.stable else 'unstable'
-        lines.append(f'{c.order:5d} {c.delay:5d} {fit:>8} '
+        lines.append(f'{c.order:5d} {c.delay_text:>7} {fit:>8} '
                      f'{_number(c.prediction_fit):>9} {_number(c.aic, 1):>11} '
-                     f'{_number(c.mdl, 1):>11} {c.whiteness_p:8.3g} '
-                     f'{"yes" if c.stable else "NO":>6}{mark}')
+                     f'{_number(c.mdl, 1):>11} {_p_value(c.cross_correlation_p):>8} '
+                     f'{_p_value(c.whiteness_p):>8} {"yes" if c.stable else "NO":>6} '
+                     f'{"yes" if c.redundant else "no":>9}{mark}')
     chosen = analysis.recommended
     if chosen is None:
         lines.append('no recommendation: no candidate gave a stable model with a finite fit')
         return '\n'.join(lines)
-    lines.append(f'recommended: order {chosen.order}, delay {chosen.delay} (*): the smallest '
-                 f'order within {100 * FIT_MARGIN:.0f} % of the best validation RMS error'
-                 + (f' whose residuals pass the whiteness test (p >= {WHITENESS_LEVEL})'
-                    if analysis.residuals_white else
-                    f'; NO model within the margin has white residuals (p >= '
-                    f'{WHITENESS_LEVEL}): check the noise model, the estimator or the ranges'))
+    lines.append(f'recommended: order {chosen.order}, delay {chosen.delay_text} (*): '
+                 + _rule_text(analysis))
+    lines.append('the simulation error of the recommended model is '
+                 + ('white: the output noise looks white (the OE fit is efficient, the '
+                    'assumption of bcrls holds)' if analysis.residuals_white else
+                    'NOT white: the output noise is coloured (the OE fit is still consistent; '
+                    'bcrls assumes white noise)'))
     lines.extend(_model_lines(analysis))
+    lines.extend(_online_lines(analysis))
     return '\n'.join(lines)
+
+
+def _rule_text(analysis: Analysis) -> str:
+    """Return why the recommended candidate was chosen, in one sentence."""
+    chosen = analysis.recommended
+    margin = f'within {100 * FIT_MARGIN:.0f} % of the best validation RMS error'
+    if analysis.adequate:
+        return (f'the smallest order {margin} whose simulation error is uncorrelated with '
+                f'the inputs (p >= {TEST_LEVEL}) and that no smaller structure describes, the '
+                'lowest MDL at that order')
+    why = ('its simulation error is correlated with the inputs' if not chosen.uncorrelated
+           else 'a smaller structure describes it (' + '; '.join(chosen.redundancy) + ')')
+    return (f'the smallest order {margin}, the lowest MDL at that order; NO candidate within '
+            f'the margin is adequate ({why}): the plant is not exactly in the model set '
+            '(nonlinear, time-varying, or the ranges miss it), or the record is in closed loop')
+
+
+def _online_lines(analysis: Analysis) -> list[str]:
+    chosen = analysis.recommended
+    lines = [f'online estimators on this structure (sample by sample over the estimation '
+             f'part, detrend: {analysis.detrend}), validation fit beside the batch model\'s '
+             f'{chosen.fit:.2f} %:']
+    for result in analysis.online:
+        if result.error is not None:
+            lines.append(f'  {result.name:>8}: not run: {short_error(result.error)}')
+            continue
+        fit = f'{result.fit:8.2f} %' if result.stable else '  unstable'
+        why = '' if result.valid else ' (' + '; '.join(result.reasons) + ')'
+        lines.append(f'  {result.name:>8}: {fit}, {"valid" if result.valid else "NOT valid"}'
+                     f'{why}')
+    name = analysis.recommended_estimator
+    if name is None:
+        lines.append('recommended estimator: none (no online estimate was valid and stable)')
+    elif analysis.estimator_close:
+        lines.append(f'recommended estimator: {name} (the best valid online fit, within '
+                     f'{100 * FIT_MARGIN:.0f} % of the batch model\'s validation RMS error)')
+    else:
+        lines.append(f'recommended estimator: {name}, but NONE is close to the batch model '
+                     f'(within {100 * FIT_MARGIN:.0f} % of its validation RMS error): use the '
+                     'batch model, or a longer record for the online estimate')
+    config = analysis.identifier_parameters()
+    lines.append('identifier configuration (bcid_identifier: ros__parameters:):')
+    lines.extend(f'  {key}: {_yaml(value)}' for key, value in config.items())
+    return lines
+
+
+def _yaml(value: Any) -> str:
+    return f'[{", ".join(map(str, value))}]' if isinstance(value, list) else str(value)
 
 
 def _complex(pair: list[float]) -> str:
@@ -95,8 +150,10 @@ def _complex(pair: list[float]) -> str:
 
 def _model_lines(analysis: Analysis) -> list[str]:
     summary = analysis.model_summary()
-    lines = ['parameters: ' + ', '.join(f'{k} = {v:.6g}'
-                                        for k, v in summary['parameters'].items()),
+    stds = summary['parameter_std']
+    lines = [f'batch model (validation fit {summary["fit"]:.2f} %), parameters +- one '
+             'standard deviation: ' + ', '.join(f'{k} = {v:.6g} +- {_number(stds[k], 3)}'
+                                                for k, v in summary['parameters'].items()),
              'poles: ' + ', '.join(_complex(p) for p in summary['poles'])]
     zeros = summary['zeros'] if analysis.num_inputs > 1 else [summary['zeros']]
     for i, row in enumerate(zeros, 1):
@@ -106,8 +163,10 @@ def _model_lines(analysis: Analysis) -> list[str]:
                                          for i, g in enumerate(gains, 1)))
     continuous = summary.get('continuous')
     if continuous:
+        dead = continuous['dead_time_s']
+        dead = ', '.join(f'{d:g}' for d in dead) if isinstance(dead, list) else f'{dead:g}'
         lines.append(f'continuous time (T = {continuous["sample_period_s"]:g} s, dead time '
-                     f'{continuous["dead_time_s"]:g} s):')
+                     f'{dead} s):')
         for mode in continuous['modes']:
             if mode['kind'] == 'real':
                 tau = mode['time_constant_s']

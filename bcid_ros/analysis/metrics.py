@@ -9,8 +9,17 @@ without feedthrough), in ascending powers of q^-1.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import signal, stats
+
+#: Largest order of the AR model of a residual in the cross-correlation test (as the
+#: OE covariance of bcid_ros.analysis.pem uses).
+MAX_NOISE_ORDER = 30
+#: Directions of the test's covariance below this fraction of its largest eigenvalue
+#: are left out (inputs that do not excite them: a held or narrow-band signal).
+EIGENVALUE_FLOOR = 1e-10
 
 
 def simulate(a: np.ndarray, b: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -95,6 +104,37 @@ def autocorrelation(residual: np.ndarray, lags: int) -> np.ndarray:
     return np.array([centred[k:] @ centred[:-k] for k in range(1, lags + 1)]) / denominator
 
 
+def ar_noise_model(residual: np.ndarray, max_order: int) -> tuple[np.ndarray, float]:
+    r"""
+    Return (D, sigma_w^2): the AR model D(q) v = w of ``residual`` chosen by AIC.
+
+    Levinson-Durbin on the biased sample autocorrelation (Ljung 1999,
+    ch. 10) for orders 0 ... ``max_order``; the order minimises
+    :math:`N\ln\sigma_k^2 + 2k` (Akaike 1974). D is monic and stable (the
+    biased autocorrelation is positive definite).
+    """
+    count = residual.size
+    centred = residual - residual.mean()
+    power = float(centred @ centred) / count
+    if not power > 0.0:
+        return np.ones(1), 0.0
+    r = np.concatenate([[1.0], autocorrelation(residual, max_order)])
+    polynomial = np.ones(1)
+    error = 1.0
+    best = (0.0, np.ones(1), 1.0)
+    for k in range(1, max_order + 1):
+        reflection = -float(polynomial @ r[k:0:-1]) / error
+        if not abs(reflection) < 1.0:
+            break
+        extended = np.concatenate([polynomial, [0.0]])
+        polynomial = extended + reflection * extended[::-1]
+        error *= 1.0 - reflection ** 2
+        criterion = count * math.log(error) + 2 * k
+        if criterion < best[0]:
+            best = (criterion, polynomial.copy(), error)
+    return best[1], power * best[2]
+
+
 def whiteness_lags(count: int) -> int:
     """Return the number of lags the whiteness test uses: 20, fewer for short records."""
     return int(max(1, min(20, count // 5)))
@@ -118,10 +158,153 @@ def ljung_box(residual: np.ndarray, lags: int) -> tuple[float, float]:
     return statistic, float(stats.chi2.sf(statistic, lags))
 
 
+def cross_correlation_test(residual: np.ndarray, u: np.ndarray, lags: int,
+                           gradient: np.ndarray | None = None,
+                           covariance: np.ndarray | None = None) -> tuple[float, float, int]:
+    r"""
+    Return (statistic, p-value, degrees of freedom) for "the residual is uncorrelated with u".
+
+    The test of an output-error model's dynamics (Ljung, *System
+    Identification*, 1999, ch. 16: the cross-correlation of the residual
+    with past inputs). A model whose B_i/F are right leaves, in open loop, a
+    residual :math:`\varepsilon = v + \psi^T(\theta - \hat\theta)` on data it
+    was not fitted to: the noise v, independent of every input whatever its
+    colour, and the effect of the estimate's own error. Missing dynamics or
+    a wrong dead time add a part correlated with u(t - k) at some lag k.
+    With φ(t) the inputs u_i(t - k), k = 0 ... ``lags`` - 1, i = 1 ... r
+    (centred), the vector :math:`s = \sum_t \varphi(t)\varepsilon(t)` has
+    under that hypothesis the covariance
+
+    .. math::
+
+        C = \hat\sigma_w^2 G^T G + \Gamma\,\mathrm{cov}(\hat\theta)\,\Gamma^T,
+        \quad G = L^T\Phi,\quad \Gamma = \Phi^T\Psi
+
+    where :math:`D(q)v = w` is the AR model of the residual chosen by AIC
+    (:func:`ar_noise_model`), L the Toeplitz matrix of 1/D (so that
+    :math:`\hat\sigma_w^2 LL^T` is the covariance of v, and the first term
+    the textbook's :math:`N\sum_k R_v(k)R_\varphi(k)`, which a coloured
+    residual makes far larger than :math:`N R_v(0)R_\varphi(0)`), Φ and Ψ
+    the rows φ(t)^T and ψ(t)^T (``gradient``) and cov(θ̂) the estimate's
+    covariance (``covariance``). The statistic :math:`s^TC^{-1}s` is
+    :math:`\chi^2` with as many degrees of freedom as C has independent
+    directions. Without the second term a consistent but inefficient
+    estimate (OE under strongly coloured noise at a high signal-to-noise
+    ratio) fails the test for its estimation error alone; whitening the
+    residual and the inputs by D, instead of weighting by it, does the same.
+
+    Parameters
+    ----------
+    residual : numpy.ndarray, shape ``(M,)``
+        The residual over the last M samples of ``u``.
+    u : numpy.ndarray, shape ``(N, r)``
+        The inputs of the whole record (N >= M), so that the lagged inputs
+        of the first residual samples are known.
+    lags : int
+        Lags 0 ... lags - 1 of every input, >= 1.
+    gradient : numpy.ndarray, shape ``(M, p)``, optional
+        ψ(t) = ∂ŷ(t)/∂θ over the residual's samples.
+    covariance : numpy.ndarray, shape ``(p, p)``, optional
+        The covariance of the estimate θ̂ (from other data than the residual's).
+
+    Returns
+    -------
+    statistic : float
+    p_value : float
+        NaN when the residual is not finite or too short.
+    dof : int
+        Degrees of freedom.
+
+    """
+    scores, weight = _cross_scores(residual, u, lags, gradient, covariance)
+    if scores is None:
+        return float('nan'), float('nan'), 0
+    values, vectors = np.linalg.eigh(weight)
+    keep = values > values.max() * EIGENVALUE_FLOOR
+    projected = vectors[:, keep].T @ scores
+    statistic = float(np.sum(projected ** 2 / values[keep]))
+    dof = int(np.count_nonzero(keep))
+    return statistic, float(stats.chi2.sf(statistic, dof)), dof
+
+
+def cross_correlation(residual: np.ndarray, u: np.ndarray, lags: int,
+                      gradient: np.ndarray | None = None,
+                      covariance: np.ndarray | None = None) -> np.ndarray:
+    """
+    Return the standardised cross-correlation of the residual with each input.
+
+    s_j / sqrt(C_jj) of :func:`cross_correlation_test` for every input and
+    lag k = 0 ... lags - 1, shape ``(r, lags)``: about N(0, 1) each under
+    the test's hypothesis. NaN when the residual is not finite or too short.
+    """
+    scores, weight = _cross_scores(residual, u, lags, gradient, covariance)
+    if scores is None:
+        return np.full((u.shape[1], lags), np.nan)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return (scores / np.sqrt(np.diagonal(weight))).reshape(u.shape[1], lags)
+
+
+def _cross_scores(residual: np.ndarray, u: np.ndarray, lags: int,
+                  gradient: np.ndarray | None, covariance: np.ndarray | None
+                  ) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return (s, C) of :func:`cross_correlation_test`, or (None, empty)."""
+    count = residual.size
+    start = u.shape[0] - count
+    if not np.isfinite(residual).all() or lags < 1 or start < lags - 1 or \
+            count < 2 * lags * u.shape[1]:
+        return None, np.zeros((0, 0))
+    centred = u - u[start:].mean(axis=0)
+    lagged = np.column_stack([centred[start - k:u.shape[0] - k, i]
+                              for i in range(u.shape[1]) for k in range(lags)])
+    error = residual - residual.mean()
+    noise, sigma2 = ar_noise_model(error, min(MAX_NOISE_ORDER, max(1, count // 20)))
+    # G = L^T Phi: Phi filtered by 1/D backwards in time
+    coloured = signal.lfilter([1.0], noise, lagged[::-1], axis=0)[::-1]
+    weight = sigma2 * (coloured.T @ coloured)
+    if gradient is not None and covariance is not None:
+        spread = lagged.T @ gradient
+        weight = weight + spread @ covariance @ spread.T
+    if not (np.isfinite(weight).all() and sigma2 > 0.0):
+        return None, np.zeros((0, 0))
+    return lagged.T @ error, weight
+
+
+def accuracy_test(error_a: np.ndarray, error_b: np.ndarray, lags: int) -> tuple[float, float]:
+    r"""
+    Return (z, p-value) for "model b predicts no better than model a" (one-sided).
+
+    The Diebold-Mariano test of equal accuracy (Diebold and Mariano,
+    "Comparing predictive accuracy", J. Business and Economic Statistics
+    13(3), 1995) on the loss differential
+    :math:`d(t) = \varepsilon_a(t)^2 - \varepsilon_b(t)^2` of two models'
+    errors over the same validation samples:
+    :math:`z = \bar d / \sqrt{\hat S/N}`, with :math:`\hat S` the long-run
+    variance of d by the Bartlett kernel over ``lags`` lags (Newey and West
+    1987), since the errors of a simulation are autocorrelated. A small p
+    says that b's mean squared error is significantly lower than a's.
+    NaN when an error is not finite or d is constant.
+    """
+    if not (np.isfinite(error_a).all() and np.isfinite(error_b).all()):
+        return float('nan'), float('nan')
+    differential = error_a ** 2 - error_b ** 2
+    count = differential.size
+    centred = differential - differential.mean()
+    variance = float(centred @ centred) / count
+    for k in range(1, min(lags, count - 1) + 1):
+        # Bartlett weight 1 - k/(m+1) keeps the estimate non-negative
+        variance += 2.0 * (1.0 - k / (lags + 1)) * float(centred[k:] @ centred[:-k]) / count
+    if not variance > 0.0:
+        return float('nan'), float('nan')
+    z = float(differential.mean()) / math.sqrt(variance / count)
+    return z, float(stats.norm.sf(z))
+
+
 def is_stable(a: np.ndarray) -> bool:
     """Return whether every root of A lies strictly inside the unit circle."""
     return bool(a.size == 1 or np.abs(np.roots(a)).max() < 1.0)
 
 
-__all__ = ['autocorrelation', 'equation_error', 'information_criteria', 'is_stable',
-           'ljung_box', 'nrmse_fit', 'simulate', 'whiteness_lags']
+__all__ = ['accuracy_test', 'ar_noise_model', 'autocorrelation', 'cross_correlation',
+           'cross_correlation_test', 'equation_error',
+           'information_criteria', 'is_stable', 'ljung_box', 'nrmse_fit', 'simulate',
+           'whiteness_lags']

@@ -1,9 +1,9 @@
 """
 Properties of an identified discrete-time model: poles, zeros, gains, responses.
 
-A :class:`DiscreteModel` is ``y = sum_i q^-d B_i(q)/A(q) u_i`` with
+A :class:`DiscreteModel` is ``y = sum_i q^-d_i B_i(q)/A(q) u_i`` with
 ``a = [1, a1, ..., an]`` and rows ``b_i = [b_i0, ..., b_in]`` in ascending
-powers of q^-1, and one dead time d (samples) for all inputs. Its
+powers of q^-1, and a dead time d_i (samples) per input. Its
 continuous-time equivalent comes from the matrix logarithm of its
 state-space form: a zero-order-hold sampled system x' = F x has the
 discrete state matrix Phi = exp(F T), so F = log(Phi) / T.
@@ -23,11 +23,30 @@ REAL_TOLERANCE = 1e-9
 
 @dataclasses.dataclass(frozen=True)
 class DiscreteModel:
-    """An identified model ``q^-d B_i/A`` per input, sampled (period optional)."""
+    """
+    An identified model ``q^-d_i B_i/A`` per input.
+
+    Parameters
+    ----------
+    a : numpy.ndarray, shape ``(n + 1,)``
+        A = [1, a1, ..., an].
+    b : numpy.ndarray, shape ``(r, n + 1)``
+        One row [b_i0, ..., b_in] per input.
+    delay : int or sequence of int
+        The dead time d_i of each input in samples (one integer for all).
+
+    """
 
     a: np.ndarray
     b: np.ndarray
-    delay: int = 0
+    delay: Any = 0
+
+    @property
+    def delays(self) -> tuple[int, ...]:
+        """Return the dead time d_i of each input."""
+        if np.ndim(self.delay) == 0:
+            return (int(self.delay),) * self.num_inputs
+        return tuple(int(d) for d in self.delay)
 
     @property
     def order(self) -> int:
@@ -57,8 +76,8 @@ class DiscreteModel:
             return self.b.sum(axis=1) / self.a.sum()
 
     def numerator(self, input_index: int = 0) -> np.ndarray:
-        """Return q^-d B_i as one coefficient array in ascending powers of q^-1."""
-        return np.concatenate([np.zeros(self.delay), self.b[input_index]])
+        """Return q^-d_i B_i as one coefficient array in ascending powers of q^-1."""
+        return np.concatenate([np.zeros(self.delays[input_index]), self.b[input_index]])
 
     def step(self, count: int) -> np.ndarray:
         """Return the unit-step responses, shape ``(count, r)``."""
@@ -69,10 +88,11 @@ class DiscreteModel:
     def settling_samples(self, largest: int = 2000) -> int:
         """Return a step-response length that shows the slowest pole settle (5 time constants)."""
         radius = float(np.abs(self.poles()).max()) if self.order else 0.0
+        delay = max(self.delays)
         if not radius < 1.0:
-            return min(largest, 100 + self.delay)
+            return min(largest, 100 + delay)
         span = 5.0 / -np.log(max(radius, 1e-3))
-        return int(min(largest, max(20, np.ceil(span))) + self.delay + self.order)
+        return int(min(largest, max(20, np.ceil(span))) + delay + self.order)
 
     def frequency_response(self, count: int = 512) -> tuple[np.ndarray, np.ndarray]:
         """Return ``(w, H)``: w in rad/sample over (0, pi], H shape ``(count, r)``."""
@@ -101,7 +121,8 @@ class DiscreteModel:
             frequency; in seconds and rad/s), ``'no_equivalent'`` (the
             discrete poles that have none, as ``[re, im]``), ``'dc_gain'``
             (the same as the discrete one for a zero-order hold) and
-            ``'dead_time_s'`` (d T).
+            ``'dead_time_s'`` (d_i T: a number for one input, a list for
+            several).
 
         """
         poles = self.poles()
@@ -134,7 +155,8 @@ class DiscreteModel:
                 'modes': modes,
                 'no_equivalent': [[float(p.real), float(p.imag)] for p in bad],
                 'dc_gain': gains if len(gains) > 1 else gains[0],
-                'dead_time_s': self.delay * period}
+                'dead_time_s': (self.delays[0] * period if self.num_inputs == 1
+                                else [d * period for d in self.delays])}
 
 
 def _is_real(value: complex) -> bool:

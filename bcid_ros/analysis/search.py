@@ -1,120 +1,105 @@
 """
-Order and delay search: fit every candidate, validate it, recommend one.
+Structure search: fit every candidate with a batch method, recommend one, compare online.
 
-For each order n and delay d, the configured estimator runs over the
-estimation part of the record with the input shifted by d samples
-(u_d(t) = u(t - d), which for one input is the same as the dead time
-B(q) -> q^-d B(q)); the fitted model is then judged on the validation part,
-which it has not seen. The recommendation rule and the reasons for it are
-in docs/analyze.md.
+The order and the dead times are chosen from batch output-error models
+(:mod:`bcid_ros.analysis.batch`), judged on the validation part of the
+record, by the rule of :func:`recommend`; the online estimators then run on
+the chosen structure (:mod:`bcid_ros.analysis.online`) and their validation
+fits are set beside the batch model's. The rule and its reasons are in
+docs/analyze.md.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, Callable
-import warnings
 
 import numpy as np
 
-from bcid_ros.analysis import metrics
-from bcid_ros.analysis.model import complex_list, DiscreteModel
+from bcid_ros.analysis.batch import (Candidate, finite, Record, search_structures,
+                                     TEST_LEVEL)
+from bcid_ros.analysis.model import complex_list
+from bcid_ros.analysis.online import compare_online, OnlineResult, recommend_estimator
+from bcid_ros.analysis.threads import single_threaded_blas
 from bcid_ros.errors import BcidError
-from bcid_ros.estimators.registry import entry
-from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
+from bcid_ros.estimators.registry import names_where
+from bcid_ros.identifier.parameters import check_identifier_parameters
 
 #: A candidate is "as good as the best" when its validation RMS error is at
 #: most (1 + FIT_MARGIN) times the best one's (docs/analyze.md).
 FIT_MARGIN = 0.10
-#: Level of the Ljung-Box whiteness test: residuals pass when p >= this.
-WHITENESS_LEVEL = 0.01
+#: Level of the residual tests (cross-correlation with the inputs, whiteness).
+WHITENESS_LEVEL = TEST_LEVEL
 #: Estimation samples needed per parameter of the largest model.
 SAMPLES_PER_PARAMETER = 10
 #: Smallest estimation and validation parts.
 MINIMUM_PART = 50
-
-
-@dataclasses.dataclass
-class Candidate:
-    """One fitted (order, delay) model and its validation figures."""
-
-    order: int
-    delay: int
-    error: str | None = None
-    parameter_names: tuple[str, ...] = ()
-    theta: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
-    model: DiscreteModel | None = None
-    fit: float = float('nan')
-    prediction_fit: float = float('nan')
-    aic: float = float('nan')
-    mdl: float = float('nan')
-    whiteness_p: float = float('nan')
-    stable: bool = False
-    simulated: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
-    residual: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
-
-    @property
-    def usable(self) -> bool:
-        """Return whether the model was fitted, is stable and simulates to a finite fit."""
-        return self.error is None and self.stable and math.isfinite(self.fit)
-
-    @property
-    def white(self) -> bool:
-        """Return whether the tested residual passes the whiteness test."""
-        return self.usable and self.whiteness_p >= WHITENESS_LEVEL
-
-    def figures(self) -> dict[str, Any]:
-        """Return the JSON figures of this candidate (non-finite numbers as null)."""
-        if self.error is not None:
-            return {'delay': self.delay, 'error': self.error}
-        # an unstable model's simulation from rest diverges: its fit means nothing
-        fit = self.fit if self.stable else float('nan')
-        return {'delay': self.delay, 'fit': _finite(fit),
-                'prediction_fit': _finite(self.prediction_fit), 'aic': _finite(self.aic),
-                'mdl': _finite(self.mdl), 'whiteness_p': _finite(self.whiteness_p),
-                'stable': self.stable}
+#: What the whiteness test is applied to, and what the cross-correlation test tests.
+RESIDUAL_KIND = 'simulation error'
 
 
 @dataclasses.dataclass
 class Analysis:
     """Everything ``bcid analyze`` found, ready for the table, the JSON and the plot."""
 
-    estimator: str
     num_inputs: int
     samples: int
     estimation_samples: int
     validation_samples: int
-    residual_kind: str
     candidates: list[Candidate]
     recommended: Candidate | None
-    residuals_white: bool
+    adequate: bool
     operating_point: dict[str, float]
     validation_output: np.ndarray
+    detrend: str
+    online: list[OnlineResult] = dataclasses.field(default_factory=list)
+    recommended_estimator: str | None = None
+    estimator_close: bool = False
     sample_period: float | None = None
+    residual_kind: str = RESIDUAL_KIND
+
+    @property
+    def residuals_white(self) -> bool:
+        """Return whether the recommended model's simulation error is white."""
+        return self.recommended is not None and self.recommended.white
 
     def best_per_order(self) -> dict[int, Candidate]:
-        """Return, per order, its best-fitting delay (usable candidates first)."""
+        """Return, per order, the candidate the rule would take at that order."""
         best: dict[int, Candidate] = {}
         for candidate in self.candidates:
             current = best.get(candidate.order)
-            if current is None or _rank(candidate) > _rank(current):
+            if current is None or _order_key(candidate) < _order_key(current):
                 best[candidate.order] = candidate
         return dict(sorted(best.items()))
 
-    def model_summary(self) -> dict[str, Any] | None:
-        """Return poles, zeros, DC gain (and continuous equivalents) of the recommended model."""
-        if self.recommended is None or self.recommended.model is None:
+    def identifier_parameters(self) -> dict[str, Any] | None:
+        """Return the identifier parameters of the recommended structure (config snippet)."""
+        chosen = self.recommended
+        if chosen is None:
             return None
-        model = self.recommended.model
+        name = self.recommended_estimator or (self.online[0].name if self.online else None)
+        out: dict[str, Any] = {} if name is None else {'estimator': name}
+        out.update({'order': chosen.order, 'num_inputs': self.num_inputs,
+                    'input_delay': list(chosen.delays), 'detrend': self.detrend})
+        return out
+
+    def model_summary(self) -> dict[str, Any] | None:
+        """Return the recommended batch model: parameters, poles, zeros, DC gain, fit."""
+        chosen = self.recommended
+        if chosen is None or chosen.model is None:
+            return None
+        model = chosen.model
         gains = model.dc_gain()
         zeros = [complex_list(model.zeros(i)) for i in range(model.num_inputs)]
         out: dict[str, Any] = {
-            'parameters': dict(zip(self.recommended.parameter_names,
-                                   map(float, self.recommended.theta))),
+            'method': 'batch output error (prediction-error method)',
+            'order': chosen.order, 'delay': chosen.delay,
+            'parameters': {k: float(v) for k, v in zip(chosen.parameter_names, chosen.theta)},
+            'parameter_std': {k: finite(v) for k, v in zip(chosen.parameter_names, chosen.std)},
+            'fit': finite(chosen.fit),
             'poles': complex_list(model.poles()),
             'zeros': zeros[0] if model.num_inputs == 1 else zeros,
-            'dc_gain': _finite(gains[0]) if gains.size == 1 else [_finite(g) for g in gains],
+            'dc_gain': finite(gains[0]) if gains.size == 1 else [finite(g) for g in gains],
         }
         if self.sample_period is not None:
             out['continuous'] = model.continuous(self.sample_period)
@@ -122,45 +107,53 @@ class Analysis:
 
     def summary(self) -> dict[str, Any]:
         """Return the JSON object of ``bcid analyze --json``."""
-        recommended = self.recommended
+        chosen = self.recommended
         return {
-            'estimator': self.estimator,
+            'method': 'batch output error',
             'samples': self.samples,
             'estimation_samples': self.estimation_samples,
             'validation_samples': self.validation_samples,
             'residual': self.residual_kind,
-            'recommended_order': recommended.order if recommended else None,
-            'recommended_delay': recommended.delay if recommended else None,
+            'recommended_order': chosen.order if chosen else None,
+            'recommended_delay': chosen.delay if chosen else None,
+            'adequate': self.adequate,
+            'residuals_uncorrelated': bool(chosen is not None and chosen.uncorrelated),
             'residuals_white': self.residuals_white,
-            'rule': {'fit_margin': FIT_MARGIN, 'whiteness_level': WHITENESS_LEVEL},
+            'rule': {'fit_margin': FIT_MARGIN, 'test_level': TEST_LEVEL},
             'operating_point': self.operating_point,
             'orders': {str(n): c.figures() for n, c in self.best_per_order().items()},
             'candidates': [{'order': c.order, **c.figures()} for c in self.candidates],
             'model': self.model_summary(),
+            'recommended_estimator': self.recommended_estimator,
+            'recommended_estimator_close': self.estimator_close,
+            'online': {r.name: r.figures() for r in self.online},
+            'detrend': self.detrend,
+            'identifier_parameters': self.identifier_parameters(),
         }
 
 
-def _finite(value: float) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-def _rank(candidate: Candidate) -> tuple[bool, float]:
-    fit = candidate.fit if math.isfinite(candidate.fit) else -math.inf
-    return candidate.usable, fit
+def _order_key(candidate: Candidate) -> tuple[bool, bool, float]:
+    """Return the key the rule ranks one order's candidates by (smallest first)."""
+    return (not candidate.usable, candidate.redundant or not candidate.uncorrelated,
+            candidate.criterion)
 
 
 def recommend(candidates: list[Candidate]) -> tuple[Candidate | None, bool]:
     """
-    Return the recommended candidate and whether its residuals passed.
+    Return the recommended candidate and whether it is adequate.
 
-    The rule: among the stable models whose validation RMS error is within
-    ``FIT_MARGIN`` of the best (the fit is 100 (1 - RMS/spread), so this is
-    100 - fit <= (1 + FIT_MARGIN)(100 - best fit)), take those whose residual
-    passes the whiteness test at level ``WHITENESS_LEVEL``, and of them the
-    smallest order, and for that order the delay with the best fit. When no
-    model within the margin has white residuals, the same rule without the
-    whiteness condition (and the flag False).
+    The rule (docs/analyze.md). Of the stable models whose validation RMS
+    error is within ``FIT_MARGIN`` of the best one's,
+    100 - fit <= (1 + FIT_MARGIN)(100 - best fit), the **adequate** ones:
+    simulation error uncorrelated with the inputs (cross-correlation test,
+    p >= ``TEST_LEVEL``) and no sign that a smaller structure describes
+    them (:func:`~bcid_ros.analysis.batch.redundancy`: a pole cancelled by
+    zeros, or a negligible first coefficient, within the estimate's
+    uncertainty). Of them, the smallest order (the fewest parameters), and
+    at that order the dead times with the lowest MDL (AIC ranks them the
+    same: at one order both are the estimation loss). When none is
+    adequate, the same among those within the margin that are not
+    redundant, or else among all within the margin; the flag is then False.
     """
     usable = [c for c in candidates if c.usable]
     if not usable:
@@ -168,11 +161,12 @@ def recommend(candidates: list[Candidate]) -> tuple[Candidate | None, bool]:
     best = max(c.fit for c in usable)
     limit = 100.0 - (100.0 - best) * (1.0 + FIT_MARGIN)
     close = [c for c in usable if c.fit >= limit]
-    white = [c for c in close if c.white]
-    pool = white or close
+    lean = [c for c in close if not c.redundant]
+    adequate = [c for c in lean if c.uncorrelated]
+    pool = adequate or lean or close
     order = min(c.order for c in pool)
-    chosen = max((c for c in pool if c.order == order), key=lambda c: c.fit)
-    return chosen, bool(white)
+    chosen = min((c for c in pool if c.order == order), key=lambda c: (c.criterion, -c.fit))
+    return chosen, bool(adequate)
 
 
 def _parse_range(text: str, name: str, minimum: int) -> tuple[int, int]:
@@ -202,14 +196,14 @@ def _check_data(y: np.ndarray, u: np.ndarray, estimation: int, validation: int,
                 fraction: float) -> None:
     r = u.shape[1]
     largest = orders[1] * (1 + r) + (r if feedthrough else 0)
-    needed = max(SAMPLES_PER_PARAMETER * largest, MINIMUM_PART)
+    needed = max(SAMPLES_PER_PARAMETER * largest, MINIMUM_PART, 2 * delays[1])
     if estimation < needed or validation < MINIMUM_PART:
         raise BcidError(
             f'too few samples: {y.size} samples give {estimation} for estimation and '
-            f'{validation} for validation (--validation {fraction}, delays up to {delays[1]}); '
-            f'orders up to {orders[1]} need at least {needed} and {MINIMUM_PART} '
+            f'{validation} for validation (--validation {fraction}); orders up to {orders[1]} '
+            f'and delays up to {delays[1]} need at least {needed} and {MINIMUM_PART} '
             f'({SAMPLES_PER_PARAMETER} per parameter of the largest model, {largest}); use a '
-            'smaller --orders range or a longer bag')
+            'smaller --orders range or a longer record')
     for i in range(r):
         column = u[:, i]
         if np.ptp(column) <= 1e-12 * max(1.0, float(np.abs(column).max())):
@@ -219,25 +213,19 @@ def _check_data(y: np.ndarray, u: np.ndarray, estimation: int, validation: int,
         raise BcidError(f'the output y is constant ({y[0]:g}) over the bag: nothing to fit')
 
 
-def _split_model(theta: np.ndarray, order: int, num_inputs: int, feedthrough: bool,
-                 delay: int) -> DiscreteModel:
-    a = np.concatenate([[1.0], theta[:order]])
-    width = order + 1 if feedthrough else order
-    rows = theta[order:].reshape(num_inputs, width)
-    if not feedthrough:
-        rows = np.column_stack([np.zeros(num_inputs), rows])
-    return DiscreteModel(a, rows, delay)
+def compared_estimators(file_estimator: str, estimator: str | None) -> tuple[str, ...]:
+    """
+    Return the online estimators to compare.
 
-
-def _delayed_names(names: tuple[str, ...], delay: int) -> tuple[str, ...]:
-    """Return the parameter names with the true lags of input coefficients (b1_{k + d})."""
-    out = []
-    for name in names:
-        if name.startswith('b') and '_' in name:
-            head, lag = name.rsplit('_', 1)
-            name = f'{head}_{int(lag) + delay}'
-        out.append(name)
-    return tuple(out)
+    ``--estimator NAME`` restricts the comparison to NAME (any registered
+    estimator). Otherwise every estimator the registry marks for open-loop
+    input/output data, and the parameter file's own estimator if it is not
+    one of them (e.g. ``cl_bcls`` for a closed-loop record).
+    """
+    if estimator is not None:
+        return (estimator,)
+    names = names_where(open_loop=True)
+    return names if file_estimator in names else names + (file_estimator,)
 
 
 def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
@@ -246,7 +234,7 @@ def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
             sample_period: float | None = None,
             progress: Callable[[str], None] | None = None) -> Analysis:
     """
-    Fit every (order, delay) candidate and recommend one.
+    Choose the structure with batch OE fits, then run the online estimators on it.
 
     Parameters
     ----------
@@ -255,17 +243,20 @@ def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
     u : numpy.ndarray, shape ``(N, r)``
         Measured inputs.
     parameters : dict
-        Identifier parameters; ``order`` is replaced by each candidate order.
+        Identifier parameters as in the file: the settings of the online
+        estimators (``order``, ``input_delay`` and ``num_inputs`` are those
+        of each candidate; ``detrend`` is ``mean`` unless the file sets it).
     orders, delays : tuple of int
-        Inclusive ranges. Delays other than 0 need a single input.
+        Inclusive ranges; the delay range applies to every input.
     estimator : str, optional
-        Overrides the ``estimator`` parameter.
+        Restricts the online comparison to this estimator (see
+        :func:`compared_estimators`).
     validation : float
         Fraction of the record (at its end) kept for validation, in (0, 1).
     sample_period : float, optional
         T in seconds, for the continuous-time equivalents.
     progress : callable, optional
-        Called with one line of progress per candidate.
+        Called with one line of progress per fit.
 
     Returns
     -------
@@ -283,48 +274,37 @@ def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
     values = dict(parameters)
     if estimator is not None:
         values['estimator'] = estimator
-    values = check_identifier_parameters(values)
+    detrend = str(parameters.get('detrend', 'mean'))
+    values = check_identifier_parameters({**values, 'detrend': detrend})
     y = np.asarray(y, dtype=float).reshape(-1)
     u = np.asarray(u, dtype=float).reshape(y.size, -1)
     r = u.shape[1]
     if values['num_inputs'] != r:
-        raise BcidError(f'the bag has {r} input(s) but the parameter file sets num_inputs = '
-                        f"{values['num_inputs']}")
+        raise BcidError(f'the record has {r} input(s) but the parameter file sets num_inputs '
+                        f"= {values['num_inputs']}")
     if not 0.0 < validation < 1.0:
         raise BcidError(f'--validation must be a fraction in (0, 1), got {validation}')
     if sample_period is not None and not sample_period > 0:
         raise BcidError(f'--sample-period must be > 0 seconds, got {sample_period}')
-    if delays != (0, 0) and r != 1:
-        raise BcidError(f'--delays searches the dead time of a single-input plant; this bag '
-                        f'has {r} inputs (use --delays 0)')
-    shift = delays[1]
-    aligned = y.size - shift
-    validation_count = int(round(validation * aligned))
-    estimation_count = aligned - validation_count
+    validation_count = int(round(validation * y.size))
+    estimation_count = y.size - validation_count
     _check_data(y, u, estimation_count, validation_count, orders, delays,
                 values['feedthrough'], validation)
-
-    # the same output samples for every delay: start after the largest dead time
-    y_aligned = y[shift:]
-    y_mean = float(y_aligned[:estimation_count].mean())
-    u_mean = u[:estimation_count].mean(axis=0)
-    y_dev = y_aligned - y_mean
-    residual_kind = ('simulation error' if entry(values['estimator']).model != 'arx'
-                     else 'equation error')
-    grid = [(n, d) for n in range(orders[0], orders[1] + 1)
-            for d in range(delays[0], delays[1] + 1)]
-    candidates = []
-    for index, (n, d) in enumerate(grid, 1):
-        u_dev = u[shift - d:u.shape[0] - d] - u_mean
-        candidate = _fit_candidate(values, n, d, y_dev, u_dev, estimation_count, residual_kind)
-        candidates.append(candidate)
-        if progress is not None:
-            progress(f'order {n}, delay {d} ({index}/{len(grid)}): ' + _describe(candidate))
-    recommended, white = recommend(candidates)
-    operating_point = {'y': y_mean, **{f'u{i + 1}': float(m) for i, m in enumerate(u_mean)}}
-    return Analysis(values['estimator'], r, y.size, estimation_count, validation_count,
-                    residual_kind, candidates, recommended, white, operating_point,
-                    y_dev[estimation_count:], sample_period)
+    record = Record(y, u, estimation_count)
+    with single_threaded_blas():
+        candidates = search_structures(record, orders, delays, values['feedthrough'], progress)
+    recommended, adequate = recommend(candidates)
+    point = record.operating_point
+    analysis = Analysis(
+        r, y.size, estimation_count, validation_count, candidates, recommended, adequate,
+        {'y': float(point[0]), **{f'u{i + 1}': float(m) for i, m in enumerate(point[1:])}},
+        record.centred()[0][estimation_count:], detrend, sample_period=sample_period)
+    if recommended is not None:
+        names = compared_estimators(values['estimator'], estimator)
+        analysis.online = compare_online(record, names, values, recommended, detrend, progress)
+        analysis.recommended_estimator, analysis.estimator_close = recommend_estimator(
+            analysis.online, recommended.fit, FIT_MARGIN)
+    return analysis
 
 
 def short_error(text: str, width: int = 110) -> str:
@@ -332,57 +312,6 @@ def short_error(text: str, width: int = 110) -> str:
     return text if len(text) <= width else text[:width - 1].rstrip() + '\u2026'
 
 
-def _describe(candidate: Candidate) -> str:
-    if candidate.error is not None:
-        return f'not fitted ({short_error(candidate.error)})'
-    return (f'fit {candidate.fit:.2f} %, whiteness p = {candidate.whiteness_p:.3g}'
-            + ('' if candidate.stable else ', unstable'))
-
-
-def _fit_candidate(values: dict[str, Any], order: int, delay: int, y: np.ndarray,
-                   u: np.ndarray, estimation: int, residual_kind: str) -> Candidate:
-    candidate = Candidate(order, delay)
-    try:
-        est = estimator_from_parameters({**values, 'order': order})
-    except ValueError as error:
-        candidate.error = str(error)
-        return candidate
-    with warnings.catch_warnings():
-        # an ill-suited candidate makes the estimator warn per sample (ill-conditioned
-        # solves); its figures below say what came of it
-        warnings.simplefilter('ignore')
-        est.run(y[:estimation], u[:estimation])
-    if not est.valid:
-        flags = ', '.join(f'{name} x{count}' for name, count in sorted(est.flags.items()))
-        candidate.error = (f'the estimator was not valid after {estimation} samples'
-                           + (f' (flags: {flags})' if flags else ''))
-        return candidate
-    theta = np.asarray(est.theta, dtype=float)
-    if not np.isfinite(theta).all():
-        candidate.error = 'the estimate is not finite'
-        return candidate
-    model = _split_model(theta, order, u.shape[1], values['feedthrough'], delay)
-    candidate.model = model
-    candidate.theta = theta
-    candidate.parameter_names = _delayed_names(est.parameter_names, delay)
-    candidate.stable = metrics.is_stable(model.a)
-    simulated = metrics.simulate(model.a, model.b, u)
-    candidate.simulated = simulated[estimation:]
-    y_val = y[estimation:]
-    candidate.fit = metrics.nrmse_fit(y_val, candidate.simulated)
-    # equation error = one-step prediction error of the model read as ARX
-    error = metrics.equation_error(model.a, model.b, y, u)
-    split = estimation - order
-    candidate.prediction_fit = metrics.nrmse_fit(y_val, y_val - error[split:])
-    candidate.aic, candidate.mdl = metrics.information_criteria(error[:split], theta.size)
-    residual = (y_val - candidate.simulated if residual_kind == 'simulation error'
-                else error[split:])
-    candidate.residual = residual
-    if np.isfinite(residual).all():
-        _, candidate.whiteness_p = metrics.ljung_box(residual,
-                                                     metrics.whiteness_lags(residual.size))
-    return candidate
-
-
-__all__ = ['Analysis', 'Candidate', 'FIT_MARGIN', 'WHITENESS_LEVEL',
-           'analyze', 'parse_delays', 'parse_orders', 'recommend']
+__all__ = ['Analysis', 'Candidate', 'FIT_MARGIN', 'RESIDUAL_KIND', 'TEST_LEVEL',
+           'WHITENESS_LEVEL', 'analyze', 'compared_estimators', 'parse_delays',
+           'parse_orders', 'recommend', 'short_error']

@@ -208,7 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--seeds', type=int, default=10, help='seeds per order')
     parser.add_argument('--samples', type=int, default=3000)
     parser.add_argument('--snr', type=float, default=20.0, help='signal-to-noise ratio (dB)')
-    parser.add_argument('--estimator', default='bcrls')
+    parser.add_argument('--estimator', default='bcrls',
+                        help="the parameter file's estimator (compared online, beside the "
+                        'batch model)')
     parser.add_argument('--equation-error', action='store_true',
                         help='ARX plants (A y = B u + e) instead of output error')
     args = parser.parse_args(argv)

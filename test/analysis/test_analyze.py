@@ -9,12 +9,13 @@ from scipy import signal
 
 from bcid_ros.analysis import metrics
 from bcid_ros.analysis.model import DiscreteModel
-from bcid_ros.analysis.search import analyze
+from bcid_ros.analysis.search import analyze, compared_estimators
 from bcid_ros.analysis.study import noise_for_snr, random_plant, run_study, write_bag
 from bcid_ros.bag.qos import LATCHED
 from bcid_ros.bag.writer import BagWriter, FLOAT64_MULTI_ARRAY, float64_multi_array
 from bcid_ros.cli import main
 from bcid_ros.errors import BcidError
+from bcid_ros.estimators.registry import names_where
 from bcid_ros.simulation.custom import CustomScenario
 
 PARAMS = 'bcid_identifier:\n  ros__parameters:\n    estimator: {}\n    order: 1\n' \
@@ -97,17 +98,27 @@ def test_a_real_negative_pole_has_no_continuous_equivalent():
     assert found['modes'][0]['time_constant_s'] == pytest.approx(-0.1 / np.log(0.9))
 
 
-def test_rls_on_an_arx_plant_tests_the_equation_error_and_finds_the_order():
+def test_an_arx_plant_is_found_and_estimator_restricts_the_online_comparison():
+    # equation-error noise: the OE fit is consistent, its simulation error coloured (e/A)
     plant = {'plant_denominator': [1.0, -1.3, 0.6], 'plant_numerator': [0.0, 1.0, 0.5],
              'input_delay': 1}
     scenario = CustomScenario(**plant, equation_error=True,
                               noise_variance=noise_for_snr(plant, 20.0, True))
     y, u = scenario.simulate(2000, 4)
-    found = analyze(y, u, {'estimator': 'rls', 'num_inputs': 1}, orders=(1, 4),
-                    delays=(0, 3))
-    assert found.residual_kind == 'equation error'
-    assert (found.recommended.order, found.recommended.delay) == (2, 1)
-    assert found.residuals_white
+    found = analyze(y, u, {'estimator': 'bcrls', 'num_inputs': 1}, orders=(1, 4),
+                    delays=(0, 3), estimator='rls')
+    assert (found.recommended.order, found.recommended.delays) == (2, (1,))
+    assert found.adequate and not found.residuals_white
+    assert [r.name for r in found.online] == ['rls']
+    # rls is the maximum-likelihood estimate of an ARX plant: close to the batch OE model
+    assert found.recommended_estimator == 'rls' and found.estimator_close
+
+
+def test_the_online_comparison_defaults_to_the_open_loop_estimators_and_the_files():
+    open_loop = names_where(open_loop=True)
+    assert compared_estimators(open_loop[0], None) == open_loop
+    assert compared_estimators('cl_bcls', None) == open_loop + ('cl_bcls',)
+    assert compared_estimators('bcrls', 'bciv') == ('bciv',)
 
 
 def test_reduced_study_recovers_order_and_delay_through_the_command():
@@ -133,28 +144,53 @@ def test_json_has_the_documented_keys_and_the_plot_is_written(tmp_path, capsys):
     summary = json.loads(out)
     assert summary['recommended_order'] == 2
     assert summary['recommended_delay'] == plant['input_delay']
+    assert isinstance(summary['recommended_delay'], int)  # an integer for one input
     assert set(summary['orders']) == {'1', '2', '3'}
-    assert {'fit', 'aic', 'mdl', 'whiteness_p', 'stable'} <= set(summary['orders']['2'])
+    assert {'fit', 'aic', 'mdl', 'whiteness_p', 'cross_correlation_p',
+            'stable'} <= set(summary['orders']['2'])
     model = summary['model']
-    assert {'parameters', 'poles', 'zeros', 'dc_gain', 'continuous'} <= set(model)
+    assert {'parameters', 'parameter_std', 'poles', 'zeros', 'dc_gain', 'continuous',
+            'fit'} <= set(model)
     np.testing.assert_allclose(sorted(np.hypot(*np.array(model['poles']).T)),
                                sorted(np.abs(np.roots(plant['plant_denominator']))),
                                atol=0.05)
     assert summary['operating_point']['y'] == pytest.approx(5.0, abs=0.5)
     assert summary['operating_point']['u1'] == pytest.approx(-2.0, abs=0.1)
+    # every open-loop estimator ran on the chosen structure and has a validation fit
+    assert set(summary['online']) == set(names_where(open_loop=True))
+    for figures in summary['online'].values():
+        assert {'fit', 'valid', 'stable', 'parameters', 'validity_reasons'} <= set(figures)
+    assert summary['recommended_estimator'] in summary['online']
+    assert isinstance(summary['recommended_estimator_close'], bool)
+    assert summary['identifier_parameters']['input_delay'] == [plant['input_delay']]
+    assert summary['identifier_parameters']['detrend'] == 'mean'
     assert png.stat().st_size > 20000
     assert 'order 3, delay 3 (12/12)' in err  # progress on stderr
+    assert 'online bcrls' in err
 
 
-def test_miso_bag_refuses_a_delay_search(tmp_path, capsys):
-    scenario = CustomScenario(plant_denominator=[1.0, -0.5],
-                              plant_numerator=[0.0, 1.0, 0.0, 0.5])
-    bag = write_bag(scenario, 600, 0, tmp_path / 'bag')
-    code, _, err = _run(capsys, bag, '--params', _params(tmp_path, inputs=2),
-                        '--delays', '0-2')
-    assert code == 1
-    errors = [line for line in err.splitlines() if 'error' in line]
-    assert len(errors) == 1 and 'single-input' in errors[0]
+def test_a_two_input_csv_gives_a_delay_per_input_and_progress_stays_off_stdout(tmp_path,
+                                                                               capsys):
+    rng = np.random.default_rng(8)
+    count = 1500
+    u = rng.standard_normal((count, 2))
+    a = np.poly([0.7, 0.4])
+    x = signal.lfilter([0.0, 0.0, 0.0, 1.0, 0.6], a, u[:, 0]) + \
+        signal.lfilter([0.0, -0.8, 0.3], a, u[:, 1])
+    y = 10.0 + x + 0.1 * x.std() * rng.standard_normal(count)
+    path = tmp_path / 'plant.csv'
+    np.savetxt(path, np.column_stack([y, u + 3.0]), delimiter=',', header='y,u1,u2',
+               comments='')
+    code, out, err = _run(capsys, path, '--params', _params(tmp_path, inputs=2),
+                          '--orders', '1-3', '--delays', '0-2', '--json')
+    assert code == 0, err
+    assert len(out.strip().splitlines()) == 1  # one JSON object, nothing else
+    summary = json.loads(out)
+    assert summary['recommended_order'] == 2
+    assert summary['recommended_delay'] == [2, 0]  # a list for several inputs
+    assert summary['orders']['2']['delay'] == [2, 0]
+    assert len(summary['candidates']) == 3 * 9
+    assert err.count('bcid analyze: order ') == 27
 
 
 def test_a_bag_without_samples_is_one_clear_line(tmp_path, capsys):

@@ -1,0 +1,82 @@
+"""
+One BLAS thread for the batch fits, without threadpoolctl.
+
+The batch fits factor tall, narrow matrices (thousands of rows, a few tens of
+columns) hundreds of times. OpenBLAS splits each such call over its threads,
+and on a machine whose cores are busy the threads wait for each other: one
+SVD of 7000 x 25 took 3.3 ms of CPU with one thread and 284 ms with the
+default threads on this project's loaded 2-core machine (docs/analyze.md,
+*Speed*). :func:`single_threaded_blas` sets every OpenBLAS library loaded in
+the process (numpy's and scipy's wheels each bring one) to one thread for
+the duration of a ``with`` block and restores the previous counts after it,
+through the libraries' own ``*openblas_set_num_threads`` functions, which is
+what threadpoolctl does. Where no OpenBLAS is found (another BLAS, another
+operating system), it does nothing: the environment variable
+``OPENBLAS_NUM_THREADS=1`` (or ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``) set
+before Python starts does the same for every library.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+from pathlib import Path
+from typing import Callable, Iterator
+
+#: Symbol prefixes and suffixes of ``openblas_set_num_threads`` in the wheels'
+#: builds (plain OpenBLAS; scipy-openblas with 32- and 64-bit integers).
+_SYMBOLS = (('', ''), ('scipy_', ''), ('scipy_', '64_'), ('', '64_'))
+#: Where the shared libraries mapped into this process are listed (Linux).
+_MAPS = Path('/proc/self/maps')
+
+
+def openblas_libraries() -> list[str]:
+    """Return the paths of the OpenBLAS shared libraries loaded in this process (Linux)."""
+    try:
+        lines = _MAPS.read_text().splitlines()
+    except OSError:
+        return []
+    paths = []
+    for line in lines:
+        path = line.split()[-1] if len(line.split()) >= 6 else ''
+        if 'openblas' in Path(path).name.lower() and path not in paths:
+            paths.append(path)
+    return paths
+
+
+def _controls(path: str) -> tuple[Callable[[int], None], Callable[[], int]] | None:
+    """Return (set, get) of one library's thread count, or None when it has neither."""
+    try:
+        library = ctypes.CDLL(path)
+    except OSError:
+        return None
+    for prefix, suffix in _SYMBOLS:
+        setter = getattr(library, f'{prefix}openblas_set_num_threads{suffix}', None)
+        getter = getattr(library, f'{prefix}openblas_get_num_threads{suffix}', None)
+        if setter is not None and getter is not None:
+            setter.argtypes, setter.restype = [ctypes.c_int], None
+            getter.argtypes, getter.restype = [], ctypes.c_int
+            return setter, getter
+    return None
+
+
+@contextlib.contextmanager
+def single_threaded_blas() -> Iterator[int]:
+    """
+    Run the block with one OpenBLAS thread; yield the number of libraries set.
+
+    The previous thread count of each library is restored on exit, also
+    when the block raises.
+    """
+    controls = [found for found in map(_controls, openblas_libraries()) if found is not None]
+    previous = [(setter, getter()) for setter, getter in controls]
+    for setter, _ in previous:
+        setter(1)
+    try:
+        yield len(previous)
+    finally:
+        for setter, count in previous:
+            setter(count)
+
+
+__all__ = ['openblas_libraries', 'single_threaded_blas']
