@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal, stats
+from scipy import linalg, signal, stats
 
 #: Largest order of the AR model of a residual in the cross-correlation test (as the
 #: OE covariance of bcid_ros.analysis.pem uses).
@@ -133,6 +133,35 @@ def ar_noise_model(residual: np.ndarray, max_order: int) -> tuple[np.ndarray, fl
         if criterion < best[0]:
             best = (criterion, polynomial.copy(), error)
     return best[1], power * best[2]
+
+
+def coloured_noise_covariance(psi: np.ndarray, residual: np.ndarray,
+                              fitted: int) -> tuple[np.ndarray, int]:
+    r"""
+    Return (the sandwich covariance of an OE estimate, the AR order of its noise model).
+
+    :math:`\mathrm{cov} = B^{-1}(\hat\sigma_w^2 G^TG)B^{-1}`, :math:`B = \psi^T\psi`,
+    :math:`G = L^T\psi` (``psi`` filtered by 1/D backwards in time), with
+    :math:`\hat\sigma_w^2` the AR model's innovation variance times
+    N / (N - ``fitted``). Computed as :math:`K^TK` with
+    :math:`K = \hat\sigma_w (L^TQ)R^{-T}` from the QR factors of the
+    column-scaled ψ, so that it is positive semi-definite in floating point
+    too (the product of the three matrices is not when ψ is ill-conditioned).
+    """
+    count = residual.size
+    noise, sigma2 = ar_noise_model(residual, min(MAX_NOISE_ORDER, max(1, count // 20)))
+    sigma2 *= count / max(count - fitted, 1)
+    scale = np.linalg.norm(psi, axis=0)
+    scale[scale == 0.0] = 1.0
+    q, r = linalg.qr(psi / scale, mode='economic')
+    coloured = signal.lfilter([1.0], noise, q[::-1], axis=0)[::-1]
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        try:
+            root = linalg.solve_triangular(r, coloured.T)
+        except linalg.LinAlgError:
+            return np.full((psi.shape[1], psi.shape[1]), np.inf), noise.size - 1
+        covariance = sigma2 * (root @ root.T) / np.outer(scale, scale)
+    return covariance, noise.size - 1
 
 
 def whiteness_lags(count: int) -> int:

@@ -28,15 +28,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy import linalg, optimize, signal
 
-# MAX_NOISE_ORDER: the largest order of the AR model of the residual in the coloured-noise
-# covariance (one constant for this module and the analysis' cross-correlation test)
-from bcid_ros.analysis.metrics import ar_noise_model, MAX_NOISE_ORDER, nrmse_fit
-from bcid_ros.estimators.base import check_delays, check_int, parameter_names
+from bcid_ros.analysis.least_squares import best_run, MAX_EVALUATIONS, SOLVERS
+from bcid_ros.analysis.metrics import coloured_noise_covariance, nrmse_fit
+from bcid_ros.analysis.structure import Structure
+from bcid_ros.estimators.base import check_int
 from bcid_ros.estimators.lti import is_stable, spectral_radius
 from bcid_ros.estimators.regressor import ArxRegressor
 
@@ -47,8 +47,6 @@ START_RADIUS = 0.999
 #: theta below which it stops.
 REFINE_ITERATIONS = 20
 REFINE_TOLERANCE = 1e-7
-#: Most function evaluations of one least-squares run.
-MAX_EVALUATIONS = 200
 #: Order of the long ARX model whose residual starts ARMAX (Hannan-Rissanen).
 LONG_ARX_ORDER = 20
 #: Values of the ``initial`` argument of :func:`fit_oe`.
@@ -58,92 +56,6 @@ INITIALS = ('auto', 'estimate', 'zero')
 PERSISTENT_RECORDS = 2.0
 #: Values of :attr:`PemResult.model`.
 MODELS = ('oe', 'arx', 'armax')
-#: Values of the ``solver`` argument of :func:`fit_oe`.
-SOLVERS = ('trf', 'lm')
-#: Levenberg-Marquardt (``solver='lm'``): first damping (relative to the scaled
-#: diagonal of J^T J), its factor down after a step that lowers the cost and up
-#: after one that does not, and the damping at which no step is left to try.
-LM_DAMPING = 1e-3
-LM_FACTOR = 10.0
-LM_MAX_DAMPING = 1e16
-#: Both solvers stop when an accepted step lowers the cost by less than this
-#: fraction, or moves the scaled x by less than this fraction of its norm
-#: (scipy.optimize.least_squares' default ftol and xtol).
-STOP_TOLERANCE = 1e-8
-
-
-@dataclasses.dataclass(frozen=True)
-class Structure:
-    """
-    The structure of a MISO model: order, inputs, dead times, feedthrough.
-
-    Parameters
-    ----------
-    order : int
-        n >= 1, the degree of F (A) and of every B_i (and of C for ARMAX).
-    num_inputs : int
-        r >= 1.
-    input_delay : int or sequence of int
-        Dead time d_i >= 0 of each input (one integer for all).
-    feedthrough : bool
-        Whether ``b{i}_{d_i}`` (lag d_i) is a parameter.
-
-    Raises
-    ------
-    ValueError
-        Naming the argument that is out of range.
-
-    """
-
-    order: int
-    num_inputs: int = 1
-    input_delay: Any = 0
-    feedthrough: bool = False
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, 'order', check_int('order', self.order, 1))
-        object.__setattr__(self, 'num_inputs', check_int('num_inputs', self.num_inputs, 1))
-        object.__setattr__(self, 'input_delay', check_delays(self.input_delay, self.num_inputs))
-        object.__setattr__(self, 'feedthrough', bool(self.feedthrough))
-
-    @property
-    def first_lag(self) -> int:
-        """Return the first lag of every B_i after its dead time: 0 with feedthrough, else 1."""
-        return 0 if self.feedthrough else 1
-
-    @property
-    def b_length(self) -> int:
-        """Return the number of coefficients of one B_i."""
-        return self.order + 1 - self.first_lag
-
-    @property
-    def num_parameters(self) -> int:
-        """Return p = n + r (n or n + 1) of the OE and ARX models (ARMAX adds n)."""
-        return self.order + self.num_inputs * self.b_length
-
-    @property
-    def span(self) -> int:
-        """Return n + max(d_i), the oldest lag of the ARX regressor."""
-        return self.order + max(self.input_delay)
-
-    def parameter_names(self, model: str = 'oe') -> tuple[str, ...]:
-        """Return the names of theta of ``model`` ('oe', 'arx' or 'armax')."""
-        names = parameter_names(self.order, self.num_inputs, self.feedthrough, self.input_delay)
-        if model == 'armax':
-            names += tuple(f'c{k}' for k in range(1, self.order + 1))
-        return names
-
-    def split(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return ``(F, b)``: F = [1, a1, ..., an] and the rows b_i, shape ``(r, b_length)``."""
-        n = self.order
-        denominator = np.concatenate([[1.0], theta[:n]])
-        return denominator, theta[n:n + self.num_inputs * self.b_length].reshape(
-            self.num_inputs, self.b_length)
-
-    def numerator(self, b_row: np.ndarray, input_index: int) -> np.ndarray:
-        """Return q^-d_i B_i as coefficients in ascending powers of q^-1."""
-        lead = self.input_delay[input_index] + self.first_lag
-        return np.concatenate([np.zeros(lead), b_row])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -645,8 +557,9 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
         ``'trf'`` (default): :func:`scipy.optimize.least_squares`, trust-region
         reflective, which factors the N x p Jacobian by SVD at every
         iteration. ``'lm'``: Levenberg-Marquardt on the p x p normal
-        equations (:func:`levenberg_marquardt`), several times cheaper per
-        iteration; what ``bcid analyze`` uses for its many fits.
+        equations
+        (:func:`~bcid_ros.analysis.least_squares.levenberg_marquardt`),
+        several times cheaper per iteration; what ``bcid analyze`` uses for its many fits.
 
     Returns
     -------
@@ -681,8 +594,8 @@ def _fit_oe(y: np.ndarray, u: np.ndarray, structure: Structure, initial: str, of
     problem = _OutputError(y, u, structure, initial, offset)
     candidates = _oe_starts(problem)
     losses = [float(np.mean(problem.residual(x) ** 2)) for x in candidates]
-    best = _best_run(problem.residual, problem.jacobian, candidates, losses, starts,
-                     max_evaluations, solver)
+    best = best_run(problem.residual, problem.jacobian, candidates, losses, starts,
+                    max_evaluations, solver)
     return _oe_result(problem, best, tuple(losses))
 
 
@@ -760,114 +673,6 @@ def _refine_iv(y: np.ndarray, u: np.ndarray, structure: Structure,
     return best
 
 
-def _best_run(residual: Callable[[np.ndarray], np.ndarray],
-              jacobian: Callable[[np.ndarray], np.ndarray], candidates: list[np.ndarray],
-              losses: list[float], starts: int, max_evaluations: int,
-              solver: str = 'trf') -> optimize.OptimizeResult:
-    """
-    Return the run that ends lowest, of at most ``starts`` runs from the lowest start losses.
-
-    The lowest start does not always lead to the lowest minimum (an
-    over-parametrised OE model has several), so every start given is run.
-    """
-    best = None
-    for index in np.argsort(losses, kind='stable')[:starts]:
-        if solver == 'lm':
-            run = levenberg_marquardt(residual, jacobian, candidates[index], max_evaluations)
-        else:
-            run = _minimise(residual, jacobian, candidates[index], max_evaluations)
-        if best is None or run.cost < best.cost:
-            best = run
-    return best
-
-
-def _minimise(residual: Callable[[np.ndarray], np.ndarray],
-              jacobian: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
-              max_evaluations: int) -> optimize.OptimizeResult:
-    """Run trust-region-reflective least squares from ``x0`` with scaled variables."""
-    return optimize.least_squares(residual, x0, jac=jacobian, method='trf', x_scale='jac',
-                                  max_nfev=max_evaluations)
-
-
-def levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray],
-                        jacobian: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
-                        max_evaluations: int = MAX_EVALUATIONS) -> optimize.OptimizeResult:
-    r"""
-    Minimise :math:`\frac12\|r(x)\|^2` by Levenberg-Marquardt on the normal equations.
-
-    With the Jacobian's columns scaled to unit norm, :math:`J_s = J S^{-1}`,
-    each iteration solves
-
-    .. math::
-
-        (J_s^T J_s + \mu I)\,\delta = -J_s^T r, \qquad x \leftarrow x + S^{-1}\delta
-
-    (Marquardt's scaling: the damping acts alike on every parameter whatever
-    its units; Ljung 1999, ch. 10, the damped Gauss-Newton search). A step
-    that lowers the cost is taken and μ divided by ``LM_FACTOR``; otherwise
-    (also when the residual is not finite, e.g. F unstable) μ is multiplied
-    by it and the step tried again. It stops when a step lowers the cost by
-    less than ``STOP_TOLERANCE`` of it, or moves the scaled x by less than
-    ``STOP_TOLERANCE`` of its norm, or no step is left to try (status > 0),
-    or after ``max_evaluations`` residuals (status 0). Forming the p x p
-    matrix costs a few per cent of the SVD of the N x p Jacobian that the
-    trust-region solver of :func:`scipy.optimize.least_squares` computes at
-    every iteration; the squared condition number of the normal equations
-    matters only far from the minimum, where μ dominates.
-
-    Returns
-    -------
-    scipy.optimize.OptimizeResult
-        ``x``, ``fun`` (the residual at x), ``cost``, ``nfev``, ``status``
-        and ``message``, as :func:`scipy.optimize.least_squares` returns.
-
-    """
-    x = np.array(x0, dtype=float)
-    fun = residual(x)
-    cost = 0.5 * float(fun @ fun)
-    evaluations, damping = 1, LM_DAMPING
-    status, message = 0, 'the most residual evaluations were reached'
-    while evaluations < max_evaluations and status == 0:
-        columns = jacobian(x)
-        scale = np.linalg.norm(columns, axis=0)
-        scale[scale == 0.0] = 1.0
-        scaled = columns / scale
-        normal = scaled.T @ scaled
-        gradient = scaled.T @ fun
-        step = None
-        while evaluations < max_evaluations:
-            if damping > LM_MAX_DAMPING:
-                status, message = 2, 'no step lowers the cost'
-                break
-            try:
-                # (J_s^T J_s + mu I) delta = -J_s^T r
-                delta = -linalg.cho_solve(linalg.cho_factor(
-                    normal + damping * np.eye(normal.shape[0])), gradient)
-            except (linalg.LinAlgError, ValueError):
-                damping *= LM_FACTOR
-                continue
-            trial = x + delta / scale
-            trial_fun = residual(trial)
-            evaluations += 1
-            trial_cost = 0.5 * float(trial_fun @ trial_fun)
-            if math.isfinite(trial_cost) and trial_cost < cost:
-                step = delta
-                break
-            damping *= LM_FACTOR
-        if step is None:
-            break
-        reduction = (cost - trial_cost) / cost if cost > 0.0 else 0.0
-        moved = float(np.linalg.norm(step)) / max(float(np.linalg.norm(x * scale)), 1e-300)
-        x, fun, cost = trial, trial_fun, trial_cost
-        damping = max(damping / LM_FACTOR, 1e-300)
-        if reduction < STOP_TOLERANCE:
-            status, message = 2, 'the cost fell by less than the tolerance'
-        elif moved < STOP_TOLERANCE:
-            status, message = 3, 'the step was below the tolerance'
-    return optimize.OptimizeResult(x=x, fun=fun, cost=cost, nfev=evaluations, status=status,
-                                   message=message, success=status > 0)
-
-
 def _oe_result(problem: _OutputError, run: optimize.OptimizeResult,
                start_losses: tuple[float, ...]) -> PemResult:
     structure = problem.structure
@@ -879,7 +684,7 @@ def _oe_result(problem: _OutputError, run: optimize.OptimizeResult,
     if jacobian.shape[1] > p:
         nuisance = jacobian[:, p:]
         psi = psi - nuisance @ _least_squares_matrix(nuisance, psi)
-    covariance, noise_order = _coloured_covariance(psi, residual, jacobian.shape[1])
+    covariance, noise_order = coloured_noise_covariance(psi, residual, jacobian.shape[1])
     return PemResult(
         'oe', structure, run.x[:p].copy(), structure.parameter_names('oe'),
         output, residual, 0, float(np.mean(residual ** 2)), covariance,
@@ -895,35 +700,6 @@ def _least_squares_matrix(columns: np.ndarray, targets: np.ndarray) -> np.ndarra
     scale = np.linalg.norm(columns, axis=0)
     scale[scale == 0.0] = 1.0
     return linalg.lstsq(columns / scale, targets, lapack_driver='gelsy')[0] / scale[:, None]
-
-
-def _coloured_covariance(psi: np.ndarray, residual: np.ndarray,
-                         fitted: int) -> tuple[np.ndarray, int]:
-    r"""
-    Return (the sandwich covariance of an OE estimate, the AR order of its noise model).
-
-    :math:`\mathrm{cov} = B^{-1}(\hat\sigma_w^2 G^TG)B^{-1}`, :math:`B = \psi^T\psi`,
-    :math:`G = L^T\psi` (``psi`` filtered by 1/D backwards in time), with
-    :math:`\hat\sigma_w^2` the AR model's innovation variance times
-    N / (N - ``fitted``). Computed as :math:`K^TK` with
-    :math:`K = \hat\sigma_w (L^TQ)R^{-T}` from the QR factors of the
-    column-scaled ψ, so that it is positive semi-definite in floating point
-    too (the product of the three matrices is not when ψ is ill-conditioned).
-    """
-    count = residual.size
-    noise, sigma2 = ar_noise_model(residual, min(MAX_NOISE_ORDER, max(1, count // 20)))
-    sigma2 *= count / max(count - fitted, 1)
-    scale = np.linalg.norm(psi, axis=0)
-    scale[scale == 0.0] = 1.0
-    q, r = linalg.qr(psi / scale, mode='economic')
-    coloured = signal.lfilter([1.0], noise, q[::-1], axis=0)[::-1]
-    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        try:
-            root = linalg.solve_triangular(r, coloured.T)
-        except linalg.LinAlgError:
-            return np.full((psi.shape[1], psi.shape[1]), np.inf), noise.size - 1
-        covariance = sigma2 * (root @ root.T) / np.outer(scale, scale)
-    return covariance, noise.size - 1
 
 
 # ---------------------------------------------------------------- ARMAX
@@ -1025,8 +801,8 @@ def fit_armax(y: Any, u: Any, structure: Structure, *,
     if hannan is not None:
         starts.insert(0, hannan)
     losses = [float(np.mean(problem.residual(x) ** 2)) for x in starts]
-    best = _best_run(problem.residual, problem.jacobian, starts, losses, len(starts),
-                     max_evaluations)
+    best = best_run(problem.residual, problem.jacobian, starts, losses, len(starts),
+                    max_evaluations)
     output = problem.target - best.fun
     residual = problem.target - output
     psi = problem.jacobian(best.x)
@@ -1058,6 +834,5 @@ def _hannan_rissanen(y: np.ndarray, u: np.ndarray, structure: Structure) -> np.n
     return theta
 
 
-__all__ = ['INITIALS', 'MODELS', 'PemResult', 'SOLVERS', 'Structure', 'ar_noise_model',
-           'fit_armax', 'levenberg_marquardt',
-           'fit_arx', 'fit_oe', 'oe_jacobian', 'simulate_oe', 'stabilise']
+__all__ = ['INITIALS', 'MODELS', 'PemResult', 'Structure', 'fit_armax', 'fit_arx', 'fit_oe',
+           'oe_jacobian', 'simulate_oe', 'stabilise']
