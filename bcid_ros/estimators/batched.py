@@ -34,12 +34,13 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
                                       SharedSettings, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
-                                       LaggedMoments, OUTPUT_ERROR_LIMIT)
+                                       LaggedMoments, output_error_rows)
 from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
 from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings, Rls,
-                                     rowdot, scale_dependents)
+                                     scale_dependents)
 
 Rows = slice | np.ndarray
 
@@ -48,26 +49,13 @@ class BatchedRls(LsAccessors, SharedSettings):
     r"""
     K independent RLS estimators of one structure, updated together.
 
-    For each plant k the step is that of
-    :class:`~bcid_ros.estimators.rls.Rls` (eqs. (47)-(50) of Ding et al.
-    (2006) with forgetting):
-
-    .. math::
-
-        e_k &= y_k(t) - \varphi_k^T(t)\hat\theta_k(t-1), \qquad
-        s_k = \lambda + \varphi_k^T(t) P_k(t-1)\varphi_k(t) \\
-        \hat\theta_k(t) &= \hat\theta_k(t-1) + P_k(t-1)\varphi_k(t)\,e_k/s_k \\
-        P_k(t) &= \frac{1}{\lambda}\big[P_k(t-1) - h_k h_k^T\big],
-            \qquad h_k = P_k(t-1)\varphi_k(t)/\sqrt{s_k} \\
-        J_k(t) &= \lambda J_k(t-1) + \lambda e_k^2/s_k, \qquad
-        \tau_k(t) = \lambda\tau_k(t-1) + 1
-
-    with everything around it per plant, as in the single-plant estimator
-    (units, transaction, gate and plant change, anti-windup, covariance
-    repair, validity: :class:`~bcid_ros.estimators.rls.Rls`), by the same
-    functions (:func:`~bcid_ros.estimators.rls.ls_step_rows` and the
-    rulebook), counted per plant in :attr:`flags`; P_k(0) = p0 S_k^-2 with
-    plant k's own power-of-two signal scales (:attr:`signal_scale`).
+    Each plant k follows :class:`~bcid_ros.estimators.rls.Rls` (eqs.
+    (47)-(50) of Ding et al. (2006) with forgetting) with everything around
+    it (units, transaction, gate and plant change, anti-windup, covariance
+    repair, validity), by the same functions
+    (:func:`~bcid_ros.estimators.rls.ls_step_rows` and the rulebook), counted
+    per plant in :attr:`flags`; P_k(0) = p0 S_k^-2 with plant k's own
+    power-of-two signal scales (:attr:`signal_scale`).
 
     **Samples.** :meth:`update` takes one sample of every plant. Plant k's
     sample is not used when it is marked absent (counted in :attr:`missing`)
@@ -112,23 +100,14 @@ class BatchedRls(LsAccessors, SharedSettings):
         self.num_parameters = len(self.parameter_names)
         self._trace_limit = self.initial_covariance * self.num_parameters
         self._gate_from = rules.GATE_WARMUP * self.num_parameters
-        # history[k, j] = [-y, u_1, ..., u_r] of plant k's sample t - j (j = 0 newest);
-        # phi(t) is one gather from it with a fixed index, since the rows shift.
-        rows, width = self.order + 1, 1 + self.num_inputs
-        self._history = np.zeros((self.num_plants, rows, width))
-        self._flat_history = self._history.reshape(self.num_plants, rows * width)
-        first_lag = 0 if self.feedthrough else 1
-        index = [lag * width for lag in range(1, self.order + 1)]
-        for i in range(self.num_inputs):
-            index.extend(lag * width + 1 + i for lag in range(first_lag, self.order + 1))
-        self._phi_index = np.array(index, dtype=np.intp)
+        self._regressors = StackedRegressors(self.num_plants, self.order, self.num_inputs,
+                                             self.feedthrough)
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         # a value at or above this may overflow in a step: see RecursiveEstimator.update
-        self._huge = HUGE_VALUE / width
+        self._huge = HUGE_VALUE / (1 + self.num_inputs)
         #: Samples of each plant that were missing / not finite (not used).
         self.missing = np.zeros(self.num_plants, dtype=np.int64)
         self.nonfinite = np.zeros(self.num_plants, dtype=np.int64)
-        self._calls = 0
         self.reset()
 
     # ----------------------------------------------------------------- API
@@ -164,15 +143,13 @@ class BatchedRls(LsAccessors, SharedSettings):
             skipped = None
         else:
             skipped = self._screen(y, u, present)
-        self._push(y, u)
-        self._calls += 1
+        regressors = self._regressors
+        regressors.push(y, u)
         if skipped is not None:
-            self._clear_regressors(skipped)
-        rows = self._ready_rows()
+            regressors.clear(skipped)
+        rows = regressors.ready_rows()
         if rows is not None:
-            # take, not [:, index]: fancy indexing lays the result out by columns, and
-            # BLAS ddot sums a strided row in another order than the single plant's phi
-            phi = self._flat_history[rows].take(self._phi_index, axis=1)
+            phi = regressors.phi(rows)
             if self._quiet_left:
                 # a huge value is in some regressor: its overflow is refused, not warned about
                 self._quiet_left -= 1
@@ -202,15 +179,11 @@ class BatchedRls(LsAccessors, SharedSettings):
             counts[rows] = 0
         self._change_score[rows] = 0.0
         self._reset_learning(rows)
-        self._clear_regressors(rows)
+        self._regressors.clear(rows)
 
     def restart_regressor(self, plants: Any = None) -> None:
-        """
-        Forget the sample history of plants (default: all) but keep what was learnt.
-
-        Each plant's next n + 1 samples refill its regressor before it updates.
-        """
-        self._clear_regressors(self._plant_rows(plants))
+        """Forget plants' (default: all) sample history, keep what they learnt; n + 1 refill it."""
+        self._regressors.clear(self._plant_rows(plants))
 
     @property
     def theta(self) -> np.ndarray:
@@ -237,16 +210,16 @@ class BatchedRls(LsAccessors, SharedSettings):
     @property
     def valid(self) -> np.ndarray:
         """Whether each plant is :attr:`ready` with no validity reasons, shape ``(K,)``."""
-        return (self._updates >= self.num_parameters) & ~self._has_reasons
+        return (self._updates >= self.num_parameters) & ~self._reasons.any
 
     @property
     def validity_reasons(self) -> tuple[tuple[str, ...], ...]:
         """Return the reasons not to trust each plant's estimate, one tuple per plant."""
-        return tuple(self._reasons.get(plant, ()) for plant in range(self.num_plants))
+        return tuple(self._reasons.of(plant) for plant in range(self.num_plants))
 
     def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
         """Return why plant k's estimate is not trustworthy now (empty when it is)."""
-        return self._reasons.get(range(self.num_plants)[plant], ())
+        return self._reasons.of(range(self.num_plants)[plant])
 
     @property
     def samples(self) -> np.ndarray:
@@ -256,7 +229,7 @@ class BatchedRls(LsAccessors, SharedSettings):
     @property
     def used(self) -> np.ndarray:
         """Count each plant's samples that went into its regressor, shape ``(K,)``."""
-        return self._calls - self.missing - self.nonfinite
+        return self._regressors.pushes - self.missing - self.nonfinite
 
     @property
     def covariance_trace(self) -> np.ndarray:
@@ -303,19 +276,7 @@ class BatchedRls(LsAccessors, SharedSettings):
     @property
     def nbytes(self) -> int:
         """Bytes of every array this estimator holds, its helpers' included, for sizing."""
-        arrays: dict[int, np.ndarray] = {}
-        holders, seen = [self], set()
-        while holders:  # the estimator, its helpers (moments, tests, HAC) and theirs
-            holder = holders.pop()
-            seen.add(id(holder))
-            for value in vars(holder).values():
-                if isinstance(value, np.ndarray):
-                    arrays[id(value)] = value if value.base is None else value.base
-                elif hasattr(value, '__dict__') and id(value) not in seen and \
-                        type(value).__module__.startswith('bcid_ros.estimators'):
-                    holders.append(value)
-        owned = {id(array): array for array in arrays.values() if isinstance(array, np.ndarray)}
-        return sum(array.nbytes for array in list(owned.values()) + list(self.flags.values()))
+        return held_nbytes(self)
 
     def plant_flags(self, plant: int) -> dict[str, int]:
         """Return the flags counted for one plant (only those that occurred)."""
@@ -331,15 +292,8 @@ class BatchedRls(LsAccessors, SharedSettings):
         """
         plant = range(self.num_plants)[plant]
         arrays, scalars = self._plant_items(plant)
-        rows = self.order + 1
-        pushes = self._calls - int(self._cleared_at[plant])
-        position = pushes % rows
-        # the single-plant regressor is a ring: sample t - j sits in row position - 1 - j
-        ring = np.zeros_like(self._history[plant])
-        for lag in range(min(pushes, rows)):
-            ring[(position - 1 - lag) % rows] = self._history[plant, lag]
-        arrays['history'] = ring
-        scalars.update(filled=min(pushes, rows), position=position,
+        arrays['history'], filled, position = self._regressors.plant_ring(plant)
+        scalars.update(filled=filled, position=position,
                        forgetting_factor=self._forgetting_factor,
                        flags=self.plant_flags(plant),
                        change_score=float(self._change_score[plant]))
@@ -362,7 +316,7 @@ class BatchedRls(LsAccessors, SharedSettings):
             raise ValueError(f'state is from estimator {state.estimator!r}, not {self.name!r}')
         plant = range(self.num_plants)[plant]
         arrays, _ = self._plant_items(plant)
-        arrays['history'] = self._history[plant]
+        arrays['history'] = self._regressors.history[plant]
         for key, value in arrays.items():
             if key not in state.arrays or np.shape(state.arrays[key]) != np.shape(value):
                 raise ValueError(f'state array {key!r} does not match this configuration')
@@ -372,16 +326,9 @@ class BatchedRls(LsAccessors, SharedSettings):
         for key, count in dict(state.scalars.get('flags', {})).items():
             self._flag_counts(key)[plant] = count
         self._change_score[plant] = float(state.scalars.get('change_score', 0.0))
-        rows = self.order + 1
-        filled, position = int(state.scalars['filled']), int(state.scalars['position'])
-        pushes = filled if filled < rows else rows + position
-        self._cleared_at[plant] = self._calls - pushes
-        self._last_clear = max(self._last_clear, self._calls - pushes)
-        history = np.zeros_like(self._history[plant])
-        ring = np.asarray(state.arrays['history'], dtype=float)
-        for lag in range(min(filled, rows)):
-            history[lag] = ring[(position - 1 - lag) % rows]
-        self._history[plant] = history
+        self._regressors.load_plant_ring(plant, np.asarray(state.arrays['history'], dtype=float),
+                                         int(state.scalars['filled']),
+                                         int(state.scalars['position']))
 
     def __repr__(self) -> str:
         return (f'{type(self).__name__}(num_plants={self.num_plants}, order={self.order}, '
@@ -429,28 +376,6 @@ class BatchedRls(LsAccessors, SharedSettings):
             self._quiet[huge] = self.order + 2
         return None if usable.all() else np.flatnonzero(~usable)
 
-    def _push(self, y: np.ndarray, u: np.ndarray) -> None:
-        """Shift every plant's history by one sample and put sample t in row 0."""
-        history = self._history
-        history[:, 1:] = history[:, :-1]
-        history[:, 0, 0] = -y
-        history[:, 0, 1:] = u
-
-    def _clear_regressors(self, rows: Rows) -> None:
-        """Empty the histories of ``rows``; they refill from the next sample on."""
-        self._history[rows] = 0.0
-        self._cleared_at[rows] = self._calls
-        self._last_clear = self._calls
-
-    def _ready_rows(self) -> Rows | None:
-        """Return the plants whose regressor is filled: a slice if all, else indices or None."""
-        if self._calls - self._last_clear > self.order:
-            return slice(None)
-        ready = np.flatnonzero(self._calls - self._cleared_at > self.order)
-        if ready.size == self.num_plants:
-            return slice(None)
-        return ready if ready.size else None
-
     # ------------------------------------------------------------- the step
     def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray, u: np.ndarray) -> None:
         """Do one step of the plants ``rows``, whose regressors ``phi`` are filled."""
@@ -465,7 +390,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         if 'plant_change' in outcome.events:
             self._forget_residuals(rows[outcome.events['plant_change']])
         if outcome.restart.any():
-            self._clear_regressors(rows[outcome.restart])
+            self._regressors.clear(rows[outcome.restart])
         if outcome.relearn.any():
             self._restart_learning(rows[outcome.relearn])
         stepped = outcome.stepped
@@ -511,7 +436,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         if not plants.size:
             return
         scales = self._signal_scale[plants]
-        new = rules.choose_scales(scales, np.abs(self._history[plants]).max(axis=1))
+        new = rules.choose_scales(scales, self._regressors.peaks(plants))
         if new.any():
             p = self._p[plants]
             rules.rescale_new_channels(p, new, scales, self._channel)
@@ -531,12 +456,8 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._next_check[plants] = self._updates[plants] + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
             found = self._find_problems(plants)
-        self._has_reasons[plants] = [bool(reasons) for reasons in found]
         for plant, reasons in zip(plants.tolist(), found):
-            if reasons:
-                self._reasons[plant] = tuple(reasons)
-            else:
-                self._reasons.pop(plant, None)
+            self._reasons.set(plant, reasons)
 
     def _find_problems(self, plants: np.ndarray) -> list[list[str]]:
         """Return the reasons not to trust each of ``plants`` now (Rls._find_problems)."""
@@ -584,7 +505,6 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._loss = np.zeros(plants)
         self._tau = np.zeros(plants)
         self._updates = np.zeros(plants, dtype=np.int64)
-        self._cleared_at = np.zeros(plants, dtype=np.int64)
         self._signal_scale = np.zeros((plants, 1 + self.num_inputs))
         self._scales_pending = np.ones(plants, dtype=bool)
         self._component_scale = np.ones((plants, p))
@@ -593,8 +513,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._change_score = np.zeros(plants)
         self._next_check = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
-        self._has_reasons = np.zeros(plants, dtype=bool)
-        self._reasons: dict[int, tuple[str, ...]] = {}
+        self._reasons = PlantReasons(plants)
         # the LS state as the step function sees it (the same arrays)
         self._plants = LsPlants(self._theta_ls, self._p, self._loss, self._tau, self._updates,
                                 self._undone_in_row, self._change_score, self._variance_floor,
@@ -617,9 +536,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._undone_in_row[rows] = 0
         self._next_check[rows] = self.num_parameters
         self._last_power[rows] = math.inf
-        self._has_reasons[rows] = False
-        for plant in self._indices(rows).tolist():
-            self._reasons.pop(plant, None)
+        self._reasons.clear(self._indices(rows))
         self._forget_residuals(self._indices(rows))
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -627,7 +544,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         arrays = {key: getattr(self, '_' + key)[plant] for key in self._SNAPSHOT_ARRAYS}
         scalars = {key: kind(getattr(self, '_' + key)[plant])
                    for key, kind in self._SNAPSHOT_SCALARS.items()}
-        scalars['reasons'] = self._reasons.get(plant, ())
+        scalars['reasons'] = self._reasons.of(plant)
         residual_arrays, residual_scalars = residual_items(
             self._monitor.plant_state(plant),
             None if self._hac is None else self._hac.plant_state(plant))
@@ -645,12 +562,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._monitor.load_plant(plant, monitor)
         if self._hac is not None:
             self._hac.load_plant(plant, hac)
-        reasons = tuple(scalars['reasons'])
-        self._has_reasons[plant] = bool(reasons)
-        if reasons:
-            self._reasons[plant] = reasons
-        else:
-            self._reasons.pop(plant, None)
+        self._reasons.set(plant, scalars['reasons'])
 
 
 class BatchedBcrls(BatchedRls):
@@ -724,16 +636,8 @@ class BatchedBcrls(BatchedRls):
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
         """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
-        theta = self._theta_c[rows]
-        past = self._output_errors[rows]
-        error = y - rowdot(phi, theta)
-        for i in range(self.order):
-            error -= theta[:, i] * past[:, i]
-        bounded = np.abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[rows, 0]
-        past[:, 1:] = past[:, :-1]
-        past[:, 0] = error
-        past[~bounded] = 0.0
-        self._output_errors[rows] = past
+        error, bounded, self._output_errors[rows] = output_error_rows(
+            self._theta_c[rows], self._output_errors[rows], y, phi, self._signal_scale[rows, 0])
         if bounded.any():
             self._monitor.record_rows(rows[bounded], error[bounded], u[bounded])
 

@@ -702,3 +702,22 @@ def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: in
             return updated, sigma2, theta_ls
         theta_c = updated
     raise ValueError(f'the BCLS fixed point did not converge in {max_iterations} iterations')
+
+
+def output_error_rows(theta: np.ndarray, past: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                      y_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return each plant's output error, whether it is bounded, and the new past output errors.
+
+    The rows form of ``Bcrls._record_residual`` (plants ``(K,)``, ``past``
+    ``(K, n)`` newest first): e_oe(t) = y - phi^T theta - sum_i a_i e_oe(t-i);
+    a plant whose error is beyond ``OUTPUT_ERROR_LIMIT`` times its output
+    scale (or not finite) restarts its filter.
+    """
+    error = y - rowdot(phi, theta)
+    for i in range(past.shape[1]):
+        error -= theta[:, i] * past[:, i]
+    bounded = np.abs(error) < OUTPUT_ERROR_LIMIT * y_scale
+    past = np.concatenate([error[:, None], past[:, :-1]], axis=1)
+    past[~bounded] = 0.0
+    return error, bounded, past
