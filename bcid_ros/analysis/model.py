@@ -28,10 +28,9 @@ class DiscreteModel:
 
     Parameters
     ----------
-    a : numpy.ndarray, shape ``(n + 1,)``
-        A = [1, a1, ..., an].
-    b : numpy.ndarray, shape ``(r, n + 1)``
-        One row [b_i0, ..., b_in] per input.
+    a, b : numpy.ndarray
+        A = [1, a1, ..., an], shape ``(n + 1,)``, and one row [b_i0, ..., b_in]
+        per input, shape ``(r, n + 1)``.
     delay : int or sequence of int
         The dead time d_i of each input in samples (one integer for all).
 

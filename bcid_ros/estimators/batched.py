@@ -304,13 +304,9 @@ class BatchedRls(LsAccessors, SharedSettings):
         """
         Load a single-plant snapshot (or one of :meth:`plant_state`) into plant k.
 
-        The forgetting factor in the snapshot is ignored: it is shared by all plants.
-
-        Raises
-        ------
-        ValueError
-            If the snapshot comes from another estimator or other dimensions.
-
+        The forgetting factor in the snapshot is ignored: it is shared by all
+        plants. A snapshot of another estimator or of other dimensions raises
+        ValueError.
         """
         if state.estimator != self.name:
             raise ValueError(f'state is from estimator {state.estimator!r}, not {self.name!r}')

@@ -80,24 +80,21 @@ class Bcrls(Rls):
     :math:`M = \tau\hat\sigma^2 P\Lambda`, whose fixed point solves
     :math:`(I - M)\theta_c = \hat\theta_{LS}`. The spectral radius of M is
     :math:`\rho = \tau\hat\sigma^2\lambda_{max}(P_{aa})`
-    (:math:`P_{aa}` the a-block of P). The estimate is not valid when
-    :math:`\rho >` ``CONTRACTION_MAX`` (ill-conditioned compensation: an
-    over-parameterised A makes :math:`R - \sigma^2\Lambda` singular and
-    :math:`\rho \to 1`), when the normalised compensation
-    :math:`|S(\hat\theta_c - \hat\theta_{LS})|` exceeds ``RUNAWAY``
-    :math:`|S\hat\theta_{LS}|`, or when a ``compensation_reset`` happened
-    since the last check.
+    (:math:`P_{aa}` the a-block of P). The checks take their thresholds from
+    the estimate's own uncertainty (:func:`compensation_problems`):
+    :math:`\rho \ge 1` diverges and restarts the compensation from
+    :math:`\hat\theta_{LS}`; where :math:`\rho >` ``CONTRACTION_MAX`` or the
+    normalised compensation exceeds ``RUNAWAY`` :math:`|S\hat\theta_{LS}|`,
+    the estimate is not valid if its covariance is singular or its normalised
+    std above ``DETERMINED`` of its size (ill-conditioned), or if it lies more
+    than ``CONVERGED`` std from the fixed point of the current statistics (not
+    converged). A ``compensation_reset`` since the last check is a reason
+    too, and the output error of the compensated model goes to the residual
+    tests (``adequacy_model`` 'oe_white').
 
     The noise estimate is published as ``sigma2``.
 
-    Parameters
-    ----------
-    order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
-        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`.
-    input_delay, detrend, adapt
-        See :class:`~bcid_ros.estimators.base.RecursiveEstimator`; a dead time
-        delays the input lags of phi (docs/estimators.md, "Dead time").
-
+    The settings (parameters) are those of :class:`~bcid_ros.estimators.rls.Rls`.
     """
 
     name = 'bcrls'

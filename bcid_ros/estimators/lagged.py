@@ -285,13 +285,7 @@ class LaggedProducts:
         """
         if self.plants is not None:
             return self.record(_ALL, row) > 0
-        self.factors.append(1.0)
-        pending = self.pending
-        pending.append(row)
-        if len(pending) < BLOCK:
-            return False
-        self.flush()
-        return True
+        return self.append_product(row, 1.0)
 
     def append_product(self, row: Any, factor: float) -> bool:
         """
