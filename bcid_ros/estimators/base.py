@@ -35,8 +35,6 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
                                                  RunningMean)
-# the names bciv and cl_bcls still take from here
-from bcid_ros.estimators.rules import IMPLAUSIBLE_ERROR  # noqa: F401
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
@@ -52,11 +50,6 @@ CHECKPOINT_PERIOD = 64
 MAX_DELAY = 100000
 #: Values of the ``detrend`` setting.
 DETRENDS = ('none', 'mean')
-
-
-def power_of_two_at_least(value: float) -> float:
-    """Return the smallest power of two >= ``value`` > 0 (rules.powers_of_two_at_least)."""
-    return rules.powers_of_two_at_least(value)
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:

@@ -22,9 +22,6 @@ from bcid_ros.estimators.blas import KERNELS, load_blas
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
-# the names bciv and cl_bcls still take from here
-from bcid_ros.estimators.rules import (CHANGE_MEMORY, GATE_WARMUP, GROWTH,  # noqa: F401
-                                       spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD)
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
 HEALTH_CHECK_PERIOD = 1000
@@ -655,7 +652,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     # --------------------------------------------------------- the validity
     def _check_validity(self) -> None:
-        self._next_check = self._updates + VALIDITY_PERIOD
+        self._next_check = self._updates + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
             self._reasons = tuple(self._find_problems())
 

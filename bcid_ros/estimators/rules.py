@@ -34,6 +34,12 @@ CHANGE_SCORE = 2.4
 CHANGE_DECAY = 0.8
 #: A decayed score below this is 0 again (about 31 accepted samples after one refusal).
 SCORE_FLOOR = 1e-3
+#: The slow change score (:func:`slow_change`): +1 per refused sample, times
+#: SLOW_CHANGE_DECAY per tested sample; three refusals within about 100
+#: samples reach it.
+SLOW_CHANGE_SCORE = 3.0
+#: See SLOW_CHANGE_SCORE.
+SLOW_CHANGE_DECAY = 0.99
 #: The gate tests samples once the weighted count reaches GATE_WARMUP times
 #: the number of parameters (its variance estimate is then a variance).
 GATE_WARMUP = 10
@@ -95,6 +101,54 @@ def gate(z2: Any, limit2: float, score: Any) -> tuple[Any, Any, Any]:
     if np.ndim(used) == 0:
         return bool(used), float(score), bool(change)
     return used, score, change
+
+
+def gate_is_quiet(z2: float, limit2: float, score: float) -> bool:
+    """
+    Return whether :func:`gate` would use a sample and change nothing: its scalar fast path.
+
+    A sample within the limit while no change score is pending; the
+    estimators ask this on floats at every sample and call :func:`gate` only
+    when it is not so.
+    """
+    return not score and z2 <= limit2
+
+
+def slow_change(refused: Any, slow: Any) -> tuple[Any, Any]:
+    r"""
+    Return the slow change scores after a tested sample, and whether they mark a plant change.
+
+    The slow form of :func:`gate`'s change detection, for estimators whose
+    errors after a real change pass the gate most of the time and are never
+    refused three times in a row: in a closed loop a changed plant's errors
+    are large mostly right after the reference moves (docs/cl_bcls.md). The
+    score decays by ``SLOW_CHANGE_DECAY`` per tested sample (to 0 below
+    ``SCORE_FLOOR``) and rises by 1 per refusal; a refusal that brings it to
+    ``SLOW_CHANGE_SCORE`` marks a plant change: the score restarts at 0 and
+    the caller cuts the memory (:func:`memory_keep`). The sample itself
+    stays refused.
+
+    Parameters
+    ----------
+    refused : bool or numpy.ndarray of bool, shape ``(K,)``
+        Whether :func:`gate` refused each plant's tested sample.
+    slow : float or numpy.ndarray, shape ``(K,)``
+        The slow change scores before the sample.
+
+    Returns
+    -------
+    slow, change
+        The new scores, and whether the sample marks a plant change. Floats
+        and booleans for scalar input, arrays for arrays.
+
+    """
+    decayed = np.multiply(slow, SLOW_CHANGE_DECAY)
+    raised = np.where(decayed > SCORE_FLOOR, decayed, 0.0) + np.where(refused, 1.0, 0.0)
+    change = np.logical_and(refused, raised >= SLOW_CHANGE_SCORE)
+    slow = np.where(change, 0.0, raised)
+    if np.ndim(change) == 0:
+        return float(slow), bool(change)
+    return slow, change
 
 
 def memory_keep(tau: Any, count: int) -> Any:
@@ -336,8 +390,9 @@ def unstable_models(a: np.ndarray, power: np.ndarray,
 
 
 __all__ = ['CHANGE_DECAY', 'CHANGE_MEMORY', 'CHANGE_SCORE', 'CONDITION_FLOOR', 'GATE_WARMUP',
-           'GROWTH', 'IMPLAUSIBLE_ERROR', 'SCORE_FLOOR', 'UNSTABLE_RADIUS', 'VALIDITY_PERIOD',
-           'choose_scales', 'cut_memory', 'definite', 'gate', 'gate_limit2', 'memory_keep',
-           'output_powers', 'powers_of_two_at_least', 'repair_covariances',
-           'rescale_new_channels', 'sound_covariances', 'spectral_radii', 'spectral_radius',
+           'GROWTH', 'IMPLAUSIBLE_ERROR', 'SCORE_FLOOR', 'SLOW_CHANGE_DECAY', 'SLOW_CHANGE_SCORE',
+           'UNSTABLE_RADIUS', 'VALIDITY_PERIOD', 'choose_scales', 'cut_memory', 'definite',
+           'gate', 'gate_is_quiet', 'gate_limit2', 'memory_keep', 'output_powers',
+           'powers_of_two_at_least', 'repair_covariances', 'rescale_new_channels',
+           'slow_change', 'sound_covariances', 'spectral_radii', 'spectral_radius',
            'unstable_models']
