@@ -302,8 +302,11 @@ class Bciv(RecursiveEstimator):
         if self._error_count < self._gate_from:
             return True
         z2 = self._gate_score(y, w, error)
-        if rules.gate_is_quiet(z2, self._gate_limit2,
-                               self._change_score if error is not None else 0.0):
+        tail = rules.gate_is_quiet(z2, self._gate_limit2,
+                                   self._change_score if error is not None else 0.0,
+                                   self._gate_tail)
+        if tail:
+            self._gate_tail = tail
             return True
         return self._gate(z2)
 

@@ -330,7 +330,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         leverage = s - self._forgetting_factor
         z2 = max(e * e / ((self._memory.ls.loss / count + self._units.variance_floor)
                           * (leverage + 1.0)), count * leverage / self.num_parameters)
-        if rules.gate_is_quiet(z2, self._gate_limit2, self._change_score or self._refusals):
+        tail = rules.gate_is_quiet(z2, self._gate_limit2, self._change_score or self._refusals,
+                                   self._gate_tail)
+        if tail:
+            self._gate_tail = tail
             return True
         if self._memory.rows < self._gate_resume:
             # the transient of a new prefilter: only the hard limit
