@@ -556,8 +556,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         if tau >= self._gate_from:
             # the gate's quiet case (rules.gate_is_quiet) written out on floats: used, and
             # only a lifted tail moves; any other tested sample goes to the rules
-            if self._change_score or not e * e / (
-                    (self._loss / tau + self._variance_floor) * (s + 1.0 - lam)) <= self._gate_limit2:
+            if self._change_score or not e * e / ((self._loss / tau + self._variance_floor)
+                                                  * (s + 1.0 - lam)) <= self._gate_limit2:
                 return self._rare_step(y, phi)
             if self._gate_tail != 1.0:
                 self._gate_tail = rules.lowered_tail(self._gate_tail)
