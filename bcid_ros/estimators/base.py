@@ -35,8 +35,6 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
                                                  RunningMean)
-# the names bciv and cl_bcls still take from here
-from bcid_ros.estimators.rules import IMPLAUSIBLE_ERROR  # noqa: F401
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
@@ -52,11 +50,6 @@ CHECKPOINT_PERIOD = 64
 MAX_DELAY = 100000
 #: Values of the ``detrend`` setting.
 DETRENDS = ('none', 'mean')
-
-
-def power_of_two_at_least(value: float) -> float:
-    """Return the smallest power of two >= ``value`` > 0 (rules.powers_of_two_at_least)."""
-    return rules.powers_of_two_at_least(value)
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
@@ -328,6 +321,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         self.num_parameters = len(self.parameter_names)
         self._init_operation(detrend, adapt)
         self._change_score = 0.0
+        self._gate_tail = 1.0
         self._quiet_left = 0
         # samples refused by _undo, so that they can be kept out of the operating point
         self._refused = 0
@@ -600,6 +594,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         """Return to the state right after construction."""
         self.flags = {}
         self._change_score = 0.0
+        self._gate_tail = 1.0
         self._quiet_left = 0
         self._checkpoint = None
         if self._means is not None:
@@ -618,7 +613,8 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     def get_state(self) -> EstimatorState:
         """Return a frozen snapshot of the full state (copies)."""
         arrays, scalars = self._state_items()
-        scalars = dict(scalars, flags=dict(self.flags), change_score=self._change_score)
+        scalars = dict(scalars, flags=dict(self.flags), change_score=self._change_score,
+                       gate_tail=self._gate_tail)
         if self._means is not None:
             arrays = dict(arrays, operating_point=self._means.mean)
             scalars['operating_weight'] = self._means.weight
@@ -644,6 +640,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         scalars = dict(state.scalars)
         self.flags = dict(scalars.pop('flags', {}))
         self._change_score = float(scalars.pop('change_score', 0.0))
+        self._gate_tail = float(scalars.pop('gate_tail', 1.0))
         weight = scalars.pop('operating_weight', None)
         if self._means is not None and weight is not None:
             self._means.mean[:] = state.arrays['operating_point']
@@ -828,7 +825,8 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         restarts; a detected plant change is counted (``plant_change``) and
         :meth:`_accept_change` cuts the memory before the sample is used.
         """
-        used, self._change_score, change = rules.gate(z2, self._gate_limit2, self._change_score)
+        used, self._change_score, self._gate_tail, change = rules.gate(
+            z2, self._gate_limit2, self._change_score, self._gate_tail)
         if change:
             self._flag('plant_change')
             self._accept_change()

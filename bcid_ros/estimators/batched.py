@@ -178,6 +178,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         for counts in self.flags.values():
             counts[rows] = 0
         self._change_score[rows] = 0.0
+        self._gate_tail[rows] = 1.0
         self._reset_learning(rows)
         self._regressors.clear(rows)
 
@@ -296,7 +297,8 @@ class BatchedRls(LsAccessors, SharedSettings):
         scalars.update(filled=filled, position=position,
                        forgetting_factor=self._forgetting_factor,
                        flags=self.plant_flags(plant),
-                       change_score=float(self._change_score[plant]))
+                       change_score=float(self._change_score[plant]),
+                       gate_tail=float(self._gate_tail[plant]))
         return EstimatorState(self.name, {k: np.array(v, copy=True) for k, v in arrays.items()},
                               scalars)
 
@@ -322,6 +324,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         for key, count in dict(state.scalars.get('flags', {})).items():
             self._flag_counts(key)[plant] = count
         self._change_score[plant] = float(state.scalars.get('change_score', 0.0))
+        self._gate_tail[plant] = float(state.scalars.get('gate_tail', 1.0))
         self._regressors.load_plant_ring(plant, np.asarray(state.arrays['history'], dtype=float),
                                          int(state.scalars['filled']),
                                          int(state.scalars['position']))
@@ -507,13 +510,14 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._variance_floor = np.zeros(plants)
         self._undone_in_row = np.zeros(plants, dtype=np.int64)
         self._change_score = np.zeros(plants)
+        self._gate_tail = np.ones(plants)
         self._next_check = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
         self._reasons = PlantReasons(plants)
         # the LS state as the step function sees it (the same arrays)
         self._plants = LsPlants(self._theta_ls, self._p, self._loss, self._tau, self._updates,
-                                self._undone_in_row, self._change_score, self._variance_floor,
-                                self._component_scale)
+                                self._undone_in_row, self._change_score, self._gate_tail,
+                                self._variance_floor, self._component_scale)
         # each plant's residual tests and HAC
         self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
                                         forgetting_factor=self._forgetting_factor, plants=plants)

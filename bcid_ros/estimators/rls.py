@@ -22,9 +22,6 @@ from bcid_ros.estimators.blas import KERNELS, load_blas
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
-# the names bciv and cl_bcls still take from here
-from bcid_ros.estimators.rules import (CHANGE_MEMORY, GATE_WARMUP, GROWTH,  # noqa: F401
-                                       spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD)
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
 HEALTH_CHECK_PERIOD = 1000
@@ -155,8 +152,8 @@ class LsPlants:
         J and the weighted count of eq. (50).
     updates, undone : numpy.ndarray of int, shape ``(K,)``
         Updates made, and steps undone in a row.
-    score : numpy.ndarray, shape ``(K,)``
-        The gate's change score (:func:`~bcid_ros.estimators.rules.gate`).
+    score, tail : numpy.ndarray, shape ``(K,)``
+        The gate's change score and tail (:func:`~bcid_ros.estimators.rules.gate`).
     variance_floor : numpy.ndarray, shape ``(K,)``
         Floor of the prediction-error variance (VARIANCE_FLOOR times the y scale, squared).
     component_scale : numpy.ndarray, shape ``(K, p)``
@@ -171,6 +168,7 @@ class LsPlants:
     updates: np.ndarray
     undone: np.ndarray
     score: np.ndarray
+    tail: np.ndarray
     variance_floor: np.ndarray
     component_scale: np.ndarray
 
@@ -240,8 +238,9 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
         # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)]: the error over its variance
         z2 = e2[tested] / ((loss[tested] / tau[tested] + plants.variance_floor[rows[tested]])
                            * (s[tested] + 1.0 - lam))
-        used, plants.score[rows[tested]], change = rules.gate(
-            z2, settings.gate_limit2, plants.score[rows[tested]])
+        at = rows[tested]
+        used, plants.score[at], plants.tail[at], change = rules.gate(
+            z2, settings.gate_limit2, plants.score[at], plants.tail[at])
         refused[tested] = ~used
         if change.any():
             changed = np.flatnonzero(tested)[change]
@@ -554,11 +553,14 @@ class Rls(LsAccessors, RecursiveEstimator):
         if not (s < CAREFUL_GAIN * lam and e * e < math.inf and s > 0.0):
             return self._rare_step(y, phi)
         tau = self._tau
-        # the gate's quiet case (rules.gate: used, nothing changes) on floats; any other
-        # tested sample goes to the rules
-        if tau >= self._gate_from and (self._change_score or not e * e / (
-                (self._loss / tau + self._variance_floor) * (s + 1.0 - lam)) <= self._gate_limit2):
-            return self._rare_step(y, phi)
+        if tau >= self._gate_from:
+            # the gate's quiet case (rules.gate_is_quiet) written out on floats: used, and
+            # only a lifted tail moves; any other tested sample goes to the rules
+            if self._change_score or not e * e / ((self._loss / tau + self._variance_floor)
+                                                  * (s + 1.0 - lam)) <= self._gate_limit2:
+                return self._rare_step(y, phi)
+            if self._gate_tail != 1.0:
+                self._gate_tail = rules.lowered_tail(self._gate_tail)
         self._error = e
         self._p = rls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
@@ -596,13 +598,14 @@ class Rls(LsAccessors, RecursiveEstimator):
         return LsPlants(self._theta_ls[None], self._p[None], np.array([self._loss]),
                         np.array([self._tau]), np.array([self._updates]),
                         np.array([self._undone_in_row]), np.array([self._change_score]),
-                        np.array([self._variance_floor]), self._component_scale[None])
+                        np.array([self._gate_tail]), np.array([self._variance_floor]),
+                        self._component_scale[None])
 
     def _take_scalars(self, plants: LsPlants) -> None:
         """Take back the scalars of :meth:`_as_plants` (theta and P were views)."""
         self._loss, self._tau = float(plants.loss[0]), float(plants.tau[0])
         self._updates, self._undone_in_row = int(plants.updates[0]), int(plants.undone[0])
-        self._change_score = float(plants.score[0])
+        self._change_score, self._gate_tail = float(plants.score[0]), float(plants.tail[0])
 
     def _ls_settings(self) -> LsSettings:
         return LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
@@ -655,7 +658,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     # --------------------------------------------------------- the validity
     def _check_validity(self) -> None:
-        self._next_check = self._updates + VALIDITY_PERIOD
+        self._next_check = self._updates + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
             self._reasons = tuple(self._find_problems())
 

@@ -34,6 +34,25 @@ CHANGE_SCORE = 2.4
 CHANGE_DECAY = 0.8
 #: A decayed score below this is 0 again (about 31 accepted samples after one refusal).
 SCORE_FLOOR = 1e-3
+#: The share of the tested samples the gate refuses at most in the long run: beyond it the
+#: limit follows the tested errors' own distribution (:func:`track_tail`).
+REFUSAL_SHARE = 0.005
+#: The tail's step on a log scale: a refusal raises the limit on z^2 by the factor
+#: exp(TAIL_STEP (1 - REFUSAL_SHARE)) = 1.05, and every sample within the limit lowers it
+#: by exp(-TAIL_STEP REFUSAL_SHARE), back to the threshold's (tail 1) in about 200 samples.
+#: Small, so that the few large errors of a plant change (three in a row) barely lift it
+#: and still mark the change.
+TAIL_STEP = 0.05
+#: The tail's factor after a sample beyond the limit.
+TAIL_UP = math.exp(TAIL_STEP * (1.0 - REFUSAL_SHARE))
+#: The tail's factor after a sample within the limit (down to 1 at least).
+TAIL_DOWN = math.exp(-TAIL_STEP * REFUSAL_SHARE)
+#: The slow change score (:func:`slow_change`): +1 per refused sample, times
+#: SLOW_CHANGE_DECAY per tested sample; three refusals within about 100
+#: samples reach it.
+SLOW_CHANGE_SCORE = 3.0
+#: See SLOW_CHANGE_SCORE.
+SLOW_CHANGE_DECAY = 0.99
 #: The gate tests samples once the weighted count reaches GATE_WARMUP times
 #: the number of parameters (its variance estimate is then a variance).
 GATE_WARMUP = 10
@@ -57,16 +76,22 @@ def gate_limit2(outlier_threshold: float) -> float:
     return (outlier_threshold or IMPLAUSIBLE_ERROR) ** 2
 
 
-def gate(z2: Any, limit2: float, score: Any) -> tuple[Any, Any, Any]:
+def gate(z2: Any, limit2: float, score: Any, tail: Any) -> tuple[Any, Any, Any, Any]:
     r"""
     Decide which samples are used, from their squared normalised prediction errors.
 
-    A sample with :math:`z^2` above ``limit2`` is refused. Refusals raise a
-    change score that decays by ``CHANGE_DECAY`` per tested sample (to 0
-    below ``SCORE_FLOOR``); when it reaches ``CHANGE_SCORE`` (three refusals
-    in a row) the errors are taken as a real change of the plant: the sample
-    is used, the score restarts at 0, and the caller cuts the memory
-    (:func:`memory_keep`).
+    A sample with :math:`z^2` above ``limit2`` times its plant's ``tail`` is
+    refused. The tail (:func:`track_tail`) is 1 while at most
+    ``REFUSAL_SHARE`` of the tested samples exceed the threshold, as on
+    Gaussian errors, and otherwise lifts the limit to the errors' own upper
+    quantile: heavy-tailed but genuine errors are taken, while a spike, far
+    beyond any of them, is still refused. A sample beyond ``limit2`` itself
+    raises a change score that decays by ``CHANGE_DECAY`` per tested sample
+    (to 0 below ``SCORE_FLOOR``); when it reaches ``CHANGE_SCORE`` (three
+    such samples in a row) the errors are taken as a real change of the
+    plant: the sample is used, the score restarts at 0, and the caller cuts
+    the memory (:func:`memory_keep`). (The score judges by the threshold,
+    not the tail, which the first errors of a change would lift.)
 
     Parameters
     ----------
@@ -76,25 +101,115 @@ def gate(z2: Any, limit2: float, score: Any) -> tuple[Any, Any, Any]:
         :func:`gate_limit2` of the threshold.
     score : float or numpy.ndarray, shape ``(K,)``
         The change scores before the sample.
+    tail : float or numpy.ndarray, shape ``(K,)``
+        The tails before the sample (1 to start with).
 
     Returns
     -------
-    used, score, change
-        Whether each sample is used, the new scores, and whether the sample
-        marks a plant change (used, with the memory to be cut). Booleans and
-        floats for scalar input, arrays for arrays.
+    used, score, tail, change
+        Whether each sample is used, the new scores and tails, and whether
+        the sample marks a plant change (used, with the memory to be cut).
+        Booleans and floats for scalar input, arrays for arrays.
 
     """
-    accepted = np.less_equal(z2, limit2)
+    within = np.less_equal(z2, limit2)
+    accepted = np.less_equal(z2, np.multiply(limit2, tail))
     decayed = np.multiply(score, CHANGE_DECAY)
     raised = decayed + 1.0
-    change = np.logical_and(np.logical_not(accepted), raised >= CHANGE_SCORE)
+    change = np.logical_and(np.logical_not(within), raised >= CHANGE_SCORE)
     kept = np.where(decayed > SCORE_FLOOR, decayed, 0.0)
-    score = np.where(accepted, kept, np.where(change, 0.0, raised))
+    score = np.where(within, kept, np.where(change, 0.0, raised))
     used = np.logical_or(accepted, change)
+    tail = track_tail(accepted, tail)
     if np.ndim(used) == 0:
-        return bool(used), float(score), bool(change)
-    return used, score, change
+        return bool(used), float(score), float(tail), bool(change)
+    return used, score, tail, change
+
+
+def track_tail(accepted: Any, tail: Any) -> Any:
+    r"""
+    Return the tails after a tested sample, from whether it was within the limit.
+
+    The tail :math:`\rho \ge 1` multiplies the limit :math:`c^2` on
+    :math:`z^2`. It is the stochastic approximation (Robbins and Monro
+    1951) of the ``1 - REFUSAL_SHARE`` quantile of :math:`z^2/c^2`, on a log
+    scale and floored at 1:
+
+    .. math::
+
+        \log\rho \leftarrow \max\big(0,\ \log\rho + \eta\,
+            (\mathbb 1[z^2 > c^2\rho] - s)\big)
+
+    with :math:`\eta` = ``TAIL_STEP`` and :math:`s` = ``REFUSAL_SHARE``. Summed
+    over N tested samples with R refused, the steps give
+    :math:`\log\rho_N \ge \eta(R - sN)`, so whatever the errors'
+    distribution, :math:`R \le sN + \log(\rho_N)/\eta`: at most a share s,
+    plus :math:`\log(\rho_N)/\eta` samples (about 280 for a limit lifted a
+    millionfold). Errors whose share beyond the threshold is below s (5
+    sigma on Gaussian errors: 6e-7) keep :math:`\rho` near 1 and the plain
+    gate. The tail sees every tested sample, the refused ones too, so
+    refusals cannot shrink the scale they are judged by, and a spike moves
+    :math:`\log\rho` by :math:`\eta` only.
+    """
+    return np.where(accepted, np.maximum(np.multiply(tail, TAIL_DOWN), 1.0),
+                    np.multiply(tail, TAIL_UP))
+
+
+def gate_is_quiet(z2: float, limit2: float, score: float, tail: float) -> float:
+    """
+    Return the tail after a sample that :func:`gate` uses with nothing else to change, or 0.
+
+    The gate's scalar fast path, on floats: a sample within ``limit2`` while
+    no change score is pending is used, and only its tail moves
+    (:func:`track_tail`). The estimators ask this at every tested sample and
+    call :func:`gate` only when it returns 0 (the sample is not quiet).
+    """
+    if score or not z2 <= limit2:
+        return 0.0
+    return 1.0 if tail == 1.0 else lowered_tail(tail)
+
+
+def lowered_tail(tail: float) -> float:
+    """Return the tail after a sample within the limit (:func:`track_tail`), on floats."""
+    down = tail * TAIL_DOWN
+    return down if down > 1.0 else 1.0
+
+
+def slow_change(refused: Any, slow: Any) -> tuple[Any, Any]:
+    r"""
+    Return the slow change scores after a tested sample, and whether they mark a plant change.
+
+    The slow form of :func:`gate`'s change detection, for estimators whose
+    errors after a real change pass the gate most of the time and are never
+    refused three times in a row: in a closed loop a changed plant's errors
+    are large mostly right after the reference moves (docs/cl_bcls.md). The
+    score decays by ``SLOW_CHANGE_DECAY`` per tested sample (to 0 below
+    ``SCORE_FLOOR``) and rises by 1 per refusal; a refusal that brings it to
+    ``SLOW_CHANGE_SCORE`` marks a plant change: the score restarts at 0 and
+    the caller cuts the memory (:func:`memory_keep`). The sample itself
+    stays refused.
+
+    Parameters
+    ----------
+    refused : bool or numpy.ndarray of bool, shape ``(K,)``
+        Whether :func:`gate` refused each plant's tested sample.
+    slow : float or numpy.ndarray, shape ``(K,)``
+        The slow change scores before the sample.
+
+    Returns
+    -------
+    slow, change
+        The new scores, and whether the sample marks a plant change. Floats
+        and booleans for scalar input, arrays for arrays.
+
+    """
+    decayed = np.multiply(slow, SLOW_CHANGE_DECAY)
+    raised = np.where(decayed > SCORE_FLOOR, decayed, 0.0) + np.where(refused, 1.0, 0.0)
+    change = np.logical_and(refused, raised >= SLOW_CHANGE_SCORE)
+    slow = np.where(change, 0.0, raised)
+    if np.ndim(change) == 0:
+        return float(slow), bool(change)
+    return slow, change
 
 
 def memory_keep(tau: Any, count: int) -> Any:
@@ -336,8 +451,10 @@ def unstable_models(a: np.ndarray, power: np.ndarray,
 
 
 __all__ = ['CHANGE_DECAY', 'CHANGE_MEMORY', 'CHANGE_SCORE', 'CONDITION_FLOOR', 'GATE_WARMUP',
-           'GROWTH', 'IMPLAUSIBLE_ERROR', 'SCORE_FLOOR', 'UNSTABLE_RADIUS', 'VALIDITY_PERIOD',
-           'choose_scales', 'cut_memory', 'definite', 'gate', 'gate_limit2', 'memory_keep',
-           'output_powers', 'powers_of_two_at_least', 'repair_covariances',
-           'rescale_new_channels', 'sound_covariances', 'spectral_radii', 'spectral_radius',
-           'unstable_models']
+           'GROWTH', 'IMPLAUSIBLE_ERROR', 'REFUSAL_SHARE', 'SCORE_FLOOR', 'SLOW_CHANGE_DECAY',
+           'SLOW_CHANGE_SCORE', 'TAIL_DOWN', 'TAIL_STEP', 'TAIL_UP', 'UNSTABLE_RADIUS',
+           'VALIDITY_PERIOD', 'choose_scales', 'cut_memory', 'definite', 'gate',
+           'gate_is_quiet', 'gate_limit2', 'lowered_tail', 'memory_keep', 'output_powers',
+           'powers_of_two_at_least', 'repair_covariances', 'rescale_new_channels',
+           'slow_change', 'sound_covariances', 'spectral_radii', 'spectral_radius',
+           'track_tail', 'unstable_models']

@@ -4,10 +4,12 @@ Unit tests of the BCIV estimator (Ikenoue et al. 2008) and its batch reference.
 The solver against the paper's equations written out: test_bciv_speed_equivalence.py.
 """
 
+import inspect
+
 import numpy as np
 import pytest
 
-from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators import ESTIMATORS, make_estimator
 from bcid_ros.estimators.bciv import (Bciv, bciv_batch, BcivSolver, DEFAULT_TOLERANCE,
                                       published_noise)
 from bcid_ros.simulation import make_scenario
@@ -70,8 +72,11 @@ def test_names_and_repr():
     assert colored.parameter_names == ('a1', 'a2', 'b1_1', 'b1_2')
     assert colored.noise_names == tuple(f'r_dd{k}' for k in range(7))
     assert Bciv(order=2, **WHITE).noise_names == ('sigma2_d',)
-    assert Bciv.options == ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
-                            'bciv_update', 'allow_underdetermined')
+    # the registry is the one list of the ROS options; each is a constructor keyword
+    options = ESTIMATORS['bciv'].option_names
+    assert options == ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
+                       'bciv_update', 'allow_underdetermined')
+    assert set(options) <= set(inspect.signature(Bciv).parameters)
     assert repr(colored) == ("Bciv(order=2, iv_lag=5, input_noise='colored', "
                              "bciv_update='converged', bciv_iterations=20, idle_samples=100, "
                              'forgetting_factor=1.0)')

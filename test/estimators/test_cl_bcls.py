@@ -1,5 +1,6 @@
 """Unit tests of the closed-loop BCLS estimator (Ikeda 2008) and its scenario."""
 
+import inspect
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +9,7 @@ import scipy.linalg
 from scipy import signal
 
 from bcid_ros.estimators import cl_bcls as cl
-from bcid_ros.estimators import estimator_class, lti, make_estimator
+from bcid_ros.estimators import ESTIMATORS, estimator_class, lti, make_estimator
 from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
                                             load_yaml_parameters)
 from bcid_ros.simulation import make_scenario
@@ -76,9 +77,12 @@ def test_forgetting_factor_must_be_1_with_a_window():
 def test_registry_options_and_names():
     cls = estimator_class('cl_bcls')
     assert cls is cl.ClosedLoopBcls
-    assert cls.options == ('controller_numerator', 'controller_denominator', 'controller_sign',
-                           'prefilter_initial', 'window', 'redesign_period', 'max_iterations',
-                           'tolerance')
+    # the registry is the one list of the ROS options; each is a constructor keyword
+    options = ESTIMATORS['cl_bcls'].option_names
+    assert options == ('controller_numerator', 'controller_denominator', 'controller_sign',
+                       'prefilter_initial', 'window', 'redesign_period', 'max_iterations',
+                       'tolerance')
+    assert set(options) <= set(inspect.signature(cls).parameters)
     est = make(order=2)
     assert est.parameter_names == ('a1', 'a2', 'b1_1', 'b1_2')
     assert est.noise_names == ('sigma2',)

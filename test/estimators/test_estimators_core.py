@@ -10,8 +10,8 @@ from scipy import signal
 from bcid_ros.estimators import estimator_class, make_estimator, parameter_names
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.regressor import ArxRegressor
-from bcid_ros.estimators.rls import (ls_batch, repair_covariance, rls_innovation, rls_step,
-                                     spectral_radius)
+from bcid_ros.estimators.rls import ls_batch, repair_covariance, rls_innovation, rls_step
+from bcid_ros.estimators.rules import spectral_radius
 from bcid_ros.simulation import make_scenario
 from equivalence import assert_paths_agree, two_path_spread
 

@@ -36,8 +36,7 @@ The modules, each importing only those below it:
 
 from bcid_ros.estimators.bciv.batch import bciv_batch, BcivBatch
 from bcid_ros.estimators.bciv.history import RING_SAMPLES, SampleHistory
-from bcid_ros.estimators.bciv.online import (Bciv, CHANGE_MEMORY, GATE_WARMUP, RUNAWAY_SHIFT,
-                                             UPDATES)
+from bcid_ros.estimators.bciv.online import Bciv, RUNAWAY_SHIFT, UPDATES
 from bcid_ros.estimators.bciv.solver import (BcivResult, BcivSolver, CHECK_PERIOD,
                                              check_structure, COMPENSATION_MAX, CONDITION_MAX,
                                              DEFAULT_TOLERANCE, INPUT_NOISE, noise_count, OK,
@@ -45,9 +44,8 @@ from bcid_ros.estimators.bciv.solver import (BcivResult, BcivSolver, CHECK_PERIO
 from bcid_ros.estimators.bciv.units import regularisation_weights, window_scales
 from bcid_ros.estimators.bciv.white import WhiteFixedPoint
 
-__all__ = ['Bciv', 'bciv_batch', 'BcivBatch', 'BcivResult', 'BcivSolver', 'CHANGE_MEMORY',
-           'CHECK_PERIOD', 'check_structure', 'COMPENSATION_MAX', 'CONDITION_MAX',
-           'DEFAULT_TOLERANCE', 'GATE_WARMUP', 'INPUT_NOISE', 'noise_count', 'OK',
-           'published_noise', 'regularisation_weights', 'RING_SAMPLES', 'RUNAWAY',
-           'RUNAWAY_SHIFT', 'SampleHistory', 'SINGULAR', 'UPDATES', 'WhiteFixedPoint',
-           'window_scales']
+__all__ = ['Bciv', 'bciv_batch', 'BcivBatch', 'BcivResult', 'BcivSolver', 'CHECK_PERIOD',
+           'check_structure', 'COMPENSATION_MAX', 'CONDITION_MAX', 'DEFAULT_TOLERANCE',
+           'INPUT_NOISE', 'noise_count', 'OK', 'published_noise', 'regularisation_weights',
+           'RING_SAMPLES', 'RUNAWAY', 'RUNAWAY_SHIFT', 'SampleHistory', 'SINGULAR', 'UPDATES',
+           'WhiteFixedPoint', 'window_scales']

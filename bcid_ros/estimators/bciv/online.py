@@ -19,23 +19,17 @@ from typing import Any
 import numpy as np
 from scipy.linalg.blas import dger
 
-from bcid_ros.estimators.base import (check_int, check_range, power_of_two_at_least,
-                                      RecursiveEstimator)
+from bcid_ros.estimators import rules
+from bcid_ros.estimators.base import check_int, check_range, RecursiveEstimator
 from bcid_ros.estimators.bciv.solver import (BcivSolver, check_structure, DEFAULT_TOLERANCE,
                                              INPUT_NOISE, OK, published_noise)
 from bcid_ros.estimators.bciv.history import SampleHistory
 from bcid_ros.estimators.bciv.uncertainty import moment_function
 from bcid_ros.estimators.bciv.units import regularisation_weights
 from bcid_ros.estimators.moment_covariance import MomentBlocks
-from bcid_ros.estimators.rls import (GROWTH, spectral_radius, UNSTABLE_RADIUS, VALIDITY_PERIOD,
-                                     VARIANCE_FLOOR)
+from bcid_ros.estimators.rls import VARIANCE_FLOOR
 
 UPDATES = ('converged', 'printed')
-#: The gate tests samples once this many times p equation errors were measured
-#: after the estimator became ready (their mean square is then a variance).
-GATE_WARMUP = 10
-#: A detected plant change cuts the weighted memory tau to this many times m samples.
-CHANGE_MEMORY = 4
 #: A compensation farther than this from theta_IV (relative, normalised units) is a runaway.
 RUNAWAY_SHIFT = 1.0
 
@@ -122,18 +116,21 @@ class Bciv(RecursiveEstimator):
       l - 1 samples before it enters a regressor, so the input's size is
       tested as it arrives.
 
-    The gate tests once ``GATE_WARMUP`` p equation errors were measured. A
-    detected plant change cuts the memory to ``CHANGE_MEMORY`` m samples
-    (moments and tau times kappa, lambda^2N times kappa^2) and the gate
-    relearns its scales.
+    The gate tests once ``GATE_WARMUP`` p equation errors were measured
+    (after the estimator became ready: their mean square is then a
+    variance). A detected plant change cuts the memory to ``CHANGE_MEMORY`` m
+    samples (:func:`~bcid_ros.estimators.rules.memory_keep`: moments and tau
+    times kappa, lambda^2N times kappa^2) and the gate relearns its scales.
+    (The constants are the rulebook's, :mod:`bcid_ros.estimators.rules`.)
 
     **Validity**, re-evaluated every ``VALIDITY_PERIOD`` updates: the
     compensated model is unstable (a pole beyond ``UNSTABLE_RADIUS``) while
     the output's mean square did not grow ``GROWTH`` times since the last
-    check; the estimate fell back to theta_IV (ill-conditioned
-    :math:`\tilde Q^TX\tilde Q` or runaway) since the last check, or at this
-    sample; the compensation moved farther than ``RUNAWAY_SHIFT`` times
-    :math:`|\hat\theta_{IV}|` from theta_IV (normalised units).
+    check (:func:`~bcid_ros.estimators.rules.unstable_models`); the
+    estimate fell back to theta_IV (ill-conditioned :math:`\tilde Q^TX\tilde Q`
+    or runaway) since the last check, or at this sample; the compensation
+    moved farther than ``RUNAWAY_SHIFT`` times :math:`|\hat\theta_{IV}|` from
+    theta_IV (normalised units).
 
     Parameters
     ----------
@@ -172,9 +169,6 @@ class Bciv(RecursiveEstimator):
     """
 
     name = 'bciv'
-    #: Extra constructor keywords that are ROS parameters (docs/nodes.md).
-    options: tuple[str, ...] = ('iv_lag', 'input_noise', 'idle_samples', 'bciv_iterations',
-                                'bciv_update', 'allow_underdetermined')
     _guarded_update = RecursiveEstimator._step_transaction
 
     def __init__(self, *, iv_lag: int = 5, input_noise: str = 'colored',
@@ -300,15 +294,19 @@ class Bciv(RecursiveEstimator):
         Return whether the gate lets a new sample in: z^2 of :meth:`_gate_score`, then ``_gate``.
 
         The gate tests once ``GATE_WARMUP`` p equation errors were measured;
-        a sample whose z^2 is within the limit passes without the base
-        class's :meth:`_gate`, unless a change score is pending and the
-        equation error is known (while the regressor refills only the sizes
-        are tested: the change score waits).
+        a quiet sample (:func:`~bcid_ros.estimators.rules.gate_is_quiet`)
+        passes without the base class's :meth:`_gate`. While the regressor
+        refills only the sizes are tested and the change score waits: such a
+        sample within the limit is quiet whatever the score.
         """
         if self._error_count < self._gate_from:
             return True
         z2 = self._gate_score(y, w, error)
-        if z2 <= self._gate_limit2 and not (self._change_score and error is not None):
+        tail = rules.gate_is_quiet(z2, self._gate_limit2,
+                                   self._change_score if error is not None else 0.0,
+                                   self._gate_tail)
+        if tail:
+            self._gate_tail = tail
             return True
         return self._gate(z2)
 
@@ -334,7 +332,7 @@ class Bciv(RecursiveEstimator):
 
     def _accept_change(self) -> None:
         """Cut the memory to CHANGE_MEMORY m samples and let the gate relearn its scales."""
-        keep = CHANGE_MEMORY * self._solver.m / self._tau if self._tau > 0.0 else 1.0
+        keep = rules.memory_keep(self._tau, self._solver.m)
         if keep < 1.0:
             self._moments *= keep
             self._tau *= keep
@@ -347,9 +345,7 @@ class Bciv(RecursiveEstimator):
         """Give z and w, if still without a scale, the power of two of the window's peak."""
         peaks = np.abs(self._history.window).max(axis=0)
         scales = self._signal_scale.copy()
-        for channel in (0, 1):
-            if scales[channel] == 0.0 and peaks[channel] > 0.0:
-                scales[channel] = power_of_two_at_least(float(peaks[channel]))
+        rules.choose_scales(scales[None], peaks[None])
         self._signal_scale = scales
         self._set_scale_dependents()
 
@@ -384,19 +380,16 @@ class Bciv(RecursiveEstimator):
 
     # ------------------------------------------------------- the validity
     def _check_validity(self) -> None:
-        self._next_check = self._updates + VALIDITY_PERIOD
+        self._next_check = self._updates + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
             self._reasons = tuple(self._find_problems())
 
     def _find_problems(self) -> list[str]:
         """Return the reasons not to trust the estimate now (see the class docstring)."""
-        reasons = []
         power = self._output_power
-        bounded = not power > GROWTH * self._last_power
+        reasons = rules.unstable_models(self._theta_bciv[None, :self.order], np.array([power]),
+                                        np.array([self._last_power]))[0]
         self._last_power = power
-        radius = spectral_radius(self._theta_bciv[:self.order])
-        if not radius <= UNSTABLE_RADIUS and bounded:
-            reasons.append(f'unstable model (pole radius {radius:.3g}) on bounded data')
         fallbacks = self.flags.get('fallback_iv', 0)
         if fallbacks > self._fallbacks_checked:
             reasons.append(f'ill-conditioned or runaway compensation (fell back to theta_IV '
@@ -502,12 +495,12 @@ class Bciv(RecursiveEstimator):
         self._gamma = np.zeros(self._solver.q)
         self._iterations_used = 0
         self._ready_count = max(self.idle_samples, p)
-        self._gate_from = GATE_WARMUP * p
+        self._gate_from = rules.GATE_WARMUP * p
         self._signal_scale = np.zeros(2)
         self._set_scale_dependents()
         self._signal_count = self._error_count = 0.0
         self._input_power = self._output_power = self._error_power = 0.0
-        self._next_check = VALIDITY_PERIOD
+        self._next_check = rules.VALIDITY_PERIOD
         self._last_power = math.inf
         self._fallbacks_checked = 0
         self._reasons: tuple[str, ...] = ()

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bcid_ros.estimators.base import power_of_two_at_least
+from bcid_ros.estimators import rules
 
 
 def regularisation_weights(z_scale: float, w_scale: float, order: int,
@@ -48,5 +48,5 @@ def window_scales(z: np.ndarray, w: np.ndarray, m: int) -> tuple[float, float]:
             scales.append(1.0)
             continue
         end = max(int(nonzero[0]), m - 1)
-        scales.append(power_of_two_at_least(float(np.abs(x[end - m + 1:end + 1]).max())))
+        scales.append(rules.powers_of_two_at_least(float(np.abs(x[end - m + 1:end + 1]).max())))
     return scales[0], scales[1]

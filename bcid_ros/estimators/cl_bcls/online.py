@@ -15,8 +15,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from bcid_ros.estimators import rules
 from bcid_ros.estimators.base import (all_finite, check_forgetting_factor, check_int,
-                                      check_range, IMPLAUSIBLE_ERROR, RecursiveEstimator)
+                                      check_range, RecursiveEstimator)
 from bcid_ros.estimators.cl_bcls.batch import DEFAULT_TOLERANCE
 from bcid_ros.estimators.cl_bcls.compensation import (Compensation, MIN_DISCRIMINANT_RATIO,
                                                       MIN_EXCITATION_RATIO, model_reasons)
@@ -29,7 +30,6 @@ from bcid_ros.estimators.cl_bcls.uncertainty import moment_function
 from bcid_ros.estimators.cl_bcls.window import window_lengths, WindowMemory
 from bcid_ros.estimators.lti import make_controller
 from bcid_ros.estimators.moment_covariance import MomentBlocks
-from bcid_ros.estimators.rls import CHANGE_MEMORY, GATE_WARMUP
 
 #: Default ``window``: 0, every sample since the last controller change (recursive moments).
 DEFAULT_WINDOW = 0
@@ -37,11 +37,6 @@ DEFAULT_WINDOW = 0
 DEFAULT_REDESIGN_PERIOD = 1000
 #: Default cap on the iterations of one redesign.
 DEFAULT_MAX_ITERATIONS = 20
-#: The slow change score of the gate: +1 per refused sample, times REFUSAL_DECAY per
-#: tested sample; three refusals within about 100 samples reach it (docs/cl_bcls.md).
-REFUSAL_SCORE = 3.0
-#: See REFUSAL_SCORE.
-REFUSAL_DECAY = 0.99
 #: Rows after a new prefilter (``window`` 0) during which only the gate's hard limit
 #: applies: the filters' transient and the new epoch's bias are not outliers.
 PREFILTER_SETTLE = 100
@@ -143,10 +138,6 @@ class ClosedLoopBcls(RecursiveEstimator):
 
     name = 'cl_bcls'
     noise_names = ('sigma2',)
-    #: Extra constructor keywords (ROS parameter names) beyond the base ones.
-    options: tuple[str, ...] = ('controller_numerator', 'controller_denominator',
-                                'controller_sign', 'prefilter_initial', 'window',
-                                'redesign_period', 'max_iterations', 'tolerance')
 
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
@@ -179,7 +170,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         self.redesign_period = check_int('redesign_period', redesign_period, 1)
         self.max_iterations = check_int('max_iterations', max_iterations, 1)
         self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
-        self._gate_from = GATE_WARMUP * self.num_parameters
+        self._gate_from = rules.GATE_WARMUP * self.num_parameters
         # what a step may change, for the transaction: the collaborators save their own part
         self._name_step_state(
             ('_parts_state', '_samples', '_redesigns', '_last_iterations', '_refusals',
@@ -322,10 +313,13 @@ class ClosedLoopBcls(RecursiveEstimator):
         (the error over its variance: an outlier in y) and
         :math:`\tau\,\psi^T P\psi / p` (the regressor's squared Mahalanobis
         distance over its mean: an outlier in u, whose leverage hides it from
-        the first; docs/cl_bcls.md, "Outliers and units"). Within the limit it
-        passes; for ``PREFILTER_SETTLE`` rows after a new prefilter only the
-        hard limit ``IMPLAUSIBLE_ERROR`` applies (the filters' transient is no
-        outlier); else :meth:`_gate_with_slow_score` decides.
+        the first; docs/cl_bcls.md, "Outliers and units"). A quiet sample
+        (:func:`~bcid_ros.estimators.rules.gate_is_quiet`, with neither change
+        score pending) passes; for ``PREFILTER_SETTLE`` rows after a new
+        prefilter only the hard limit (the gate off,
+        :func:`~bcid_ros.estimators.rules.gate_limit2` of 0) applies (the
+        filters' transient is no outlier); else :meth:`_gate_with_slow_score`
+        decides.
         """
         if not (s < math.inf and e * e < math.inf):
             self._undo('update_undone')
@@ -336,11 +330,14 @@ class ClosedLoopBcls(RecursiveEstimator):
         leverage = s - self._forgetting_factor
         z2 = max(e * e / ((self._memory.ls.loss / count + self._units.variance_floor)
                           * (leverage + 1.0)), count * leverage / self.num_parameters)
-        if z2 <= self._gate_limit2 and not (self._change_score or self._refusals):
+        tail = rules.gate_is_quiet(z2, self._gate_limit2, self._change_score or self._refusals,
+                                   self._gate_tail)
+        if tail:
+            self._gate_tail = tail
             return True
         if self._memory.rows < self._gate_resume:
             # the transient of a new prefilter: only the hard limit
-            if z2 <= IMPLAUSIBLE_ERROR * IMPLAUSIBLE_ERROR:
+            if z2 <= rules.gate_limit2(0.0):
                 return True
             self._undo('outlier_rejected')
             return False
@@ -350,25 +347,21 @@ class ClosedLoopBcls(RecursiveEstimator):
         """
         Return the base class's :meth:`_gate` decision, and keep the slow change score.
 
-        The score (+1 per refusal, times ``REFUSAL_DECAY`` per tested sample)
-        reaching ``REFUSAL_SCORE`` is a plant change too.
+        The slow score (:func:`~bcid_ros.estimators.rules.slow_change`) of
+        the refusals marks a plant change too: the memory is cut and the
+        sample stays refused.
         """
-        if self._refusals:
-            score = self._refusals * REFUSAL_DECAY
-            self._refusals = score if score > 1e-3 else 0.0
-        if self._gate(z2):
-            return True
-        self._refusals += 1.0
-        if self._refusals >= REFUSAL_SCORE:
+        used = self._gate(z2)
+        self._refusals, change = rules.slow_change(not used, self._refusals)
+        if change:
             self._flag('plant_change')
             self._accept_change()
-        return False
+        return used
 
     def _accept_change(self) -> None:
         """Cut the memory to CHANGE_MEMORY p rows: one extra forgetting step on everything."""
         self._refusals = 0.0
-        count = self._memory.weighted_count()
-        keep = CHANGE_MEMORY * self.num_parameters / count if count > 0.0 else 1.0
+        keep = rules.memory_keep(self._memory.weighted_count(), self.num_parameters)
         if keep >= 1.0:
             return
         self._memory.cut(keep)

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.base import all_finite, power_of_two_at_least
+from bcid_ros.estimators import rules
+from bcid_ros.estimators.base import all_finite
 from bcid_ros.estimators.lti import controller_canonical
 from bcid_ros.estimators.rls import repair_covariance, rls_step, VARIANCE_FLOOR
 
@@ -79,7 +80,7 @@ class SignalScales:
                                        max(self.peaks[1], abs(u0))))
         if not fix:
             return False
-        self.scales = np.array([power_of_two_at_least(peak) for peak in peaks])
+        self.scales = rules.powers_of_two_at_least(peaks)
         self.variance_floor = (VARIANCE_FLOOR * self.scales[0]) ** 2
         return True
 
