@@ -17,11 +17,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from bcid_ros.estimators.lagged import decayed_weights, effective_size, PlantCursors
+from bcid_ros.estimators.residual_statistics import (chi2_quantile, chi2_survival,
+                                                     cross_statistics, levinson,
+                                                     prewhitening_filter,
+                                                     whiteness_statistic)
+
+#: The monitor, its state and its settings; the chi-square tails and the Levinson
+#: recursion of :mod:`~bcid_ros.estimators.residual_statistics` are kept importable here.
+__all__ = ['AdequacyMonitor', 'MonitorState', 'MODEL_TESTS', 'LAGS', 'MIN_WINDOW',
+           'MAX_WINDOW', 'SAMPLES_PER_LAG', 'HYSTERESIS', 'PREWHITENING_ORDER', 'COLOUR_LAGS',
+           'BLOCK', 'CHECKS_PER_WINDOW', 'default_window', 'chi2_quantile', 'chi2_survival',
+           'levinson']
 
 #: The tests of each kind of model (docs/trust.md): (whiteness, residual may be coloured).
 MODEL_TESTS = {
@@ -49,47 +60,8 @@ BLOCK = 128
 #: The tests (about 150 function calls) run every so many blocks: as many as fit in
 #: half a window (at least one), and at the first block with a full enough window.
 CHECKS_PER_WINDOW = 2
-
-
-def chi2_survival(x: float, dof: int) -> float:
-    r"""
-    Return :math:`P(\chi^2_\nu > x)` for an integer :math:`\nu \ge 1`.
-
-    Abramowitz and Stegun 26.4.4 (odd :math:`\nu`) and 26.4.5 (even), finite
-    sums exact to rounding; no scipy.
-    """
-    if x <= 0.0:
-        return 1.0
-    half = 0.5 * x
-    if dof % 2 == 0:
-        # Q = exp(-x/2) sum_{r < nu/2} (x/2)^r / r!                      (26.4.5)
-        term, total = 1.0, 1.0
-        for r in range(1, dof // 2):
-            term *= half / r
-            total += term
-        return min(1.0, math.exp(-half) * total)
-    # Q = 2 Q_N(chi) + 2 Z(chi) sum_{r=1}^{(nu-1)/2} chi^(2r-1) / (1 3 ... (2r-1))   (26.4.4)
-    chi = math.sqrt(x)
-    term, total = chi, 0.0
-    for r in range(1, (dof - 1) // 2 + 1):
-        total += term
-        term *= x / (2 * r + 1)
-    density = math.exp(-half) / math.sqrt(2.0 * math.pi)
-    return min(1.0, math.erfc(chi / math.sqrt(2.0)) + 2.0 * density * total)
-
-
-def chi2_quantile(tail: float, dof: int) -> float:
-    """Return x with :func:`chi2_survival` (x, dof) = ``tail``, by bisection (relative 1e-12)."""
-    low, high = 0.0, float(dof) + 10.0
-    while chi2_survival(high, dof) > tail:
-        high *= 2.0
-    while high - low > 1e-12 * high:
-        middle = 0.5 * (low + high)
-        if chi2_survival(middle, dof) > tail:
-            low = middle
-        else:
-            high = middle
-    return 0.5 * (low + high)
+#: Every plant, as rows (a slice: views, not copies).
+_ALL = slice(None)
 
 
 def default_window(forgetting_factor: float) -> float:
@@ -120,6 +92,14 @@ class MonitorState:
     pending: np.ndarray | None = None
     #: The blocks added (an int, or ``(K,)``): the tests run every ``check_period``.
     blocks: Any = 0
+    #: With ``num_parameters`` p > 0: the sums of psi(t - m) u_i(t - a) ``(K, (q + 1) p, r U)``,
+    #: the last gradients ``(K, q + BLOCK, p)`` (as ``ring``) and a plant's pending ones
+    #: ``(m, 1, p)`` (K plants: ``(0, K, p)``, they sit in ``gradient_ring``). None (a
+    #: state from before the parameter term): loaded as zeros, so the term starts from the
+    #: gradients recorded after the load.
+    gradient_sums: np.ndarray | None = None
+    gradient_ring: np.ndarray | None = None
+    pending_gradients: np.ndarray | None = None
 
 
 class AdequacyMonitor:
@@ -158,6 +138,22 @@ class AdequacyMonitor:
       whitening filter of the residual, fitted from its autocovariances,
       and J = ``COLOUR_LAGS`` lags of the whitened residual's remaining colour
       enter P with Bartlett weights :math:`\kappa_j = 1 - |j|/(J + 1)`.
+
+    **The estimate's own error** (``num_parameters`` p > 0). The residual of an
+    estimated model is :math:`\varepsilon = v + \psi^T\tilde\theta`, so
+    :math:`r = r_v + G\tilde\theta` with :math:`G = \overline{\tilde u(t-k)\tilde\psi^T(t)}`
+    (Ljung, sec. 16.6), and with C the covariance of the estimate the cross
+    test uses
+
+    .. math:: P + N\,G\,C\,G^T
+
+    (:func:`~bcid_ros.estimators.residual_statistics.parameter_term`): still
+    :math:`\chi^2(M)` under the null. The estimator records its gradient
+    :math:`\psi(t)` with each sample and gives C (``parameter_covariance``)
+    when the tests run. An OE model under coloured noise is consistent but not
+    efficient: at a high SNR its estimation error, which the prewhitening
+    does not shrink as it shrinks the noise, alone fails the plain test
+    (docs/trust.md).
 
     **Storage.** Each sample is kept as the row
     :math:`z(t) = [e(t) \ldots e(t-E), u_1(t-1) \ldots u_1(t-U), \ldots]` with
@@ -217,6 +213,15 @@ class AdequacyMonitor:
         plant. None: one plant, a float residual and inputs ``(r,)``.
     input_names : sequence of str, optional
         Names of the inputs in the reasons (default u1, u2, ...).
+    num_parameters : int
+        p >= 0, the length of the gradient :math:`\psi(t)` recorded with each
+        sample for the parameter term; 0: no term (the plain tests).
+    parameter_covariance : callable, optional
+        With p > 0: called when the tests run with the plants tested, an
+        int array ``(R,)`` (one plant: ``[0]``), it returns the covariance C of
+        their estimates in the units of :math:`\psi`, ``(R, p, p)`` (one
+        plant: ``(p, p)``), or None; a plant whose C is not finite, or None,
+        is tested without the term.
 
     Raises
     ------
@@ -228,7 +233,8 @@ class AdequacyMonitor:
     def __init__(self, *, num_inputs: int, model: str = 'arx', lags: int = LAGS,
                  window: float | None = None, forgetting_factor: float = 1.0,
                  false_alarm: float = 0.01, plants: int | None = None,
-                 input_names: Any = None) -> None:
+                 input_names: Any = None, num_parameters: int = 0,
+                 parameter_covariance: Callable[[np.ndarray], Any] | None = None) -> None:
         if model not in MODEL_TESTS:
             raise ValueError(f'model must be one of {", ".join(MODEL_TESTS)}; got {model!r}')
         if not (isinstance(num_inputs, int) and num_inputs >= 0):
@@ -250,6 +256,13 @@ class AdequacyMonitor:
         if len(names) != num_inputs:
             raise ValueError(f'input_names must have num_inputs = {num_inputs} names; '
                              f'got {len(names)}')
+        if not (isinstance(num_parameters, int) and num_parameters >= 0):
+            raise ValueError(f'num_parameters must be an integer >= 0; got {num_parameters!r}')
+        if parameter_covariance is not None and not callable(parameter_covariance):
+            raise ValueError('parameter_covariance must be None or a callable; '
+                             f'got {parameter_covariance!r}')
+        self.num_parameters = num_parameters
+        self._covariance_of = parameter_covariance
         self.num_inputs, self.model, self.lags = num_inputs, model, lags
         self.window, self.false_alarm, self.plants = window, false_alarm, plants
         self.input_names = tuple(names)
@@ -270,6 +283,8 @@ class AdequacyMonitor:
         self._residual_lags = max(lags if self.whiteness else 0, colour + q)
         self._input_lags = lags + colour + q
         self._decay = 1.0 - 1.0 / window
+        # psi(t - m), m = 0..q, to filter the gradient as the residual (the parameter term)
+        self._gradient_history = q
         #: blocks between two runs of the tests (see CHECKS_PER_WINDOW)
         self.check_period = max(1, int(window / (CHECKS_PER_WINDOW * BLOCK)))
         self._plants = 1 if plants is None else plants
@@ -314,6 +329,7 @@ class AdequacyMonitor:
             self._squared_weight = np.zeros(self._plants)
             # each plant's pending samples sit in its ring after the history rows
             self._cursors = PlantCursors(self._plants, BLOCK)
+        self._reset_gradients()
         shape = (self._plants, self.num_tests)
         self._alarms = np.zeros(shape, dtype=bool)
         self._statistics = np.full(shape, np.nan)
@@ -323,6 +339,19 @@ class AdequacyMonitor:
         self._checks = np.zeros(self._plants, dtype=np.int64)
         self._blocks = np.zeros(self._plants, dtype=np.int64)
 
+    def _reset_gradients(self) -> None:
+        """Forget the gradients (p > 0): their products with the inputs, their last rows."""
+        count, p = self._plants, self.num_parameters
+        if not p:
+            self._gradient_sums = self._gradient_ring = self._gradients = None
+            return
+        # sum_t w_t psi(t - m) u_i(t - a)': rows (m, j), columns (i, a), a = 1..U
+        self._gradient_sums = np.zeros((count, (self._gradient_history + 1) * p,
+                                        self.num_inputs * self._input_lags))
+        self._gradient_ring = np.zeros((count, self._gradient_history + BLOCK, p))
+        # one plant: the pending gradients (K plants: in the ring after the history rows)
+        self._gradients = np.zeros((BLOCK, 1, p)) if self.plants is None else None
+
     def clear(self, rows: Any) -> None:
         """Forget the data and clear the alarms of the plants ``rows``: a restart of those."""
         if self.plants is None:
@@ -330,35 +359,43 @@ class AdequacyMonitor:
             return
         for array in (self._residual_sums, self._input_sums, self._ring, self._weight,
                       self._squared_weight, self._alarms, self._worst, self._values,
-                      self._checks, self._blocks):
-            array[rows] = 0
+                      self._checks, self._blocks, self._gradient_sums, self._gradient_ring):
+            if array is not None:
+                array[rows] = 0
         self._statistics[rows] = np.nan
         self._cursors.set(rows, 0)
 
-    def record(self, residual: Any, inputs: Any) -> None:
-        """
+    def record(self, residual: Any, inputs: Any, gradient: Any = None) -> None:
+        r"""
         Add one sample of every plant: the residual the model says is white, and the inputs.
 
         ``residual`` is a float (one plant) or ``(K,)``; ``inputs`` ``(r,)`` or
-        ``(K, r)`` (copied). Every ``BLOCK`` samples the block is added and the
-        tests run. K plants: :meth:`record_rows` of every plant.
+        ``(K, r)`` (copied); ``gradient`` :math:`\psi(t)` ``(p,)`` or ``(K, p)``
+        (copied), needed when ``num_parameters`` p > 0 and ignored otherwise.
+        Every ``BLOCK`` samples the block is added and the tests run. K plants:
+        :meth:`record_rows` of every plant.
         """
         if self.plants is not None:
-            self.record_rows(_ALL, residual, inputs)
+            self.record_rows(_ALL, residual, inputs, gradient)
             return
         residuals = self._residuals
         self._inputs[len(residuals)] = inputs
+        if self.num_parameters:
+            self._gradients[len(residuals)] = gradient
         residuals.append(residual)
         if len(residuals) == BLOCK:
             ring = self._ring
             ring[:, self._history:, 0] = np.reshape(residuals, (BLOCK, 1)).T
             ring[:, self._history:, 1:] = np.swapaxes(self._inputs, 0, 1)
+            if self.num_parameters:
+                self._gradient_ring[:, self._gradient_history:] = np.swapaxes(
+                    self._gradients, 0, 1)
             self._residuals = []
             self._add_blocks(_ALL)
             self._check(_ALL)
 
-    def record_rows(self, rows: Any, residual: Any, inputs: Any) -> None:
-        """
+    def record_rows(self, rows: Any, residual: Any, inputs: Any, gradients: Any = None) -> None:
+        r"""
         Add one sample of each plant in ``rows`` (K plants); the others do not step now.
 
         Each plant keeps its own blocks: a plant's block is added and its tests
@@ -374,6 +411,9 @@ class AdequacyMonitor:
             Their residuals, in the order of ``rows``.
         inputs : numpy.ndarray, shape ``(R, r)``
             Their inputs at the same time (copied).
+        gradients : numpy.ndarray, shape ``(R, p)``, optional
+            Their gradients :math:`\psi(t)` (copied): needed when
+            ``num_parameters`` p > 0, ignored otherwise.
 
         Raises
         ------
@@ -388,6 +428,8 @@ class AdequacyMonitor:
         slots = self._history + positions
         ring[plants, slots, 0] = residual
         ring[plants, slots, 1:] = inputs
+        if self.num_parameters:
+            self._gradient_ring[plants, self._gradient_history + positions] = gradients
         full = cursors.advance(plants)
         if full is not None:
             self._add_blocks(full)
@@ -419,6 +461,8 @@ class AdequacyMonitor:
             sums *= decay
             sums += np.swapaxes(weighted, -1, -2) @ lagged
             self._input_sums[plants] = sums
+        if self.num_parameters and self.num_inputs:
+            self._add_gradients(plants, z[:, :, first:])
         if self.plants is None:
             self._weight, self._squared_weight = decayed_weights(
                 self._weight, self._squared_weight, BLOCK, self._decay)
@@ -426,6 +470,21 @@ class AdequacyMonitor:
             self._weight[plants], self._squared_weight[plants] = decayed_weights(
                 self._weight[plants], self._squared_weight[plants], BLOCK, self._decay)
         self._ring[plants, :history] = ring[:, BLOCK:]
+
+    def _add_gradients(self, plants: Any, inputs: np.ndarray) -> None:
+        """Add psi(t - m) u_i(t - a)' of the full blocks of ``plants`` (``inputs``: z's u lags)."""
+        q = self._gradient_history
+        ring = self._gradient_ring[plants]
+        # [psi(t), psi(t - 1) ... psi(t - q)] of each row t of the block: (R, BLOCK, (q + 1) p)
+        lagged = np.concatenate([ring[:, q - m:q - m + BLOCK] for m in range(q + 1)], axis=2)
+        if not np.isfinite(lagged).all():  # a non-finite gradient counts as zero
+            lagged = np.where(np.isfinite(lagged), lagged, 0.0)
+        # S <- mu^BLOCK S + sum_t w_t psi(t - m) u_i(t - a)'
+        sums = self._gradient_sums[plants]
+        sums *= self._decay ** BLOCK
+        sums += np.swapaxes(lagged * self._block_weights[:, None], -1, -2) @ inputs
+        self._gradient_sums[plants] = sums
+        self._gradient_ring[plants, :q] = ring[:, BLOCK:]
 
     # ------------------------------------------------------------ the tests
     @property
@@ -491,11 +550,29 @@ class AdequacyMonitor:
             # e(t - a) u_i(t - b): (K, r, q + 1, U)
             cross = np.moveaxis(residual[:, :, first:].reshape(count, q + 1, inputs, -1),
                                 2, 1)
+            gradient, covariance = self._parameter_moments(plants, scale)
             tests = slice(int(self.whiteness), None)
             statistics[:, tests], worst[:, tests], values[:, tests] = cross_statistics(
                 residual[:, :, :first], self._input_sums[plants] / scale[..., None], cross,
-                whitening, self.lags, sizes, self._colour_lags)
+                whitening, self.lags, sizes, self._colour_lags, gradient, covariance)
         return statistics, worst, values
+
+    def _parameter_moments(self, plants: Any, scale: np.ndarray
+                           ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Return the means of psi(t - m) u_i(t - a) ``(R, r, q + 1, p, U)`` and C, or Nones."""
+        p = self.num_parameters
+        if not p or self._covariance_of is None:
+            return None, None
+        rows = np.arange(self._plants)[plants]
+        covariance = self._covariance_of(rows)
+        if covariance is None:
+            return None, None
+        covariance = np.reshape(np.asarray(covariance, dtype=float), (rows.shape[0], p, p))
+        means = self._gradient_sums[plants] / scale
+        # (R, (q + 1) p, r U) -> (R, r, q + 1, p, U)
+        means = means.reshape(rows.shape[0], self._gradient_history + 1, p, self.num_inputs,
+                              self._input_lags)
+        return np.moveaxis(means, 3, 1), covariance
 
     # ------------------------------------------------------------ the results
     def reasons_of(self, plant: int) -> tuple[str, ...]:
@@ -545,7 +622,7 @@ class AdequacyMonitor:
                 alarms=self._alarms.copy(), statistics=self._statistics.copy(),
                 worst=self._worst.copy(), values=self._values.copy(),
                 checks=self._checks.copy(), pending=self._cursors.counts().copy(),
-                blocks=self._blocks.copy())
+                blocks=self._blocks.copy(), **self._gradient_state(0))
         lead = (len(self._residuals), self._plants)
         return MonitorState(
             residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
@@ -555,7 +632,16 @@ class AdequacyMonitor:
             pending_inputs=self._inputs[:lead[0]].copy(),
             alarms=self._alarms.copy(), statistics=self._statistics.copy(),
             worst=self._worst.copy(), values=self._values.copy(), checks=int(self._checks[0]),
-            blocks=int(self._blocks[0]))
+            blocks=int(self._blocks[0]), **self._gradient_state(lead[0]))
+
+    def _gradient_state(self, pending: int) -> dict[str, Any]:
+        """Return the gradient fields of a state: copies, with ``pending`` rows (one plant)."""
+        if not self.num_parameters:
+            return {}
+        rows = (self._gradients[:pending] if self.plants is None
+                else np.zeros((0, self._plants, self.num_parameters)))
+        return {'gradient_sums': self._gradient_sums.copy(),
+                'gradient_ring': self._gradient_ring.copy(), 'pending_gradients': rows.copy()}
 
     def set_state(self, state: MonitorState) -> None:
         """Continue from a :meth:`get_state` of a monitor with the same settings."""
@@ -569,10 +655,16 @@ class AdequacyMonitor:
         lead = (self._plants,)
         self._checks = np.broadcast_to(np.asarray(state.checks, dtype=np.int64), lead).copy()
         self._blocks = np.broadcast_to(np.asarray(state.blocks, dtype=np.int64), lead).copy()
+        self._reset_gradients()
+        if self.num_parameters and state.gradient_sums is not None:
+            self._gradient_sums[:] = state.gradient_sums
+            self._gradient_ring[:] = state.gradient_ring
         if self.plants is None:
             self._weight, self._squared_weight = state.weights
             self._residuals = [float(r[0]) for r in state.pending_residuals]
             self._inputs[:len(self._residuals)] = state.pending_inputs
+            if self.num_parameters and state.pending_gradients is not None:
+                self._gradients[:len(self._residuals)] = state.pending_gradients
             return
         weight, squared = state.weights
         self._weight = np.broadcast_to(np.asarray(weight, dtype=float), lead).copy()
@@ -601,9 +693,20 @@ class AdequacyMonitor:
             statistics=self._statistics[plant:plant + 1].copy(),
             worst=self._worst[plant:plant + 1].copy(),
             values=self._values[plant:plant + 1].copy(), checks=int(self._checks[plant]),
-            blocks=int(self._blocks[plant]))
+            blocks=int(self._blocks[plant]), **self._plant_gradients(plant, count))
         ring[0, self._history:] = 0.0  # one plant keeps its pending samples in lists
         return state
+
+    def _plant_gradients(self, plant: int, count: int) -> dict[str, Any]:
+        """Return plant k's gradient fields in a single plant's form (``count`` pending)."""
+        if not self.num_parameters:
+            return {}
+        q = self._gradient_history
+        ring = self._gradient_ring[plant:plant + 1].copy()
+        pending = ring[0, q:q + count, None].copy()
+        ring[0, q:] = 0.0  # one plant keeps its pending gradients apart
+        return {'gradient_sums': self._gradient_sums[plant:plant + 1].copy(),
+                'gradient_ring': ring, 'pending_gradients': pending}
 
     def load_plant(self, plant: int, state: MonitorState) -> None:
         """Take over plant k from a single plant's :meth:`get_state` (K plants)."""
@@ -622,166 +725,13 @@ class AdequacyMonitor:
         self._values[plant] = state.values[0]
         self._checks[plant] = int(state.checks)
         self._blocks[plant] = int(state.blocks)
-
-
-#: Every plant, as rows (a slice: views, not copies).
-_ALL = slice(None)
-
-
-def whiteness_statistic(autocovariance: np.ndarray, lags: int,
-                        size: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    r"""
-    Return :math:`Q = N\sum_{k=1}^M \hat\rho_k^2`, the worst lag and its :math:`\hat\rho`.
-
-    ``autocovariance`` ``(K, L + 1)`` holds :math:`\hat R_\varepsilon(k)`,
-    k = 0..L >= M; N is the effective sample size, a float or one per
-    plant ``(K,)``. A residual with zero power gives Q = 0.
-    """
-    power = autocovariance[:, 0]
-    positive = power > 0.0
-    rho = autocovariance[:, 1:lags + 1] / np.where(positive, power, 1.0)[:, None]
-    rho[~positive] = 0.0
-    worst = np.argmax(np.abs(rho), axis=-1)
-    value = rho[np.arange(rho.shape[0]), worst]
-    return size * np.einsum('ki,ki->k', rho, rho), worst + 1, value
-
-
-def prewhitening_filter(autocovariance: np.ndarray, order: int) -> np.ndarray:
-    r"""
-    Return the AR whitening filter :math:`[1, f_1, \ldots, f_q]` of each residual, ``(K, q + 1)``.
-
-    Yule-Walker on :math:`\hat R_\varepsilon(0..q)` by the Levinson
-    recursion: the filter of the order-q linear predictor. A plant whose
-    recursion breaks down (a reflection coefficient not inside the unit
-    circle: not minimum phase) gets no filter (``[1, 0, ...]``).
-    """
-    count = autocovariance.shape[0]
-    result = np.zeros((count, order + 1))
-    result[:, 0] = 1.0
-    for k in range(count):
-        coefficients = levinson(autocovariance[k, :order + 1])
-        if coefficients is not None:
-            result[k] = coefficients
-    return result
-
-
-def levinson(autocovariance: np.ndarray) -> np.ndarray | None:
-    """Return the prediction-error filter of the Levinson recursion, or None if it breaks down."""
-    error = float(autocovariance[0])
-    if not error > 0.0:
-        return None
-    order = autocovariance.shape[0] - 1
-    a = np.zeros(order + 1)
-    a[0] = 1.0
-    for m in range(1, order + 1):
-        # reflection coefficient k_m = -(sum_j a_j R(m - j)) / E_{m-1}
-        reflection = -float(a[:m] @ autocovariance[m:0:-1]) / error
-        if not abs(reflection) < 1.0:
-            return None
-        # a_j <- a_j + k_m a_{m-j}, j = 1..m
-        a[1:m + 1] = a[1:m + 1] + reflection * a[m - 1::-1]
-        error *= 1.0 - reflection * reflection
-    return a
-
-
-def filter_rows(whitening: np.ndarray, rows: int, columns: int) -> np.ndarray:
-    r"""
-    Return :math:`\Phi` ``(K, rows, columns)`` with :math:`\Phi_{a, a + l} = f_l`.
-
-    For x the stored lags of a signal, ``[x(t - s), x(t - s - 1), ...]``,
-    row a of :math:`\Phi x` is the filtered
-    :math:`\tilde x(t - s - a) = \sum_l f_l x(t - s - a - l)`.
-    """
-    count, order = whitening.shape[0], whitening.shape[1] - 1
-    result = np.zeros((count, rows, columns))
-    for a in range(rows):
-        result[:, a, a:a + order + 1] = whitening
-    return result
-
-
-def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarray,
-                     whitening: np.ndarray, lags: int, size: Any, colour_lags: int
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    r"""
-    Return :math:`Q_i = N r^T P^{-1} r` of each input, its worst lag and correlation, ``(K, r)``.
-
-    The weighted means are ``residual`` ``(K, q + 1, E + 1)``, of
-    :math:`e(t-a)e(t-b)`, ``signals`` ``(K, r, U, U)`` of
-    :math:`u_i(t-a)u_i(t-b)` and ``cross`` ``(K, r, q + 1, U)`` of
-    :math:`e(t-a)u_i(t-b)` (u from lag 1); ``whitening`` is the filter f
-    ``(K, q + 1)`` of both series (``[1]``: none), so that every filtered
-    moment is an exact quadratic form; ``size`` N, a float or ``(K,)``;
-    ``colour_lags`` J (see :class:`AdequacyMonitor`).
-    """
-    count, inputs, stored = signals.shape[0], signals.shape[1], signals.shape[-1]
-    span = lags + colour_lags
-    if whitening.shape[1] == 1 and colour_lags == 0:  # a white residual: no filter
-        colour = residual[:, 0, :1]
-        r = cross[:, :, 0, :lags]
-        products = signals[:, :, :lags, :lags]
-    else:
-        # e~(t - j), j = 0..J, and u~(t - a), a = 1..M + J: rows of filters on the stored lags
-        residual_filter = filter_rows(whitening, colour_lags + 1, residual.shape[-1])
-        input_filter = filter_rows(whitening, span, stored)
-        # R_e~(j) = mean e~(t) e~(t - j) = f' [e(t - a) e(t - j - b)] f
-        colour = np.einsum('ka,kab,kjb->kj', whitening, residual, residual_filter)
-        # r_k = mean e~(t) u~(t - k), k = 1..M
-        r = np.einsum('ka,kiac,kjc->kij', whitening, cross, input_filter[:, :lags])
-        # V(a, c) = mean u~(t - a) u~(t - c), a, c = 1..M + J
-        products = input_filter[:, None] @ signals @ np.swapaxes(input_filter, -1, -2)[:, None]
-    # P_ab = sum_{|j| <= J} kappa_j R_e~(j) V(a, b + j), V(a, c) for c < 1 from V(a + d, c + d)
-    if colour_lags == 0:
-        variance = colour[:, :1, None, None] * products[:, :, :lags, :lags]
-    else:
-        variance = np.zeros((count, inputs, lags, lags))
-        tests = np.arange(lags)
-        for j in range(-colour_lags, colour_lags + 1):
-            kappa = 1.0 - abs(j) / (colour_lags + 1)
-            column = tests[None, :] + j
-            shift = np.maximum(0, -column)
-            variance += (kappa * colour[:, abs(j)])[:, None, None, None] * products[
-                :, :, tests[:, None] + shift, column + shift]
-    sizes = np.repeat(np.broadcast_to(np.reshape(np.asarray(size, dtype=float), (-1,)),
-                                      (count,)), inputs)
-    statistic, standardised = quadratic_forms(variance.reshape(-1, lags, lags),
-                                              r.reshape(-1, lags), sizes)
-    worst = np.argmax(np.abs(standardised), axis=-1)
-    flat = r.reshape(-1, lags)[np.arange(count * inputs), worst].reshape(count, inputs)
-    scale = np.sqrt(np.maximum(colour[:, :1] * np.einsum('kiaa->kia', products)[:, :, 0], 0.0))
-    value = np.where(scale > 0.0, flat / np.where(scale > 0.0, scale, 1.0), 0.0)
-    return statistic.reshape(count, inputs), worst.reshape(count, inputs) + 1, value
-
-
-def quadratic_forms(variance: np.ndarray, r: np.ndarray, size: Any
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    r"""
-    Return :math:`N r^T P^{-1} r` on the chi-square(M) scale, and :math:`r_k/\sqrt{P_{kk}}`.
-
-    ``variance`` P ``(n, M, M)``, r ``(n, M)``, ``size`` N (a float or
-    ``(n,)``). P is inverted on the directions its window can estimate: an
-    eigenvalue below ``1 / N`` of the largest is below the precision of
-    moments from N samples (a multisine of a few sines, or a held input,
-    makes P nearly singular, and the colour terms can make it slightly
-    indefinite there), and a direction the input does not excite cannot
-    show a correlation anyway. On the k kept directions the statistic is
-    chi-square(k) under the null; it is mapped to the chi-square(M) value of
-    the same tail probability, so that one pair of thresholds serves. A P
-    without power gives 0: its test cannot see anything.
-    """
-    lags = r.shape[-1]
-    sizes = np.broadcast_to(np.asarray(size, dtype=float), r.shape[:1])
-    statistic = np.zeros(r.shape[0])
-    finite = np.isfinite(variance).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
-    for k in np.flatnonzero(finite).tolist():
-        values, vectors = np.linalg.eigh(0.5 * (variance[k] + variance[k].T))
-        if not values[-1] > 0.0:
-            continue
-        kept = values > values[-1] / max(sizes[k], 1.0)
-        projected = vectors[:, kept].T @ r[k]
-        value = sizes[k] * float(projected @ (projected / values[kept]))
-        rank = int(kept.sum())
-        statistic[k] = value if rank == lags else chi2_quantile(chi2_survival(value, rank), lags)
-    diagonal = np.einsum('kii->ki', variance)
-    good = finite & (diagonal > 0.0).all(axis=-1)
-    standardised = r / np.sqrt(np.where(good[:, None], diagonal, 1.0))
-    return statistic, np.where(good[:, None], standardised, 0.0)
+        if not self.num_parameters:
+            return
+        q, ring = self._gradient_history, self._gradient_ring[plant]
+        if state.gradient_sums is None:  # a state from before the parameter term
+            self._gradient_sums[plant] = 0.0
+            ring[:] = 0.0
+            return
+        self._gradient_sums[plant] = state.gradient_sums[0]
+        ring[:] = state.gradient_ring[0]
+        ring[q:q + count] = state.pending_gradients[:, 0]

@@ -35,6 +35,26 @@ def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list
     return list(monitor.reasons if plant is None else monitor.reasons_of(plant))
 
 
+#: The arrays of the cross test's parameter term, absent from snapshots made before it.
+GRADIENT_ARRAYS = ('adequacy_gradient_sums', 'adequacy_gradient_ring',
+                   'adequacy_pending_gradients')
+
+
+def with_gradient_arrays(arrays: dict[str, np.ndarray], own: dict[str, np.ndarray],
+                         ) -> dict[str, np.ndarray]:
+    """
+    Return a snapshot's ``arrays`` with the parameter term's arrays of ``own`` as zeros if absent.
+
+    A snapshot from before the parameter term then loads: the term starts
+    from the gradients recorded after the load (the products before it count
+    as zero and leave with the window). ``own``: the estimator's own arrays,
+    for the shapes.
+    """
+    missing = {key: np.zeros_like(own[key]) for key in GRADIENT_ARRAYS
+               if key in own and key not in arrays}
+    return {**arrays, **missing}
+
+
 def residual_items(monitor: MonitorState, hac: HacState | None,
                    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """
@@ -47,10 +67,14 @@ def residual_items(monitor: MonitorState, hac: HacState | None,
               for field in dataclasses.fields(monitor)
               if isinstance(getattr(monitor, field.name), np.ndarray)}
     # the ring's last block is scratch space (the pending samples are apart): zeros
-    arrays['adequacy_ring'] = monitor.ring.copy()
-    arrays['adequacy_ring'][:, -adequacy.BLOCK:] = 0.0
-    arrays['adequacy_pending_residuals'] = _padded(monitor.pending_residuals, adequacy.BLOCK)
-    arrays['adequacy_pending_inputs'] = _padded(monitor.pending_inputs, adequacy.BLOCK)
+    for ring in ('ring', 'gradient_ring'):
+        if f'adequacy_{ring}' in arrays:
+            arrays[f'adequacy_{ring}'] = arrays[f'adequacy_{ring}'].copy()
+            arrays[f'adequacy_{ring}'][:, -adequacy.BLOCK:] = 0.0
+    for pending in ('residuals', 'inputs', 'gradients'):
+        if f'adequacy_pending_{pending}' in arrays:
+            arrays[f'adequacy_pending_{pending}'] = _padded(
+                arrays[f'adequacy_pending_{pending}'], adequacy.BLOCK)
     scalars = {'adequacy_pending': monitor.pending_residuals.shape[0],
                'adequacy_weights': [float(value) for value in monitor.weights],
                'adequacy_checks': int(monitor.checks), 'adequacy_blocks': int(monitor.blocks)}
@@ -74,6 +98,9 @@ def residual_states(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
               for field in dataclasses.fields(MonitorState)}
     fields.update(pending_residuals=arrays['adequacy_pending_residuals'][:pending],
                   pending_inputs=arrays['adequacy_pending_inputs'][:pending],
+                  # None without the parameter term's arrays: a snapshot from before it
+                  pending_gradients=(arrays['adequacy_pending_gradients'][:pending]
+                                     if 'adequacy_pending_gradients' in arrays else None),
                   weights=tuple(scalars['adequacy_weights']),
                   checks=int(scalars['adequacy_checks']), blocks=int(scalars['adequacy_blocks']))
     hac = None

@@ -65,50 +65,90 @@ def monitor_data(rng, samples):
     return residual, inputs
 
 
-def run_singles(residual, inputs, mask, **settings):
+#: The length p of the gradients of the parameter term ('oe_term').
+TERM = 3
+
+
+def term_data(inputs):
+    """
+    Return gradients ``(N, K, p)`` and a covariance C ``(K, p, p)`` per plant (the term).
+
+    The gradients are filtered and lagged inputs plus noise, as an OE model's psi; plant 2's
+    C is NaN (unknown: tested without the term), the others differ in size.
+    """
+    rng = np.random.default_rng(56)
+    gradients = np.stack([signal.lfilter([0.0, 1.0], [1.0, -0.5], inputs[:, :, 0], axis=0),
+                          np.roll(inputs[:, :, 1], 2, axis=0),
+                          rng.standard_normal(inputs.shape[:2])], axis=2)
+    covariance = np.array([(k + 1) * 1e-3 * np.eye(TERM) + 2e-4 for k in range(PLANTS)])
+    covariance[2] = np.nan
+    return gradients, covariance
+
+
+def monitor_settings(model, covariance, plant=None):
+    """Return the monitor's settings: 'oe_term' is 'oe' with the parameter term."""
+    if model != 'oe_term':
+        return {'model': model}
+    if plant is None:  # K plants: the rows asked for
+        return {'model': 'oe', 'num_parameters': TERM,
+                'parameter_covariance': lambda rows: covariance[rows]}
+    return {'model': 'oe', 'num_parameters': TERM,
+            'parameter_covariance': lambda rows: covariance[plant]}
+
+
+def run_singles(residual, inputs, mask, model='arx', gradients=None, covariance=None):
     """
     Feed one single-plant monitor per plant its own samples; return its record over time.
 
     The statistics ``(N, K, T)`` after each sample and the decisions: alarms, reasons,
     readiness and check counts after each sample.
     """
-    monitors = [AdequacyMonitor(num_inputs=2, window=WINDOW, **settings) for _ in range(PLANTS)]
+    def single(k):
+        return AdequacyMonitor(num_inputs=2, window=WINDOW,
+                               **monitor_settings(model, covariance, k))
+
+    monitors = [single(k) for k in range(PLANTS)]
     statistics = np.full((residual.shape[0], PLANTS, monitors[0].num_tests), np.nan)
     decisions = []
     for t in range(residual.shape[0]):
         if t == RESTART:
-            monitors[3] = AdequacyMonitor(num_inputs=2, window=WINDOW, **settings)
+            monitors[3] = single(3)
         for k in np.flatnonzero(mask[t]):
-            monitors[k].record(float(residual[t, k]), inputs[t, k])
+            monitors[k].record(float(residual[t, k]), inputs[t, k],
+                               None if gradients is None else gradients[t, k])
         statistics[t] = [monitor.statistics for monitor in monitors]
         decisions.append(([m.alarm for m in monitors], [m.reasons for m in monitors],
                           [m.ready for m in monitors], [m.checks for m in monitors]))
     return statistics, decisions, monitors
 
 
-def run_batch(residual, inputs, mask, **settings):
+def run_batch(residual, inputs, mask, model='arx', gradients=None, covariance=None):
     """Feed a K-plant monitor through record_rows; return the record of :func:`run_singles`."""
-    monitor = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS, **settings)
+    monitor = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS,
+                              **monitor_settings(model, covariance))
     statistics = np.full((residual.shape[0], PLANTS, monitor.num_tests), np.nan)
     decisions = []
     for t in range(residual.shape[0]):
         if t == RESTART:
             monitor.clear(np.array([3]))
         rows = rows_at(mask, t)
-        monitor.record_rows(rows, residual[t, rows], inputs[t, rows])
+        monitor.record_rows(rows, residual[t, rows], inputs[t, rows],
+                            None if gradients is None else gradients[t, rows])
         statistics[t] = monitor.statistics
         decisions.append((monitor.alarm.tolist(), monitor.reasons, monitor.ready.tolist(),
                           monitor.checks.tolist()))
     return statistics, decisions, monitor
 
 
-@pytest.mark.parametrize('model', ['arx', 'oe'])
+@pytest.mark.parametrize('model', ['arx', 'oe', 'oe_term'])
 def test_each_plant_of_a_batch_decides_as_a_single_monitor_fed_its_samples(model):
     rng = np.random.default_rng(51)
     residual, inputs = monitor_data(rng, SAMPLES)
     mask = recording_masks(rng, SAMPLES, PLANTS)
-    expected, decisions, singles = run_singles(residual, inputs, mask, model=model)
-    actual, batch_decisions, batch = run_batch(residual, inputs, mask, model=model)
+    gradients, covariance = term_data(inputs) if model == 'oe_term' else (None, None)
+    term = {'model': model, 'gradients': gradients, 'covariance': covariance}
+    expected, decisions, singles = run_singles(residual, inputs, mask, **term)
+    actual, batch_decisions, batch = run_batch(residual, inputs, mask, **term)
     # the decisions after every sample, exactly: alarms, reasons, ready, checks
     for t, (mine, theirs) in enumerate(zip(batch_decisions, decisions)):
         assert mine == theirs, t
@@ -117,10 +157,14 @@ def test_each_plant_of_a_batch_decides_as_a_single_monitor_fed_its_samples(model
     # plant 1's coloured residual fails the whiteness test ('oe' has none), plant 3 names u2
     assert batch.alarm[1] == (model == 'arx')
     assert 'residual correlated with u2 at lag 2' in ' '.join(batch.reasons_of(3))
+    if model == 'oe_term':  # the term lowers Q of the plants with a C, not of plant 2
+        plain = run_batch(residual, inputs, mask, model='oe')[0][-1]
+        assert (actual[-1][[0, 1, 3]] < plain[[0, 1, 3]]).all()
+        np.testing.assert_array_equal(actual[-1][2], plain[2])
     # the statistics after every sample, within the bound of two arithmetic paths
 
     def compute(residual, inputs):
-        return {'statistics': run_singles(residual, inputs, mask, model=model)[0]}
+        return {'statistics': run_singles(residual, inputs, mask, **term)[0]}
 
     spread = rounding_spread(compute, residual, inputs)
     assert_paths_agree({'statistics': actual}, {'statistics': expected}, spread, SAMPLES,
@@ -130,26 +174,39 @@ def test_each_plant_of_a_batch_decides_as_a_single_monitor_fed_its_samples(model
     changed = residual.copy()
     changed[2500, 1] += 0.5
     with pytest.raises(AssertionError, match='times the bound'):
-        assert_paths_agree({'statistics': run_batch(changed, inputs, mask, model=model)[0]},
+        assert_paths_agree({'statistics': run_batch(changed, inputs, mask, **term)[0]},
                            {'statistics': expected}, spread, SAMPLES, 'changed')
 
 
-def test_a_plant_moves_out_to_a_single_monitor_and_back():
+@pytest.mark.parametrize('model', ['arx', 'oe_term'])
+def test_a_plant_moves_out_to_a_single_monitor_and_back(model):
     rng = np.random.default_rng(52)
     residual, inputs = monitor_data(rng, SAMPLES)
     mask = recording_masks(rng, SAMPLES, PLANTS)
+    gradients, covariance = term_data(inputs)
+    covariance[2] = 1e-3  # plant 2 moves: with a term
+    if model != 'oe_term':
+        gradients = None
     moved, back = 1100, 1900  # plant 2 is in its warm-up gap part of the way
     single_samples = np.flatnonzero(mask[:, 2])
 
+    def single_monitor():
+        return AdequacyMonitor(num_inputs=2, window=WINDOW,
+                               **monitor_settings(model, covariance, 2))
+
+    def gradient(t, rows):
+        return None if gradients is None else gradients[t, rows]
+
     def compute(residual, inputs):
-        single = AdequacyMonitor(num_inputs=2, window=WINDOW)
+        single = single_monitor()
         for t in single_samples:
-            single.record(float(residual[t, 2]), inputs[t, 2])
+            single.record(float(residual[t, 2]), inputs[t, 2], gradient(t, 2))
         return {'statistics': single.statistics, 'single': single}
 
     reference = compute(residual, inputs)
-    batch = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS)
-    single = AdequacyMonitor(num_inputs=2, window=WINDOW)
+    batch = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS,
+                            **monitor_settings(model, covariance))
+    single = single_monitor()
     for t in range(SAMPLES):
         if t == moved:
             state = batch.plant_state(2)
@@ -160,10 +217,10 @@ def test_a_plant_moves_out_to_a_single_monitor_and_back():
         recording = mask[t].copy()
         if moved <= t < back:  # plant 2 lives in the single monitor meanwhile
             if recording[2]:
-                single.record(float(residual[t, 2]), inputs[t, 2])
+                single.record(float(residual[t, 2]), inputs[t, 2], gradient(t, 2))
             recording[2] = False
         rows = np.flatnonzero(recording)
-        batch.record_rows(rows, residual[t, rows], inputs[t, rows])
+        batch.record_rows(rows, residual[t, rows], inputs[t, rows], gradient(t, rows))
     expected = reference['single']
     assert batch.reasons_of(2) == expected.reasons and batch.alarm[2] == expected.alarm
     assert batch.checks[2] == expected.checks
@@ -173,17 +230,21 @@ def test_a_plant_moves_out_to_a_single_monitor_and_back():
                        {'statistics': expected.statistics}, spread, SAMPLES, 'moved')
 
 
-def test_a_plant_state_has_the_form_of_a_single_monitors():
+@pytest.mark.parametrize('model', ['arx', 'oe_term'])
+def test_a_plant_state_has_the_form_of_a_single_monitors(model):
     rng = np.random.default_rng(53)
     residual, inputs = monitor_data(rng, 1000)
     mask = recording_masks(rng, 1000, PLANTS)
-    batch = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS)
-    single = AdequacyMonitor(num_inputs=2, window=WINDOW)
+    gradients, covariance = term_data(inputs)
+    batch = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS,
+                            **monitor_settings(model, covariance))
+    single = AdequacyMonitor(num_inputs=2, window=WINDOW,
+                             **monitor_settings(model, covariance, 1))
     for t in range(1000):
         rows = np.flatnonzero(mask[t])
-        batch.record_rows(rows, residual[t, rows], inputs[t, rows])
+        batch.record_rows(rows, residual[t, rows], inputs[t, rows], gradients[t, rows])
         if mask[t, 1]:
-            single.record(float(residual[t, 1]), inputs[t, 1])
+            single.record(float(residual[t, 1]), inputs[t, 1], gradients[t, 1])
     mine, theirs = batch.plant_state(1), single.get_state()
     for field in dataclasses.fields(theirs):
         value, expected = getattr(mine, field.name), getattr(theirs, field.name)
@@ -195,22 +256,28 @@ def test_a_plant_state_has_the_form_of_a_single_monitors():
     np.testing.assert_array_equal(mine.alarms, theirs.alarms)
     history = batch._history
     np.testing.assert_array_equal(mine.ring[:, :history], theirs.ring[:, :history])
+    if model == 'oe_term':
+        np.testing.assert_array_equal(mine.pending_gradients, theirs.pending_gradients)
+        q = batch._gradient_history
+        np.testing.assert_array_equal(mine.gradient_ring[:, :q], theirs.gradient_ring[:, :q])
 
 
-def test_a_batch_restored_with_uneven_cursors_continues_bit_for_bit():
+@pytest.mark.parametrize('model', ['oe', 'oe_term'])
+def test_a_batch_restored_with_uneven_cursors_continues_bit_for_bit(model):
     rng = np.random.default_rng(54)
     residual, inputs = monitor_data(rng, SAMPLES)
     mask = recording_masks(rng, SAMPLES, PLANTS)
-    first = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS, model='oe')
-    second = AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS, model='oe')
+    gradients, covariance = term_data(inputs)
+    first, second = (AdequacyMonitor(num_inputs=2, window=WINDOW, plants=PLANTS,
+                                     **monitor_settings(model, covariance)) for _ in range(2))
     for t in range(SAMPLES):
         if t == 1234:
             assert len(set(first._cursors.counts().tolist())) > 1
             second.set_state(first.get_state())
         rows = rows_at(mask, t)
-        first.record_rows(rows, residual[t, rows], inputs[t, rows])
+        first.record_rows(rows, residual[t, rows], inputs[t, rows], gradients[t, rows])
         if t >= 1234:
-            second.record_rows(rows, residual[t, rows], inputs[t, rows])
+            second.record_rows(rows, residual[t, rows], inputs[t, rows], gradients[t, rows])
     np.testing.assert_array_equal(first.statistics, second.statistics)
     np.testing.assert_array_equal(first.checks, second.checks)
     assert first.reasons == second.reasons

@@ -7,14 +7,17 @@ noise is white (its covariance assumes white prediction errors); each says
 which in a comment.
 """
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import signal, stats
 
+from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.identifier import persistence
 from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.rpem import (BATCH_LIMIT, FIT_GROWTH, inside, PredictorHistory,
                                       pull_inside, Rpem, STABILITY_RADIUS)
 from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
@@ -246,6 +249,59 @@ def test_state_round_trip_is_bit_exact(model, settings, tmp_path):
         np.testing.assert_array_equal(estimator.theta_uncompensated,
                                       whole.theta_uncompensated)
         assert estimator.flags == whole.flags and estimator.valid == whole.valid
+
+
+def test_a_state_from_before_the_parameter_term_loads_and_keeps_the_estimate():
+    y, u = oe_data(9, count=3000)
+    whole = make_estimator('rpem', order=2)
+    whole.run(y, u)
+    first = make_estimator('rpem', order=2)
+    first.run(y[:1300], u[:1300])
+    state = first.get_state()
+    old = {key: value for key, value in state.arrays.items() if 'gradient' not in key}
+    assert len(old) == len(state.arrays) - 3  # the term's sums, ring and pending gradients
+    second = make_estimator('rpem', order=2)
+    second.set_state(dataclasses.replace(state, arrays=old))
+    second.run(y[1300:], u[1300:])
+    # the estimate does not read the monitor: bit for bit; the tests count the term from the
+    # gradients recorded after the load, and this well-fitted plant stays valid
+    np.testing.assert_array_equal(second.theta, whole.theta)
+    assert second.valid and whole.valid
+
+
+def run_case(case, order, delay, term=True):
+    """Run rpem ('oe') sample by sample over a realistic case; return it."""
+    estimator = make_estimator('rpem', order=order, num_inputs=case.num_inputs,
+                               input_delay=delay, detrend=case.detrend)
+    if not term:  # the plain cross test: no covariance, so no parameter term
+        estimator._monitor._covariance_of = None
+    for t in range(case.samples):
+        estimator.update(float(case.y[t]), case.u[t])
+    return estimator
+
+
+def test_the_estimates_own_error_does_not_fail_an_accurate_fit_but_a_wrong_dead_time_does():
+    # equation-error noise (A y = B u + e): the OE model's noise e/A is strongly coloured, and
+    # at 32 dB the consistent (not efficient) OE estimate's own error correlates the residual
+    # with u at lag 1 (-0.32): the plain test fails it, the parameter term explains it
+    case = realistic_case((0, 45))
+    assert case.noise == 'equation' and case.input_delay == (1,) and case.snr_db > 30.0
+    low, high = AdequacyMonitor(num_inputs=1, model='oe').thresholds
+    right = run_case(case, case.order, case.input_delay)
+    error = np.linalg.norm(right.theta - case.theta) / np.linalg.norm(case.theta)
+    plain = run_case(case, case.order, case.input_delay, term=False)
+    np.testing.assert_array_equal(plain.theta, right.theta)  # the monitor does not steer
+    assert error < 0.01 and right.valid and not plain.valid
+    # margins, one deterministic run each: Q = 1.7 against the low threshold 23.2, the plain
+    # Q = 205 against the high 27.1 (these figures on the reference machine)
+    assert right._monitor.statistics[0] < low / 4.0
+    assert plain._monitor.statistics[0] > 4.0 * high
+    assert any('residual correlated with u1 at lag 1' in r for r in plain.validity_reasons)
+    # a dead time one sample off either way: Q = 653 and 656, far above the high threshold
+    for delay in (0, 2):
+        wrong = run_case(case, case.order, (delay,))
+        assert not wrong.valid and wrong._monitor.statistics[0] > 10.0 * high
+        assert any(r.startswith('residual correlated with u1') for r in wrong.validity_reasons)
 
 
 @pytest.mark.parametrize('model', ['oe', 'armax'])

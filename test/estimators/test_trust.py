@@ -12,9 +12,10 @@ import sys
 
 import numpy as np
 import pytest
-from scipy import signal
+from scipy import signal, stats
 
 from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.simulation import make_scenario
 
@@ -326,6 +327,44 @@ def test_residual_tests_see_rls_on_output_error_data(scenario):
         est.run(y, u)
         assert not est.valid
         assert any(r.startswith('residual not white (lag 1') for r in est.validity_reasons)
+
+
+def test_the_parameter_term_keeps_the_oe_cross_test_chi_square_for_an_estimated_model():
+    """
+    The residual v + psi' theta~ of an estimate with error theta~ ~ N(0, C), independent of v.
+
+    600 plants at once: v is AR(1) 0.9, the inputs low-pass, psi filtered and lagged inputs
+    (p = 3). With C, Q_i = N r' (P + N G C G')^-1 r is chi2(M); without it the estimate's error
+    alone fails the test.
+    """
+    plants, samples, lags = 600, 3000, 10
+    rng = np.random.default_rng(14)
+
+    def low_pass(white, pole=0.9):
+        return signal.lfilter([1.0], [1.0, -pole], white, axis=0) * np.sqrt(1.0 - pole * pole)
+
+    v = low_pass(rng.standard_normal((samples + 1000, plants)))[1000:]
+    u = low_pass(rng.standard_normal((samples + 2, plants, 2)))
+    psi = np.stack([low_pass(u[:, :, 0], 0.5)[1:-1], u[:-2, :, 0], u[1:-1, :, 1]], axis=2)
+    u = u[2:]
+    covariance = 1e-2 * (np.eye(3) + 0.5)
+    error = rng.standard_normal((plants, 3)) @ np.linalg.cholesky(covariance).T
+    residual = v + np.einsum('tkp,kp->tk', psi, error)
+    statistics = {}
+    for term in (True, False):
+        monitor = AdequacyMonitor(
+            num_inputs=2, plants=plants, window=500, model='oe', num_parameters=3 * term,
+            parameter_covariance=lambda rows: np.broadcast_to(covariance, (len(rows), 3, 3)))
+        for t in range(samples):
+            monitor.record(residual[t], u[t], psi[t])
+        statistics[term] = monitor.statistics
+    # the mean of chi2(M) is M with standard error sqrt(2M / K): within four of them
+    assert np.abs(statistics[True].mean(axis=0) - lags).max() < 4.0 * np.sqrt(2.0 * lags / plants)
+    # the share above the chi2 90 % point within 4 binomial standard errors of 0.1
+    above = (statistics[True] > stats.chi2.ppf(0.9, lags)).mean(axis=0)
+    assert (np.abs(above - 0.1) <= 4.0 * np.sqrt(0.1 * 0.9 / plants)).all(), above
+    # the plain test of the same residuals: its mean is far above M (measured 39 and 24)
+    assert (statistics[False].mean(axis=0) > 2.0 * lags).all()
 
 
 @pytest.mark.parametrize('scenario', ['ding_miso', 'ding_miso_nonstationary'])

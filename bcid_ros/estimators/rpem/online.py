@@ -15,6 +15,7 @@ not at hand to check them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, Callable
 
@@ -25,13 +26,14 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.residual_state import (residual_items, residual_reasons,
+                                                residual_states, with_gradient_arrays)
 from bcid_ros.estimators.rls import HEALTH_CHECK_PERIOD, repair_covariance
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, inside
 from bcid_ros.estimators.rpem.store import SampleStore, Segment
-from bcid_ros.estimators.rpem.uncertainty import parameter_covariance
+from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
 from bcid_ros.estimators.rpem.watch import RestartWatch, VARIANCE_FLOOR
 
 #: Values of the ``model`` option.
@@ -265,8 +267,8 @@ class Rpem(RecursiveEstimator):
         self._updates += 1
         self._keep(y, u)
         if self._tau >= self._gate_from and not self._quiet_left:
-            # the residual tests take the prediction error; the HAC its score psi e
-            self._monitor.record(e, u)
+            # the residual tests take the prediction error (and, OE, psi); the HAC psi e
+            self._monitor.record(e, u, psi)
             self._hac.record_product(psi, e)
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
@@ -482,6 +484,12 @@ class Rpem(RecursiveEstimator):
         return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
                                     self.num_parameters, self._unscale)
 
+    def _internal_covariance(self, plants: np.ndarray) -> np.ndarray | None:
+        """Return the HAC covariance of theta_n, offset included, for the residual tests."""
+        if not self._tau > 0.0:
+            return None
+        return normalised_covariance(self._hac, self._p, self._tau, self._forgetting_factor)
+
     def _theta(self) -> np.ndarray:
         return self._theta_n[:self.num_parameters] * self._unscale
 
@@ -550,9 +558,22 @@ class Rpem(RecursiveEstimator):
         self._forget_residuals()
 
     def _forget_residuals(self) -> None:
-        """Start the residual tests and the HAC afresh (at a reset and at a plant change)."""
-        self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
-                                        forgetting_factor=self._forgetting_factor)
+        """
+        Start the residual tests and the HAC afresh (at a reset and at a plant change).
+
+        OE: the cross test counts the estimate's own error (the parameter
+        term, with the HAC covariance of every internal parameter in the
+        normalised units of psi): consistent but not efficient under coloured
+        noise, the estimate alone fails the plain test at a high SNR
+        (docs/trust.md). ARMAX is efficient for its white innovation: its
+        error stays within the plain test's margin.
+        """
+        oe = not self._armax
+        self._monitor = AdequacyMonitor(
+            num_inputs=self.num_inputs, model=self.adequacy_model,
+            forgetting_factor=self._forgetting_factor,
+            num_parameters=self._size if oe else 0,
+            parameter_covariance=self._internal_covariance if oe else None)
         self._hac = HacCovariance(dimension=self._size,
                                   forgetting_factor=self._forgetting_factor)
 
@@ -581,6 +602,17 @@ class Rpem(RecursiveEstimator):
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
         return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+
+    def set_state(self, state: Any) -> None:
+        """
+        Restore a :meth:`get_state` snapshot; one from before the parameter term loads too.
+
+        Its residual tests then count the estimate's error from the samples
+        after the load on (:func:`~bcid_ros.estimators.residual_state.with_gradient_arrays`).
+        """
+        own, _ = self._state_items()
+        arrays = with_gradient_arrays(state.arrays, own)
+        super().set_state(dataclasses.replace(state, arrays=arrays))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_n, self._arx = arrays['theta_n'], arrays['arx']

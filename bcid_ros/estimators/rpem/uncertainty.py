@@ -51,6 +51,22 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
         effective sample size is not above q.
 
     """
+    covariance = normalised_covariance(hac, p, tau, forgetting_factor)
+    if covariance is None:
+        return None
+    # normalised units to theta's: theta_k s_y / s_channel(k)
+    return covariance[:count, :count] * np.outer(unscale, unscale)
+
+
+def normalised_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
+                          forgetting_factor: float) -> np.ndarray | None:
+    """
+    Return the covariance of every internal parameter (the offset too), in normalised units.
+
+    The units of the recursion's gradient psi: the residual tests' parameter
+    term (:class:`~bcid_ros.estimators.adequacy.AdequacyMonitor`) takes it.
+    ``(q, q)``, symmetric; None as for :func:`parameter_covariance`.
+    """
     long_run = hac.long_run(transform=p)
     if long_run is None:
         return None
@@ -59,6 +75,5 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     size = tau * tau / tau2
     if not size > dimension:
         return None
-    covariance = long_run[:count, :count] * (tau2 * size / (size - dimension))
-    # normalised units to theta's: theta_k s_y / s_channel(k)
-    return 0.5 * (covariance + covariance.T) * np.outer(unscale, unscale)
+    covariance = long_run * (tau2 * size / (size - dimension))
+    return 0.5 * (covariance + covariance.T)

@@ -1,0 +1,270 @@
+r"""
+The statistics of the residual tests: chi-square tails, whiteness, prewhitening, cross-correlation.
+
+Pure functions over the weighted moments that
+:class:`~bcid_ros.estimators.adequacy.AdequacyMonitor` keeps, with a leading
+plant axis: Ljung, *System Identification*, 2nd ed. (1999), sec. 16.6 (the
+whiteness and cross-correlation tests, eq. (16.63)-(16.66)), the Levinson
+recursion for the prewhitening filter, and the parameter term of an
+estimated model's cross test (docs/trust.md).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+
+def chi2_survival(x: float, dof: int) -> float:
+    r"""
+    Return :math:`P(\chi^2_\nu > x)` for an integer :math:`\nu \ge 1`.
+
+    Abramowitz and Stegun 26.4.4 (odd :math:`\nu`) and 26.4.5 (even), finite
+    sums exact to rounding; no scipy.
+    """
+    if x <= 0.0:
+        return 1.0
+    half = 0.5 * x
+    if dof % 2 == 0:
+        # Q = exp(-x/2) sum_{r < nu/2} (x/2)^r / r!                      (26.4.5)
+        term, total = 1.0, 1.0
+        for r in range(1, dof // 2):
+            term *= half / r
+            total += term
+        return min(1.0, math.exp(-half) * total)
+    # Q = 2 Q_N(chi) + 2 Z(chi) sum_{r=1}^{(nu-1)/2} chi^(2r-1) / (1 3 ... (2r-1))   (26.4.4)
+    chi = math.sqrt(x)
+    term, total = chi, 0.0
+    for r in range(1, (dof - 1) // 2 + 1):
+        total += term
+        term *= x / (2 * r + 1)
+    density = math.exp(-half) / math.sqrt(2.0 * math.pi)
+    return min(1.0, math.erfc(chi / math.sqrt(2.0)) + 2.0 * density * total)
+
+
+def chi2_quantile(tail: float, dof: int) -> float:
+    """Return x with :func:`chi2_survival` (x, dof) = ``tail``, by bisection (relative 1e-12)."""
+    low, high = 0.0, float(dof) + 10.0
+    while chi2_survival(high, dof) > tail:
+        high *= 2.0
+    while high - low > 1e-12 * high:
+        middle = 0.5 * (low + high)
+        if chi2_survival(middle, dof) > tail:
+            low = middle
+        else:
+            high = middle
+    return 0.5 * (low + high)
+
+
+def whiteness_statistic(autocovariance: np.ndarray, lags: int,
+                        size: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""
+    Return :math:`Q = N\sum_{k=1}^M \hat\rho_k^2`, the worst lag and its :math:`\hat\rho`.
+
+    ``autocovariance`` ``(K, L + 1)`` holds :math:`\hat R_\varepsilon(k)`,
+    k = 0..L >= M; N is the effective sample size, a float or one per
+    plant ``(K,)``. A residual with zero power gives Q = 0.
+    """
+    power = autocovariance[:, 0]
+    positive = power > 0.0
+    rho = autocovariance[:, 1:lags + 1] / np.where(positive, power, 1.0)[:, None]
+    rho[~positive] = 0.0
+    worst = np.argmax(np.abs(rho), axis=-1)
+    value = rho[np.arange(rho.shape[0]), worst]
+    return size * np.einsum('ki,ki->k', rho, rho), worst + 1, value
+
+
+def prewhitening_filter(autocovariance: np.ndarray, order: int) -> np.ndarray:
+    r"""
+    Return the AR whitening filter :math:`[1, f_1, \ldots, f_q]` of each residual, ``(K, q + 1)``.
+
+    Yule-Walker on :math:`\hat R_\varepsilon(0..q)` by the Levinson
+    recursion: the filter of the order-q linear predictor. A plant whose
+    recursion breaks down (a reflection coefficient not inside the unit
+    circle: not minimum phase) gets no filter (``[1, 0, ...]``).
+    """
+    count = autocovariance.shape[0]
+    result = np.zeros((count, order + 1))
+    result[:, 0] = 1.0
+    for k in range(count):
+        coefficients = levinson(autocovariance[k, :order + 1])
+        if coefficients is not None:
+            result[k] = coefficients
+    return result
+
+
+def levinson(autocovariance: np.ndarray) -> np.ndarray | None:
+    """Return the prediction-error filter of the Levinson recursion, or None if it breaks down."""
+    error = float(autocovariance[0])
+    if not error > 0.0:
+        return None
+    order = autocovariance.shape[0] - 1
+    a = np.zeros(order + 1)
+    a[0] = 1.0
+    for m in range(1, order + 1):
+        # reflection coefficient k_m = -(sum_j a_j R(m - j)) / E_{m-1}
+        reflection = -float(a[:m] @ autocovariance[m:0:-1]) / error
+        if not abs(reflection) < 1.0:
+            return None
+        # a_j <- a_j + k_m a_{m-j}, j = 1..m
+        a[1:m + 1] = a[1:m + 1] + reflection * a[m - 1::-1]
+        error *= 1.0 - reflection * reflection
+    return a
+
+
+def filter_rows(whitening: np.ndarray, rows: int, columns: int) -> np.ndarray:
+    r"""
+    Return :math:`\Phi` ``(K, rows, columns)`` with :math:`\Phi_{a, a + l} = f_l`.
+
+    For x the stored lags of a signal, ``[x(t - s), x(t - s - 1), ...]``,
+    row a of :math:`\Phi x` is the filtered
+    :math:`\tilde x(t - s - a) = \sum_l f_l x(t - s - a - l)`.
+    """
+    count, order = whitening.shape[0], whitening.shape[1] - 1
+    result = np.zeros((count, rows, columns))
+    for a in range(rows):
+        result[:, a, a:a + order + 1] = whitening
+    return result
+
+
+def cross_statistics(residual: np.ndarray, signals: np.ndarray, cross: np.ndarray,
+                     whitening: np.ndarray, lags: int, size: Any, colour_lags: int,
+                     gradient: np.ndarray | None = None, covariance: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""
+    Return :math:`Q_i = N r^T P^{-1} r` of each input, its worst lag and correlation, ``(K, r)``.
+
+    The weighted means are ``residual`` ``(K, q + 1, E + 1)``, of
+    :math:`e(t-a)e(t-b)`, ``signals`` ``(K, r, U, U)`` of
+    :math:`u_i(t-a)u_i(t-b)` and ``cross`` ``(K, r, q + 1, U)`` of
+    :math:`e(t-a)u_i(t-b)` (u from lag 1); ``whitening`` is the filter f
+    ``(K, q + 1)`` of both series (``[1]``: none), so that every filtered
+    moment is an exact quadratic form; ``size`` N, a float or ``(K,)``;
+    ``colour_lags`` J (see :class:`~bcid_ros.estimators.adequacy.AdequacyMonitor`).
+    With ``gradient`` ``(K, r, q + 1, p, U)``, the means of
+    :math:`\psi(t-m)u_i(t-a)`, and ``covariance`` C ``(K, p, p)`` of the
+    estimate (NaN: unknown), P becomes :math:`P + N G C G^T`
+    (:func:`parameter_term`).
+    """
+    count, inputs, stored = signals.shape[0], signals.shape[1], signals.shape[-1]
+    span = lags + colour_lags
+    if whitening.shape[1] == 1 and colour_lags == 0:  # a white residual: no filter
+        colour = residual[:, 0, :1]
+        r = cross[:, :, 0, :lags]
+        products = signals[:, :, :lags, :lags]
+    else:
+        # e~(t - j), j = 0..J, and u~(t - a), a = 1..M + J: rows of filters on the stored lags
+        residual_filter = filter_rows(whitening, colour_lags + 1, residual.shape[-1])
+        input_filter = filter_rows(whitening, span, stored)
+        # R_e~(j) = mean e~(t) e~(t - j) = f' [e(t - a) e(t - j - b)] f
+        colour = np.einsum('ka,kab,kjb->kj', whitening, residual, residual_filter)
+        # r_k = mean e~(t) u~(t - k), k = 1..M
+        r = np.einsum('ka,kiac,kjc->kij', whitening, cross, input_filter[:, :lags])
+        # V(a, c) = mean u~(t - a) u~(t - c), a, c = 1..M + J
+        products = input_filter[:, None] @ signals @ np.swapaxes(input_filter, -1, -2)[:, None]
+    # P_ab = sum_{|j| <= J} kappa_j R_e~(j) V(a, b + j), V(a, c) for c < 1 from V(a + d, c + d)
+    if colour_lags == 0:
+        variance = colour[:, :1, None, None] * products[:, :, :lags, :lags]
+    else:
+        variance = np.zeros((count, inputs, lags, lags))
+        tests = np.arange(lags)
+        for j in range(-colour_lags, colour_lags + 1):
+            kappa = 1.0 - abs(j) / (colour_lags + 1)
+            column = tests[None, :] + j
+            shift = np.maximum(0, -column)
+            variance += (kappa * colour[:, abs(j)])[:, None, None, None] * products[
+                :, :, tests[:, None] + shift, column + shift]
+    sizes = np.repeat(np.broadcast_to(np.reshape(np.asarray(size, dtype=float), (-1,)),
+                                      (count,)), inputs)
+    extra = None
+    if gradient is not None and covariance is not None:
+        extra = parameter_term(gradient, covariance, whitening, lags,
+                               sizes[::inputs]).reshape(-1, lags, lags)
+    statistic, standardised = quadratic_forms(variance.reshape(-1, lags, lags),
+                                              r.reshape(-1, lags), sizes, extra)
+    worst = np.argmax(np.abs(standardised), axis=-1)
+    flat = r.reshape(-1, lags)[np.arange(count * inputs), worst].reshape(count, inputs)
+    scale = np.sqrt(np.maximum(colour[:, :1] * np.einsum('kiaa->kia', products)[:, :, 0], 0.0))
+    value = np.where(scale > 0.0, flat / np.where(scale > 0.0, scale, 1.0), 0.0)
+    return statistic.reshape(count, inputs), worst.reshape(count, inputs) + 1, value
+
+
+def quadratic_forms(variance: np.ndarray, r: np.ndarray, size: Any,
+                    extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    r"""
+    Return :math:`N r^T P^{-1} r` on the chi-square(M) scale, and :math:`r_k/\sqrt{P_{kk}}`.
+
+    ``variance`` P ``(n, M, M)``, r ``(n, M)``, ``size`` N (a float or
+    ``(n,)``). P is inverted on the directions its window can estimate: an
+    eigenvalue below ``1 / N`` of the largest is below the precision of
+    moments from N samples (a multisine of a few sines, or a held input,
+    makes P nearly singular, and the colour terms can make it slightly
+    indefinite there), and a direction the input does not excite cannot
+    show a correlation anyway. On the k kept directions the statistic is
+    chi-square(k) under the null; it is mapped to the chi-square(M) value of
+    the same tail probability, so that one pair of thresholds serves. A P
+    without power gives 0: its test cannot see anything. ``extra``
+    ``(n, M, M)``, positive semi-definite (the parameter term), is added to
+    P; the floor stays that of P alone, so the sum keeps every direction P
+    keeps (its eigenvalues are at least P's, by Weyl's inequality).
+    """
+    lags = r.shape[-1]
+    sizes = np.broadcast_to(np.asarray(size, dtype=float), r.shape[:1])
+    statistic = np.zeros(r.shape[0])
+    finite = np.isfinite(variance).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
+    if extra is not None:
+        finite &= np.isfinite(extra).all(axis=(1, 2))
+    for k in np.flatnonzero(finite).tolist():
+        symmetric = 0.5 * (variance[k] + variance[k].T)
+        top = float(np.linalg.eigvalsh(symmetric)[-1]) if extra is not None else None
+        if extra is not None:
+            symmetric = symmetric + 0.5 * (extra[k] + extra[k].T)
+        values, vectors = np.linalg.eigh(symmetric)
+        top = values[-1] if top is None else top
+        if not top > 0.0:
+            continue
+        kept = values > top / max(sizes[k], 1.0)
+        projected = vectors[:, kept].T @ r[k]
+        value = sizes[k] * float(projected @ (projected / values[kept]))
+        rank = int(kept.sum())
+        statistic[k] = value if rank == lags else chi2_quantile(chi2_survival(value, rank), lags)
+    diagonal = np.einsum('kii->ki', variance if extra is None else variance + extra)
+    good = finite & (diagonal > 0.0).all(axis=-1)
+    standardised = r / np.sqrt(np.where(good[:, None], diagonal, 1.0))
+    return statistic, np.where(good[:, None], standardised, 0.0)
+
+
+def parameter_term(gradient: np.ndarray, covariance: np.ndarray, whitening: np.ndarray,
+                   lags: int, size: np.ndarray) -> np.ndarray:
+    r"""
+    Return :math:`N G_i C G_i^T`, the estimate's error in input i's cross test, ``(K, r, M, M)``.
+
+    The residual of an estimated model is
+    :math:`\varepsilon(t) = v(t) + \psi^T(t)\tilde\theta`,
+    :math:`\tilde\theta = \theta - \hat\theta`, :math:`\psi = \partial\hat y/\partial\theta`
+    (Ljung, *System Identification*, 2nd ed., sec. 16.6), so the whitened
+    cross-correlation is :math:`r = r_v + G\tilde\theta` with
+
+    .. math::
+
+        G_i(k, j) = \overline{\tilde u_i(t-k)\tilde\psi_j(t)}
+            = \sum_{m,a} f_m \Phi_{ka}\,\overline{\psi_j(t-m) u_i(t-a)},
+
+    f the whitening filter, :math:`\Phi` its rows on the stored input lags
+    (:func:`filter_rows`) and the bar the weighted mean (``gradient``
+    ``(K, r, q + 1, p, U)``). With :math:`\tilde\theta` of covariance C
+    (``covariance`` ``(K, p, p)``, in the units of :math:`\psi`) independent
+    of :math:`r_v`, :math:`N\,\mathrm{cov}(r) = P + N G C G^T`, and the
+    statistic stays :math:`\chi^2(M)`. A plant whose C is not finite gets
+    no term (zeros); ``size`` N ``(K,)``.
+    """
+    input_filter = filter_rows(whitening, lags, gradient.shape[-1])
+    # G_i(k, j) = sum_m sum_a f_m Phi_ka mean psi_j(t - m) u_i(t - a)
+    spread = np.einsum('km,kimja,kla->kilj', whitening, gradient, input_filter)
+    known = np.isfinite(covariance).all(axis=(1, 2))
+    covariance = np.where(known[:, None, None], covariance, 0.0)
+    # N G C G'
+    term = np.einsum('kilj,kjh,kinh->kiln', spread, covariance, spread)
+    return term * np.reshape(size, (-1, 1, 1, 1))
