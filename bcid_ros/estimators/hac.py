@@ -189,6 +189,11 @@ class HacCovariance:
         """
         self._products.append_product(psi, error)
 
+    def record_all(self, scores: Any) -> None:
+        """Add one plant's scores ``(m, p)``, oldest first: ``record`` of each row (copied)."""
+        for score in np.array(scores, dtype=float, ndmin=2):
+            self._products.append(score)
+
     def record_rows(self, rows: Any, scores: Any) -> None:
         """
         Add one score of each plant in ``rows`` (K plants); the others do not step now.

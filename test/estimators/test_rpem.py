@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
+from bcid_ros.analysis.pem import fit_oe, Structure
 from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.identifier import persistence
 from bcid_ros.estimators import make_estimator
@@ -302,6 +303,23 @@ def test_the_estimates_own_error_does_not_fail_an_accurate_fit_but_a_wrong_dead_
         wrong = run_case(case, case.order, (delay,))
         assert not wrong.valid and wrong._monitor.statistics[0] > 10.0 * high
         assert any(r.startswith('residual correlated with u1') for r in wrong.validity_reasons)
+
+
+def test_the_std_after_the_batch_fits_is_the_batch_references():
+    # held PRBS and equation-error noise at 34 dB: the prediction errors before each batch
+    # fit are of the earlier, far estimates; recorded into the HAC they made the std 600
+    # times the batch sandwich's (3.3 against 0.005 for a1). Both estimate one asymptotic
+    # covariance; the HAC's relative error over ~4000 scores is a few tens of per cent, so a
+    # factor of 2 either way holds it and catches any such swelling
+    case = realistic_case((0, 13))
+    estimator = run_case(case, case.order, case.input_delay)
+    structure = Structure(order=case.order, num_inputs=case.num_inputs,
+                          input_delay=list(case.input_delay))
+    reference = fit_oe(case.y - case.y.mean(), case.u - case.u.mean(axis=0), structure,
+                       offset=True)
+    ratio = estimator.parameter_std / reference.std
+    assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
+    assert np.all(np.abs(estimator.theta - case.theta) < 3.0 * estimator.parameter_std)
 
 
 @pytest.mark.parametrize('model', ['oe', 'armax'])

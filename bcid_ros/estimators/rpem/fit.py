@@ -53,12 +53,15 @@ class FitResult:
         OE keeps the offset's column at 0, its gradient is not filtered).
     offset : float
         The output (OE) or equation (ARMAX) offset of the last segment.
+    scores : numpy.ndarray, shape ``(m, q)``
+        psi(t) eps(t) at theta of the m samples with a weight, oldest first:
+        the estimating-equation scores of the estimate (the HAC's input).
 
     """
 
     def __init__(self, theta: np.ndarray, information: np.ndarray, loss: float, weight: float,
                  arx: np.ndarray, tail_x: np.ndarray, tail_e: np.ndarray,
-                 tail_psi: np.ndarray, offset: float) -> None:
+                 tail_psi: np.ndarray, offset: float, scores: np.ndarray) -> None:
         self.theta = theta
         self.information = information
         self.loss = loss
@@ -68,6 +71,7 @@ class FitResult:
         self.tail_e = tail_e
         self.tail_psi = tail_psi
         self.offset = offset
+        self.scores = scores
 
     def covariance(self, initial_covariance: float) -> np.ndarray | None:
         """
@@ -280,9 +284,13 @@ class BatchFit:
             else None
 
     def _gradient(self, theta: np.ndarray, usable: list, prior: float,
-                  concentrated: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+                  concentrated: bool = True,
+                  scores: list | None = None) -> tuple[float, np.ndarray, np.ndarray]:
         """
         Return the loss, the Gauss-Newton information and the gradient at theta.
+
+        ``scores``, a list: each segment's psi eps of its samples with a
+        weight is appended to it.
 
         ``concentrated``: of the loss with the nuisance (initial state,
         offset) re-fitted at every theta (the search), for theta alone;
@@ -306,6 +314,8 @@ class BatchFit:
             information += weighted.T.dot(psi)
             gradient += weighted.T.dot(prediction.eps)
             loss += float(weights[self.span:].dot(prediction.eps ** 2))
+            if scores is not None:
+                scores.append((psi * prediction.eps[:, None])[weights[self.span:] > 0.0])
         information[np.diag_indices(size)] += prior
         return loss, information, gradient
 
@@ -387,7 +397,9 @@ class BatchFit:
     def _result(self, theta: np.ndarray, segments: list, usable: list,
                 arx: np.ndarray) -> FitResult:
         """Return the fit at theta with the predictor state at the end of the last segment."""
-        loss, information, _ = self._gradient(theta, usable, 0.0, concentrated=False)
+        scores: list[np.ndarray] = []
+        loss, information, _ = self._gradient(theta, usable, 0.0, concentrated=False,
+                                              scores=scores)
         weight = float(sum(w[self.span:].sum() for _, _, w, _ in usable))
         n, p = self.order, self.num_parameters
         y, u, weights = segments[-1]
@@ -405,4 +417,5 @@ class BatchFit:
             x, e = y, np.zeros(y.shape[0])
             if usable:  # the offset of the newest usable segment
                 offset = self._predictor.predict(theta, *usable[-1][:3], gradient=False).offset
-        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset)
+        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset,
+                         np.concatenate(scores) if scores else np.zeros((0, information.shape[0])))

@@ -387,6 +387,10 @@ class Rpem(RecursiveEstimator):
         # the predictor's lags: those of the last segment's newest samples
         self._predictor.load(result.tail_x, segments[-1][1], result.tail_e, result.tail_psi)
         self._watch.fitted(result.loss / result.weight)
+        # the scores recorded so far are of the estimates before the fit, whose errors
+        # would swell the HAC (hundreds of times on a fit that moved far): the fit's own
+        self._hac.reset()
+        self._hac.record_all(result.scores)
         self._lambda_t = min(self._forgetting_factor, LAMBDA_START)
         self._fitted = True
         return True
