@@ -813,7 +813,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         self._refused += 1
         self._restart_regressor()
 
-    def _gate(self, z2: float) -> bool:
+    def _gate(self, z2: float, error_z2: float | None = None) -> bool:
         r"""
         Return whether a sample with squared normalised prediction error ``z2`` is used.
 
@@ -824,6 +824,8 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         refused sample is counted (flag ``outlier_rejected``) and the regressor
         restarts; a detected plant change is counted (``plant_change``) and
         :meth:`_accept_change` cuts the memory before the sample is used.
+        ``error_z2``: the error's part of ``z2`` where it holds another size
+        too, which the change score then judges by (:func:`rules.gate`).
         """
         # the quiet case on floats first: rules.gate on scalars costs ~10 us
         tail = rules.gate_is_quiet(z2, self._gate_limit2, self._change_score, self._gate_tail)
@@ -831,7 +833,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
             self._gate_tail = tail
             return True
         used, self._change_score, self._gate_tail, change = rules.gate(
-            z2, self._gate_limit2, self._change_score, self._gate_tail)
+            z2, self._gate_limit2, self._change_score, self._gate_tail, error_z2)
         if change:
             self._flag('plant_change')
             self._accept_change()

@@ -76,7 +76,8 @@ def gate_limit2(outlier_threshold: float) -> float:
     return (outlier_threshold or IMPLAUSIBLE_ERROR) ** 2
 
 
-def gate(z2: Any, limit2: float, score: Any, tail: Any) -> tuple[Any, Any, Any, Any]:
+def gate(z2: Any, limit2: float, score: Any, tail: Any,
+         error_z2: Any = None) -> tuple[Any, Any, Any, Any]:
     r"""
     Decide which samples are used, from their squared normalised prediction errors.
 
@@ -91,7 +92,11 @@ def gate(z2: Any, limit2: float, score: Any, tail: Any) -> tuple[Any, Any, Any, 
     such samples in a row) the errors are taken as a real change of the
     plant: the sample is used, the score restarts at 0, and the caller cuts
     the memory (:func:`memory_keep`). (The score judges by the threshold,
-    not the tail, which the first errors of a change would lift.)
+    not the tail, which the first errors of a change would lift.) Where
+    :math:`z^2` also holds a size other than the error's (cl_bcls's
+    leverage of the regressor), ``error_z2`` is the error's part alone and
+    the score judges by it: a changed plant shows in its errors, and a
+    regressor far from the others says nothing of a change.
 
     Parameters
     ----------
@@ -103,6 +108,8 @@ def gate(z2: Any, limit2: float, score: Any, tail: Any) -> tuple[Any, Any, Any, 
         The change scores before the sample.
     tail : float or numpy.ndarray, shape ``(K,)``
         The tails before the sample (1 to start with).
+    error_z2 : float or numpy.ndarray, shape ``(K,)``, optional
+        The error's part of ``z2`` (<= ``z2``) for the change score; default ``z2``.
 
     Returns
     -------
@@ -112,7 +119,7 @@ def gate(z2: Any, limit2: float, score: Any, tail: Any) -> tuple[Any, Any, Any, 
         Booleans and floats for scalar input, arrays for arrays.
 
     """
-    within = np.less_equal(z2, limit2)
+    within = np.less_equal(z2 if error_z2 is None else error_z2, limit2)
     accepted = np.less_equal(z2, np.multiply(limit2, tail))
     decayed = np.multiply(score, CHANGE_DECAY)
     raised = decayed + 1.0
