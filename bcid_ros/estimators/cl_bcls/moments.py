@@ -45,7 +45,7 @@ import numpy as np
 
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
 from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
-from bcid_ros.estimators.cl_bcls.regression import CompensationFailure
+from bcid_ros.estimators.cl_bcls.regression import CompensationFailure, definite_inverse
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
                                                     STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller, is_stable, stable_reflection
@@ -163,13 +163,7 @@ class PrefilteredMoments:
             solution is not finite.
 
         """
-        information = self.information
-        try:
-            np.linalg.cholesky(information)
-            inverse = np.linalg.inv(information)
-        except np.linalg.LinAlgError:
-            raise CompensationFailure('singular_information',
-                                      'the information matrix is not positive definite') from None
+        inverse = definite_inverse(self.information, 'the information matrix')
         theta = inverse.dot(self.cross)
         loss = max(self.energy - self.cross.dot(theta), 0.0)
         if not (np.isfinite(theta).all() and np.isfinite(inverse).all()):

@@ -169,6 +169,25 @@ def prefiltered_regression(y: np.ndarray, u: np.ndarray, prefilter: np.ndarray
     return phi, y[n:], next_phi
 
 
+def definite_inverse(information: np.ndarray, name: str) -> np.ndarray:
+    """
+    Return the inverse of an information matrix that has a Cholesky factor.
+
+    Raises
+    ------
+    CompensationFailure
+        ``singular_information``, naming the matrix ``name``, if it is not
+        positive definite.
+
+    """
+    try:
+        np.linalg.cholesky(information)
+        return np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        raise CompensationFailure('singular_information',
+                                  f'{name} is not positive definite') from None
+
+
 def prefiltered_ls(y: np.ndarray, u: np.ndarray, prefilter: np.ndarray) -> PrefilteredLs:
     r"""
     Solve the prefiltered LS problem over a record, eqs. (16), (17) and (45).
@@ -186,12 +205,7 @@ def prefiltered_ls(y: np.ndarray, u: np.ndarray, prefilter: np.ndarray) -> Prefi
     """
     phi, target, next_phi = prefiltered_regression(y, u, prefilter)
     information = phi.T @ phi
-    try:
-        np.linalg.cholesky(information)
-        inverse = np.linalg.inv(information)
-    except np.linalg.LinAlgError:
-        raise CompensationFailure('singular_information',
-                                  'Phi\'Phi is not positive definite') from None
+    inverse = definite_inverse(information, "Phi'Phi")
     # theta_LS = (Phi' Phi)^-1 Phi' y                                        (17)
     theta = np.linalg.solve(information, phi.T @ target)
     # e = y - Phi theta_LS                                                   (45)
