@@ -1,5 +1,6 @@
 """
-The ``bcid`` command: replay, simulate, reproduce, record, play, info, demo, analyze, import.
+The ``bcid`` command: replay, simulate, reproduce, record, play, info, reindex, demo, analyze,
+import.
 
 Each subcommand is a small function in the module that owns the work; this
 file only parses arguments and turns :class:`~bcid_ros.errors.BcidError`
@@ -28,6 +29,7 @@ HANDLERS = {
     'record': 'bcid_ros.bag.commands:record',
     'play': 'bcid_ros.bag.commands:play',
     'info': 'bcid_ros.bag.commands:info',
+    'reindex': 'bcid_ros.bag.commands:reindex',
     'demo': 'bcid_ros.cli:demo',
     'analyze': 'bcid_ros.analysis.command:run',
     'import': 'bcid_ros.bag.commands:import_csv',
@@ -45,6 +47,7 @@ SUMMARIES = {
     'record': 'record topics to a rosbag2 MCAP over rclpy',
     'play': 'play a bag over rclpy',
     'info': 'topics, counts, duration and truth of a bag',
+    'reindex': 'repair a bag whose recording was killed (summary, CRCs, metadata.yaml)',
     'demo': 'simulator + identifier nodes, converging live',
     'analyze': 'choose the order and delay, validate and describe the model',
     'import': 'write a CSV log as a rosbag2 MCAP bag of /samples',
@@ -205,6 +208,7 @@ ARGUMENTS = {
     'record': _record_arguments,
     'play': _play_arguments,
     'info': _info_arguments,
+    'reindex': _info_arguments,
     'demo': _demo_arguments,
     'analyze': _analyze_arguments,
     'import': _import_arguments,

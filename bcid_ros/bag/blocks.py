@@ -21,9 +21,11 @@ from __future__ import annotations
 import dataclasses
 import struct
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
+import zlib
 
 import numpy as np
 
+from bcid_ros.bag.summary import CrcMismatch
 from bcid_ros.identifier.cdr import decode_head, Float64MultiArray
 
 #: MCAP opcodes.
@@ -184,13 +186,17 @@ def read_message_index(stream: Any, offset: int, channel: int) -> np.ndarray:
 
 
 def chunk_records(stream: Any, chunk: Any) -> bytes:
-    """Return the decompressed records of the chunk that ``chunk`` (a ChunkIndex) points to."""
+    """
+    Return the decompressed records of the chunk that ``chunk`` (a ChunkIndex) points to.
+
+    The chunk's CRC, when it has one, is checked (:class:`~bcid_ros.bag.summary.CrcMismatch`).
+    """
     stream.seek(chunk.chunk_start_offset)
     raw = memoryview(stream.read(chunk.chunk_length))
     opcode, length = RECORD.unpack_from(raw)
     if opcode != CHUNK or RECORD.size + length > len(raw):
         raise ValueError(f'no whole chunk at offset {chunk.chunk_start_offset}')
-    _, _, size, _ = CHUNK_FIELDS.unpack_from(raw, RECORD.size)
+    _, _, size, crc = CHUNK_FIELDS.unpack_from(raw, RECORD.size)
     pos = RECORD.size + CHUNK_FIELDS.size
     (name_length,) = struct.unpack_from('<I', raw, pos)
     compression = bytes(raw[pos + 4:pos + 4 + name_length]).decode('utf-8')
@@ -199,22 +205,37 @@ def chunk_records(stream: Any, chunk: Any) -> bytes:
     data = raw[pos + 8:pos + 8 + records_length]
     if len(data) != records_length:
         raise ValueError(f'the chunk at offset {chunk.chunk_start_offset} is truncated')
-    if compression == 'zstd':
-        import zstandard
-
-        records = zstandard.decompress(data, size)
-    elif compression == 'lz4':
-        import lz4.frame
-
-        records = lz4.frame.decompress(data)
-    elif compression == '':
-        records = bytes(data)
-    else:
-        raise ValueError(f'chunk compression {compression!r} is not supported')
+    try:
+        records = decompress(data, compression, size)
+    except ValueError:
+        raise
+    except Exception as error:  # zstd's and lz4's own errors: the compressed bytes are corrupt
+        raise ValueError(f'chunk at offset {chunk.chunk_start_offset} is corrupt: it cannot '
+                         f'be decompressed ({type(error).__name__}: {error})') from None
     if len(records) != size:
         raise ValueError(f'the chunk at offset {chunk.chunk_start_offset} decompressed to '
                          f'{len(records)} bytes, not {size}')
+    if crc and zlib.crc32(records) != crc:  # 0: the writer computed none (MCAP spec)
+        raise CrcMismatch(f'chunk at offset {chunk.chunk_start_offset} (messages '
+                          f'{chunk.message_start_time * 1e-9:.9f} s to '
+                          f'{chunk.message_end_time * 1e-9:.9f} s): CRC mismatch, the chunk '
+                          'is corrupt')
     return records
+
+
+def decompress(data: Any, compression: str, size: int) -> bytes:
+    """Return the records of a chunk compressed with ``compression`` (zstd, lz4 or none)."""
+    if compression == 'zstd':
+        import zstandard
+
+        return zstandard.decompress(data, size)
+    if compression == 'lz4':
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    if compression == '':
+        return bytes(data)
+    raise ValueError(f'chunk compression {compression!r} is not supported')
 
 
 def scan_messages(records: bytes, channel_ids: set[int]) -> np.ndarray:

@@ -1,7 +1,7 @@
 """
-The bag subcommands of ``bcid``: replay, simulate, record, play, info, import.
+The bag subcommands of ``bcid``: replay, simulate, record, play, info, reindex, import.
 
-``replay``, ``simulate``, ``info`` and ``import`` work offline and never import
+``replay``, ``simulate``, ``info``, ``reindex`` and ``import`` work offline and never import
 rclpy; ``record`` and ``play`` import it (lazily, in their own modules).
 """
 
@@ -83,6 +83,14 @@ def info(args: argparse.Namespace) -> int:
     return 0
 
 
+def reindex(args: argparse.Namespace) -> int:
+    """Run ``bcid reindex``: rewrite the summary, CRCs and metadata.yaml of a killed recording."""
+    from bcid_ros.bag.recovery import reindex_bag
+
+    print(reindex_bag(args.bag))
+    return 0
+
+
 def import_csv(args: argparse.Namespace) -> int:
     """Run ``bcid import``: write the samples of a CSV log to a rosbag2 MCAP bag."""
     from bcid_ros.bag.csv_samples import read_csv_samples, write_samples_bag
@@ -125,4 +133,4 @@ def play(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ['import_csv', 'info', 'play', 'record', 'replay', 'simulate']
+__all__ = ['import_csv', 'info', 'play', 'record', 'reindex', 'replay', 'simulate']

@@ -27,8 +27,10 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 import zstandard
 
-from bcid_ros.bag.blocks import MessageBlock, ordered_blocks, OrderReport, topic_blocks
-from bcid_ros.bag.summary import read_header, read_summary
+from bcid_ros.bag.blocks import (chunk_records, MessageBlock, ordered_blocks, OrderReport,
+                                 topic_blocks)
+from bcid_ros.bag.summary import (check_data_crc, CrcMismatch, MissingFooter, parse_summary, read_footer,
+                                  read_header)
 from bcid_ros.errors import BcidError
 from bcid_ros.identifier.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
                                            TRUE_PARAMETERS)
@@ -51,7 +53,7 @@ def make_reader(stream: Any, **options: Any) -> Any:
     """Return ``mcap``'s reader of ``stream`` (imported here: summaries and blocks need none)."""
     from mcap.reader import make_reader as make
 
-    return make(stream, **options)
+    return make(stream, validate_crcs=True, **options)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +139,13 @@ class BagReader:
     """
     A read-only view of a rosbag2 MCAP bag.
 
+    Every CRC the file carries is checked (docs/guarantees.md): the summary's
+    and the data section's on opening, each chunk's when it is read (also by
+    ``mcap``'s reader, which is asked to validate them). A file without a
+    footer (a recording that was killed) is read by scanning its whole
+    chunks (:mod:`bcid_ros.bag.recovery`), with a warning in :attr:`warnings`,
+    also printed to stderr.
+
     Parameters
     ----------
     path : str or pathlib.Path
@@ -145,7 +154,8 @@ class BagReader:
     Raises
     ------
     BcidError
-        If the bag is missing, truncated, corrupt or not a ROS 2 MCAP.
+        If the bag is missing, truncated, corrupt (a CRC that does not match)
+        or not a ROS 2 MCAP.
 
     """
 
@@ -157,6 +167,8 @@ class BagReader:
         self.end_ns: int | None = None
         #: How far file order was from log-time order, per topic read by :meth:`blocks`.
         self.order: dict[str, OrderReport] = {}
+        #: What was read in a way that needs a word (a missing footer), one line each.
+        self.warnings: list[str] = []
         self._summaries: dict[Path, Any] = {}
         for file in self.files:
             self._read_summary(file)
@@ -165,15 +177,14 @@ class BagReader:
         try:
             with file.open('rb') as stream:
                 header = read_header(stream)
-                summary = read_summary(stream)
+                summary = self._summary(file, stream)
+        except CrcMismatch as error:
+            raise BcidError(f'{file}: corrupt: {error}') from None
         except read_errors() as error:
             raise BcidError(f'{file}: not a readable MCAP file, truncated or corrupt '
                             f'({type(error).__name__}: {error})') from None
         if header.profile != 'ros2':
             raise BcidError(f'{file}: MCAP profile is {header.profile!r}, not \'ros2\'')
-        if summary is None or summary.statistics is None:
-            raise BcidError(f'{file}: the MCAP has no summary (an unfinished recording?); '
-                            'it cannot be read safely')
         self._summaries[file] = summary
         counts = summary.statistics.channel_message_counts
         for channel in summary.channels.values():
@@ -200,6 +211,40 @@ class BagReader:
                              else min(self.start_ns, stats.message_start_time))
             self.end_ns = (stats.message_end_time if self.end_ns is None
                            else max(self.end_ns, stats.message_end_time))
+
+    def _summary(self, file: Path, stream: Any) -> Any:
+        """Return the file's summary after checking its CRCs, or rebuild it (no footer)."""
+        try:
+            footer = read_footer(stream)
+        except MissingFooter as error:
+            return self._recover(file, stream, str(error))
+        if footer.summary_start == 0:
+            check_data_crc(stream, footer)
+            return self._recover(file, stream, 'no summary section')
+        stream.seek(footer.summary_start)
+        summary = parse_summary(stream.read(footer.offset - footer.summary_start))
+        try:
+            check_data_crc(stream, footer)
+        except CrcMismatch:
+            for chunk in summary.chunk_indexes:  # name the corrupt chunk, if it is one
+                chunk_records(stream, chunk)
+            raise
+        if summary.statistics is None:
+            return self._recover(file, stream, 'no statistics in the summary')
+        return summary
+
+    def _recover(self, file: Path, stream: Any, reason: str) -> Any:
+        from bcid_ros.bag.recovery import scan_summary
+
+        recovered = scan_summary(stream)
+        self.warn(f'{file}: {reason}: an unfinished recording? {recovered.describe()}; '
+                  f'`bcid reindex {self.path}` repairs it')
+        return recovered.summary
+
+    def warn(self, text: str) -> None:
+        """Keep a warning in :attr:`warnings` and print it to stderr."""
+        self.warnings.append(text)
+        print(f'bcid: warning: {text}', file=sys.stderr)
 
     @property
     def duration_s(self) -> float:

@@ -11,7 +11,11 @@ and the publishers' offered QoS goes into the bag.
 
 SIGINT or SIGTERM stops the recording: the messages already received (also
 those still queued in the subscriptions) are written, then the bag is
-closed, so nothing received is lost.
+closed, so nothing received is lost. Against SIGKILL and crashes, the open
+chunk is closed and handed to the operating system every :data:`FLUSH_PERIOD`
+s, so a killed recording keeps what was received until then; ``bcid replay``
+and ``info`` read it without its footer, ``bcid reindex`` repairs it
+(docs/guarantees.md).
 """
 
 from __future__ import annotations
@@ -36,6 +40,9 @@ from bcid_ros.errors import BcidError
 
 #: Seconds between looks at the ROS graph for the topics not yet subscribed.
 DISCOVERY_PERIOD = 0.1
+
+#: Seconds between chunk flushes: a kill loses at most about this much (plus what is queued).
+FLUSH_PERIOD = 0.5
 
 #: Longest time (s) spent writing queued messages after the stop request.
 DRAIN_LIMIT = 5.0
@@ -71,6 +78,7 @@ class Recorder:
         self.subscriptions: dict[str, Any] = {}
         self.counts = {topic: 0 for topic in self.pending}
         self.discovery_timer = node.create_timer(DISCOVERY_PERIOD, self.discover)
+        self.flush_timer = node.create_timer(FLUSH_PERIOD, writer.flush)
         self.discover()
 
     def discover(self) -> None:

@@ -8,17 +8,22 @@ those records (MCAP format, https://mcap.dev/spec) into named tuples with the fi
 names of ``mcap.records``, so that code written against one takes the other.
 
 Anything malformed raises ValueError or struct.error; the caller turns that into one line.
+So does a CRC that does not match (:class:`CrcMismatch`, a ValueError): the summary's CRC
+(in the footer) is checked whenever the summary is read, the data section's (in Data End)
+by :func:`check_data_crc`; a CRC of 0 means "not computed" (MCAP spec) and is not checked.
 """
 
 from __future__ import annotations
 
 import struct
 from typing import BinaryIO, NamedTuple
+import zlib
 
 #: The magic bytes at both ends of an MCAP file.
 MAGIC = b'\x89MCAP0\r\n'
 #: Opcodes of the records read here.
 HEADER, FOOTER, SCHEMA, CHANNEL, CHUNK_INDEX, STATISTICS = 0x01, 0x02, 0x03, 0x04, 0x08, 0x0B
+DATA_END = 0x0F
 #: Opcode (u8) and record length (u64) before every record.
 RECORD = struct.Struct('<BQ')
 #: Footer content: summary start, summary offset start, summary CRC.
@@ -31,6 +36,20 @@ STATISTICS_FIELDS = struct.Struct('<QHIIIIQQ')
 #: Chunk Index before its message index offsets: first and last message time, chunk start
 #: and length.
 CHUNK_INDEX_FIELDS = struct.Struct('<QQQQ')
+
+
+class CrcMismatch(ValueError):
+    """A CRC stored in the file does not match the bytes it covers: the file is corrupt."""
+
+
+class Footer(NamedTuple):
+    """The Footer record, and where it is."""
+
+    summary_start: int
+    summary_offset_start: int
+    summary_crc: int
+    #: Offset of the footer record in the file.
+    offset: int
 
 
 class Header(NamedTuple):
@@ -173,25 +192,94 @@ def read_summary(stream: BinaryIO) -> Summary | None:
         If the footer or a summary record is malformed or truncated.
 
     """
+    footer = read_footer(stream)
+    if footer.summary_start == 0:
+        return None
+    stream.seek(footer.summary_start)
+    return parse_summary(_read_exactly(stream, footer.offset - footer.summary_start))
+
+
+class MissingFooter(ValueError):
+    """The file does not end with a footer and the magic: an unfinished recording?"""
+
+
+def read_footer(stream: BinaryIO) -> Footer:
+    """
+    Return the footer of an MCAP file, after checking the summary CRC if there is one.
+
+    Raises
+    ------
+    MissingFooter
+        If the file does not end with a footer record and the magic.
+    CrcMismatch
+        If the summary CRC does not match the summary and footer bytes.
+    ValueError
+        If the footer points outside the file.
+
+    """
     stream.seek(0, 2)
     size = stream.tell()
     if size < len(MAGIC) * 2 + FOOTER_SIZE:
-        raise ValueError('too short for an MCAP file with a footer')
-    stream.seek(size - FOOTER_SIZE - len(MAGIC))
+        raise MissingFooter('too short for an MCAP file with a footer')
+    footer_at = size - FOOTER_SIZE - len(MAGIC)
+    stream.seek(footer_at)
     tail = _read_exactly(stream, FOOTER_SIZE + len(MAGIC))
     if not tail.endswith(MAGIC):
-        raise ValueError('no magic at the end (a truncated or unfinished file?)')
+        raise MissingFooter('no magic at the end (a truncated or unfinished file?)')
     opcode, length = RECORD.unpack_from(tail)
     if opcode != FOOTER or length != FOOTER_FIELDS.size:
-        raise ValueError('no footer record before the closing magic')
-    summary_start, _, _ = FOOTER_FIELDS.unpack_from(tail, RECORD.size)
-    if summary_start == 0:
-        return None
-    footer_at = size - FOOTER_SIZE - len(MAGIC)
-    if summary_start > footer_at:
+        raise MissingFooter('no footer record before the closing magic')
+    footer = Footer(*FOOTER_FIELDS.unpack_from(tail, RECORD.size), footer_at)
+    if footer.summary_start > footer_at or footer.summary_offset_start > footer_at:
         raise ValueError('the footer points past itself')
-    stream.seek(summary_start)
-    return parse_summary(_read_exactly(stream, footer_at - summary_start))
+    if footer.summary_crc:
+        start = footer.summary_start or footer_at
+        stream.seek(start)
+        covered = _read_exactly(stream, footer_at - start) + tail[:FOOTER_SIZE - 4]
+        if zlib.crc32(covered) != footer.summary_crc:
+            raise CrcMismatch(f'summary CRC mismatch (summary section at offset {start}): '
+                              'the summary or footer is corrupt')
+    return footer
+
+
+def file_crc(stream: BinaryIO, start: int, end: int, piece: int = 1 << 22) -> int:
+    """Return the CRC-32 of bytes ``start`` to ``end - 1`` of ``stream``, read in pieces."""
+    stream.seek(start)
+    crc, left = 0, end - start
+    while left > 0:
+        data = stream.read(min(piece, left))
+        if not data:
+            raise ValueError(f'the file ends {left} bytes early')
+        crc = zlib.crc32(data, crc)
+        left -= len(data)
+    return crc
+
+
+def check_data_crc(stream: BinaryIO, footer: Footer) -> bool:
+    """
+    Check the data section's CRC (Data End record); return whether there was one to check.
+
+    Raises
+    ------
+    CrcMismatch
+        If the CRC-32 of every byte before Data End differs from the stored one.
+
+    """
+    data_end_at = (footer.summary_start or footer.offset) - RECORD.size - 4
+    if data_end_at < len(MAGIC):
+        return False
+    stream.seek(data_end_at)
+    record = stream.read(RECORD.size + 4)
+    opcode, length = RECORD.unpack_from(record)
+    if opcode != DATA_END or length != 4:
+        return False  # not where a writer that follows the spec puts it: nothing to check
+    (stored,) = U32.unpack_from(record, RECORD.size)
+    if not stored:
+        return False
+    if file_crc(stream, 0, data_end_at) != stored:
+        raise CrcMismatch(f'data section CRC mismatch (bytes 0 to {data_end_at}): a chunk, '
+                          'message index or other record before the summary is corrupt')
+    return True
 
 
 def parse_summary(section: bytes) -> Summary:
@@ -237,5 +325,6 @@ def _read_exactly(stream: BinaryIO, size: int) -> bytes:
     return data
 
 
-__all__ = ['Channel', 'ChunkIndex', 'Header', 'Schema', 'Statistics', 'Summary',
-           'parse_summary', 'read_header', 'read_summary']
+__all__ = ['Channel', 'ChunkIndex', 'CrcMismatch', 'Footer', 'Header', 'MissingFooter',
+           'Schema', 'Statistics', 'Summary', 'check_data_crc', 'file_crc', 'parse_summary',
+           'read_footer', 'read_header', 'read_summary']

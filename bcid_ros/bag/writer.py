@@ -4,9 +4,18 @@ Write rosbag2 MCAP bags with rosbags (no rclpy).
 :class:`BagWriter` is a thin layer over ``rosbags.rosbag2.Writer`` with the
 MCAP storage plugin: rosbags writes ``metadata.yaml``, the ``ros2`` profile,
 ``ros2msg`` schemas, full type names and each channel's
-``offered_qos_profiles``, and compresses the chunks with zstd. The one thing
-added here is the file name: rosbag2 names the first file of a bag
-``<bag>_0.mcap`` (docs/bags.md), rosbags ``<bag>.mcap``.
+``offered_qos_profiles``, and compresses the chunks with zstd. Added here:
+
+* the file name: rosbag2 names the first file of a bag ``<bag>_0.mcap``
+  (docs/bags.md), rosbags ``<bag>.mcap``;
+* the CRCs that ``ros2 bag record`` (mcap's C++ writer) writes and rosbags
+  leaves at 0: each chunk's CRC-32 of its uncompressed records, the data
+  section's CRC-32 in the Data End record and the summary's in the footer
+  (docs/guarantees.md); a reader detects any changed byte;
+* :meth:`BagWriter.flush`: close the open chunk and hand it to the operating
+  system, so that a recording killed at any moment keeps every chunk
+  flushed before (``bcid record`` flushes every :data:`FLUSH_PERIOD` s;
+  ``bcid reindex`` rebuilds the summary of such a file).
 
 Messages are serialised to CDR with the rosbags type store of ROS 2 Jazzy, so
 ``bcid simulate`` and ``bcid replay --output`` need no ROS installation.
@@ -14,8 +23,11 @@ Messages are serialised to CDR with the rosbags type store of ROS 2 Jazzy, so
 
 from __future__ import annotations
 
-import shutil
+import os
 from pathlib import Path
+import shutil
+import struct
+import zlib
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -25,6 +37,7 @@ from rosbags.rosbag2.storage_mcap import McapWriter
 from rosbags.typesys import get_typestore, Stores
 
 from bcid_ros.bag.qos import Qos
+from bcid_ros.bag.summary import file_crc
 from bcid_ros.errors import BcidError
 from bcid_ros.identifier.interface import FLOAT64_MULTI_ARRAY
 
@@ -35,8 +48,18 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 METADATA_VERSION = 9
 
 
+#: Offset of the CRC field in a Chunk record: opcode, length, start, end, uncompressed size.
+CHUNK_CRC_AT = 1 + 8 + 8 + 8 + 8
+#: Offset of the summary CRC in the footer record: opcode, length, summary start and offset.
+FOOTER_CRC_AT = 1 + 8 + 8 + 8
+#: The Data End record: opcode, length (4), data section CRC.
+DATA_END_SIZE = 1 + 8 + 4
+#: Bytes of the closing magic.
+MAGIC_SIZE = 8
+
+
 class _Rosbag2McapWriter(McapWriter):
-    """rosbags' MCAP storage, with the file named ``<bag>_0.mcap`` as rosbag2 does."""
+    """rosbags' MCAP storage, named ``<bag>_0.mcap`` as rosbag2 does, with CRCs."""
 
     def __init__(self, path: Path, compression: CompressionMode) -> None:
         super().__init__(path, compression)
@@ -45,7 +68,48 @@ class _Rosbag2McapWriter(McapWriter):
         wanted = path / f'{path.name}_0.mcap'
         self.path.rename(wanted)
         self.path = wanted
-        self.bio = wanted.open('ab')
+        self.bio = wanted.open('r+b')
+        self.bio.seek(0, os.SEEK_END)
+
+    def close_chunk(self) -> None:
+        """Write the pending chunk as rosbags does, then its CRC (rosbags writes 0)."""
+        crc = zlib.crc32(self.chunk.bio.getbuffer())
+        start = self.bio.tell()
+        super().close_chunk()
+        end = self.bio.tell()
+        self.bio.seek(start + CHUNK_CRC_AT)
+        self.bio.write(struct.pack('<I', crc))
+        self.bio.seek(end)
+
+    def close(self, version: int, metadata: str) -> None:
+        """Finish the file as rosbags does, then fill in the data and summary CRCs."""
+        super().close(version, metadata)
+        with self.path.open('r+b') as stream:
+            write_section_crcs(stream)
+
+
+def write_section_crcs(stream: Any) -> None:
+    """
+    Fill in the data section CRC (Data End) and the summary CRC (footer) of a finished MCAP.
+
+    The summary starts right after the Data End record (as rosbags and
+    :mod:`bcid_ros.bag.recovery` write it); the data CRC covers every byte
+    before Data End, the summary CRC the summary and the footer up to its CRC.
+    """
+    stream.seek(0, os.SEEK_END)
+    size = stream.tell()
+    footer_at = size - MAGIC_SIZE - (FOOTER_CRC_AT + 4)
+    stream.seek(footer_at + 9)
+    summary_start = struct.unpack('<Q', stream.read(8))[0]
+    data_end_at = (summary_start or footer_at) - DATA_END_SIZE
+    data_crc = file_crc(stream, 0, data_end_at)
+    stream.seek(data_end_at + 9)
+    stream.write(struct.pack('<I', data_crc))
+    summary_crc = file_crc(stream, summary_start or footer_at, footer_at + FOOTER_CRC_AT)
+    stream.seek(footer_at + FOOTER_CRC_AT)
+    stream.write(struct.pack('<I', summary_crc))
+    stream.flush()
+    os.fsync(stream.fileno())
 
 
 class _Rosbag2Writer(Writer):
@@ -147,6 +211,20 @@ class BagWriter:
     def write_message(self, topic: str, time_ns: int, message: Any) -> None:
         """Serialise a rosbags message object to CDR and write it."""
         self.write(topic, time_ns, TYPESTORE.serialize_cdr(message, self._types[topic]))
+
+    def flush(self) -> None:
+        """
+        Close the open chunk (with its message indexes) and hand the file to the OS.
+
+        Everything written before a flush survives a kill of the process
+        (``bcid reindex`` then restores the summary); no fsync, so not a
+        power loss.
+        """
+        storage = self._writer.storage
+        if storage is not None and storage.chunk.bio.tell():
+            storage.close_chunk()
+        if storage is not None:
+            storage.bio.flush()
 
     def close(self) -> None:
         """Finish the bag: last chunk, summary and ``metadata.yaml``."""

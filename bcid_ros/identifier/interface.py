@@ -278,6 +278,7 @@ COUNTERS = {
     'unpaired': 'dropped: unpaired',
     'lost': 'lost in transport (messages, by sequence number)',
     'gaps': 'gaps in the stamps (regressor restarted)',
+    'time_jumps': 'stamps that jumped back (pairing started over)',
     'unexcited': 'samples without excitation (input constant)',
     'estimator_errors': 'estimator errors',
     'nonfinite_estimates': 'non-finite estimates withheld',

@@ -12,7 +12,10 @@ the identifier's rule (docs/nodes.md, "Pairing"):
   out-of-order stamps are dropped; an interval between pairs longer than
   :data:`GAP_FACTOR` sample periods is a gap. The sample period is given or
   learnt as the median of the first :data:`PERIOD_LEARNING_INTERVALS`
-  intervals.
+  intervals. A stamp more than :func:`jump_threshold_ns` before the last one
+  of its side is not out of order but a *time jump* (a looped bag, a plant
+  clock restarted): the pairing starts over from it (queues, last stamps and
+  last pair forgotten, a gap), so that the identifier is not deaf from then on.
 
 Each call returns a :class:`Paired`: the rows to feed in order, with
 :data:`GAP` where the regressor must restart, and the problems to count.
@@ -33,6 +36,8 @@ PERIOD_LEARNING_INTERVALS = 20
 GAP_FACTOR = 1.5
 #: In :attr:`Paired.samples`: samples are missing here, restart the regressor.
 GAP = None
+#: A stamp this far (s) or further before its side's last one is a time jump, not out of order.
+TIME_JUMP_S = 1.0
 #: The two sides, as named in messages and counters.
 SIDES = ('input', 'output')
 
@@ -133,7 +138,9 @@ class Pairing:
         queue = self._queues[side]
         if self.stamped:
             last = self._last_stamp[side]
-            if last is not None and stamp_ns <= last:
+            if last is not None and last - stamp_ns >= self.jump_threshold_ns:
+                self._start_over(side, stamp_ns, last, paired)
+            elif last is not None and stamp_ns <= last:
                 kind = 'duplicate' if stamp_ns == last else 'out_of_order'
                 paired.problem(kind, f'{side} message with a {kind.replace("_", " ")} stamp '
                                f'dropped ({stamp_ns * 1e-9:.9f} s after {last * 1e-9:.9f} s)',
@@ -158,10 +165,23 @@ class Pairing:
         paired.gap()
         return paired
 
+    @property
+    def jump_threshold_ns(self) -> int:
+        """Return how far back a stamp must go to be a time jump: TIME_JUMP_S, 2 tolerances."""
+        return max(int(TIME_JUMP_S * 1e9), 2 * self.tolerance_ns)
+
+    def _start_over(self, side: str, stamp_ns: int, last: int, paired: Paired) -> None:
+        """Pair afresh from a stamp that jumped back: forget the queues and the stamps."""
+        self.reset()
+        paired.problem('time_jumps', f'{side} stamps jumped back by '
+                       f'{(last - stamp_ns) * 1e-9:.6g} s (to {stamp_ns * 1e-9:.9f} s): '
+                       'a looped bag or a restarted clock? pairing started over')
+
     def reset(self) -> None:
-        """Forget the queued values and the last pair (the learnt period is kept)."""
+        """Forget the queued values, the last stamps and the last pair (the period is kept)."""
         for queue in self._queues.values():
             queue.clear()
+        self._last_stamp = dict.fromkeys(SIDES)
         self._last_pair_ns = None
 
     def _lose(self, side: str, count: int, paired: Paired) -> None:
@@ -237,4 +257,4 @@ class SequenceTracker:
 
 
 __all__ = ['GAP', 'GAP_FACTOR', 'PERIOD_LEARNING_INTERVALS', 'Paired', 'Pairing',
-           'SIDES', 'SequenceTracker']
+           'SIDES', 'SequenceTracker', 'TIME_JUMP_S']

@@ -28,17 +28,32 @@ are stored raw, and JSON writes a float as its shortest round-trip repr.
 **Atomic saving.** The file is written to a temporary file in the same
 directory, flushed and ``fsync``-ed, then moved over the old one with
 ``os.replace`` (atomic on POSIX); the directory is synced after it. A crash
-at any moment leaves either the old file or the new one, never a mix.
+at any moment leaves either the old file or the new one, never a mix. The
+temporary files that a crash leaves (``.<file>.*.tmp``) are removed at the next
+start (:func:`remove_leftovers`).
+
+**Nothing overwritten, one writer** (docs/guarantees.md). A file that is
+refused is moved aside to ``<file>.rejected-<UTC time>`` (:func:`set_aside`)
+before anything is saved over it. :class:`StateLock` holds an ``fcntl`` lock
+on ``<file>.lock`` for the life of the process, so a second process given the
+same file is refused at start instead of replacing the first one's state.
+
+**Values.** Restoring checks the numbers, not only the shapes
+(:func:`check_values`): every array has the dtype of the estimator's own, every
+count is >= 0, every value is finite (except where the estimator itself keeps
+a NaN for "not computed yet"), and the covariance is symmetric positive definite.
 """
 
 from __future__ import annotations
 
 import datetime
+import fcntl
 import inspect
 import json
+import math
 import os
-import tempfile
 from pathlib import Path
+import tempfile
 from typing import Any
 
 import numpy as np
@@ -164,7 +179,11 @@ def restore_identifier(estimator: RecursiveEstimator, feeder: SampleFeeder,
 
     """
     fresh = feeder.get_state()
+    estimator.reset()  # set_state replaces all of it; the reset state is the reference
+    reference = estimator_section(estimator)
     try:
+        check_values(sections['estimator'], reference, 'estimator')
+        check_values(({}, sections['feeder'][1]), ({}, fresh), 'feeder')
         restore_estimator(estimator, sections['estimator'])
         feeder.set_state(sections['feeder'][1])
         estimator.forgetting_factor = forgetting_factor
@@ -173,6 +192,184 @@ def restore_identifier(estimator: RecursiveEstimator, feeder: SampleFeeder,
         feeder.set_state(fresh)
         raise StateRefused(f'state file {path} does not fit this estimator '
                            f'({type(error).__name__}: {error})') from None
+
+
+#: Arrays of an estimator's state that are covariance matrices (symmetric positive definite).
+COVARIANCES = ('p',)
+
+
+def check_values(section: Section, reference: Section, name: str) -> None:
+    """
+    Check the values of a saved section against a fresh one of the same estimator or feeder.
+
+    Parameters
+    ----------
+    section : (arrays, scalars)
+        As loaded.
+    reference : (arrays, scalars)
+        The same section of a freshly built estimator (or feeder): the dtypes
+        and kinds of value expected, and where a non-finite value or a
+        negative count is normal.
+    name : str
+        The section's name, for the message.
+
+    Raises
+    ------
+    ValueError
+        Naming the value: an array of another dtype, a non-finite number, a
+        negative count, a value of another type, a covariance that is not
+        symmetric positive definite.
+
+    """
+    arrays, scalars = section
+    expected_arrays, expected_scalars = reference
+    for key, value in arrays.items():
+        expected = expected_arrays.get(key)
+        if expected is None:
+            continue  # set_state says what it makes of an unknown key
+        value = np.asarray(value)
+        if value.dtype != np.asarray(expected).dtype:
+            raise ValueError(f'{name}.{key} has dtype {value.dtype}, expected '
+                             f'{np.asarray(expected).dtype}')
+        if value.dtype.kind == 'f' and not _may_be_nonfinite(expected) \
+                and not np.isfinite(value).all():
+            raise ValueError(f'{name}.{key} holds NaN or Inf')
+        if value.dtype.kind in 'iu' and np.any(value < 0) and not np.any(expected < 0):
+            raise ValueError(f'{name}.{key} holds a negative count')
+        if key in COVARIANCES:
+            _check_covariance(value, f'{name}.{key}')
+    for key, value in scalars.items():
+        if key in expected_scalars:
+            _check_scalar(value, expected_scalars[key], f'{name}.{key}')
+
+
+def _may_be_nonfinite(expected: Any) -> bool:
+    """Whether the fresh value holds a non-finite number (the estimator's "not yet")."""
+    if isinstance(expected, np.ndarray):
+        return expected.dtype.kind == 'f' and not np.isfinite(expected).all()
+    return isinstance(expected, float) and not math.isfinite(expected)
+
+
+def _check_scalar(value: Any, expected: Any, name: str) -> None:
+    """Check one saved scalar (recursively) against the fresh one."""
+    if isinstance(expected, (bool, np.bool_)):
+        if not isinstance(value, bool):
+            raise ValueError(f'{name} is {value!r}, expected true or false')
+    elif isinstance(expected, (int, float, np.integer, np.floating)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f'{name} is {value!r}, expected a number')
+        if isinstance(value, float) and not math.isfinite(value) \
+                and not _may_be_nonfinite(float(expected)):
+            raise ValueError(f'{name} is {value!r}, expected a finite number')
+        if isinstance(value, int) and isinstance(expected, (int, np.integer)) \
+                and value < 0 <= expected:
+            raise ValueError(f'{name} is {value}, expected a count >= 0')
+    elif isinstance(expected, str):
+        if not isinstance(value, str):
+            raise ValueError(f'{name} is {value!r}, expected a string')
+    elif isinstance(expected, (list, tuple)) and isinstance(value, (list, tuple)):
+        if expected and all(not isinstance(e, (list, tuple, dict)) for e in expected):
+            for item in value:
+                _check_scalar(item, expected[0], name)
+    elif isinstance(expected, dict) and isinstance(value, dict):
+        for key, item in value.items():
+            if key in expected:
+                _check_scalar(item, expected[key], f'{name}.{key}')
+
+
+def _check_covariance(matrix: np.ndarray, name: str) -> None:
+    """Check that a covariance matrix is symmetric and positive definite (Cholesky)."""
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
+        raise ValueError(f'{name} is not a square matrix (shape {matrix.shape})')
+    scale = float(np.max(np.abs(matrix))) if matrix.size else 0.0
+    if np.max(np.abs(matrix - matrix.T), initial=0.0) > 1e-8 * scale:
+        raise ValueError(f'{name} is not symmetric')
+    try:
+        np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        raise ValueError(f'{name} is not positive definite') from None
+
+
+def set_aside(path: str | os.PathLike) -> Path:
+    """
+    Move a refused state file to ``<file>.rejected-<UTC time>`` so that no save replaces it.
+
+    Returns
+    -------
+    pathlib.Path
+        Where it is now.
+
+    Raises
+    ------
+    OSError
+        If it cannot be moved (the caller must then not save over it).
+
+    """
+    path = Path(path)
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%dT%H%M%SZ')
+    target = path.with_name(f'{path.name}.rejected-{stamp}')
+    number = 1
+    while target.exists():
+        number += 1
+        target = path.with_name(f'{path.name}.rejected-{stamp}-{number}')
+    os.rename(path, target)
+    _sync_directory(path.parent)
+    return target
+
+
+def remove_leftovers(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files that an interrupted :func:`save_state` left; return them."""
+    path = Path(path)
+    removed = []
+    for leftover in path.parent.glob(f'.{path.name}.*.tmp'):
+        try:
+            leftover.unlink()
+        except OSError:
+            continue
+        removed.append(leftover)
+    return removed
+
+
+class StateInUse(Exception):
+    """Another process holds the state file's lock; ``str()`` is the one line to report."""
+
+
+class StateLock:
+    """
+    An exclusive ``fcntl`` lock on ``<file>.lock``, held until :meth:`release` or exit.
+
+    The lock file holds the owner's process id, for the message. The kernel
+    drops the lock when the process dies, however it dies.
+
+    Raises
+    ------
+    StateInUse
+        If another process holds it.
+    OSError
+        If the lock file cannot be created.
+
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(f'{os.fspath(path)}.lock')
+        descriptor = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = os.read(descriptor, 32).decode('ascii', 'replace').strip() or 'unknown'
+            os.close(descriptor)
+            raise StateInUse(f'state file {path} is in use by another process (pid {owner}, '
+                             f'lock {self.path}); give each identifier its own '
+                             'state_file') from None
+        os.ftruncate(descriptor, 0)
+        os.write(descriptor, f'{os.getpid()}\n'.encode('ascii'))
+        self._descriptor: int | None = descriptor
+
+    def release(self) -> None:
+        """Drop the lock (idempotent)."""
+        if self._descriptor is not None:
+            os.close(self._descriptor)
+            self._descriptor = None
 
 
 def save_state(path: str | os.PathLike, fingerprint: dict[str, Any],
@@ -278,7 +475,9 @@ def _read_header(archive: Any) -> dict[str, Any]:
 
 def _check_header(header: dict[str, Any], fingerprint: dict[str, Any]) -> None:
     version = header.get('version')
-    if not isinstance(version, int) or version > VERSION:
+    if type(version) is not int or version < 1:
+        raise StateRefused(f'has format version {version!r}, not a version number')
+    if version > VERSION:
         raise StateRefused(f'has format version {version!r}, newer than this bcid_ros reads '
                            f'({VERSION})')
     saved = header.get('fingerprint')
@@ -316,6 +515,7 @@ def _to_json(value: Any) -> str:
     return json.dumps(value, default=_plain, sort_keys=True)
 
 
-__all__ = ['FORMAT', 'STRUCTURAL', 'Section', 'StateRefused', 'VERSION',
-           'configuration_fingerprint', 'estimator_section', 'identifier_sections',
-           'load_state', 'restore_estimator', 'restore_identifier', 'save_state']
+__all__ = ['COVARIANCES', 'FORMAT', 'STRUCTURAL', 'Section', 'StateInUse', 'StateLock',
+           'StateRefused', 'VERSION', 'check_values', 'configuration_fingerprint',
+           'estimator_section', 'identifier_sections', 'load_state', 'remove_leftovers',
+           'restore_estimator', 'restore_identifier', 'save_state', 'set_aside']

@@ -5,8 +5,11 @@ The identifier's ``state_file`` on rclpy (docs/nodes.md, "Keeping state: state_f
 estimator and the feeder from it at start, publish the restored estimate at
 once (latched), save every ``state_save_period`` seconds when the state has
 changed, and save once more when the node goes. The file format, the
-atomic write, the fingerprint check and restoring all sections or none
-are :mod:`bcid_ros.identifier.persistence`'s.
+atomic write, the fingerprint check, the value checks, restoring all sections
+or none, the lock and setting a refused file aside are
+:mod:`bcid_ros.identifier.persistence`'s; here they are applied in order: lock
+(or refuse to start), remove leftover temporary files, restore or set the
+refused file aside (or, if it cannot be moved, never save over it).
 """
 
 from __future__ import annotations
@@ -42,6 +45,12 @@ class StateKeeper:
         Returns what changes whenever the state does (messages taken, samples
         since reset); a periodic save is skipped while it is unchanged.
 
+    Raises
+    ------
+    ValueError
+        If another process holds the state file (its lock), or the lock
+        file cannot be created: the node refuses to start.
+
     Attributes
     ----------
     path : str
@@ -64,6 +73,17 @@ class StateKeeper:
         self._fingerprint = persistence.configuration_fingerprint(settings)
         self._failing = False
         self._saved = None
+        #: Why nothing may be saved (a refused file that could not be moved aside), or ''.
+        self._blocked = ''
+        self._lock: persistence.StateLock | None = None
+        try:
+            self._lock = persistence.StateLock(self.path)
+        except persistence.StateInUse as error:
+            raise ValueError(str(error)) from None
+        except OSError:
+            pass  # no directory or no permission: the saves fail too, and say so once
+        for leftover in persistence.remove_leftovers(self.path):
+            node.get_logger().info(f'removed {leftover}, left by an interrupted save')
         self.restored = self._restore()
 
     def _restore(self) -> bool:
@@ -77,7 +97,14 @@ class StateKeeper:
             persistence.restore_identifier(self._estimator, self._feeder, sections,
                                            self._settings['forgetting_factor'], self.path)
         except persistence.StateRefused as error:
-            logger.warning(f'{error}; starting fresh')
+            try:
+                kept = persistence.set_aside(self.path)
+            except OSError as move_error:
+                self._blocked = (f'state file {self.path} was refused and cannot be moved '
+                                 f'aside ({move_error}); it is not saved over')
+                logger.error(f'{error}; {self._blocked}; starting fresh')
+                return False
+            logger.warning(f'{error}; kept as {kept}; starting fresh')
             return False
         logger.info(f'state restored from {self.path}: {self._feeder.used} samples used, '
                     f'{self._estimator.samples} since reset, valid {self._estimator.valid}')
@@ -117,6 +144,8 @@ class StateKeeper:
 
     def _write(self) -> str | None:
         """Write the state file; return None, or the line that says why it failed."""
+        if self._blocked:
+            return self._blocked
         signature = self._signature()
         sections = persistence.identifier_sections(self._estimator, self._feeder)
         try:
@@ -130,6 +159,8 @@ class StateKeeper:
     def save_and_destroy(self, destroy: Callable[[], None]) -> None:
         """Save the state, run ``destroy`` (the node's own destroy_node), then log the save."""
         error = self._write()
+        if self._lock is not None:
+            self._lock.release()
         # logged after the node is gone, when its /rosout publisher (whose context a
         # signal has already shut down) no longer takes the line
         destroy()

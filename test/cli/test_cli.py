@@ -11,6 +11,7 @@ ARGV = {
     'record': ['record', 'o', '--topics', '/a', '/b'],
     'play': ['play', 'bag', '--rate', '0'],
     'info': ['--debug', 'info', 'bag'],
+    'reindex': ['reindex', 'bag'],
     'demo': ['demo', '--scenario', 'adaptive_loop'],
     'analyze': ['analyze', 'bag', '--params', 'p.yaml', '--orders', '1-2'],
     'import': ['import', 'log.csv', '--out', 'o', '--columns', 'temp,heater', '--rate', '20'],

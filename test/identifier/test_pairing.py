@@ -165,3 +165,56 @@ def test_sequence_tracker_counts_jumps_per_topic():
     assert tracker.lost('a', None) == 0 and tracker.lost('a', 0) == 0
     tracker.reset()
     assert tracker.lost('a', 10) == 0
+
+
+# ------------------------------------------------------------------ time jumps (SPEC §18)
+def feed_pairs(pairing, stamps_ms, value=1.0):
+    """Add input then output at each stamp; return the rows paired and the problems."""
+    rows, problems = [], []
+    for stamp in stamps_ms:
+        for side, item in (('input', [value]), ('output', value)):
+            paired = pairing.add(side, item, stamp_ns=int(stamp * MS))
+            rows += [r for r in paired.samples if r is not GAP]
+            problems += kinds(paired)
+    return rows, problems
+
+
+def test_stamp_jump_back_starts_the_pairing_over_with_a_diagnostic():
+    # A looped bag: 2,100 samples at 10 ms, then the stamps go back 100 s and go on.
+    pairing = stamped()
+    before, _ = feed_pairs(pairing, [100_000 + 10 * k for k in range(2100)])
+    assert len(before) == 2100
+    after, problems = feed_pairs(pairing, [10 * k for k in range(500)])
+    # One time jump (the input's; the output's next stamp is then no jump), and every
+    # sample after it is paired again.
+    assert problems == ['time_jumps']
+    assert len(after) == 500
+
+
+def test_stamp_jump_back_on_one_side_first_recovers_once_both_have_jumped():
+    pairing = stamped()
+    feed_pairs(pairing, [100_000 + 10 * k for k in range(100)])
+    # The input's clock restarts three samples before the output's.
+    problems = []
+    for k in range(3):
+        problems += kinds(pairing.add('input', [1.0], stamp_ns=10 * k * MS))
+        problems += kinds(pairing.add('output', 1.0, stamp_ns=(101_000 + 10 * k) * MS))
+    assert problems.count('time_jumps') == 1
+    rows, problems = feed_pairs(pairing, [30 + 10 * k for k in range(100)])
+    assert problems.count('time_jumps') == 1 and len(rows) >= 99
+
+
+def test_small_step_back_is_still_out_of_order_not_a_jump():
+    pairing = stamped()
+    feed_pairs(pairing, [1000 + 10 * k for k in range(10)])
+    paired = pairing.add('input', [1.0], stamp_ns=1050 * MS)
+    assert kinds(paired) == ['out_of_order']
+
+
+def test_reset_forgets_the_last_stamps():
+    pairing = stamped()
+    feed_pairs(pairing, [100_000 + 10 * k for k in range(10)])
+    pairing.reset()
+    # After ~/reset, an earlier stamp (less than a jump back) is taken, not dropped.
+    rows, problems = feed_pairs(pairing, [99_800 + 10 * k for k in range(5)])
+    assert problems == [] and len(rows) == 5

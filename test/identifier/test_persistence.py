@@ -254,3 +254,132 @@ def test_a_section_that_does_not_fit_restores_neither_estimator_nor_feeder(tmp_p
         persistence.restore_identifier(feeder.estimator, feeder, sections, 1.0, 's.npz')
     assert feeder.get_state() == before
     assert feeder.estimator.samples == 0  # the estimator went back to its reset
+
+
+# ------------------------------------------------------------------ values (SPEC §18)
+def saved_sections(estimator='rls', count=300, scenario='ding_miso'):
+    settings = settings_of(scenario, estimator=estimator)
+    feeder = feeder_of(settings)
+    if count:
+        feeder.feed(sample_rows(scenario, count))
+    return settings, persistence.identifier_sections(feeder.estimator, feeder)
+
+
+def refused_after(tmp_path, change, match, estimator='rls'):
+    """Save a good state changed by ``change(sections)``; assert that restoring refuses it."""
+    settings, sections = saved_sections(estimator)
+    change(sections)
+    path = tmp_path / 'changed.npz'
+    persistence.save_state(path, persistence.configuration_fingerprint(settings), sections)
+    feeder = feeder_of(settings)
+    with pytest.raises(persistence.StateRefused, match=match):
+        restore(settings, path)
+    assert feeder.estimator.samples == 0 and not feeder.estimator.valid
+
+
+def test_nan_arrays_are_refused(tmp_path):
+    def nan_theta(sections):
+        sections['estimator'][0]['theta_ls'] = np.full(4 + 2, np.nan)
+    refused_after(tmp_path, nan_theta, r'estimator.theta_ls holds NaN or Inf')
+
+
+def test_arrays_of_another_dtype_are_refused(tmp_path):
+    def int8_theta(sections):
+        arrays = sections['estimator'][0]
+        arrays['theta_ls'] = arrays['theta_ls'].astype(np.int8)
+    refused_after(tmp_path, int8_theta, r'estimator.theta_ls has dtype int8, expected float64')
+
+
+@pytest.mark.parametrize('counter', ['used', 'since_publish', 'nonfinite'])
+def test_negative_counts_are_refused(tmp_path, counter):
+    def negative(sections):
+        sections['feeder'][1][counter] = -5
+    refused_after(tmp_path, negative, f'feeder.{counter} is -5, expected a count >= 0')
+
+
+def test_a_covariance_that_is_not_positive_definite_is_refused(tmp_path):
+    def indefinite(sections):
+        sections['estimator'][0]['p'] = -np.eye(6)
+    refused_after(tmp_path, indefinite, 'estimator.p is not positive definite')
+
+    def asymmetric(sections):
+        p = np.eye(6)
+        p[0, 1] = 0.5
+        sections['estimator'][0]['p'] = p
+    refused_after(tmp_path, asymmetric, 'estimator.p is not symmetric')
+
+
+def test_a_boolean_or_text_for_a_number_is_refused(tmp_path):
+    def text(sections):
+        sections['feeder'][1]['used'] = '300'
+    refused_after(tmp_path, text, 'feeder.used is .300., expected a number')
+
+
+@pytest.mark.parametrize('version', [True, 0, -1, 1.0, '1'])
+def test_a_version_that_is_not_a_version_number_is_refused(saved, monkeypatch, version):
+    path, fingerprint = saved
+    monkeypatch.setattr(persistence, 'VERSION', version)
+    settings = settings_of('ding_miso')
+    feeder = feeder_of(settings)
+    persistence.save_state(path, fingerprint, persistence.identifier_sections(
+        feeder.estimator, feeder))
+    monkeypatch.undo()
+    with pytest.raises(persistence.StateRefused, match='not a version number'):
+        persistence.load_state(path, fingerprint)
+
+
+@pytest.mark.parametrize('scenario,estimator', [
+    ('ding_miso', 'rls'), ('ding_miso', 'bcrls'), ('ikenoue_colored', 'bciv'),
+    ('ding_miso', 'rpem'), ('ikeda_closed_loop', 'cl_bcls')])
+@pytest.mark.parametrize('count', [0, 3, 40, 2000])
+def test_genuine_states_pass_the_value_checks(tmp_path, scenario, estimator, count):
+    # NaN as "not computed yet" in a young state, huge covariances early on: all genuine
+    settings, sections = saved_sections(estimator, count, scenario)
+    path = tmp_path / 'genuine.npz'
+    persistence.save_state(path, persistence.configuration_fingerprint(settings), sections)
+    assert restore(settings, path).used == count
+
+
+# ------------------------------------------------------------------ files (SPEC §18)
+def test_set_aside_keeps_the_refused_file_under_a_new_name(saved):
+    path, _ = saved
+    original = path.read_bytes()
+    first = persistence.set_aside(path)
+    assert not path.exists() and first.read_bytes() == original
+    assert first.name.startswith('state.npz.rejected-20') and first.name.endswith('Z')
+    path.write_bytes(b'another refused file')
+    second = persistence.set_aside(path)   # the same second: a new name, nothing replaced
+    assert second != first and first.read_bytes() == original
+
+
+def test_leftover_temporary_files_are_removed(saved):
+    path, _ = saved
+    leftover = path.parent / f'.{path.name}.abc123.tmp'
+    leftover.write_bytes(b'half a state')
+    other = path.parent / '.other.npz.abc123.tmp'
+    other.write_bytes(b'not ours')
+    assert persistence.remove_leftovers(path) == [leftover]
+    assert not leftover.exists() and other.exists() and path.exists()
+
+
+def test_a_second_process_cannot_take_the_lock(tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / 'state.npz'
+    holder = subprocess.Popen(
+        [sys.executable, '-c', 'import sys, time\n'
+         'from bcid_ros.identifier.persistence import StateLock\n'
+         f'lock = StateLock({str(path)!r})\nprint("locked", flush=True)\ntime.sleep(60)'],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == 'locked'
+        with pytest.raises(persistence.StateInUse,
+                           match=f'in use by another process \\(pid {holder.pid}'):
+            persistence.StateLock(path)
+    finally:
+        holder.kill()
+        holder.wait()
+    # the kernel dropped the killed holder's lock
+    lock = persistence.StateLock(path)
+    lock.release()

@@ -217,6 +217,7 @@ def test_bad_state_files_are_refused_with_one_line_and_a_fresh_start(harness, tm
     for name, state, why, signum in (
             ('corrupt', corrupt, 'truncated or damaged', signal.SIGINT),
             ('other', other, 'another configuration (order 3 there, 2 here)', signal.SIGTERM)):
+        original = state.read_bytes()
         process = harness.start(name, state)
         harness.send(ROWS[:100])
         assert harness.wait_for_estimate(reference(ROWS[:100])), harness.log(name)
@@ -225,7 +226,30 @@ def test_bad_state_files_are_refused_with_one_line_and_a_fresh_start(harness, tm
         assert len(lines) == 2, lines    # the refusal, and the save at shutdown
         assert why in lines[0] and 'starting fresh' in lines[0], lines
         assert 'Traceback' not in harness.log(name)
-        assert saved_samples(state) == 100   # replaced by a good file at shutdown
+        assert saved_samples(state) == 100   # a good file at shutdown
+        # the refused file was kept aside, byte for byte, never overwritten (SPEC §18)
+        kept = list(tmp_path.glob(f'{state.name}.rejected-*'))
+        assert len(kept) == 1 and f'kept as {kept[0]}' in lines[0], lines
+        assert kept[0].read_bytes() == original
+
+
+def test_a_second_node_on_the_same_state_file_is_refused(harness, tmp_path):
+    state = tmp_path / 'shared.npz'
+    first = harness.start('first', state)
+    harness.send(ROWS[:100])
+    assert harness.wait_for_estimate(reference(ROWS[:100]))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(harness.domain),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    second = subprocess.run(
+        [sys.executable, '-m', 'bcid_ros.nodes.identifier_node', '--ros-args', '--params-file',
+         str(CONFIG), '-p', f'state_file:={state}', '-r', '__node:=bcid_identifier_2'],
+        capture_output=True, text=True, env=env, timeout=60)
+    assert second.returncode == 2, second.stderr
+    assert f'state file {state} is in use by another process (pid {first.pid}' \
+        in second.stderr
+    assert 'Traceback' not in second.stderr
+    assert harness.stop(first) == 0
+    assert saved_samples(state) == 100   # the first one's state, not replaced
 
 
 def test_unwritable_state_file_is_reported_once_and_the_node_keeps_running(harness, tmp_path):
