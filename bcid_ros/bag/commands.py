@@ -38,13 +38,15 @@ def replay(args: argparse.Namespace) -> int:
     rate = result.samples / result.elapsed_s if result.elapsed_s > 0 else float('inf')
     print(f'{result.estimator}: {result.samples} samples from {result.messages} messages '
           f'in {result.elapsed_s:.3f} s ({rate:,.0f} samples/s)')
-    if result.malformed or result.nonfinite:
-        print(f'skipped: {result.malformed} malformed messages, {result.nonfinite} samples '
-              'with NaN/Inf')
-    if not result.valid:
-        print(f'the final estimate is not valid: {", ".join(result.validity_reasons)}'
-              if result.validity_reasons else
-              'the estimator never became ready (too few samples)')
+    unused = {cause: count for cause, count in result.unused.items() if count}
+    if unused:
+        print('not used: ' + ', '.join(f'{count} {cause.replace("_", " ")}'
+                                       for cause, count in unused.items()))
+    if not result.ready:
+        print(f'the estimator {result.not_ready_reason}')
+    elif not result.valid:
+        print('the final estimate is not valid: '
+              + (', '.join(result.validity_reasons) or 'the estimator gives no reason'))
     truth = result.truth.as_dict()['parameters'] if result.truth is not None else {}
     width = max(len(n) for n in result.parameter_names)
     print(f'{"":{width}}  {"estimate":>12}  {"uncompensated":>13}' + ('  {:>10}'.format('true')

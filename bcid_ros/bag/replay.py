@@ -35,7 +35,7 @@ from bcid_ros.errors import BcidError
 from bcid_ros.identifier.feeder import SampleFeeder
 from bcid_ros.identifier.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
                                            PARAMETERS, PARAMETERS_UNCOMPENSATED, resolve, SAMPLES)
-from bcid_ros.identifier.layouts import decode_samples, estimate_layout
+from bcid_ros.identifier.layouts import decode_samples, estimate_layout, row_order
 from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: The topic the identifier reads (combined input mode).
@@ -88,6 +88,47 @@ class ReplayResult:
     #: The final operating point (``detrend: mean``) and its names, else None.
     operating_point: np.ndarray | None = None
     operating_point_names: tuple[str, ...] = ()
+    #: Whether the estimator became ready (it publishes estimates from then on).
+    ready: bool = True
+    #: Empty messages dropped.
+    empty: int = 0
+    #: Why the first malformed message was refused ('' if none was).
+    first_malformed: str = ''
+
+    @property
+    def unused(self) -> dict[str, int]:
+        """
+        Return what was not used, by cause (``--json``'s ``unused``).
+
+        ``malformed`` and ``empty`` count messages (a malformed message has no
+        sure number of samples), ``estimator_errors`` messages whose update
+        raised, ``nonfinite`` samples with NaN/Inf, ``undone`` updates the
+        estimator took back (its state would have become unsound), ``refused``
+        samples its outlier test refused.
+        """
+        return {'malformed': self.malformed, 'empty': self.empty,
+                'estimator_errors': self.failures, 'nonfinite': self.nonfinite,
+                'undone': int(self.flags.get('update_undone', 0)),
+                'refused': int(self.flags.get('outlier_rejected', 0))}
+
+    @property
+    def not_ready_reason(self) -> str:
+        """Return why the estimator never became ready, from the counts ('' if it did)."""
+        if self.ready:
+            return ''
+        unused = {cause: count for cause, count in self.unused.items() if count}
+        causes = ', '.join(f'{count} {cause.replace("_", " ")}' for cause, count
+                           in sorted(unused.items(), key=lambda item: -item[1]))
+        if self.samples == 0:
+            text = f'no sample was used of {self.messages} messages'
+            text += f' ({causes})' if causes else ''
+        else:
+            taken = self.samples - unused.get('undone', 0) - unused.get('refused', 0)
+            text = f'{self.samples} samples went in, {taken} were kept'
+            text += f' ({causes})' if causes else ' (too few samples)'
+        if self.first_malformed:
+            text += f'; first malformed message: {self.first_malformed}'
+        return 'never became ready: ' + text
 
     @property
     def delta(self) -> float | None:
@@ -120,7 +161,10 @@ class ReplayResult:
             'uncompensated': _named(self.parameter_names, self.theta_uncompensated),
             'noise': _named(self.noise_names, self.noise),
             'flags': dict(self.flags),
+            'unused': self.unused,
         }
+        if not self.ready:
+            out['not_ready'] = self.not_ready_reason
         if self.std is not None:
             out['std'] = _named(self.parameter_names, self.std)
         if self.operating_point is not None:
@@ -198,15 +242,14 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
     feeder = SampleFeeder(est, values['excitation_window'], values['publish_period'],
                           values['freeze_unexcited'])
     published = _Published()
-    messages = malformed = failures = 0
+    messages = failures = 0
+    dropped = _Dropped()
     start = time.perf_counter()
     for block in blocks:
         messages += len(block)
         rows, count = _block_rows(block, est.num_inputs)
         if rows is None:
-            malformed_here, failures_here = _take_one_by_one(feeder, block, published)
-            malformed += malformed_here
-            failures += failures_here
+            failures += _take_one_by_one(feeder, block, published, dropped)
             continue
         # The node's per-message rule, for the whole block in one loop.
         result = feeder.take_messages(rows, count, publish=trajectory, timed=False)
@@ -223,7 +266,7 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
         noise_names=tuple(est.noise_names), theta=est.theta,
         theta_uncompensated=est.theta_uncompensated, noise=est.noise, valid=bool(est.valid),
         validity_reasons=tuple(est.validity_reasons), flags=dict(est.flags),
-        samples=feeder.used, messages=messages, malformed=malformed, failures=failures,
+        samples=feeder.used, messages=messages, malformed=dropped.malformed, failures=failures,
         nonfinite=feeder.nonfinite, truth=truth, elapsed_s=elapsed,
         times_ns=np.array(published.times, dtype=np.int64),
         sample_counts=np.array(published.counts, dtype=np.int64),
@@ -233,7 +276,8 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
         in_file_order=isinstance(bag, CsvSamples) or bag.order[topic].in_file_order,
         std=est.parameter_std,
         operating_point=est.operating_point,
-        operating_point_names=est.operating_point_names)
+        operating_point_names=est.operating_point_names,
+        ready=bool(est.ready), empty=dropped.empty, first_malformed=dropped.first_reason)
 
 
 class _Published:
@@ -269,22 +313,37 @@ def _block_rows(block: MessageBlock, num_inputs: int) -> tuple[np.ndarray | None
         return None, 0
     count, width = first.shape
     offset = int(getattr(block.layout, 'data_offset', 0) or 0)
-    return block.data[:, offset:].reshape(len(block) * count, width), count
+    rows = block.data[:, offset:].reshape(len(block) * count, width)
+    dims = list(block.layout.dim)
+    order = row_order(dims[-1].label, width) if dims else None  # checked by decode_samples
+    return (rows if order is None else rows[:, order]), count
 
 
-def _take_one_by_one(feeder: SampleFeeder, block: MessageBlock,
-                     published: _Published) -> tuple[int, int]:
-    """Feed each message of a block through take_message; return (malformed, failures)."""
-    malformed = failures = 0
+@dataclasses.dataclass
+class _Dropped:
+    """Messages dropped before the estimator: malformed and empty ones, the first reason."""
+
+    malformed: int = 0
+    empty: int = 0
+    first_reason: str = ''
+
+
+def _take_one_by_one(feeder: SampleFeeder, block: MessageBlock, published: _Published,
+                     dropped: _Dropped) -> int:
+    """Feed each message of a block through take_message; count the drops; return failures."""
+    failures = 0
     for index in range(len(block)):
         result = feeder.take_message(block.message(index))
         if result.dropped == 'estimator_errors':
             failures += 1
+        elif result.dropped == 'empty':
+            dropped.empty += 1
         elif result.dropped:
-            malformed += 1
+            dropped.malformed += 1
+            dropped.first_reason = dropped.first_reason or result.reason
         if result.estimates is not None:
             published.add(int(block.times_ns[index]), feeder.used, result.estimates)
-    return malformed, failures
+    return failures
 
 
 def write_output(result: ReplayResult, path: Path) -> None:

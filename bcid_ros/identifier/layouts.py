@@ -95,6 +95,11 @@ def decode_samples(message: Any, num_inputs: int | None = None) -> np.ndarray:
     1 + r). Values are not checked for NaN/Inf here; that is per sample, in
     :class:`SampleFeeder`.
 
+    The row's label is honoured (:func:`row_order`): a row labelled
+    ``u1,u2,y`` is reordered to ``y,u1,u2``; a label that names other columns
+    (``temp,heater,fan``) is refused. A label without a comma names no columns
+    and is ignored, as an empty one.
+
     Parameters
     ----------
     message : std_msgs/msg/Float64MultiArray or alike
@@ -149,7 +154,7 @@ def decode_samples(message: Any, num_inputs: int | None = None) -> np.ndarray:
         if row.stride not in (0, width) or frame.stride not in (0, count * width):
             raise ValueError(f'frame strides ({frame.stride}, {row.stride}) do not match a '
                              f'row-major {count} x {width} frame')
-        return data.reshape(count, width).copy()
+        return in_row_order(data.reshape(count, width), row_order(row.label, width))
     if dims:
         dim = dims[0]
         if dim.label == FRAME_LABEL:
@@ -162,7 +167,43 @@ def decode_samples(message: Any, num_inputs: int | None = None) -> np.ndarray:
                          f'{expected} (y,u1,...,ur)')
     if length < 2:
         raise ValueError(f'a sample has {length} value; expected at least 2 (y, u1)')
-    return data.reshape(1, length).copy()
+    order = row_order(dims[0].label, length) if dims else None
+    return in_row_order(data.reshape(1, length), order)
+
+
+def row_order(label: str, width: int) -> list[int] | None:
+    """
+    Return where each of ``y, u1, ..., ur`` is in a row labelled ``label`` (None: in order).
+
+    Parameters
+    ----------
+    label : str
+        The row dimension's label: empty or one word (names no columns: taken
+        in order), or the comma-separated column names in any order.
+    width : int
+        1 + r.
+
+    Raises
+    ------
+    ValueError
+        If the label names columns that are not ``y, u1, ..., ur`` each once.
+
+    """
+    if not label or ',' not in label:
+        return None
+    names = parse_names_label(label)
+    expected = sample_label(width - 1).split(',')
+    if sorted(names) != sorted(expected) or len(set(names)) != len(names):
+        raise ValueError(f'the row label {label!r} names other columns than '
+                         f'{",".join(expected)} (relabel them, or leave the label empty for '
+                         'that order)')
+    order = [names.index(name) for name in expected]
+    return None if order == list(range(width)) else order
+
+
+def in_row_order(rows: np.ndarray, order: list[int] | None) -> np.ndarray:
+    """Return a fresh copy of ``rows`` with its columns in ``y, u1, ..., ur`` order."""
+    return rows.copy() if order is None else rows[:, order]
 
 
 def covariance_layout(names: Sequence[str]) -> list[tuple[str, int, int]]:
@@ -180,4 +221,5 @@ def covariance_layout(names: Sequence[str]) -> list[tuple[str, int, int]]:
 
 
 __all__ = ['FRAME_LABEL', 'covariance_layout', 'decode_samples', 'estimate_layout',
+           'in_row_order', 'row_order',
            'names_label', 'parse_names_label', 'sample_label', 'samples_data', 'samples_layout']

@@ -293,7 +293,7 @@ def test_replay_json_is_the_spec_object(capsys):
 
     summary = json.loads(capsys.readouterr().out)
     assert list(summary) == ['estimator', 'samples', 'valid', 'validity_reasons', 'parameters',
-                             'uncompensated', 'noise', 'flags', 'std', 'truth', 'delta']
+                             'uncompensated', 'noise', 'flags', 'unused', 'std', 'truth', 'delta']
     assert summary['valid'] is True and summary['validity_reasons'] == []
     assert summary['estimator'] == 'bcrls' and summary['samples'] == 10000
     names = ['a1', 'a2', 'b1_1', 'b1_2', 'b2_1', 'b2_2']
