@@ -9,7 +9,11 @@ The CSV is 10⁶ rows of Ding MISO samples (`bcid simulate`'s, seed 3) with a ti
   (`BagReader.blocks`, one-sample messages), in the same run;
 * import: the whole `bcid import --time-column` process;
 * replay: whole `bcid replay --json` processes with rls, of the CSV and of the imported bag,
-  whose JSON must be equal (the run fails otherwise).
+  whose JSON must be equal (the run fails otherwise);
+* memory: the peak RSS of `bcid replay --json` of the CSV and of a CSV four times as long
+  (the log is streamed: the peak must not grow with the file; SPEC §18: a 1 GB CSV under
+  200 MB at >= 100k rows/s). `python -m benchmarks.csv_logs --rows 14700000` runs the 1 GB
+  case itself (about 15 minutes on a shared machine, most of it writing the CSV).
 
 Wall times are the fastest of the repeats (another process on this shared machine only ever
 makes a run slower); the note gives the ratio of the two figures of one row.
@@ -18,6 +22,7 @@ makes a run slower); the note gives the ratio of the two figures of one row.
 from __future__ import annotations
 
 from pathlib import Path
+import subprocess
 import sys
 import tempfile
 import time
@@ -33,6 +38,8 @@ ROOT = Path(__file__).resolve().parent.parent
 ROWS, ROWS_QUICK = 1_000_000, 100_000
 #: The read target of docs/bags.md: 10⁶ rows in about a second or two.
 READ_TARGET_S = 2.0
+#: SPEC §18: peak memory of a streamed CSV replay (MB) and its speed (rows/s).
+MEMORY_TARGET_MB, SPEED_TARGET = 200.0, 100_000
 
 PARAMETERS = 'bcid_identifier:\n  ros__parameters:\n    estimator: rls\n    order: 2\n' \
     '    num_inputs: 2\n'
@@ -52,6 +59,37 @@ def write_csv(bag: Path, out: Path) -> Path:
     return out
 
 
+def peak_rss_mb(command: list[str]) -> tuple[float, float]:
+    """Return the wall time (s) and peak RSS (MB) of ``command``, run in a wrapper of its own."""
+    wrapper = ('import resource, subprocess, sys, time\n'
+               'start = time.perf_counter()\n'
+               'done = subprocess.run(sys.argv[1:], capture_output=True)\n'
+               'wall = time.perf_counter() - start\n'
+               'if done.returncode: sys.exit(done.stderr.decode())\n'
+               'print(wall, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024)')
+    done = subprocess.run([sys.executable, '-c', wrapper, *command], capture_output=True,
+                          text=True, check=True)
+    wall, peak = done.stdout.split()
+    return float(wall), float(peak)
+
+
+def replay_memory(bcid: str, here: Path, rows: int, parameters: Path) -> list[Result]:
+    """Measure the peak RSS of replaying CSVs of ``rows`` and 4 ``rows`` rows (streamed)."""
+    figures = []
+    for count in (rows, 4 * rows):
+        csv = write_csv(simulate(bcid, here / f'memory{count}', count), here / f'm{count}.csv')
+        wall, peak = peak_rss_mb([bcid, 'replay', str(csv), '--params', str(parameters),
+                                  '--json', '--time-column', 'time'])
+        figures.append((count, csv.stat().st_size / 1e6, wall, peak))
+        csv.unlink()
+    (small, small_mb, _, small_peak), (large, large_mb, wall, peak) = figures
+    return [Result(SECTION, f'`bcid replay --json` of a {large:,}-row CSV ({large_mb:.0f} MB): '
+                   'peak RSS', peak, 'MB', f'< {MEMORY_TARGET_MB:g} MB, flat',
+                   peak < MEMORY_TARGET_MB and peak < 1.2 * small_peak,
+                   note=f'{small:,} rows ({small_mb:.0f} MB): {small_peak:.0f} MB; '
+                   f'{large / wall:,.0f} rows/s over the whole process')]
+
+
 def best_seconds(call, repeats: int) -> float:
     """Return the fastest wall time of ``repeats`` calls of ``call``."""
     best = float('inf')
@@ -62,8 +100,8 @@ def best_seconds(call, repeats: int) -> float:
     return best
 
 
-def run(quick: bool = False) -> list[Result]:
-    """Measure reading, importing and replaying a CSV log."""
+def run(quick: bool = False, memory_rows: int = 0) -> list[Result]:
+    """Measure reading, importing and replaying a CSV log; the memory with ``memory_rows``."""
     from bcid_ros.bag.csv_samples import read_csv_samples
     from bcid_ros.bag.reader import BagReader
 
@@ -106,10 +144,13 @@ def run(quick: bool = False) -> list[Result]:
         csv_wall, bag_wall = figures['CSV'][0], figures['imported bag'][0]
         rows.append(Result(SECTION, '`bcid replay --json` (rls) of the CSV', csv_wall, 's',
                            note=f'of the imported bag: {bag_wall:.3g} s (CSV / bag = '
-                           f'{csv_wall / bag_wall:.2f}); equal JSON'))
+                           f'{csv_wall / bag_wall:.2f}); equal JSON; {count / csv_wall:,.0f} '
+                           'rows/s'))
+        rows += replay_memory(bcid, here, memory_rows or count, parameters)
     return rows
 
 
 if __name__ == '__main__':
-    for row in run(quick='--quick' in sys.argv):
+    large = int(sys.argv[sys.argv.index('--rows') + 1]) // 4 if '--rows' in sys.argv else 0
+    for row in run(quick='--quick' in sys.argv, memory_rows=large):
         print(' | '.join(row.cells()))

@@ -99,16 +99,17 @@ def import_csv(args: argparse.Namespace) -> int:
     from bcid_ros.bag.replay import SAMPLES_TOPIC
     from bcid_ros.identifier.layouts import sample_label
 
-    samples = read_csv_samples(args.csv, args.columns, args.time_column, args.rate)
+    samples = read_csv_samples(args.csv, args.columns, args.time_column, args.rate, load=False)
     out = write_samples_bag(samples, args.out)
-    count = samples.rows.shape[0]
-    span = (samples.times_ns[-1] - samples.times_ns[0]) / 1e9
+    stats = samples.stats
+    count = stats.rows
+    span = (stats.last_ns - stats.first_ns) / 1e9
     stamps = (f'times from column {samples.time_column!r}' if samples.time_column is not None
               else f'stamped at {samples.rate_hz:g} Hz')
     print(f'wrote {out}: {count} samples on {SAMPLES_TOPIC} ({sample_label(samples.num_inputs)} '
           f'from columns {",".join(samples.columns)}), {stamps}, {span:.6g} s')
-    if samples.nonfinite_rows:
-        print(f'{samples.nonfinite_rows} row(s) with an empty, NaN or infinite value: written '
+    if stats.nonfinite_rows:
+        print(f'{stats.nonfinite_rows} row(s) with an empty, NaN or infinite value: written '
               'as they are (empty as NaN); the identifier skips such samples')
     return 0
 

@@ -36,11 +36,13 @@ a bad cell) is converted again cell by cell, with the same parser, Python's
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import math
 from operator import methodcaller
 from pathlib import Path
+import re
 from typing import Any, Iterator, Sequence
 
 import numpy as np
@@ -69,11 +71,32 @@ BLOCK_ROWS = 4096
 
 _COUNT_COMMAS = methodcaller('count', ',')
 
+#: A number as a CSV log writes it: ASCII digits, an optional sign, point and exponent, or
+#: nan/inf; no digit separators ('1_000'), no other digits ('１２３'); blanks around it.
+PLAIN_NUMBER = re.compile(r'\s*[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?'
+                          r'|nan|inf|infinity)\s*', re.IGNORECASE | re.ASCII)
 
-@dataclasses.dataclass(frozen=True)
+
+@dataclasses.dataclass
+class CsvStats:
+    """What one full pass over a CSV log found."""
+
+    rows: int = 0
+    nonfinite_rows: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+
+
 class CsvSamples:
     """
-    The samples of a CSV log, as a bag's ``/samples`` topic gives them.
+    The samples of a CSV log, as a bag's ``/samples`` topic gives them, read as they are used.
+
+    Made by :func:`read_csv_samples`, which has read and checked the header.
+    :meth:`chunks` and :meth:`blocks` stream the file: each pass reads it
+    again, in chunks of about :data:`CHUNK_BYTES`, so that a replay or an
+    import holds a bounded part of it (docs/guarantees.md). :attr:`rows` and
+    :attr:`times_ns` read it all into memory once, for the callers that need
+    every sample at once (``bcid analyze``).
 
     Attributes
     ----------
@@ -85,29 +108,73 @@ class CsvSamples:
         The column the time stamps come from (None: row k at k / ``rate_hz``).
     rate_hz : float
         The sample rate of the time stamps without a time column.
-    times_ns : numpy.ndarray, shape ``(N,)``
-        Time stamps, int64 nanoseconds, non-decreasing.
-    rows : numpy.ndarray, shape ``(N, 1 + r)``
-        The samples ``[y, u1, ..., ur]``; NaN where a cell was empty.
+    stats : CsvStats or None
+        Rows, non-finite rows and the time span, once a pass has read the whole file.
 
     """
 
-    path: Path
-    columns: tuple[str, ...]
-    time_column: str | None
-    rate_hz: float
-    times_ns: np.ndarray
-    rows: np.ndarray
+    def __init__(self, path: Path, table: _Columns, header_line: int, header: list[str],
+                 time_column: str | None, rate_hz: float) -> None:
+        self.path = path
+        self.columns = table.names
+        self.time_column = time_column
+        self.rate_hz = rate_hz
+        self.stats: CsvStats | None = None
+        self._table = table
+        self._header_line = header_line
+        self._header = header
+        self._loaded: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def num_inputs(self) -> int:
         """Return r, the number of input columns."""
-        return self.rows.shape[1] - 1
+        return len(self.columns) - 1
 
-    @property
-    def nonfinite_rows(self) -> int:
-        """Return the number of rows with an empty, NaN or infinite sample value."""
-        return int(np.count_nonzero(~np.isfinite(self.rows).all(axis=1)))
+    def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """
+        Yield ``(times_ns, rows)`` chunk after chunk, reading and checking the file as it goes.
+
+        Raises
+        ------
+        BcidError
+            At the first row that does not fit (named by its row number), or if
+            there is no data row.
+
+        """
+        if self._loaded is not None:
+            yield self._loaded
+            return
+        table, header, path = self._table, self._header, self.path
+        width = len(header)
+        stats = CsvStats()
+        previous_time = None
+        with _open(path) as stream:
+            for _ in range(self._header_line):
+                stream.readline()
+            for chunk in _chunks(stream, self._header_line):
+                if not len(chunk):
+                    continue
+                cells = chunk.split(path, header, self._header_line)
+                values = [_convert(cells[index::width], chunk, header[index], path,
+                                   index == table.time_index) for index in table.indices]
+                if table.time_index is not None:
+                    seconds = values.pop()
+                    previous_time = _check_times(seconds, chunk, self.time_column, path,
+                                                 previous_time)
+                    times = np.rint(seconds * 1e9).astype(np.int64)
+                else:
+                    steps = np.arange(stats.rows, stats.rows + len(chunk))
+                    times = np.rint(steps * (1e9 / self.rate_hz)).astype(np.int64)
+                rows = np.ascontiguousarray(np.column_stack(values), dtype=np.float64)
+                if not stats.rows:
+                    stats.first_ns = int(times[0])
+                stats.rows += rows.shape[0]
+                stats.nonfinite_rows += int(np.count_nonzero(~np.isfinite(rows).all(axis=1)))
+                stats.last_ns = int(times[-1])
+                yield times, rows
+        if stats.rows == 0:
+            raise BcidError(f'{path}: no data rows after the header (row {self._header_line})')
+        self.stats = stats
 
     def blocks(self) -> Iterator[MessageBlock]:
         """
@@ -115,17 +182,42 @@ class CsvSamples:
 
         The layout is that of a one-sample message, ``dim[0] = {label:
         'y,u1,...,ur', size: 1 + r, stride: 1 + r}``
-        (:func:`bcid_ros.identifier.layouts.samples_layout`), the time stamps are
-        :attr:`times_ns`: the messages that
+        (:func:`bcid_ros.identifier.layouts.samples_layout`): the messages that
         :meth:`bcid_ros.bag.reader.BagReader.blocks` yields for the bag that
-        :func:`write_samples_bag` writes, in blocks of :data:`BLOCK_ROWS`
+        :func:`write_samples_bag` writes, in blocks of at most :data:`BLOCK_ROWS`
         (a block with a NaN goes message by message, as the bag's chunk would).
         """
-        width = self.rows.shape[1]
+        width = len(self.columns)
         layout = Layout((Dimension(sample_label(self.num_inputs), width, width),), 0)
-        for start in range(0, self.rows.shape[0], BLOCK_ROWS):
-            end = start + BLOCK_ROWS
-            yield MessageBlock(self.times_ns[start:end], layout, self.rows[start:end])
+        for times, rows in self.chunks():
+            for start in range(0, rows.shape[0], BLOCK_ROWS):
+                end = start + BLOCK_ROWS
+                yield MessageBlock(times[start:end], layout, rows[start:end])
+
+    def load(self) -> CsvSamples:
+        """Read the whole file into memory (:attr:`rows`, :attr:`times_ns`); return self."""
+        if self._loaded is None:
+            parts = list(self.chunks())
+            self._loaded = (np.concatenate([times for times, _ in parts]),
+                            np.concatenate([rows for _, rows in parts]))
+        return self
+
+    @property
+    def times_ns(self) -> np.ndarray:
+        """Return the time stamps, int64 nanoseconds, non-decreasing (the file is loaded)."""
+        return self.load()._loaded[0]
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Return the samples ``[y, u1, ..., ur]``, NaN where a cell was empty (loaded)."""
+        return self.load()._loaded[1]
+
+    @property
+    def nonfinite_rows(self) -> int:
+        """Return the number of rows with an empty, NaN or infinite sample value."""
+        if self.stats is None:
+            self.load()
+        return self.stats.nonfinite_rows
 
 
 def is_csv(path: str | Path) -> bool:
@@ -169,7 +261,7 @@ def samples_source(path: Path, columns: str | None = None, time_column: str | No
 
     """
     if is_csv(path):
-        return read_csv_samples(path, columns, time_column, rate_hz)
+        return read_csv_samples(path, columns, time_column, rate_hz, load=False)
     given = [option for option, value in (('--columns', columns),
                                           ('--time-column', time_column),
                                           ('--rate', rate_hz)) if value is not None]
@@ -181,9 +273,13 @@ def samples_source(path: Path, columns: str | None = None, time_column: str | No
 
 def read_csv_samples(path: str | Path, columns: str | Sequence[str] | None = None,
                      time_column: str | None = None,
-                     rate_hz: float | None = None) -> CsvSamples:
+                     rate_hz: float | None = None, load: bool = True) -> CsvSamples:
     """
     Read a CSV log into samples ``[y, u1, ..., ur]`` and time stamps.
+
+    With ``load=False`` only the header is read now; the rows are read, and
+    checked, as :meth:`CsvSamples.chunks` streams them (``bcid replay`` and
+    ``bcid import``: memory that does not grow with the file).
 
     Parameters
     ----------
@@ -198,6 +294,8 @@ def read_csv_samples(path: str | Path, columns: str | Sequence[str] | None = Non
     rate_hz : float, optional
         Without a time column, row k is stamped k / ``rate_hz``; default
         :data:`DEFAULT_RATE_HZ`.
+    load : bool
+        Read and check every row now (else as they are streamed).
 
     Returns
     -------
@@ -220,42 +318,28 @@ def read_csv_samples(path: str | Path, columns: str | Sequence[str] | None = Non
         raise BcidError(f'--rate must be a positive number of samples per second, got {rate_hz}')
     wanted = parse_columns(columns) if isinstance(columns, str) or columns is None \
         else parse_columns(','.join(columns))
+    with _open(path) as stream:
+        header_line, header = _header(stream, path)
+    table = _Columns(path, header_line, header, wanted, time_column)
+    samples = CsvSamples(path, table, header_line, header, time_column, rate)
+    return samples.load() if load else samples
+
+
+@contextlib.contextmanager
+def _open(path: Path) -> Iterator[Any]:
+    """Open a CSV log as UTF-8 text; the errors of opening and decoding become BcidError."""
     try:
-        with path.open(encoding='utf-8-sig') as stream:
-            return _read(stream, path, wanted, time_column, rate)
+        stream = path.open(encoding='utf-8-sig')
     except FileNotFoundError:
         raise BcidError(f'{path}: no such file') from None
-    except UnicodeDecodeError as error:
-        raise BcidError(f'{path}: not a UTF-8 text file ({error.reason})') from None
     except IsADirectoryError:
         raise BcidError(f'{path}: a directory, not a CSV file') from None
-
-
-def _read(stream: Any, path: Path, wanted: tuple[str, ...] | None, time_column: str | None,
-          rate_hz: float) -> CsvSamples:
-    header_line, header = _header(stream, path)
-    table = _Columns(path, header_line, header, wanted, time_column)
-    width = len(header)
-    values: list[list[np.ndarray]] = [[] for _ in table.indices]
-    previous_time = None
-    for chunk in _chunks(stream, header_line):
-        cells = chunk.split(path, header, header_line)
-        for store, index in zip(values, table.indices):
-            store.append(_convert(cells[index::width], chunk, header[index], path,
-                                  index == table.time_index))
-        if table.time_index is not None and len(chunk):
-            previous_time = _check_times(values[-1][-1], chunk, time_column, path,
-                                         previous_time)
-    count = sum(part.shape[0] for part in values[0])
-    if count == 0:
-        raise BcidError(f'{path}: no data rows after the header (row {header_line})')
-    columns = [np.concatenate(parts) for parts in values]
-    if table.time_index is None:
-        times_ns = np.rint(np.arange(count) * (1e9 / rate_hz)).astype(np.int64)
-    else:
-        times_ns = np.rint(columns.pop() * 1e9).astype(np.int64)
-    return CsvSamples(path, table.names, time_column, rate_hz, times_ns,
-                      np.ascontiguousarray(np.column_stack(columns), dtype=np.float64))
+    try:
+        yield stream
+    except UnicodeDecodeError as error:
+        raise BcidError(f'{path}: not a UTF-8 text file ({error.reason})') from None
+    finally:
+        stream.close()
 
 
 def _header(stream: Any, path: Path) -> tuple[int, list[str]]:
@@ -313,6 +397,8 @@ class _Chunk:
             lines = [lines[k] for k in kept]
         self.lines = lines
         self.first_line = first_line
+        #: Whether every cell is ASCII without '_' (set by :meth:`split`).
+        self.plain = True
 
     def __len__(self) -> int:
         return len(self.lines)
@@ -335,6 +421,9 @@ class _Chunk:
             return []
         width = len(header)
         joined = '\n'.join(self.lines)
+        # Python's float (which numpy calls) takes 1_000 and non-ASCII digits: cells of a
+        # chunk with either are checked one by one against the plain syntax (_convert).
+        self.plain = joined.isascii() and '_' not in joined
         if '"' in joined:
             return self._split_quoted(path, width, header, header_line)
         counts = np.fromiter(map(_COUNT_COMMAS, self.lines), dtype=np.int64,
@@ -347,6 +436,13 @@ class _Chunk:
 
     def _split_quoted(self, path: Path, width: int, header: list[str],
                       header_line: int) -> list[str]:
+        # A field quoted right has its quotes in pairs (one inside is doubled): a line with
+        # an odd number opens a field that it does not close. Found here, by its own row;
+        # the csv module would read on into the next lines and report a later one.
+        for row, text in enumerate(self.lines):
+            if text.count('"') % 2:
+                raise BcidError(f'{path}: row {self.line(row)}: a quoted field is not closed '
+                                'on its line (an open quote)')
         reader = csv.reader(self.lines, skipinitialspace=True, strict=True)
         cells: list[str] = []
         try:
@@ -397,13 +493,17 @@ def _convert(cells: list[str], chunk: _Chunk, name: str, path: Path, is_time: bo
         If a cell is not a number, or a time cell is empty.
 
     """
-    try:
-        return np.array(cells, dtype=np.float64)
-    except ValueError:
-        pass
+    column = '' if chunk.plain else ''.join(cells)  # another column may hold the odd cells
+    if chunk.plain or (column.isascii() and '_' not in column):
+        try:
+            return np.array(cells, dtype=np.float64)
+        except ValueError:
+            pass
     values = np.empty(len(cells))
     for row, text in enumerate(cells):
         try:
+            if not PLAIN_NUMBER.fullmatch(text):
+                raise ValueError(text)
             values[row] = float(text)
         except ValueError:
             if text.strip() or is_time:
@@ -462,6 +562,8 @@ def write_samples_bag(samples: CsvSamples, out: str | Path) -> Path:
     volatile, depth 1000) in the channel metadata, written by
     :class:`~bcid_ros.bag.writer.BagWriter` (``metadata.yaml`` included).
     A non-finite sample is written as it is (NaN), for the identifier to skip.
+    The log is streamed (:meth:`CsvSamples.chunks`); :attr:`CsvSamples.stats`
+    holds the counts afterwards.
 
     Returns
     -------
@@ -481,8 +583,9 @@ def write_samples_bag(samples: CsvSamples, out: str | Path) -> Path:
     out = Path(out)
     with BagWriter(out) as writer:
         writer.add_topic(SAMPLES_TOPIC, FLOAT64_MULTI_ARRAY, [SAMPLES_QOS])
-        for time_ns, message in zip(samples.times_ns.tolist(), _serialised(samples.rows)):
-            writer.write(SAMPLES_TOPIC, time_ns, message)
+        for times, rows in samples.chunks():
+            for time_ns, message in zip(times.tolist(), _serialised(rows)):
+                writer.write(SAMPLES_TOPIC, time_ns, message)
     return out
 
 

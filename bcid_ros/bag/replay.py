@@ -221,7 +221,7 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
 
     """
     if not isinstance(bag, (BagReader, CsvSamples)):
-        bag = read_csv_samples(bag) if is_csv(bag) else BagReader(bag)
+        bag = read_csv_samples(bag, load=False) if is_csv(bag) else BagReader(bag)
     values = dict(parameters)
     if estimator is not None:
         values['estimator'] = estimator
