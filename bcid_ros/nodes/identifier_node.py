@@ -35,6 +35,7 @@ from bcid_ros.identifier import interface
 from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
 from bcid_ros.identifier.layouts import names_label
 from bcid_ros.identifier.pairing import GAP, Paired, Pairing, SequenceTracker
+from bcid_ros.identifier.slicing import SlicedFeeder
 from bcid_ros.identifier.parameters import (check_identifier_parameters, estimator_from_parameters,
                                             IDENTIFIER_PARAMETERS, spec_by_name, unused_options)
 from bcid_ros.nodes.common import (create_draining_subscription, declare_table,
@@ -93,6 +94,10 @@ class IdentifierNode(Node):
         self._sequences = SequenceTracker()
         self.pairing = Pairing.from_settings(settings)
         self.estimates = EstimatePublisher(self, self.estimator, settings['detrend'])
+        # large frames go in slices from a timer, so that other callbacks wait <= 20 ms
+        self.slices = SlicedFeeder(self.feeder)
+        self._slice_timer = self.create_timer(0.0, self._feed_slices)
+        self._slice_timer.cancel()
         self._subscribe(settings)
 
         self.reset_service = self.create_service(Trigger, interface.RESET, self.on_reset)
@@ -202,9 +207,21 @@ class IdentifierNode(Node):
     def on_samples(self, message: Float64MultiArray, info: dict) -> None:
         """Decode a samples message (one sample or a frame) and feed it."""
         self.messages += 1
-        if self._lost(interface.SAMPLES, info):
+        lost = bool(self._lost(interface.SAMPLES, info))
+        if self.slices.takes(message):
+            self.slices.push(message, gap=lost)
+            self._slice_timer.reset()
+            return
+        if lost:
             self.feeder.gap()
         self._take(self.feeder.take_message(message))
+
+    def _feed_slices(self) -> None:
+        """Feed the next slices of the large frames waiting (:mod:`~bcid_ros.identifier.slicing`)."""
+        for result in self.slices.step():
+            self._take(result)
+        if not self.slices.busy:
+            self._slice_timer.cancel()
 
     def on_separate(self, side: str, read: Callable[[Any], Any], message: Any,
                     info: dict) -> None:
@@ -269,6 +286,7 @@ class IdentifierNode(Node):
         """Restart the estimator from its initial state (~/reset)."""
         used = self.estimator.samples
         self.feeder.reset()
+        self.slices.clear()
         self._sequences.reset()
         self.pairing.reset()
         self.estimates.update_valid()
