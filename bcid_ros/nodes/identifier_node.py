@@ -242,8 +242,10 @@ class IdentifierNode(Node):
         lost = self._sequences.lost(topic, sequence)
         if lost:
             self.counters['lost'] += lost
-            self._throttle.warn('lost', f'{lost} {topic} message(s) lost in transport (is the '
-                                'node too slow for the rate? use frames)')
+            # the total, since the throttle's repeat count counts warnings, not messages
+            self._throttle.warn('lost', f'{lost} {topic} message(s) lost in transport, '
+                                f'{self.counters["lost"]} in all (is the node too slow for the '
+                                'rate? use frames)')
         return lost
 
     def _take_paired(self, paired: Paired) -> None:
