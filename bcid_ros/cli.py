@@ -1,6 +1,7 @@
 """
-The ``bcid`` command: replay, simulate, reproduce, record, play, info, reindex, demo, analyze,
-import.
+The ``bcid`` command and its subcommands.
+
+replay, simulate, reproduce, record, play, info, reindex, demo, analyze, import.
 
 Each subcommand is a small function in the module that owns the work; this
 file only parses arguments and turns :class:`~bcid_ros.errors.BcidError`

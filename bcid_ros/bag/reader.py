@@ -20,33 +20,20 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-import struct
 import sys
 from typing import Any, Iterator, Sequence
 
 import numpy as np
-import zstandard
 
 from bcid_ros.bag.blocks import (chunk_records, MessageBlock, ordered_blocks, OrderReport,
                                  topic_blocks)
-from bcid_ros.bag.summary import (check_data_crc, CrcMismatch, MissingFooter, parse_summary, read_footer,
-                                  read_header)
+from bcid_ros.bag.summary import (check_data_crc, CrcMismatch, MissingFooter, parse_summary,
+                                  read_errors, read_footer, read_header)
 from bcid_ros.errors import BcidError
 from bcid_ros.identifier.interface import (basename, FLOAT64_MULTI_ARRAY, TRUE_NOISE_VARIANCE,
                                            TRUE_PARAMETERS)
 from bcid_ros.identifier.layouts import parse_names_label
 from bcid_ros.simulation.base import Truth
-
-#: Failures of the MCAP and CDR layers that mean "this file is broken" (and ``mcap``'s
-#: McapError where ``mcap`` reads: :func:`read_errors`).
-READ_ERRORS = (struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError,
-               IndexError, UnicodeDecodeError, TypeError)
-
-
-def read_errors() -> tuple[type[Exception], ...]:
-    """Return :data:`READ_ERRORS`, with ``mcap``'s McapError once ``mcap`` was imported."""
-    mcap = sys.modules.get('mcap.exceptions')
-    return READ_ERRORS if mcap is None else READ_ERRORS + (mcap.McapError,)
 
 
 def make_reader(stream: Any, **options: Any) -> Any:

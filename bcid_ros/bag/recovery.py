@@ -23,11 +23,12 @@ import os
 from pathlib import Path
 import shutil
 import struct
-from typing import Any, BinaryIO, Iterator
+from typing import BinaryIO, Iterator
 
 from bcid_ros.bag.blocks import CHANNEL_AT, chunk_records, CHUNK_FIELDS, LOG_TIME_AT, MESSAGE
 from bcid_ros.bag.summary import (CHANNEL, ChunkIndex, DATA_END, FOOTER, MAGIC, parse_summary,
-                                  read_header, RECORD, SCHEMA, Statistics, Summary)
+                                  read_errors, read_header, RECORD, SCHEMA, Statistics,
+                                  Summary)
 from bcid_ros.errors import BcidError
 
 #: MCAP opcode of a Chunk record.
@@ -176,7 +177,6 @@ def reindex_bag(path: str | Path) -> str:
 
     """
     from bcid_ros.bag.qos import parse_offered
-    from bcid_ros.bag.reader import read_errors
     from bcid_ros.bag.writer import BagWriter
 
     path = Path(path)

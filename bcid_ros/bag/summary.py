@@ -16,6 +16,7 @@ by :func:`check_data_crc`; a CRC of 0 means "not computed" (MCAP spec) and is no
 from __future__ import annotations
 
 import struct
+import sys
 from typing import BinaryIO, NamedTuple
 import zlib
 
@@ -36,6 +37,19 @@ STATISTICS_FIELDS = struct.Struct('<QHIIIIQQ')
 #: Chunk Index before its message index offsets: first and last message time, chunk start
 #: and length.
 CHUNK_INDEX_FIELDS = struct.Struct('<QQQQ')
+
+
+#: Failures of the MCAP and CDR layers that mean "this file is broken" (and ``mcap``'s
+#: McapError and zstd's ZstdError where those are used: :func:`read_errors`).
+READ_ERRORS = (struct.error, EOFError, ValueError, KeyError, IndexError, UnicodeDecodeError,
+               TypeError)
+
+
+def read_errors() -> tuple[type[Exception], ...]:
+    """Return :data:`READ_ERRORS` and the errors of ``mcap`` and ``zstandard`` once imported."""
+    mcap, zstd = sys.modules.get('mcap.exceptions'), sys.modules.get('zstandard')
+    return (READ_ERRORS + ((mcap.McapError,) if mcap is not None else ())
+            + ((zstd.ZstdError,) if zstd is not None else ()))
 
 
 class CrcMismatch(ValueError):
@@ -200,7 +214,7 @@ def read_summary(stream: BinaryIO) -> Summary | None:
 
 
 class MissingFooter(ValueError):
-    """The file does not end with a footer and the magic: an unfinished recording?"""
+    """The file does not end with a footer and the magic (an unfinished recording)."""
 
 
 def read_footer(stream: BinaryIO) -> Footer:
@@ -326,5 +340,5 @@ def _read_exactly(stream: BinaryIO, size: int) -> bytes:
 
 
 __all__ = ['Channel', 'ChunkIndex', 'CrcMismatch', 'Footer', 'Header', 'MissingFooter',
-           'Schema', 'Statistics', 'Summary', 'check_data_crc', 'file_crc', 'parse_summary',
-           'read_footer', 'read_header', 'read_summary']
+           'READ_ERRORS', 'Schema', 'Statistics', 'Summary', 'check_data_crc', 'file_crc',
+           'parse_summary', 'read_errors', 'read_footer', 'read_header', 'read_summary']

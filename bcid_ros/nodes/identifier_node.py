@@ -217,7 +217,7 @@ class IdentifierNode(Node):
         self._take(self.feeder.take_message(message))
 
     def _feed_slices(self) -> None:
-        """Feed the next slices of the large frames waiting (:mod:`~bcid_ros.identifier.slicing`)."""
+        """Feed the next slices of the large frames waiting (identifier/slicing.py)."""
         for result in self.slices.step():
             self._take(result)
         if not self.slices.busy:

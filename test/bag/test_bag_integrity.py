@@ -176,8 +176,8 @@ def test_a_cut_off_recording_is_read_to_its_last_whole_chunk_and_reindexed(
     assert code == 0 and again == recovered and 'warning' not in err
 
 
-def test_a_corrupt_whole_chunk_of_a_cut_off_recording_is_an_error(flushed_bag, tmp_path,
-                                                                   capsys):
+def test_a_corrupt_whole_chunk_of_a_cut_off_recording_is_an_error(
+        flushed_bag, tmp_path, capsys):
     bag = cut(flushed_bag, tmp_path / 'rec', mcap_of(flushed_bag).stat().st_size // 2)
     reader = BagReader(flushed_bag)
     chunk = reader._summaries[reader.files[0]].chunk_indexes[1]

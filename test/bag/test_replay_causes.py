@@ -1,6 +1,8 @@
 """
-``bcid replay --json`` counts every sample it did not use, by cause, and says why a result
-never became ready (SPEC §18).
+``bcid replay --json``: every sample not used, counted by cause; why a result is not ready.
+
+SPEC §18: the counts name the cause (malformed, empty, nonfinite, undone, ...), and a
+result that never became ready says the real reason.
 """
 
 import json
@@ -31,8 +33,8 @@ def replay_json(capsys, bag):
     return json.loads(out)
 
 
-def test_messages_of_the_wrong_length_are_counted_as_malformed_with_the_reason(tmp_path,
-                                                                             capsys):
+def test_messages_of_the_wrong_length_are_counted_as_malformed_with_the_reason(
+        tmp_path, capsys):
     bag = write_bag(tmp_path / 'short', [[0.1 * k, 1.0] for k in range(3000)], label='y,u1')
     result = replay_json(capsys, bag)
     assert result['samples'] == 0 and not result['valid']

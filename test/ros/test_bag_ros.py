@@ -200,8 +200,8 @@ def test_record_stops_on_sigint_and_keeps_everything_received(tmp_path, domain, 
     assert values == [float(k) for k in range(count)]
 
 
-def test_record_killed_keeps_what_came_a_second_before_and_reindex_repairs_it(tmp_path, domain,
-                                                                             graph):
+def test_record_killed_keeps_what_came_a_second_before_and_reindex_repairs_it(
+        tmp_path, domain, graph):
     # SPEC §18: SIGKILL after 10 s of 500 Hz; >= 90 % of the samples published up to 1 s
     # before the kill are read back (the recorder flushes a chunk every 0.5 s).
     out = tmp_path / 'killed'
