@@ -19,7 +19,7 @@ import sys
 from bcid_ros.markdown import markdown_table
 
 ROOT = Path(__file__).resolve().parent.parent
-SECTIONS = ('estimators', 'replay', 'csv_logs', 'node', 'reproduce', 'pem')
+SECTIONS = ('estimators', 'replay', 'csv_logs', 'bag_flips', 'node', 'reproduce', 'pem')
 
 
 def machine() -> str:
