@@ -10,7 +10,7 @@ plant) and each sample of all plants is one numpy pass.
 
 Each plant follows the recursion of its single-plant estimator with the same
 rules: the step and every safeguard around it are
-:func:`~bcid_ros.estimators.rls.ls_step_rows` (which the single plant runs as
+:func:`~bcid_ros.estimators.recursion.ls_step_rows` (which the single plant runs as
 K = 1 for its rare samples) and the rulebook
 (:mod:`~bcid_ros.estimators.rules`); the compensation of BCRLS is
 :func:`~bcid_ros.estimators.bcrls.compensate_rows`, the batched twin of the
@@ -37,10 +37,11 @@ from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_prob
                                        LaggedMoments, output_error_rows)
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
+from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
+                                           scale_dependents)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
-from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings, Rls,
-                                     scale_dependents)
+from bcid_ros.estimators.rls import LsAccessors, Rls
 
 Rows = slice | np.ndarray
 
@@ -53,7 +54,7 @@ class BatchedRls(LsAccessors, SharedSettings):
     (47)-(50) of Ding et al. (2006) with forgetting) with everything around
     it (units, transaction, gate and plant change, anti-windup, covariance
     repair, validity), by the same functions
-    (:func:`~bcid_ros.estimators.rls.ls_step_rows` and the rulebook), counted
+    (:func:`~bcid_ros.estimators.recursion.ls_step_rows` and the rulebook), counted
     per plant in :attr:`flags`; P_k(0) = p0 S_k^-2 with plant k's own
     power-of-two signal scales (:attr:`signal_scale`).
 
@@ -98,7 +99,7 @@ class BatchedRls(LsAccessors, SharedSettings):
                              forgetting_factor, outlier_threshold)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
-        self._trace_limit = self.initial_covariance * self.num_parameters
+        self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
         self._gate_from = rules.GATE_WARMUP * self.num_parameters
         self._regressors = StackedRegressors(self.num_plants, self.order, self.num_inputs,
                                              self.feedthrough)
@@ -382,7 +383,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         if self._pending_any:
             self._choose_scales(rows)
         settings = LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
-                              self._trace_limit, self.initial_covariance)
+                              self._propagation, self.initial_covariance)
         outcome = ls_step_rows(self._plants, rows, y, phi, settings)
         for key, where in outcome.events.items():
             self._flag(key, rows, where)

@@ -15,7 +15,8 @@ import numpy as np
 
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.rls import ls_batch, matvec, Rls, rowdot
+from bcid_ros.estimators.recursion import matvec, rowdot
+from bcid_ros.estimators.rls import ls_batch, Rls
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
 #: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which

@@ -27,7 +27,7 @@ from bcid_ros.estimators.bciv.history import SampleHistory
 from bcid_ros.estimators.bciv.uncertainty import moment_function
 from bcid_ros.estimators.bciv.units import regularisation_weights
 from bcid_ros.estimators.moment_covariance import MomentBlocks
-from bcid_ros.estimators.rls import VARIANCE_FLOOR
+from bcid_ros.estimators.recursion import VARIANCE_FLOOR
 
 UPDATES = ('converged', 'printed')
 #: A compensation farther than this from theta_IV (relative, normalised units) is a runaway.
