@@ -10,7 +10,7 @@ exciting.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from bcid_ros.estimators.recursion import (CAREFUL_GAIN, Forgetting, HEALTH_CHEC
                                            ls_step, ls_step_rows, LsPlants, LsSettings,
                                            repair_rows, scale_dependents)
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
-from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.residual_state import residual_items, residual_states
 
 
 #: No event (a mask of one False).
@@ -321,32 +321,27 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._trace_weights = self._component_scale ** 2
 
     # --------------------------------------------------------- the validity
-    def _check_validity(self) -> None:
+    def _check_validity(self, more: Sequence[str] = ()) -> None:
+        """
+        Decide the reasons (every VALIDITY_PERIOD updates; see the class docstring).
+
+        Own reasons: an unstable model while the output power is bounded,
+        then ``more`` (a subclass's); the base class adds the shared ones.
+        The growth test's memory moves on after the decision.
+        """
         self._next_check = self._updates + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
-            self._reasons = tuple(self._find_problems())
-
-    def _find_problems(self) -> list[str]:
-        """Return the reasons not to trust the estimate now (see the class docstring)."""
-        power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
-        reasons = rules.unstable_models(self._theta()[None, :self.order], power,
+            power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
+            own = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
+        self._decide_validity(own + list(more))
         self._last_power = float(power[0])
-        return reasons + residual_reasons(self._monitor)
-
-    def _validity_reasons(self) -> tuple[str, ...]:
-        return self._reasons
 
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether phi(t) is filled and at least p updates have been made."""
         return self._updates >= self.num_parameters
-
-    @property
-    def valid(self) -> bool:
-        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
-        return self._updates >= self.num_parameters and not self._reasons
 
     @property
     def samples(self) -> int:

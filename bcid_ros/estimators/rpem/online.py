@@ -27,8 +27,8 @@ from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
                                            repair_covariance, VARIANCE_FLOOR)
-from bcid_ros.estimators.residual_state import (residual_items, residual_reasons,
-                                                residual_states, with_gradient_arrays)
+from bcid_ros.estimators.residual_state import (residual_items, residual_states,
+                                                with_gradient_arrays)
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, inside
@@ -429,21 +429,13 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        self._reasons = tuple(watch.reasons(steps) + residual_reasons(self._monitor))
-
-    def _validity_reasons(self) -> tuple[str, ...]:
-        return self._reasons
+        self._decide_validity(watch.reasons(steps))
 
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether the first fit is made (and at least p samples were used)."""
         return self._fitted and self._samples >= self.num_parameters
-
-    @property
-    def valid(self) -> bool:
-        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
-        return self.ready and not self._reasons
 
     @property
     def samples(self) -> int:
