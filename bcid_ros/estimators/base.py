@@ -214,6 +214,22 @@ class SharedSettings:
     @forgetting_factor.setter
     def forgetting_factor(self, value: float) -> None:
         self._forgetting_factor = check_forgetting_factor(value)
+        self._follow_forgetting_factor()
+
+    def _follow_forgetting_factor(self) -> None:
+        """
+        Give every part whose memory is the estimator's the forgetting factor now in force.
+
+        P's recursion reads it at every step; the residual tests' window
+        (:meth:`~bcid_ros.estimators.adequacy.AdequacyMonitor.follow_forgetting_factor`)
+        and the HAC covariance's weights (``_hac``) are told here, so that a
+        live change reaches them as it reaches P, not at the next reset.
+        """
+        monitor, hac = getattr(self, '_monitor', None), getattr(self, '_hac', None)
+        if monitor is not None:
+            monitor.follow_forgetting_factor(self._forgetting_factor)
+        if hac is not None:
+            hac.forgetting_factor = self._forgetting_factor
 
     @property
     def outlier_threshold(self) -> float:
@@ -703,6 +719,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
             self._means.weight = float(weight)
         self._checkpoint = None
         self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
+        self._follow_forgetting_factor()
 
     @property
     def theta(self) -> np.ndarray:

@@ -192,6 +192,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         value = check_forgetting_factor(value)
         self._check_forgetting(value)
         self._forgetting_factor = value
+        self._follow_forgetting_factor()
 
     def set_controller(self, numerator: Sequence[float], denominator: Sequence[float],
                        sign: str = 'negative') -> bool:
