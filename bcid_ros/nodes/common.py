@@ -37,8 +37,19 @@ SAMPLES_QOS_POLICIES = (QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY,
 
 
 def samples_qos() -> QoSProfile:
-    """Return a fresh copy of :data:`SAMPLES_QOS` (rclpy writes the overrides into it)."""
-    return QoSProfile(history=SAMPLES_QOS.history, depth=SAMPLES_QOS.depth,
+    """
+    Return the QoS of a sample subscription: reliable, volatile, KEEP_ALL (a fresh profile).
+
+    KEEP_ALL, unlike the publishers' KEEP_LAST 1000, makes the flow control
+    end to end: a reliable publisher that keeps all too (``bcid play --rate
+    0``) waits while the node is busy instead of having its samples
+    overwritten in the node's queue; a KEEP_LAST or best-effort publisher
+    loses the samples on its side, which the sequence numbers count. The
+    depth (1000) applies when ``qos_overrides./<topic>.subscription.history``
+    is ``keep_last``. rclpy writes the overrides into the profile, hence a
+    fresh one per subscription.
+    """
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=SAMPLES_QOS.depth,
                       reliability=SAMPLES_QOS.reliability, durability=SAMPLES_QOS.durability)
 
 
