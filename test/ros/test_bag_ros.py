@@ -290,3 +290,34 @@ def test_play_as_fast_as_possible_delivers_every_sample(bag_name, tmp_path, doma
     finally:
         stop(node)
         log.close()
+
+
+def test_play_publishes_the_bags_time_on_clock(tmp_path, domain, graph, monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
+    from rosgraph_msgs.msg import Clock
+
+    from bcid_ros.bag.play import play_bag
+
+    bag = simulate_bag('ding_miso', 300, 0, 100.0, tmp_path / 'clocked')
+    times = [stamp for _, stamp, _ in BagReader(bag).messages()]
+    clocks = []
+    graph.node.create_subscription(
+        Clock, '/clock', lambda m: clocks.append(m.clock.sec * 10 ** 9 + m.clock.nanosec),
+        QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
+    result = {}
+    thread = threading.Thread(target=lambda: result.update(
+        stats=play_bag(bag, rate=2.0, delay=1.0, clock=20.0)))  # 1 s to match, then 1.5 s
+    thread.start()
+    try:
+        graph.spin_until(lambda: not thread.is_alive(), timeout=30)
+    finally:
+        thread.join(timeout=30)
+    graph.spin_until(lambda: False, timeout=0.3)
+    stats = result['stats']
+    # 20 per second of bag time over its 3 s, and the last message's time
+    assert 55 <= stats.clock_messages <= 65, stats.describe()
+    assert len(clocks) >= stats.clock_messages - 3  # best effort on one machine
+    assert clocks == sorted(clocks) and clocks[-1] == max(times)
+    assert min(times) <= clocks[0]
+    steps = np.diff(clocks[:-1])
+    assert (steps >= 50_000_000).all()  # at most 20 per second of bag time
