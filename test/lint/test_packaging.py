@@ -43,7 +43,8 @@ def run_in_workspace(ws, command):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('executable', ['identifier_node', 'simulator_node', 'bcid'])
+@pytest.mark.parametrize('executable', ['identifier_node', 'identifier_lifecycle_node',
+                                        'simulator_node', 'bcid'])
 def test_executables_are_where_ros2_run_looks(workspace, executable):
     path = workspace / 'install' / 'bcid_ros' / 'lib' / 'bcid_ros' / executable
     assert path.is_file()
@@ -65,6 +66,9 @@ def test_installed_package_is_the_one_imported_and_finds_its_config(workspace):
     installed = sorted(p.name for p in (Path(share) / 'config').glob('*.yaml'))
     assert installed == sorted(p.name for p in (ROOT / 'config').glob('*.yaml'))
     assert (Path(share) / 'package.xml').is_file()
+    launch = sorted(p.name for p in (Path(share) / 'launch').glob('*.launch.py'))
+    assert launch == sorted(p.name for p in (ROOT / 'launch').glob('*.launch.py'))
+    assert len(launch) == 3
     marker = workspace / 'install' / 'bcid_ros' / 'share' / 'ament_index' / \
         'resource_index' / 'packages' / 'bcid_ros'
     assert marker.is_file()
