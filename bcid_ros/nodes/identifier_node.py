@@ -180,6 +180,7 @@ class Identifier:
         self.subscriptions_of_samples = []
         if self.joint_state is not None:
             self.joint_state.diagnostics.timer.cancel()
+            self.joint_state.staleness.stop()
             return
         self.staleness.stop()
         self.diagnostics.timer.cancel()

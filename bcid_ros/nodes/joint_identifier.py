@@ -28,7 +28,7 @@ from bcid_ros.nodes.common import LATCHED_QOS, Throttle
 from bcid_ros.nodes.diagnostics import CounterTask, SampleRateTask
 from bcid_ros.nodes.joint_diagnostics import JointDiagnosticsUpdater, JointStatuses, JointsTask
 from bcid_ros.nodes.messages import as_doubles, estimate_message, valid_message
-from bcid_ros.nodes.sample_topics import IncompatibleQoS, subscribe_samples
+from bcid_ros.nodes.sample_topics import IncompatibleQoS, StalenessWatch, subscribe_samples
 
 #: No QoS event handlers on the per-joint publishers: rclpy's default ones (a warning
 #: for an incompatible subscriber) put two waitables per publisher into every wait of
@@ -83,6 +83,9 @@ class JointStateIdentifier:
         self._noise_message = estimate_message(estimator.noise_names)
         for publisher in self._valid:
             publisher.publish(valid_message(False))
+        # no joint_states for stale_after seconds: every joint's ~/valid turns false
+        self.staleness = StalenessWatch(node, settings['stale_after'],
+                                        lambda: self._publish_valid(np.arange(len(feeder.joints))))
         self.subscription = self.subscribe(qos_events)
         self.reset_service = node.create_service(Trigger, interface.RESET, self.on_reset)
         name = node.get_fully_qualified_name()
@@ -91,8 +94,9 @@ class JointStateIdentifier:
                 JointsTask(settings['estimator'], feeder, lambda: feeder.publish_period),
                 CounterTask(self.counters, lambda: feeder.excitation_lost),
                 SampleRateTask(feeder, lambda: node.get_clock().now().nanoseconds * 1e-9, self),
-                qos_events],
+                self.staleness, qos_events],
             JointStatuses(name, feeder), hardware_id=name)
+        self.staleness.start()
 
     def resume(self) -> None:
         """
@@ -103,6 +107,7 @@ class JointStateIdentifier:
         """
         self._sequences.reset()
         self.feeder.gap()
+        self.staleness.start()
 
     def subscribe(self, qos_events: IncompatibleQoS) -> Any:
         """Subscribe to ``joint_states`` (again, after a deactivation); return the subscription."""
@@ -114,6 +119,7 @@ class JointStateIdentifier:
     def on_joint_state(self, message: JointState, info: Any) -> None:
         """Take one JointState: update every joint it carries, publish what is due."""
         self.messages += 1
+        self.staleness.arrived(self.staleness.now())
         sequence = info.get('publication_sequence_number') if isinstance(info, dict) else None
         lost = self._sequences.lost(JOINT_STATES, sequence)
         if lost:
@@ -171,7 +177,7 @@ class JointStateIdentifier:
         self.estimates_published += len(joints)
 
     def _publish_valid(self, joints: np.ndarray) -> None:
-        valid = self.feeder.valid
+        valid = self.feeder.valid & (not self.staleness.reason)
         for joint in joints.tolist():
             self._valid[joint].publish(valid_message(valid[joint]))
 

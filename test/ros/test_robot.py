@@ -291,3 +291,44 @@ def test_lifecycle_refuses_a_bad_parameter_at_configure(ros_context, executor):
     get = driver.create_client(GetState, '/bcid_identifier/get_state')
     assert lifecycle_call(executor, get, GetState.Request()).current_state.id == \
         State.PRIMARY_STATE_UNCONFIGURED
+
+
+def test_joint_state_estimates_go_stale_too(ros_context, executor):
+    joints = ['j1', 'j2']
+    node = IdentifierNode(context=ros_context, parameter_overrides=[
+        Parameter('input_mode', value='joint_state'), Parameter('joints', value=joints),
+        Parameter('order', value=1), Parameter('stale_after', value=0.5),
+        Parameter('estimator', value='rls')])  # equation-error data below: LS is consistent
+    executor.add_node(node)
+    robot = rclpy.create_node('robot', context=ros_context)
+    executor.add_node(robot)
+    valid = {joint: [] for joint in joints}
+    for joint in joints:
+        robot.create_subscription(Bool, f'/bcid_identifier/{joint}/valid',
+                                  lambda m, joint=joint: valid[joint].append(m.data),
+                                  LATCHED_QOS)
+    publisher = robot.create_publisher(JointState, '/joint_states', SAMPLES_QOS)
+    assert spin_until(executor, lambda: publisher.get_subscription_count() == 1, timeout=10)
+    rng = np.random.default_rng(1)
+    y = np.zeros(2)
+
+    def send(count):
+        nonlocal y
+        for _ in range(count):
+            u = rng.standard_normal(2)
+            publisher.publish(JointState(name=joints, effort=u.tolist(),
+                                         velocity=y.tolist(), position=[0.0, 0.0]))
+            y = 0.8 * y + 0.5 * u + 0.05 * rng.standard_normal(2)
+
+    for _ in range(12):
+        send(50)
+        spin_until(executor, lambda: False, timeout=0.02)
+    assert spin_until(executor, lambda: all(v[-1:] == [True] for v in valid.values()),
+                      timeout=5), valid
+    # the robot stops publishing: every joint's ~/valid turns false, and the node says why
+    assert spin_until(executor, lambda: all(v[-1:] == [False] for v in valid.values()),
+                      timeout=3)
+    assert 'estimate not valid: no samples for' in node.joint_state.diagnostics.status().message
+    send(1)
+    assert spin_until(executor, lambda: all(v[-1:] == [True] for v in valid.values()),
+                      timeout=3)
