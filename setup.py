@@ -20,6 +20,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
     install_requires=['setuptools', 'numpy', 'scipy'],
     extras_require={
@@ -35,6 +36,7 @@ setup(
     entry_points={
         'console_scripts': [
             'identifier_node = bcid_ros.nodes.identifier_node:main',
+            'identifier_lifecycle_node = bcid_ros.nodes.identifier_lifecycle_node:main',
             'simulator_node = bcid_ros.nodes.simulator_node:main',
             'adaptive_controller_node = bcid_ros.nodes.adaptive_controller_node:main',
             'bcid = bcid_ros.cli:main',

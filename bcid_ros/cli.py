@@ -123,11 +123,17 @@ def _record_arguments(record: argparse.ArgumentParser) -> None:
 def _play_arguments(play: argparse.ArgumentParser) -> None:
     play.add_argument('bag', type=Path)
     play.add_argument('--rate', type=float, default=1.0,
-                      help='time scale; 0 plays as fast as possible')
+                      help='time scale; 0 plays as fast as possible, without losing a sample '
+                      'to a subscriber that keeps all (the identifier), and exits 1 if an '
+                      'identifier on /diagnostics lost some')
     play.add_argument('--topics', nargs='+', help='play only these topics (default: all)')
-    play.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SECONDS',
+    play.add_argument('--wait-for-subscribers', type=float, default=None, metavar='SECONDS',
                       help='first wait up to SECONDS until every volatile topic has a '
-                      'subscriber (0: do not wait)')
+                      'subscriber (0: do not wait; default 0, or 10 with --rate 0)')
+    play.add_argument('--clock', type=float, nargs='?', const=100.0, default=0.0,
+                      metavar='HZ', help='publish /clock (rosgraph_msgs/Clock) from the '
+                      "bag's time, HZ times per second of bag time (default 100), for nodes "
+                      'with use_sim_time')
     play.add_argument('--delay', type=float, default=0.0, metavar='SECONDS',
                       help='wait this long after creating the publishers, before playing')
 

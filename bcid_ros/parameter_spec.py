@@ -201,20 +201,47 @@ def _flatten(tree: dict[str, Any], prefix: str = '') -> dict[str, Any]:
     return flat
 
 
-def load_yaml_parameters(path: str | Path, node_name: str = 'bcid_identifier') -> dict[str, Any]:
+def _section_kind(key: object, node_name: str) -> str:
+    """
+    Return whether a parameter file's top-level key applies to ``node_name``.
+
+    ``'wildcard'`` for a key that applies to every node (``/**``, ``/ns/*``),
+    ``'own'`` for one that names the node (``node``, ``/node``, ``/ns/node``,
+    ``/**/node``), ``''`` for any other; the namespace is not known offline,
+    so every namespace matches, as the shipped configs intend.
+    """
+    last = str(key).rstrip('/').rsplit('/', 1)[-1]
+    if last in ('**', '*'):
+        return 'wildcard'
+    return 'own' if last == node_name else ''
+
+
+def load_yaml_parameters(path: str | Path, node_name: str = 'bcid_identifier',
+                         declared: Any = None) -> dict[str, Any]:
     """
     Read the parameters of one node from a ROS 2 parameter YAML file.
 
-    Values under ``/**:`` apply to every node; those under ``<node_name>:``
-    (or ``/<node_name>:``, or any ``/namespace/<node_name>:``) override them.
-    Nested keys are flattened with dots, as ROS does.
+    Every section whose key applies to the node is read in file order, later
+    values overriding earlier ones, as rcl does: the wildcard ``/**:`` (every
+    node, any namespace; the shipped configs put the identifier's parameters
+    there), then e.g. ``/**/bcid_simulator:`` (that node name in any
+    namespace). The old form ``<node_name>:`` (or ``/<node_name>:``, or
+    ``/namespace/<node_name>:``) is read too. Nested keys are flattened with
+    dots, as ROS does.
 
     Parameters
     ----------
     path : str or pathlib.Path
         The YAML file.
     node_name : str
-        The node whose section to read.
+        The node whose sections to read.
+    declared : collection of str, optional
+        The node's parameter names. When given, a wildcard section's values
+        that the node does not declare are left out, as a ROS node never sees
+        them (the simulator's and the controller's readers pass their tables,
+        since the wildcard section holds the identifier's parameters); names
+        in the node's own sections are all returned, for the caller's check
+        to refuse the unknown ones.
 
     Returns
     -------
@@ -239,21 +266,25 @@ def load_yaml_parameters(path: str | Path, node_name: str = 'bcid_identifier') -
         raise ValueError(f'{path}: not a ROS 2 parameter file (expected a mapping)')
     values: dict[str, Any] = {}
     found = False
-    wildcard = [key for key in document if str(key).strip('/') == '**']
-    own = [key for key in document
-           if str(key).lstrip('/') == node_name or str(key).endswith('/' + node_name)]
-    for key in wildcard + own:
-        section = document[key]
+    for key, section in document.items():
+        kind = _section_kind(key, node_name)
+        if not kind:
+            continue
         if not isinstance(section, dict) or 'ros__parameters' not in section:
             raise ValueError(f'{path}: section {key!r} has no ros__parameters')
         parameters = section['ros__parameters'] or {}
         if not isinstance(parameters, dict):
             raise ValueError(f'{path}: {key}: ros__parameters must be a mapping')
-        values.update(_flatten(parameters))
+        flat = _flatten(parameters)
+        if kind == 'wildcard' and declared is not None:
+            flat = {name: value for name, value in flat.items()
+                    if name in declared or name in ROS_BUILTIN}
+        values.update(flat)
         found = True
     if not found:
         raise ValueError(f'{path}: no section for node {node_name!r} '
-                         f'(expected "{node_name}: ros__parameters:" or "/**:")')
+                         f'(expected "/**: ros__parameters:" or '
+                         f'"/**/{node_name}: ros__parameters:")')
     return values
 
 

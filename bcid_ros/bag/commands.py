@@ -131,9 +131,10 @@ def play(args: argparse.Namespace) -> int:
     from bcid_ros.bag.play import play_bag
 
     stats = play_bag(args.bag, rate=args.rate, topics=args.topics,
-                     wait_for_subscribers=args.wait_for_subscribers, delay=args.delay)
+                     wait_for_subscribers=args.wait_for_subscribers, delay=args.delay,
+                     clock=args.clock)
     print(stats.describe(), file=sys.stderr)
-    return 0
+    return 1 if stats.shortfall else 0
 
 
 __all__ = ['import_csv', 'info', 'play', 'record', 'reindex', 'replay', 'simulate']

@@ -44,7 +44,7 @@ def to_bag_qos(profile: QoSProfile) -> Qos:
                bool(profile.avoid_ros_namespace_conventions))
 
 
-def publisher_profile(offered: Sequence[Qos]) -> QoSProfile:
+def publisher_profile(offered: Sequence[Qos], keep_all: bool = False) -> QoSProfile:
     """
     Return the profile to publish a recorded topic with.
 
@@ -52,13 +52,18 @@ def publisher_profile(offered: Sequence[Qos]) -> QoSProfile:
     the depth is the largest offered KEEP_LAST depth, for volatile topics at
     least :data:`MIN_VOLATILE_DEPTH`, so that a burst played as fast as
     possible is not overwritten before a reliable subscriber has it.
+    ``keep_all`` (playing as fast as possible) gives a reliable volatile
+    topic KEEP_ALL: the writer then waits for a reliable subscriber that
+    keeps all too, instead of overwriting what it has not yet taken.
     Deadline, lifespan and liveliness are left at their defaults.
     """
     depths = [q.depth for q in offered if q.history == QosHistory.KEEP_LAST]
     latched = is_transient_local(offered)
     depth = max(depths, default=1) if latched else max(depths + [MIN_VOLATILE_DEPTH])
+    keep_all = keep_all and not latched and is_reliable(offered)
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=max(depth, 1),
+        history=HistoryPolicy.KEEP_ALL if keep_all else HistoryPolicy.KEEP_LAST,
+        depth=max(depth, 1),
         reliability=(ReliabilityPolicy.RELIABLE if is_reliable(offered)
                      else ReliabilityPolicy.BEST_EFFORT),
         durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched

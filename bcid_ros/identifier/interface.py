@@ -38,6 +38,9 @@ NOISE_VARIANCE = '~/noise_variance'
 VALID = '~/valid'
 PARAMETER_STD = '~/parameter_std'
 PARAMETER_COVARIANCE = '~/parameter_covariance'
+#: The estimate with the stamp of the last sample used (sensor_msgs/JointState, latched):
+#: ``name`` the parameter names, ``position`` the values of ``~/parameters``.
+PARAMETERS_STAMPED = '~/parameters_stamped'
 #: The operating point [y0, u1, ..., ur] of ``detrend: mean`` (latched).
 OPERATING_POINT = '~/operating_point'
 RESET = '~/reset'
@@ -237,9 +240,28 @@ def check_input_width(input_type: str, num_inputs: int, parameter: str = 'input_
 
 
 # ---------------------------------------------------------------- diagnostics
-def status_name(node: str) -> str:
-    """Return the identifier's ``DiagnosticStatus.name`` for the node named ``node``."""
-    return f'{node}: identifier'
+def fully_qualified(node: str, namespace: str = '/') -> str:
+    """
+    Return a node's fully qualified name (a name that starts with ``/`` already is one).
+
+    >>> fully_qualified('bcid_identifier', '/robot1')
+    '/robot1/bcid_identifier'
+    """
+    if node.startswith('/'):
+        return node
+    return f'{namespace.rstrip("/")}/{node}'
+
+
+def status_name(node: str, namespace: str = '/') -> str:
+    """
+    Return the identifier's ``DiagnosticStatus.name``: its fully qualified name first.
+
+    Two identifiers in two namespaces never share a status:
+
+    >>> status_name('bcid_identifier', '/robot1')
+    '/robot1/bcid_identifier: identifier'
+    """
+    return f'{fully_qualified(node, namespace)}: identifier'
 
 
 class DiagnosticKey:
@@ -263,6 +285,11 @@ class DiagnosticKey:
     PUBLISH_PERIOD = 'publish period (samples)'
     ADAPT = 'adapt'
     SAMPLES_HELD = 'samples held (adaptation off)'
+    #: Staleness (``stale_after``): seconds since the last sample, and the limit in force.
+    LAST_SAMPLE_AGE = 'seconds since the last sample'
+    STALE_AFTER = 'stale after (s)'
+    #: Prefix of ``incompatible QoS <topic>``: publishers refused for their QoS.
+    INCOMPATIBLE_QOS = 'incompatible QoS '
     #: Prefixes of ``flag <name>`` (estimator flag counts) and ``noise <name>``.
     FLAG = 'flag '
     NOISE = 'noise '
@@ -294,7 +321,7 @@ __all__ = ['BAD', 'BOOL', 'COUNTERS', 'DIAGNOSTICS', 'DROPPED', 'DiagnosticKey',
            'FLOAT64', 'FLOAT64_MULTI_ARRAY', 'IDENTIFIER_NODE', 'INPUT',
            'INPUT_TYPES', 'JOINT_STATE', 'MESSAGE_TYPES', 'MessageType', 'NOISE_VARIANCE',
            'OUTPUT', 'OUTPUT_TYPES', 'PARAMETER_COVARIANCE', 'PARAMETER_STD', 'PARAMETERS',
-           'PARAMETERS_UNCOMPENSATED', 'RESET',
+           'PARAMETERS_STAMPED', 'PARAMETERS_UNCOMPENSATED', 'RESET',
            'SAMPLES', 'SIMULATOR_NODE', 'TRUE_NOISE_VARIANCE', 'TRUE_PARAMETERS', 'VALID',
-           'basename', 'check_input_width', 'reader', 'resolve',
+           'basename', 'check_input_width', 'fully_qualified', 'reader', 'resolve',
            'stamp_ns', 'status_name']

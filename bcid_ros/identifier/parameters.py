@@ -102,6 +102,10 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
        'changed while running.', low=1, high=1000000, read_only=False),
     _p('excitation_window', 'integer', 200, 'Warn (and count) when the input has not changed '
        'for this many samples (no excitation); 0 turns the check off.', low=0, high=1e9),
+    _p('stale_after', 'double', 0.0, 'Seconds without a sample after which ~/valid turns '
+       'false (reason: no samples for T s), true again when samples resume. 0: automatic, '
+       'ten times the median interval between recent samples and at least 1 s; negative: '
+       'never.', low=-1e9, high=1e9),
     # --- the adaptive loop
     _p('controller_topic', 'string', '', 'cl_bcls only: take the controller in the loop from '
        'this topic (Float64MultiArray, latched; numerator then denominator in descending '

@@ -7,6 +7,7 @@ the offline tools use the same names, defaults and ranges.
 
 from __future__ import annotations
 
+import difflib
 import sys
 import time
 from typing import Any, Callable, Sequence
@@ -14,11 +15,13 @@ from typing import Any, Callable, Sequence
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 import rclpy
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 from bcid_ros.parameter_spec import ParameterSpec
 
@@ -26,6 +29,40 @@ from bcid_ros.parameter_spec import ParameterSpec
 SAMPLES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+
+#: The QoS policies of a sample subscription that ROS 2's standard override parameters
+#: ``qos_overrides./<topic>.subscription.<policy>`` set (read-only, at start-up).
+SAMPLES_QOS_POLICIES = (QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY,
+                        QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH)
+
+
+def samples_qos() -> QoSProfile:
+    """
+    Return the QoS of a sample subscription: reliable, volatile, KEEP_ALL (a fresh profile).
+
+    KEEP_ALL, unlike the publishers' KEEP_LAST 1000, makes the flow control
+    end to end: a reliable publisher that keeps all too (``bcid play --rate
+    0``) waits while the node is busy instead of having its samples
+    overwritten in the node's queue; a KEEP_LAST or best-effort publisher
+    loses the samples on its side, which the sequence numbers count. The
+    depth (1000) applies when ``qos_overrides./<topic>.subscription.history``
+    is ``keep_last``. rclpy writes the overrides into the profile, hence a
+    fresh one per subscription.
+    """
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=SAMPLES_QOS.depth,
+                      reliability=SAMPLES_QOS.reliability, durability=SAMPLES_QOS.durability)
+
+
+def samples_qos_overrides() -> QoSOverridingOptions:
+    """Return the override options of a sample subscription (:data:`SAMPLES_QOS_POLICIES`)."""
+    return QoSOverridingOptions(policy_kinds=SAMPLES_QOS_POLICIES)
+
+
+def qos_override_names(resolved_topic: str) -> list[str]:
+    """Return the override parameter names of a sample subscription to ``resolved_topic``."""
+    return [f'qos_overrides.{resolved_topic}.subscription.{policy.name.lower()}'
+            for policy in SAMPLES_QOS_POLICIES]
+
 
 #: Estimate, validity and truth topics: latched, so late joiners get the last one.
 LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -39,7 +76,7 @@ DRAIN_SECONDS = 0.02
 
 def create_draining_subscription(node: Node, message_type: type, topic: str,
                                  callback: Callable[[Any, dict], None],
-                                 qos: QoSProfile) -> Any:
+                                 qos: QoSProfile, **options: Any) -> Any:
     """
     Subscribe ``callback(message, info)``; each call also takes the messages already waiting.
 
@@ -50,7 +87,8 @@ def create_draining_subscription(node: Node, message_type: type, topic: str,
     in order and with their message info, until none is left or
     :data:`DRAIN_SECONDS` have passed; then timers, services and parameter
     changes get their turn as before. A node that keeps up never has a queue,
-    and its callbacks go one by one as with a plain subscription.
+    and its callbacks go one by one as with a plain subscription. ``options``
+    go to ``create_subscription`` (event callbacks, QoS overriding options).
     """
     subscription = None
 
@@ -65,7 +103,7 @@ def create_draining_subscription(node: Node, message_type: type, topic: str,
                 return
             callback(*taken)
 
-    subscription = node.create_subscription(message_type, topic, take_waiting, qos)
+    subscription = node.create_subscription(message_type, topic, take_waiting, qos, **options)
     return subscription
 
 
@@ -136,24 +174,59 @@ def declare_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
 
     """
     _coerce_integer_overrides(node, table)
-    values = {}
     for spec in table:
         try:
             if spec.default is None or spec.default == []:
-                parameter = node.declare_parameter(spec.name, _ROS_TYPES[spec.type],
-                                                   descriptor(spec))
+                node.declare_parameter(spec.name, _ROS_TYPES[spec.type], descriptor(spec))
             else:
-                parameter = node.declare_parameter(spec.name, spec.default, descriptor(spec))
+                node.declare_parameter(spec.name, spec.default, descriptor(spec))
         except Exception as error:  # rclpy's InvalidParameter*Exception and TypeError
             raise ValueError(f'parameter {spec.name!r} must be {spec.allowed()}: '
                              f'{error}') from None
-        value = parameter.value
+    return read_table(node, table)
+
+
+def read_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
+    """Return the current values of a declared table (no value: the table's default)."""
+    values = {}
+    for spec in table:
+        try:
+            value = node.get_parameter(spec.name).value
+        except ParameterUninitializedException:  # statically typed, declared without a value
+            value = None
         if value is None:
             value = spec.default
         elif spec.type in ('double_array', 'string_array', 'integer_array'):
             value = list(value)
         values[spec.name] = value
     return values
+
+
+def undeclared_overrides(node: Node, also_known: Sequence[str] = ()) -> list[tuple[str, str]]:
+    """
+    Return the parameters given to ``node`` (file or command line) that it does not declare.
+
+    Each comes with the closest declared (or ``also_known``) name, or ``''``
+    when none is close (difflib). ROS ignores such a parameter without a
+    word; a typo such as ``forgeting_factor`` would leave the default in force.
+    """
+    overrides = getattr(node, '_parameter_overrides', None) or {}
+    known = sorted(set(node._parameters) | set(also_known))
+    result = []
+    for name in sorted(overrides):
+        if name in known:
+            continue
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+        result.append((name, close[0] if close else ''))
+    return result
+
+
+def warn_undeclared(node: Node, also_known: Sequence[str] = ()) -> None:
+    """Log one warning per parameter given to ``node`` that it does not declare."""
+    for name, close in undeclared_overrides(node, also_known):
+        hint = f'; did you mean {close!r}?' if close else ''
+        node.get_logger().warning(f'parameter {name!r} is not a parameter of this node and is '
+                                  f'ignored{hint}')
 
 
 def make_parameter_check(specs: dict[str, ParameterSpec]

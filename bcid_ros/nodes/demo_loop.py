@@ -25,6 +25,7 @@ import numpy as np
 
 from bcid_ros.control.design import (closed_loop_poles, Controller, format_poles,
                                      ModelStructure, Plant, pole_distance)
+from bcid_ros.control.parameters import CONTROLLER_PARAMETERS
 from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.errors import BcidError
 from bcid_ros.identifier import interface
@@ -353,7 +354,8 @@ def run_adaptive_loop(args: argparse.Namespace) -> int:
         raise BcidError('--samples and --rate must be positive')
     estimator = getattr(args, 'estimator', None) or 'cl_bcls'
     config = config_file('adaptive_loop')
-    controller_settings = load_yaml_parameters(config, interface.CONTROLLER_NODE)
+    controller_settings = load_yaml_parameters(
+        config, interface.CONTROLLER_NODE, {spec.name for spec in CONTROLLER_PARAMETERS})
     change_at = samples // 2
     record = LoopRecord(tuple(controller_settings['closed_loop_poles']),
                         ModelStructure(int(controller_settings.get('order', 2))), change_at)

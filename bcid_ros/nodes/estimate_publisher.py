@@ -5,23 +5,27 @@ The identifier's latched estimate topics (docs/nodes.md, "identifier_node").
 ``~/parameters``, ``~/parameters_uncompensated``, ``~/noise_variance``,
 ``~/parameter_std`` and ``~/parameter_covariance`` (when the estimator has
 them and someone subscribes to them), ``~/operating_point`` (with
-``detrend: mean``) and ``~/valid`` (when it changes).
+``detrend: mean``), ``~/parameters_stamped`` (the estimate with the stamp of
+the last sample used) and ``~/valid`` (when it changes; false while the
+estimate is stale, see ``stale_after``).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
+from builtin_interfaces.msg import Time
 import numpy as np
 from rclpy.node import Node
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
 from bcid_ros.estimators import RecursiveEstimator
 from bcid_ros.estimators.base import standard_deviations
 from bcid_ros.identifier import interface
 from bcid_ros.nodes.common import LATCHED_QOS
-from bcid_ros.nodes.messages import (covariance_message, estimate_message, SerializedArray,
-                                     valid_message)
+from bcid_ros.nodes.messages import (as_doubles, covariance_message, estimate_message,
+                                     SerializedArray, valid_message)
 
 
 class EstimatePublisher:
@@ -36,6 +40,9 @@ class EstimatePublisher:
         The estimator whose uncertainty, operating point and validity are read.
     detrend : str
         The ``detrend`` parameter: ``'mean'`` adds ``~/operating_point``.
+    stale : callable, optional
+        Returns why the estimate is stale (``''`` while it is not): ``~/valid``
+        is false while it says something.
 
     Attributes
     ----------
@@ -44,8 +51,10 @@ class EstimatePublisher:
 
     """
 
-    def __init__(self, node: Node, estimator: RecursiveEstimator, detrend: str) -> None:
+    def __init__(self, node: Node, estimator: RecursiveEstimator, detrend: str,
+                 stale: Callable[[], str] = str) -> None:
         self._estimator = estimator
+        self._stale = stale
         names = estimator.parameter_names
         self._topics = {  # publisher and serialised layout of each estimate topic
             topic: (node.create_publisher(Float64MultiArray, topic, LATCHED_QOS),
@@ -61,14 +70,33 @@ class EstimatePublisher:
                 node.create_publisher(Float64MultiArray, interface.OPERATING_POINT,
                                       LATCHED_QOS),
                 SerializedArray(estimate_message(estimator.operating_point_names)))
+        self.stamped_publisher = node.create_publisher(JointState, interface.PARAMETERS_STAMPED,
+                                                       LATCHED_QOS)
+        self._stamped = JointState(name=list(names))
         self.published = 0
         self.valid_publisher = node.create_publisher(Bool, interface.VALID, LATCHED_QOS)
-        self._valid = bool(estimator.valid)
+        self._valid = self.valid
         self.valid_publisher.publish(valid_message(self._valid))
 
-    def publish(self, theta: np.ndarray, uncompensated: np.ndarray, noise: np.ndarray) -> None:
-        """Publish the estimates (the caller has checked that they are due and finite)."""
+    @property
+    def valid(self) -> bool:
+        """Return whether the estimate is trustworthy: the estimator's validity, and not stale."""
+        return bool(self._estimator.valid) and not self._stale()
+
+    def publish(self, theta: np.ndarray, uncompensated: np.ndarray, noise: np.ndarray,
+                stamp: Time | None = None) -> None:
+        """
+        Publish the estimates (the caller has checked that they are due and finite).
+
+        ``stamp`` is the stamp of the last sample used; None (an estimate
+        restored from the state file, whose samples' times are not kept)
+        publishes time zero on ``~/parameters_stamped``.
+        """
         self._publish(interface.PARAMETERS, theta)
+        stamped = self._stamped
+        stamped.header.stamp = stamp if stamp is not None else Time()
+        stamped.position = as_doubles(theta)
+        self.stamped_publisher.publish(stamped)
         self._publish(interface.PARAMETERS_UNCOMPENSATED, uncompensated)
         if noise.size and np.isfinite(noise).all():
             self._publish(interface.NOISE_VARIANCE, noise)
@@ -106,7 +134,7 @@ class EstimatePublisher:
 
     def update_valid(self) -> None:
         """Publish ``~/valid`` if the estimator's validity changed since the last one."""
-        valid = bool(self._estimator.valid)
+        valid = self.valid
         if valid != self._valid:
             self._valid = valid
             self.valid_publisher.publish(valid_message(valid))

@@ -24,11 +24,11 @@ from bcid_ros.identifier import interface
 from bcid_ros.identifier.joint_feeder import (joint_feeder_from_parameters, JOINT_STATES,
                                               joint_topic, JointFeedResult)
 from bcid_ros.identifier.pairing import SequenceTracker
-from bcid_ros.nodes.common import (create_draining_subscription, LATCHED_QOS, SAMPLES_QOS,
-                                   Throttle)
+from bcid_ros.nodes.common import LATCHED_QOS, Throttle
 from bcid_ros.nodes.diagnostics import CounterTask, SampleRateTask
 from bcid_ros.nodes.joint_diagnostics import JointDiagnosticsUpdater, JointStatuses, JointsTask
 from bcid_ros.nodes.messages import as_doubles, estimate_message, valid_message
+from bcid_ros.nodes.sample_topics import IncompatibleQoS, StalenessWatch, subscribe_samples
 
 #: No QoS event handlers on the per-joint publishers: rclpy's default ones (a warning
 #: for an incompatible subscriber) put two waitables per publisher into every wait of
@@ -46,6 +46,8 @@ class JointStateIdentifier:
         The identifier node that owns the topics, the service and the timer.
     settings : dict
         The identifier's checked parameters (``input_mode: joint_state``).
+    qos_events : IncompatibleQoS
+        Reports publishers of ``joint_states`` refused for their QoS.
 
     Attributes
     ----------
@@ -56,7 +58,8 @@ class JointStateIdentifier:
 
     """
 
-    def __init__(self, node: Node, settings: dict[str, Any]) -> None:
+    def __init__(self, node: Node, settings: dict[str, Any],
+                 qos_events: IncompatibleQoS) -> None:
         self._node = node
         self.feeder = feeder = joint_feeder_from_parameters(settings)
         estimator = feeder.estimator
@@ -80,20 +83,43 @@ class JointStateIdentifier:
         self._noise_message = estimate_message(estimator.noise_names)
         for publisher in self._valid:
             publisher.publish(valid_message(False))
-        self.subscription = create_draining_subscription(node, JointState, JOINT_STATES,
-                                                         self.on_joint_state, SAMPLES_QOS)
+        # no joint_states for stale_after seconds: every joint's ~/valid turns false
+        self.staleness = StalenessWatch(node, settings['stale_after'],
+                                        lambda: self._publish_valid(np.arange(len(feeder.joints))))
+        self.subscription = self.subscribe(qos_events)
         self.reset_service = node.create_service(Trigger, interface.RESET, self.on_reset)
+        name = node.get_fully_qualified_name()
         self.diagnostics = JointDiagnosticsUpdater(
-            node, interface.status_name(node.get_name()), [
+            node, interface.status_name(name), [
                 JointsTask(settings['estimator'], feeder, lambda: feeder.publish_period),
                 CounterTask(self.counters, lambda: feeder.excitation_lost),
-                SampleRateTask(feeder, lambda: node.get_clock().now().nanoseconds * 1e-9, self)],
-            JointStatuses(node.get_name(), feeder), hardware_id=node.get_name())
+                SampleRateTask(feeder, lambda: node.get_clock().now().nanoseconds * 1e-9, self),
+                self.staleness, qos_events],
+            JointStatuses(name, feeder), hardware_id=name)
+        self.staleness.start()
+
+    def resume(self) -> None:
+        """
+        Take the samples again after a pause (a deactivated managed node).
+
+        What was published meanwhile was not taken, not lost in transport:
+        every regressor restarts, without a count.
+        """
+        self._sequences.reset()
+        self.feeder.gap()
+        self.staleness.start()
+
+    def subscribe(self, qos_events: IncompatibleQoS) -> Any:
+        """Subscribe to ``joint_states`` (again, after a deactivation); return the subscription."""
+        self.subscription = subscribe_samples(self._node, JointState, JOINT_STATES,
+                                              self.on_joint_state, qos_events)
+        return self.subscription
 
     # --------------------------------------------------------------- input
     def on_joint_state(self, message: JointState, info: Any) -> None:
         """Take one JointState: update every joint it carries, publish what is due."""
         self.messages += 1
+        self.staleness.arrived(self.staleness.now())
         sequence = info.get('publication_sequence_number') if isinstance(info, dict) else None
         lost = self._sequences.lost(JOINT_STATES, sequence)
         if lost:
@@ -151,7 +177,7 @@ class JointStateIdentifier:
         self.estimates_published += len(joints)
 
     def _publish_valid(self, joints: np.ndarray) -> None:
-        valid = self.feeder.valid
+        valid = self.feeder.valid & (not self.staleness.reason)
         for joint in joints.tolist():
             self._valid[joint].publish(valid_message(valid[joint]))
 

@@ -156,11 +156,16 @@ class StateKeeper:
         self._saved = signature
         return None
 
+    def release(self) -> None:
+        """Release the state file's lock (a managed node's cleanup), so another may take it."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
     def save_and_destroy(self, destroy: Callable[[], None]) -> None:
         """Save the state, run ``destroy`` (the node's own destroy_node), then log the save."""
         error = self._write()
-        if self._lock is not None:
-            self._lock.release()
+        self.release()
         # logged after the node is gone, when its /rosout publisher (whose context a
         # signal has already shut down) no longer takes the line
         destroy()

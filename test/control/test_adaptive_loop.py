@@ -90,18 +90,21 @@ def test_the_config_file_holds_the_three_nodes():
     from pathlib import Path
 
     from bcid_ros.cli import build_parser
-    from bcid_ros.control.parameters import check_controller_parameters
+    from bcid_ros.control.parameters import check_controller_parameters, CONTROLLER_PARAMETERS
     from bcid_ros.identifier.parameters import (check_simulator_parameters,
-                                                estimator_from_parameters, load_yaml_parameters)
+                                                estimator_from_parameters, load_yaml_parameters,
+                                                SIMULATOR_PARAMETERS)
 
     path = Path(__file__).resolve().parents[2] / 'config' / 'adaptive_loop.yaml'
-    simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))
+    simulator = check_simulator_parameters(load_yaml_parameters(
+        path, 'bcid_simulator', {spec.name for spec in SIMULATOR_PARAMETERS}))
     assert simulator['mode'] == 'plant' and simulator['change_after_samples'] > 0
     assert simulator['plant_denominator_after'] == [1.0, -0.9]
     identifier = load_yaml_parameters(path, 'bcid_identifier')
-    assert identifier['controller_topic'] == '/bcid_controller/controller'
+    assert identifier['controller_topic'] == 'bcid_controller/controller'
     estimator = estimator_from_parameters(identifier)
-    controller = check_controller_parameters(load_yaml_parameters(path, 'bcid_controller'))
+    controller = check_controller_parameters(load_yaml_parameters(
+        path, 'bcid_controller', {spec.name for spec in CONTROLLER_PARAMETERS}))
     # the identifier starts from the controller's fallback, so its first ~/controller
     # message is an identical republish
     np.testing.assert_allclose(estimator.controller.denominator,

@@ -263,10 +263,11 @@ def test_simulator_parameters_of_the_joints_scenario():
 def test_the_joints_config_builds_what_it_says():
     from pathlib import Path
 
-    from bcid_ros.identifier.parameters import load_yaml_parameters
+    from bcid_ros.identifier.parameters import load_yaml_parameters, SIMULATOR_PARAMETERS
 
     path = Path(__file__).resolve().parents[2] / 'config' / 'joints.yaml'
-    simulator = check_simulator_parameters(load_yaml_parameters(path, 'bcid_simulator'))
+    simulator = check_simulator_parameters(load_yaml_parameters(
+        path, 'bcid_simulator', {spec.name for spec in SIMULATOR_PARAMETERS}))
     feeder = joint_feeder_from_parameters(
         check_identifier_parameters(load_yaml_parameters(path)))
     scenario = make_scenario('joints', num_joints=simulator['num_joints'])

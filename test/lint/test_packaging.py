@@ -43,7 +43,8 @@ def run_in_workspace(ws, command):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('executable', ['identifier_node', 'simulator_node', 'bcid'])
+@pytest.mark.parametrize('executable', ['identifier_node', 'identifier_lifecycle_node',
+                                        'simulator_node', 'bcid'])
 def test_executables_are_where_ros2_run_looks(workspace, executable):
     path = workspace / 'install' / 'bcid_ros' / 'lib' / 'bcid_ros' / executable
     assert path.is_file()
@@ -65,6 +66,9 @@ def test_installed_package_is_the_one_imported_and_finds_its_config(workspace):
     installed = sorted(p.name for p in (Path(share) / 'config').glob('*.yaml'))
     assert installed == sorted(p.name for p in (ROOT / 'config').glob('*.yaml'))
     assert (Path(share) / 'package.xml').is_file()
+    launch = sorted(p.name for p in (Path(share) / 'launch').glob('*.launch.py'))
+    assert launch == sorted(p.name for p in (ROOT / 'launch').glob('*.launch.py'))
+    assert len(launch) == 3
     marker = workspace / 'install' / 'bcid_ros' / 'share' / 'ament_index' / \
         'resource_index' / 'packages' / 'bcid_ros'
     assert marker.is_file()
@@ -96,3 +100,67 @@ def test_adaptive_controller_node_is_where_ros2_run_looks(workspace):
     assert 'closed_loop_poles' in result.stdout
     installed = workspace / 'install' / 'bcid_ros' / 'share' / 'bcid_ros' / 'config'
     assert (installed / 'adaptive_loop.yaml').is_file()
+
+
+#: requirements.txt name -> the package.xml keys that provide it on a ROS system.
+REQUIREMENT_KEYS = {
+    'ros-jazzy-rclpy': ['rclpy'],
+    'ros-jazzy-common-interfaces': ['std_msgs', 'std_srvs', 'sensor_msgs', 'diagnostic_msgs'],
+    'numpy': ['python3-numpy'],
+    'scipy': ['python3-scipy'],
+    'mcap': ['python3-mcap-pip'],
+    'mcap-ros2-support': ['python3-mcap-ros2-support-pip'],
+    'rosbags': ['python3-rosbags-pip'],
+    'matplotlib': ['python3-matplotlib'],
+    'pyyaml': ['python3-yaml'],
+}
+
+#: Imported modules that are ROS packages (their own rosdep keys).
+ROS_PACKAGES = ('rclpy', 'std_msgs', 'std_srvs', 'sensor_msgs', 'diagnostic_msgs',
+                'lifecycle_msgs', 'builtin_interfaces', 'rcl_interfaces', 'rosgraph_msgs',
+                'ament_index_python', 'launch', 'launch_ros')
+
+
+def exec_depends():
+    """Return the exec_depend keys of package.xml."""
+    import re
+
+    return set(re.findall(r'<exec_depend>([^<]+)</exec_depend>',
+                          (ROOT / 'package.xml').read_text()))
+
+
+def test_every_requirement_has_an_exec_depend():
+    import re
+
+    declared = exec_depends()
+    for line in (ROOT / 'requirements.txt').read_text().splitlines():
+        line = line.split('#')[0].strip()
+        if not line:
+            continue
+        name = re.split(r'[\[<>=!~ ]', line, maxsplit=1)[0].lower()
+        assert name in REQUIREMENT_KEYS, f'requirements.txt: {name} has no package.xml key here'
+        missing = set(REQUIREMENT_KEYS[name]) - declared
+        assert not missing, f'{name}: package.xml lacks exec_depend {sorted(missing)}'
+
+
+def test_every_imported_ros_package_has_an_exec_depend():
+    import ast
+
+    declared = exec_depends()
+    imported = set()
+    for path in list((ROOT / 'bcid_ros').rglob('*.py')) + list((ROOT / 'launch').glob('*.py')):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {alias.name.split('.')[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                imported.add(node.module.split('.')[0])
+    missing = sorted((imported & set(ROS_PACKAGES)) - declared)
+    assert not missing, f'imported without an exec_depend: {missing}'
+
+
+def test_the_pip_keys_are_defined_in_the_shipped_rosdep_file():
+    import yaml
+
+    defined = yaml.safe_load((ROOT / 'rosdep.yaml').read_text())
+    for key in sorted(k for k in exec_depends() if k.endswith('-pip')):
+        assert defined[key]['ubuntu']['pip']['packages'], key

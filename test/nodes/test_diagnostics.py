@@ -128,10 +128,16 @@ def test_the_tasks_together_give_every_documented_key():
     rate = SampleRateTask(feeder, iter([0.0, 1.0]).__next__,
                           SimpleNamespace(messages=1, estimates_published=0))
     feeder.used = 100
+    from bcid_ros.nodes.sample_topics import StalenessWatch
+
+    clock = SimpleNamespace(now=lambda: SimpleNamespace(nanoseconds=5 * 10 ** 9))
+    staleness = StalenessWatch(SimpleNamespace(get_clock=lambda: clock), 0.0, lambda: None)
     status = run(EstimatorTask('rls', estimator, lambda: 1),
-                 CounterTask(dict.fromkeys(COUNTERS, 0), lambda: False), rate)
+                 CounterTask(dict.fromkeys(COUNTERS, 0), lambda: False), rate, staleness)
+    # prefixes, and a key only while there is a reason or a refused publisher
     keys = {value for name, value in vars(DiagnosticKey).items()
-            if name.isupper() and name not in ('FLAG', 'NOISE', 'NOT_VALID_BECAUSE')}
+            if name.isupper() and name not in ('FLAG', 'NOISE', 'NOT_VALID_BECAUSE',
+                                               'INCOMPATIBLE_QOS')}
     assert keys | set(COUNTERS.values()) <= set(status.as_dict())
     # A valid estimator at a steady rate: OK, and the rate task's message.
     assert (status.level, status.message) == (OK, 'estimating at 100 samples/s')
@@ -144,3 +150,28 @@ def test_a_ready_estimate_that_is_not_valid_says_why():
     status = run(EstimatorTask('bcrls', estimator, lambda: 1))
     assert status.level == WARN and 'unstable model' in status.message
     assert status.as_dict()[DiagnosticKey.NOT_VALID_BECAUSE] == estimator.validity_reasons[0]
+
+
+def test_an_incompatible_publisher_is_named_until_messages_come():
+    from rclpy.qos import QoSPolicyKind
+
+    from bcid_ros.nodes.sample_topics import IncompatibleQoS
+
+    warnings = []
+    node = SimpleNamespace(get_logger=lambda: SimpleNamespace(warning=warnings.append))
+    messages = [0]
+    qos = IncompatibleQoS(node, lambda: messages[0])
+    assert run(qos).level == OK
+    qos.on_incompatible('/robot1/joint_states', SimpleNamespace(
+        total_count=2, last_policy_kind=QoSPolicyKind.RELIABILITY))
+    assert warnings and 'qos_overrides./robot1/joint_states.subscription.reliability' in \
+        warnings[0]
+    status = run(qos)
+    assert status.level == WARN
+    assert status.message == ('incompatible QoS on /robot1/joint_states (reliability): set '
+                              'qos_overrides./robot1/joint_states.subscription.reliability')
+    assert status.as_dict()['incompatible QoS /robot1/joint_states'] == \
+        '2 publisher(s), reliability'
+    messages[0] = 1  # samples come (a compatible publisher): the count stays, the warning goes
+    status = run(qos)
+    assert status.level == OK and 'incompatible QoS /robot1/joint_states' in status.as_dict()

@@ -27,6 +27,7 @@ from std_msgs.msg import (Bool, Float64, Float64MultiArray,  # noqa: E402
 
 from bcid_ros.control import AdaptiveController, closed_loop_poles, Controller  # noqa: E402
 from bcid_ros.control.design import ModelStructure, Plant  # noqa: E402
+from bcid_ros.control.parameters import CONTROLLER_PARAMETERS  # noqa: E402
 from bcid_ros.identifier.parameters import load_yaml_parameters  # noqa: E402
 from bcid_ros.nodes.adaptive_controller_node import AdaptiveControllerNode  # noqa: E402
 from bcid_ros.nodes.common import LATCHED_QOS, SAMPLES_QOS  # noqa: E402
@@ -199,7 +200,8 @@ def test_the_identifier_going_away_is_counted_and_the_controller_kept(ros_contex
 
 
 def test_the_config_file_starts_the_node(ros_context, executor):
-    values = load_yaml_parameters(ROOT / 'config' / 'adaptive_loop.yaml', 'bcid_controller')
+    values = load_yaml_parameters(ROOT / 'config' / 'adaptive_loop.yaml', 'bcid_controller',
+                                  {spec.name for spec in CONTROLLER_PARAMETERS})
     node = AdaptiveControllerNode(
         context=ros_context, parameter_overrides=[Parameter(k, value=v)
                                                   for k, v in values.items()])

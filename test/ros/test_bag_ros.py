@@ -140,9 +140,12 @@ def test_play_into_identifier_equals_offline_replay(estimator, bag_name, message
     graph.node.create_subscription(Bool, '/bcid_identifier/valid',
                                    lambda m: valid.append(m.data), LATCHED)
     env = ros_env(domain)
+    # stale_after -1: the bag ends, and ~/valid would turn false a second later (no samples
+    # for 1 s); the comparison here is of the estimator's own validity with the replay's
     node = subprocess.Popen(
         [str(BIN / 'identifier_node'), '--ros-args', '--params-file', str(config),
-         '-p', f'estimator:={estimator}'], env=env, stdout=subprocess.DEVNULL,
+         '-p', f'estimator:={estimator}', '-p', 'stale_after:=-1.0'], env=env,
+        stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE, text=True)
     try:
         play = subprocess.run(
@@ -259,7 +262,7 @@ def test_play_timing_and_rate(tmp_path, monkeypatch, domain):
     assert stats.wall_s == pytest.approx(stats.bag_s, abs=0.02), stats.describe()
     fast = play_bag(bag, rate=4.0)
     assert fast.wall_s == pytest.approx(stats.bag_s / 4, abs=0.02), fast.describe()
-    unpaced = play_bag(bag, rate=0.0)
+    unpaced = play_bag(bag, rate=0.0, wait_for_subscribers=0.0)
     assert unpaced.wall_s < fast.wall_s and unpaced.lateness_ns.size == 0
 
 
@@ -292,3 +295,74 @@ def test_play_offers_transient_local_to_late_subscribers(tmp_path, domain, graph
     assert truth[0].layout.dim[0].label == 'a1,b1_1'
     assert list(truth[0].data) == [-0.8, 0.5]
     assert not volatile_truth  # published before it joined: a volatile subscriber misses it
+
+
+COMMITTED_BAGS = sorted(path.name for path in (REPO / 'bags').iterdir() if path.is_dir())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('bag_name', COMMITTED_BAGS)
+def test_play_as_fast_as_possible_delivers_every_sample(bag_name, tmp_path, domain, graph):
+    # `bcid play --rate 0` of a whole committed bag into a running identifier: the node
+    # uses every sample of the bag (the offline replay's count), and play says so
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    bag = REPO / 'bags' / bag_name
+    config = REPO / 'config' / f'{bag_name}.yaml'
+    offline = replay(bag, load_yaml_parameters(config))
+    used = {}
+
+    def on_diagnostics(message):
+        for status in message.status:
+            if status.name == '/bcid_identifier: identifier':
+                values = {pair.key: pair.value for pair in status.values}
+                used['samples'] = int(values['samples used'])
+                used['lost'] = int(values['lost in transport (messages, by sequence number)'])
+
+    graph.node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+    log = open(tmp_path / 'identifier.log', 'w')
+    node = subprocess.Popen([str(BIN / 'identifier_node'), '--ros-args', '--params-file',
+                             str(config)], env=ros_env(domain), stdout=log, stderr=log)
+    try:
+        assert graph.spin_until(lambda: 'samples' in used, timeout=30)
+        play = subprocess.run([str(BIN / 'bcid'), 'play', str(bag), '--rate', '0'],
+                              env=ros_env(domain), capture_output=True, text=True, timeout=120)
+        assert play.returncode == 0, play.stderr
+        assert 'took' in play.stderr and 'lost 0' in play.stderr, play.stderr
+        assert graph.spin_until(lambda: used['samples'] == offline.samples, timeout=30), (
+            used, offline.samples, play.stderr)
+        assert used['lost'] == 0
+    finally:
+        stop(node)
+        log.close()
+
+
+def test_play_publishes_the_bags_time_on_clock(tmp_path, domain, graph, monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
+    from rosgraph_msgs.msg import Clock
+
+    from bcid_ros.bag.play import play_bag
+
+    bag = simulate_bag('ding_miso', 300, 0, 100.0, tmp_path / 'clocked')
+    times = [stamp for _, stamp, _ in BagReader(bag).messages()]
+    clocks = []
+    graph.node.create_subscription(
+        Clock, '/clock', lambda m: clocks.append(m.clock.sec * 10 ** 9 + m.clock.nanosec),
+        QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
+    result = {}
+    thread = threading.Thread(target=lambda: result.update(
+        stats=play_bag(bag, rate=2.0, delay=1.0, clock=20.0)))  # 1 s to match, then 1.5 s
+    thread.start()
+    try:
+        graph.spin_until(lambda: not thread.is_alive(), timeout=30)
+    finally:
+        thread.join(timeout=30)
+    graph.spin_until(lambda: False, timeout=0.3)
+    stats = result['stats']
+    # 20 per second of bag time over its 3 s, and the last message's time
+    assert 55 <= stats.clock_messages <= 65, stats.describe()
+    assert len(clocks) >= stats.clock_messages - 3  # best effort on one machine
+    assert clocks == sorted(clocks) and clocks[-1] == max(times)
+    assert min(times) <= clocks[0]
+    steps = np.diff(clocks[:-1])
+    assert (steps >= 50_000_000).all()  # at most 20 per second of bag time

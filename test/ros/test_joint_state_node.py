@@ -282,13 +282,13 @@ def test_a_missing_joint_and_a_nan_touch_only_their_joint(executor, ros_context)
     assert spin_until(executor, lambda: recorder.diagnostics)
     statuses = {status.name: status for status in recorder.diagnostics[-1].status}
     assert len(statuses) == 1 + len(JOINTS)
-    node_status = statuses['bcid_identifier: identifier']
+    node_status = statuses['/bcid_identifier: identifier']
     values = {pair.key: pair.value for pair in node_status.values}
     assert values['joints'] == '5' and values['joint samples missing'] == '15'
     assert values['bad samples: NaN or Inf'] == '1'
     assert node_status.level == b'\x01' and 'joint_3' in node_status.message
     for joint in JOINTS:
-        status = statuses[f'bcid_identifier: joint {joint}']
+        status = statuses[f'/bcid_identifier: joint {joint}']
         values = {pair.key: pair.value for pair in status.values}
         if joint == 'joint_2':
             assert status.level == b'\x01' and 'NaN or Inf' in status.message

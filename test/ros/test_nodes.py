@@ -23,7 +23,7 @@ from std_msgs.msg import Bool, Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from bcid_ros.identifier.parameters import (  # noqa: E402
-    estimator_from_parameters, load_yaml_parameters)
+    estimator_from_parameters, load_yaml_parameters, SIMULATOR_PARAMETERS)
 from bcid_ros.nodes.common import LATCHED_QOS  # noqa: E402
 from bcid_ros.nodes.identifier_node import IdentifierNode  # noqa: E402
 from bcid_ros.nodes.simulator_node import SimulatorNode  # noqa: E402
@@ -41,7 +41,9 @@ def overrides(values):
 
 def config(scenario, node='bcid_identifier'):
     """Return the parameters of one node from the scenario's config file."""
-    return load_yaml_parameters(CONFIG / f'{scenario}.yaml', node)
+    declared = ({spec.name for spec in SIMULATOR_PARAMETERS} if node == 'bcid_simulator'
+                else None)
+    return load_yaml_parameters(CONFIG / f'{scenario}.yaml', node, declared)
 
 
 #: Like the estimates' latched QoS, but deep enough to keep every message.
