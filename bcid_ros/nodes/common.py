@@ -137,26 +137,39 @@ def descriptor(spec: ParameterSpec) -> ParameterDescriptor:
     return result
 
 
+def _as_declared_type(spec: ParameterSpec, parameter: Parameter) -> Parameter:
+    """Return ``parameter`` as the number type ``spec`` declares, where an integer was given."""
+    # `rate_hz: 1000` in YAML, `-p rate_hz:=1000` or a live set of `1000` gives an
+    # INTEGER, which rclpy refuses for a DOUBLE parameter; take it as the number it is.
+    given = parameter.type_
+    if spec.type == 'double' and given == Parameter.Type.INTEGER:
+        return Parameter(spec.name, Parameter.Type.DOUBLE, float(parameter.value))
+    if spec.type == 'double_array' and given == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY,
+                         [float(v) for v in parameter.value])
+    if spec.type == 'integer_array' and given == Parameter.Type.INTEGER:
+        # `input_delay: 3`: one integer for all inputs
+        return Parameter(spec.name, Parameter.Type.INTEGER_ARRAY, [parameter.value])
+    return parameter
+
+
 def _coerce_integer_overrides(node: Node, table: Sequence[ParameterSpec]) -> None:
-    # `rate_hz: 1000` in YAML or `-p rate_hz:=1000` gives an INTEGER override,
-    # which rclpy refuses for a DOUBLE parameter; take it as the number it is.
     overrides = getattr(node, '_parameter_overrides', None)
     if not isinstance(overrides, dict):
         return
     for spec in table:
-        override = overrides.get(spec.name)
-        if override is None:
-            continue
-        if spec.type == 'double' and override.type_ == Parameter.Type.INTEGER:
-            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE,
-                                             float(override.value))
-        elif spec.type == 'double_array' and override.type_ == Parameter.Type.INTEGER_ARRAY:
-            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY,
-                                             [float(v) for v in override.value])
-        elif spec.type == 'integer_array' and override.type_ == Parameter.Type.INTEGER:
-            # `input_delay: 3`: one integer for all inputs
-            overrides[spec.name] = Parameter(spec.name, Parameter.Type.INTEGER_ARRAY,
-                                             [override.value])
+        if spec.name in overrides:
+            overrides[spec.name] = _as_declared_type(spec, overrides[spec.name])
+
+
+def _coerce_live_integers(node: Node, table: Sequence[ParameterSpec]) -> None:
+    """Take a live integer for a double parameter as at start-up (a pre-set callback)."""
+    specs = {spec.name: spec for spec in table}
+
+    def coerce(parameters: list[Parameter]) -> list[Parameter]:
+        return [_as_declared_type(specs[p.name], p) if p.name in specs else p
+                for p in parameters]
+    node.add_pre_set_parameters_callback(coerce)
 
 
 def declare_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
@@ -174,6 +187,7 @@ def declare_table(node: Node, table: Sequence[ParameterSpec]) -> dict[str, Any]:
 
     """
     _coerce_integer_overrides(node, table)
+    _coerce_live_integers(node, table)
     for spec in table:
         try:
             if spec.default is None or spec.default == []:
@@ -315,7 +329,11 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
     if help_requested(argv):
         print(help_text or f'usage: {program} [--ros-args ...]')
         return 0
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    try:
+        rclpy.init(args=argv if argv is not None else sys.argv)
+    except KeyboardInterrupt:  # SIGINT while starting: stop quietly, as while spinning
+        rclpy.try_shutdown()
+        return 0
     executor = SingleThreadedExecutor()
     node = None
     try:
