@@ -19,6 +19,7 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.blas import KERNELS, load_blas
+from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
@@ -34,6 +35,10 @@ CAREFUL_GAIN = 1e8
 VARIANCE_FLOOR = 2.0 ** -40
 #: A plant whose steps are undone this many times in a row starts afresh with new scales.
 UNDONE_LIMIT = 3
+#: After a detected plant change the estimate restarts from at most this many of the
+#: last samples (those after the change point); fewer than the detector's warm-up, so
+#: that the restart cannot detect again.
+RESTART_SPAN = 400
 
 
 def rls_innovation(theta: np.ndarray, p: np.ndarray, phi: np.ndarray, y: float,
@@ -458,6 +463,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     name = 'rls'
     noise_names = ('residual_variance',)
+    tracks = True
     #: The residual the model says is white, for the residual tests
     #: (:data:`~bcid_ros.estimators.adequacy.MODEL_TESTS`): the equation error.
     adequacy_model = 'arx'
@@ -470,10 +476,15 @@ class Rls(LsAccessors, RecursiveEstimator):
                                        self.input_delay)
         self._trace_limit = self.initial_covariance * self.num_parameters
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
+        self._detector = ChangeDetector()
+        # the last RESTART_SPAN samples as the step took them, for a restart after a change
+        self._recent = np.zeros((RESTART_SPAN, 1 + self.num_inputs))
+        self._relearned = 0
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
+        self._remember(y, u)
         phi = self._regressor.push(y, u)
         if self._scales_pending and self._regressor.ready:
             self._choose_scales()
@@ -508,13 +519,16 @@ class Rls(LsAccessors, RecursiveEstimator):
                 or self._undone_in_row):
             return update
         regressors = iter(regressor.push_rows(rows))
-        refused_before = self._refused
+        refused_before, relearned_before = self._refused, self._relearned
 
         def step(y: float, u: np.ndarray) -> None:
             phi = next(regressors)
-            if self._refused != refused_before:  # a refusal restarted the regressor
+            if self._refused != refused_before or self._relearned != relearned_before:
+                # a refusal restarted the regressor, or a plant change refilled it
                 self._update(y, u)
-            elif self._ls_step(y, phi):
+                return
+            self._remember(y, u)
+            if self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
                 if self._tau >= self._gate_from and not self._quiet_left:
                     self._record_residual(y, phi, u)
@@ -543,6 +557,58 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._monitor.record(error, u)
         # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
         self._hac.record_product(phi, error)
+        if self._gain:  # e / sqrt(s): the normalised one-step error (none after a rare step)
+            self._detect(error / math.sqrt(self._gain))
+
+    def _remember(self, y: float, u: np.ndarray) -> None:
+        """Keep the sample among the last RESTART_SPAN (for a restart after a change)."""
+        row = self._recent[self._seen % RESTART_SPAN]
+        row[0] = y
+        row[1:] = u
+        self._seen += 1
+
+    def _detect(self, error: float) -> None:
+        """Give the change detector this sample's normalised error; restart on a change."""
+        if self._change_detection:
+            age = self._detector.record(error)
+            if age:
+                self._plant_changed(age)
+
+    def _plant_changed(self, age: int) -> None:
+        """
+        Restart from the ``age`` samples after the detected change point (docs/tracking.md).
+
+        The estimate starts afresh (P(0), J = tau = 0, the residual tests and
+        the compensation of subclasses anew; the signal scales and the
+        estimate as the prior mean kept) and learns again from the samples
+        after the change point (at most RESTART_SPAN): the memory of the old
+        plant is cut, not blended in. Not valid from this sample on, with the
+        reason, until the new estimate passes the residual tests.
+        """
+        self._flag('plant_change')
+        first = self._seen - age + 1  # in the samples the estimator was given, from 1
+        count = min(age + self._regressor.span, RESTART_SPAN, self._seen)
+        rows = self._recent[(np.arange(self._seen - count, self._seen)) % RESTART_SPAN].copy()
+        theta, scale, updates, seen = (self._theta_ls.copy(), self._signal_scale.copy(),
+                                       self._updates, self._seen)
+        flags, quiet, recent = dict(self.flags), self._quiet_left, self._recent.copy()
+        self._reset()
+        self._signal_scale = scale
+        self._set_scale_dependents()
+        self._p = self._initial_p()
+        self._theta_ls[:] = theta
+        self._relearned += 1
+        self._quiet_left = 0
+        with np.errstate(all='ignore'):
+            for row in rows:
+                self._update(float(row[0]), row[1:])
+        self.flags = flags
+        self._quiet_left = quiet
+        self._recent[:] = recent  # the replay remembered its rows again
+        self._updates, self._seen = updates, seen
+        self._change_note = f'plant changed (sample {first})'
+        self._next_check = self._updates + rules.VALIDITY_PERIOD
+        self._reasons = tuple(self._find_problems())
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
@@ -562,12 +628,15 @@ class Rls(LsAccessors, RecursiveEstimator):
             if self._gate_tail != 1.0:
                 self._gate_tail = rules.lowered_tail(self._gate_tail)
         self._error = e
+        self._gain = s
         self._p = rls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * tau + 1.0
         if lam < 1.0:
             self._forget()
+        if self._parameter_drift:
+            self._drift()
         self._updates += 1
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
@@ -581,6 +650,9 @@ class Rls(LsAccessors, RecursiveEstimator):
                                self._ls_settings())
         self._take_scalars(plants)
         self._error = float(outcome.errors[0])
+        self._gain = 0.0
+        if outcome.stepped[0] and self._parameter_drift:
+            self._drift()
         for key, where in outcome.events.items():
             if where[0]:
                 self._flag(key)
@@ -629,6 +701,14 @@ class Rls(LsAccessors, RecursiveEstimator):
         else:
             self._flag('windup_limited')
 
+    def _drift(self) -> None:
+        """P <- P + q S^-2: the random walk of the parameters (``adaptation: kalman``)."""
+        if self._p.diagonal().dot(self._trace_weights) < self._trace_limit:
+            diagonal = self._p.ravel()[::self.num_parameters + 1]
+            self._p.ravel()[::self.num_parameters + 1] = diagonal + self._drift_diagonal
+        else:
+            self._flag('windup_limited')
+
     def _check_covariance(self) -> None:
         """Repair P if it lost definiteness (the health check of the plain step)."""
         if not rules.definite(self._p[None])[0]:
@@ -655,6 +735,12 @@ class Rls(LsAccessors, RecursiveEstimator):
         component, floor = scale_dependents(self._signal_scale[None], self._channel)
         self._component_scale, self._variance_floor = component[0], float(floor[0])
         self._trace_weights = self._component_scale ** 2
+        # q S^-2 (parameter_drift may change live: read at each step)
+        self._drift_diagonal_unit = 1.0 / self._trace_weights
+
+    @property
+    def _drift_diagonal(self) -> np.ndarray:
+        return self._parameter_drift * self._drift_diagonal_unit
 
     # --------------------------------------------------------- the validity
     def _check_validity(self) -> None:
@@ -668,7 +754,11 @@ class Rls(LsAccessors, RecursiveEstimator):
         reasons = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
         self._last_power = float(power[0])
-        return reasons + residual_reasons(self._monitor)
+        note = [self._change_note] if self._change_note else []
+        tests = residual_reasons(self._monitor)
+        if self._change_note and not tests:
+            self._change_note = ''  # the new estimate passed its checks: the change is done
+        return note + reasons + tests
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -749,6 +839,10 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
         self._error = 0.0
+        self._gain = 0.0
+        self._seen = 0
+        self._change_note = ''
+        self._detector.clear()
         self._forget_residuals()
 
     def _forget_residuals(self) -> None:
@@ -770,10 +864,20 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
-                   'last_power': self._last_power, 'reasons': self._reasons}
+                   'last_power': self._last_power, 'reasons': self._reasons,
+                   'seen': self._seen, 'change_note': self._change_note}
         residual_arrays, residual_scalars = residual_items(
             self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        return ({**arrays, **residual_arrays, **self._detector.get_state(),
+                 'recent': self._recent}, {**scalars, **residual_scalars})
+
+    def set_state(self, state: Any) -> None:
+        """Restore a :meth:`get_state` snapshot; one from before the detector loads too."""
+        own, _ = self._state_items()
+        arrays = with_detector_arrays(state.arrays, own)
+        if 'recent' not in arrays:
+            arrays = {**arrays, 'recent': np.zeros_like(own['recent'])}
+        super().set_state(dataclasses.replace(state, arrays=arrays))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -791,6 +895,10 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = int(scalars['next_check'])
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
+        self._seen = int(scalars.get('seen', 0))
+        self._change_note = str(scalars.get('change_note', ''))
+        self._recent[:] = arrays['recent']
+        self._detector.set_state(arrays)
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
         if self._hac is not None:

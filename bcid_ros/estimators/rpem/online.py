@@ -26,6 +26,7 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.blas import load_blas
+from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
 from bcid_ros.estimators.residual_state import (residual_items, residual_reasons,
                                                 residual_states, with_gradient_arrays)
 from bcid_ros.estimators.rls import HEALTH_CHECK_PERIOD, repair_covariance
@@ -173,6 +174,7 @@ class Rpem(RecursiveEstimator):
 
     name = 'rpem'
     noise_names = ('sigma2',)
+    tracks = True
 
     def __init__(self, *, model: str = 'oe', **settings: Any) -> None:
         if model not in MODELS:
@@ -207,6 +209,7 @@ class Rpem(RecursiveEstimator):
         self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
                                   self._offset, self._channel)
         self._watch = RestartWatch()
+        self._detector = ChangeDetector()
         self._reset()
 
     # ------------------------------------------------------------- the step
@@ -257,6 +260,8 @@ class Rpem(RecursiveEstimator):
                     return
         taken = self._move_theta(theta, g, e / s)
         self._commit_covariance(g, s, lam)
+        if self._parameter_drift:
+            self._drift_covariance()
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
@@ -266,6 +271,15 @@ class Rpem(RecursiveEstimator):
             self._forgetting_factor - lam)
         self._updates += 1
         self._keep(y, u)
+        if self._change_detection and self._settled:
+            # the normalised one-step error e / sqrt(s) (docs/tracking.md), against the
+            # reference of the last fit's residuals, once the estimate has been valid
+            # since the last change: before, the errors are those of a model still
+            # converging, and a detection would only restart it from fewer samples
+            age = self._detector.record(e / math.sqrt(s))
+            if age:
+                self._plant_changed(age)
+                return
         if self._tau >= self._gate_from and not self._quiet_left:
             # the residual tests take the prediction error (and, OE, psi); the HAC psi e
             self._monitor.record(e, u, psi)
@@ -301,6 +315,14 @@ class Rpem(RecursiveEstimator):
             else:
                 self._flag('windup_limited')
 
+    def _drift_covariance(self) -> None:
+        """P <- P + q I: the random walk of the parameters (``adaptation: kalman``)."""
+        if float(np.trace(self._p)) < self._trace_limit:
+            diagonal = self._p.ravel()[::self._size + 1]
+            self._p.ravel()[::self._size + 1] = diagonal + self._parameter_drift
+        else:
+            self._flag('windup_limited')
+
     def _refuse(self, s: float) -> None:
         """Refuse a step with a non-finite error or gain (repair P first if s <= 0)."""
         if s <= 0.0:
@@ -326,6 +348,7 @@ class Rpem(RecursiveEstimator):
             return
         self._flag(flag)
         self._refused += 1
+        self._decide_validity()
         phi, psi, y, u = gating
         # y(t) unknown: its prediction in its place, residual 0
         theta = self._theta_n
@@ -375,6 +398,8 @@ class Rpem(RecursiveEstimator):
         p = result.covariance(self.initial_covariance)
         if p is None:
             return False
+        # the errors to come are judged against this fit's residuals (its own model's)
+        self._detector.prime(self._fit_residuals(result, segments[-1]))
         self._p = p
         self._theta_n[:self.num_parameters] = result.theta
         if self._offset:
@@ -395,6 +420,15 @@ class Rpem(RecursiveEstimator):
         self._fitted = True
         return True
 
+    def _fit_residuals(self, result: FitResult, segment: Segment) -> np.ndarray:
+        """Return the fit's one-step errors of its last segment (the weighted samples)."""
+        y, _, weights = segment
+        if self._armax:
+            residuals = result.tail_e
+        else:  # OE: the output minus the simulated output and the offset
+            residuals = y - result.tail_x - result.offset
+        return residuals[weights > 0.0]
+
     def _restart(self, reason: str) -> None:
         """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
         self._flag('restarted')
@@ -403,17 +437,42 @@ class Rpem(RecursiveEstimator):
         self._forget_residuals()
         self._fit()
         self._watch.restarted()
+        self._decide_validity()
 
     def _accept_change(self) -> None:
-        """Cut the memory (rules.cut_memory) and restart the fits after the change."""
+        """Restart from this sample after a plant change the gate found (three refusals)."""
+        self._restart_after_change(0)
+
+    def _plant_changed(self, age: int) -> None:
+        """Flag a plant change the detector found ``age`` samples ago, and restart."""
+        self._flag('plant_change')
+        self._restart_after_change(age)
+
+    def _restart_after_change(self, age: int) -> None:
+        """
+        Cut the memory and restart the fits from the last ``age`` samples (the new plant's).
+
+        The memory cut (rules.cut_memory) lets the recursion move at once; the
+        stored samples before the change point leave the fits, and a fit of
+        the ones after it is made as soon as there are enough (now, if there
+        are). Not valid from this sample on, with the reason, until a fit of
+        the new samples has passed the checks (docs/tracking.md).
+        """
         self._changes += 1
+        first = self._samples - age + 1 if age else self._samples + 1
+        self._change_note = f'plant changed (sample {first})'
+        self._settled = False
         self._forget_residuals()
+        self._detector.clear()
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
         rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
         self._loss, self._tau = float(loss[0]), float(tau[0])
-        # the stored samples are of the old plant: the fits start again from here
-        self._store.restart_schedule()
+        # the drift watch measures from the errors now, not from the old plant's fit
+        self._watch.fitted(max(self._watch.recent, self._watch.sigma2_fit))
+        if self._store.restart_schedule(age):
+            self._fit()
+        self._decide_validity()
 
     # --------------------------------------------------- health and validity
     def _check_covariance(self) -> None:
@@ -434,7 +493,19 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        self._reasons = tuple(watch.reasons(steps) + residual_reasons(self._monitor))
+        self._period_reasons = watch.reasons(steps)
+        self._decide_validity()
+
+    def _decide_validity(self) -> None:
+        """Decide the reasons now: a change, the last period's, the residual tests'."""
+        notes = [self._change_note] if self._change_note else []
+        if self._watch.restart_note:  # a restart since the last period (reported there too)
+            notes.append(f'restarted ({self._watch.restart_note})')
+        tests = residual_reasons(self._monitor)
+        if self._change_note and not tests and self._store.since_start < self._samples:
+            self._change_note = ''  # a fit of the new samples passed its checks: done
+        self._reasons = tuple(notes + self._period_reasons + tests)
+        self._settled = self._settled or not self._reasons
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -557,6 +628,11 @@ class Rpem(RecursiveEstimator):
         self._gate_from = rules.GATE_WARMUP * p
         self._changes = 0
         self._reasons: tuple[str, ...] = ()
+        self._period_reasons: list[str] = []
+        self._change_note = ''
+        # whether the estimate has been valid since the last change (the detector runs)
+        self._settled = False
+        self._detector.clear()
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -602,10 +678,13 @@ class Rpem(RecursiveEstimator):
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
-                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons)}
+                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
+                   'period_reasons': list(self._period_reasons),
+                   'change_note': self._change_note, 'settled': self._settled}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        return ({**arrays, **residual_arrays, **self._detector.get_state()},
+                {**scalars, **residual_scalars})
 
     def set_state(self, state: Any) -> None:
         """
@@ -615,7 +694,7 @@ class Rpem(RecursiveEstimator):
         after the load on (:func:`~bcid_ros.estimators.residual_state.with_gradient_arrays`).
         """
         own, _ = self._state_items()
-        arrays = with_gradient_arrays(state.arrays, own)
+        arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
         super().set_state(dataclasses.replace(state, arrays=arrays))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -628,6 +707,10 @@ class Rpem(RecursiveEstimator):
         for name in self._SCALARS:
             setattr(self, '_' + name, self._KINDS.get(name, int)(scalars[name]))
         self._reasons = tuple(scalars['reasons'])
+        self._period_reasons = list(scalars.get('period_reasons', ()))
+        self._change_note = str(scalars.get('change_note', ''))
+        self._settled = bool(scalars.get('settled', False))
+        self._detector.set_state(arrays)
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
