@@ -9,13 +9,14 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.rls import ls_batch, matvec, Rls, rowdot
+from bcid_ros.estimators.recursion import matvec, rowdot
+from bcid_ros.estimators.rls import ls_batch, Rls
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
 #: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which
@@ -174,22 +175,27 @@ class Bcrls(Rls):
     def _noise(self) -> np.ndarray:
         return np.array([self._sigma2])
 
-    def _find_problems(self) -> list[str]:
-        """Add the conditioning and the convergence of the compensation to the RLS reasons."""
-        reasons = super()._find_problems()
+    def _check_validity(self, more: Sequence[str] = ()) -> None:
+        """
+        Add the conditioning and the convergence of the compensation to the RLS reasons.
+
+        A compensation found diverging restarts from theta_LS here, in the
+        update, after the reasons are decided (the check itself changes nothing).
+        """
         resets = self.flags.get('compensation_reset', 0)
-        found, diverging = compensation_problems(
-            np.array([self._tau]), np.array([self._sigma2]), self._p[None],
-            self._theta_c[None], self._theta_ls[None], self._component_scale[None],
-            np.array([resets > self._resets_checked]), self.order, self._covariances)
+        with np.errstate(all='ignore'):
+            found, diverging = compensation_problems(
+                np.array([self._tau]), np.array([self._sigma2]), self._p[None],
+                self._theta_c[None], self._theta_ls[None], self._component_scale[None],
+                np.array([resets > self._resets_checked]), self.order, self._covariances)
         self._resets_checked = resets
+        super()._check_validity(found[0] + list(more))
         if diverging[0]:
             # (46) does not contract: restart it from theta_LS rather than follow it away
             self._flag('compensation_reset')
             self._resets_checked += 1
             self._theta_c = self._theta_ls.copy()
             self._lambda_theta_c = self._theta_c * self._lambda_diagonal
-        return reasons + found[0]
 
     def _covariances(self, rows: np.ndarray) -> np.ndarray:
         """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""

@@ -25,17 +25,17 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.blas import load_blas
 from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
-from bcid_ros.estimators.residual_state import (residual_items, residual_reasons,
-                                                residual_states, with_gradient_arrays)
-from bcid_ros.estimators.rls import HEALTH_CHECK_PERIOD, repair_covariance
+from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
+                                           RandomWalk, repair_covariance, VARIANCE_FLOOR)
+from bcid_ros.estimators.residual_state import (residual_items, residual_states,
+                                                with_gradient_arrays)
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, inside
 from bcid_ros.estimators.rpem.store import SampleStore, Segment
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
-from bcid_ros.estimators.rpem.watch import RestartWatch, VARIANCE_FLOOR
+from bcid_ros.estimators.rpem.watch import RestartWatch
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
@@ -184,7 +184,6 @@ class Rpem(RecursiveEstimator):
         # the residual tests: an OE model's output error may be coloured (only its
         # correlation with past inputs contradicts the model); ARMAX's innovation is white
         self.adequacy_model = model
-        self._blas = load_blas()
         super().__init__(**settings)
         n, r = self.order, self.num_inputs
         if self._armax:
@@ -260,8 +259,6 @@ class Rpem(RecursiveEstimator):
                     return
         taken = self._move_theta(theta, g, e / s)
         self._commit_covariance(g, s, lam)
-        if self._parameter_drift:
-            self._drift_covariance()
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
@@ -306,21 +303,9 @@ class Rpem(RecursiveEstimator):
 
     def _commit_covariance(self, g: np.ndarray, s: float, lam: float) -> None:
         """Apply P(t) = [P - g g' / s] / lambda in place, without winding up."""
-        # h = g / sqrt(s); P <- P - h h'   (BLAS rank-1 update of the C-ordered P in place)
-        h = g * (1.0 / math.sqrt(s))
-        self._p = self._blas['dger'](-1.0, h, h, 1, 1, self._p.T, 0, 0, 1).T
-        if lam < 1.0:
-            if float(np.trace(self._p)) < self._trace_limit:
-                self._p *= 1.0 / lam
-            else:
-                self._flag('windup_limited')
-
-    def _drift_covariance(self) -> None:
-        """P <- P + q I: the random walk of the parameters (``adaptation: kalman``)."""
-        if float(np.trace(self._p)) < self._trace_limit:
-            diagonal = self._p.ravel()[::self._size + 1]
-            self._p.ravel()[::self._size + 1] = diagonal + self._parameter_drift
-        else:
+        # P <- P - h h', h = g / sqrt(s) (the shared step's; g is overwritten), then propagate
+        self._p = downdate(self._p, g, s)
+        if self._propagation.propagate_one(self._p, lam):
             self._flag('windup_limited')
 
     def _refuse(self, s: float) -> None:
@@ -348,7 +333,7 @@ class Rpem(RecursiveEstimator):
             return
         self._flag(flag)
         self._refused += 1
-        self._decide_validity()
+        self._decide_now()
         phi, psi, y, u = gating
         # y(t) unknown: its prediction in its place, residual 0
         theta = self._theta_n
@@ -437,7 +422,7 @@ class Rpem(RecursiveEstimator):
         self._forget_residuals()
         self._fit()
         self._watch.restarted()
-        self._decide_validity()
+        self._decide_now()
 
     def _accept_change(self) -> None:
         """Restart from this sample after a plant change the gate found (three refusals)."""
@@ -472,7 +457,7 @@ class Rpem(RecursiveEstimator):
         self._watch.fitted(max(self._watch.recent, self._watch.sigma2_fit))
         if self._store.restart_schedule(age):
             self._fit()
-        self._decide_validity()
+        self._decide_now()
 
     # --------------------------------------------------- health and validity
     def _check_covariance(self) -> None:
@@ -494,32 +479,32 @@ class Rpem(RecursiveEstimator):
         if reason:
             self._restart(reason)
         self._period_reasons = watch.reasons(steps)
-        self._decide_validity()
+        self._decide_now()
 
-    def _decide_validity(self) -> None:
-        """Decide the reasons now: a change, the last period's, the residual tests'."""
+    def _decide_now(self) -> None:
+        """
+        Decide the reasons now: a plant change, a restart, the last period's, the tests'.
+
+        Called at every validity period and on every event (a detection, a
+        restart, a refusal), so that ``~/valid`` follows them at that sample.
+        The change's reason stays until a fit of the samples after it passes
+        the residual tests.
+        """
         notes = [self._change_note] if self._change_note else []
         if self._watch.restart_note:  # a restart since the last period (reported there too)
             notes.append(f'restarted ({self._watch.restart_note})')
-        tests = residual_reasons(self._monitor)
-        if self._change_note and not tests and self._store.since_start < self._samples:
+        self._decide_validity(notes + self._period_reasons)
+        if (self._change_note and self._reasons == (self._change_note,)
+                and self._store.since_start < self._samples):
             self._change_note = ''  # a fit of the new samples passed its checks: done
-        self._reasons = tuple(notes + self._period_reasons + tests)
+            self._decide_validity(self._period_reasons)
         self._settled = self._settled or not self._reasons
-
-    def _validity_reasons(self) -> tuple[str, ...]:
-        return self._reasons
 
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether the first fit is made (and at least p samples were used)."""
         return self._fitted and self._samples >= self.num_parameters
-
-    @property
-    def valid(self) -> bool:
-        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
-        return self.ready and not self._reasons
 
     @property
     def samples(self) -> int:
@@ -616,7 +601,10 @@ class Rpem(RecursiveEstimator):
         self._arx = np.zeros(p)
         self._signal_scale = np.ones(1 + self.num_inputs)
         self._set_scale_dependents()
-        self._trace_limit = self.initial_covariance * size
+        #: What happens to P between samples: recursion.Forgetting (P / lambda, anti-windup)
+        #: or, with adaptation: kalman, recursion.RandomWalk (P + q I in normalised units)
+        self._propagation = (RandomWalk(self._parameter_drift) if self.adaptation == 'kalman'
+                             else Forgetting(self.initial_covariance * size))
         self._fitted = False
         self._fits = 0
         self._samples = 0
