@@ -54,7 +54,8 @@ import numpy as np
 from scipy import signal
 
 from bcid_ros.analysis.pem import fit_oe, Structure
-from bcid_ros.analysis.realistic import _draw_numerators, _draw_poles
+from bcid_ros.analysis.realistic import (_draw_numerators, _draw_poles, _predicted_error,
+                                         MAX_PREDICTED_ERROR)
 from bcid_ros.estimators import make_estimator
 from bcid_ros.markdown import markdown_table
 
@@ -84,6 +85,15 @@ class TrackingCase:
     def __init__(self, seed: tuple[int, int]) -> None:
         rng = np.random.default_rng(seed)
         self.seed = seed
+        # a plant whose truth 2000 samples do not determine (before or after the change) is
+        # drawn again, as in the realistic family: no estimator's error would mean anything
+        for _ in range(100):
+            self._draw(rng, seed)
+            if self.predicted_error <= MAX_PREDICTED_ERROR:
+                return
+        raise RuntimeError(f'no identifiable case from seed {seed}')
+
+    def _draw(self, rng: np.random.Generator, seed: tuple[int, int]) -> None:
         index = seed[1] % 30
         self.kind = 'abrupt' if index < 16 else ('drift' if index < 26 else 'none')
         self.order = int(rng.integers(1, 4))
@@ -114,6 +124,10 @@ class TrackingCase:
             e = signal.lfilter([1.0, rng.uniform(-0.5, 0.5)], [1.0, -rng.uniform(0.5, 0.95)], e)
         scale = noise_free[:self.change_at].std() * 10.0 ** (-self.snr_db / 20.0)
         self.y = noise_free + e * (scale / e.std())
+        structure = Structure(self.order, self.num_inputs)
+        self.predicted_error = max(
+            _predicted_error(self.theta[at], self.u[at - 2000:at], structure, scale ** 2)
+            for at in (self.change_at, self.samples - 1))
 
     @staticmethod
     def _excitation(rng: np.random.Generator, count: int) -> tuple[str, np.ndarray]:
