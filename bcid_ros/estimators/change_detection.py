@@ -76,7 +76,7 @@ import numpy as np
 #: The stated false-alarm rate: detections per sample of a plant that does not change.
 FALSE_ALARM = 1e-5
 #: The variance ratio the variance CUSUM is designed for.
-VARIANCE_RATIO = 1.5
+VARIANCE_RATIO = 1.25
 #: A sample's z is clipped at this many standard deviations (a spike adds at most 4.0).
 CLIP = 5.0
 #: The reference's memory (samples), and the effective samples it needs before any test.
