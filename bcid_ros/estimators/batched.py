@@ -35,13 +35,14 @@ from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, par
                                       PlantsValidity, SharedSettings, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
                                        LaggedMoments, output_error_rows)
+from bcid_ros.estimators.change_detection import ChangeDetector
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
 from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
                                            scale_dependents)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
-from bcid_ros.estimators.rls import LsAccessors, Rls
+from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
 
 Rows = slice | np.ndarray
 
@@ -97,6 +98,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self.num_plants = check_int('num_plants', num_plants, 1)
         self._check_settings(order, num_inputs, feedthrough, initial_covariance,
                              forgetting_factor, outlier_threshold)
+        self._check_tracking(False, 'forgetting', 0.0)  # no detector here (yet)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
         self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
@@ -530,7 +532,12 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         residual_arrays, residual_scalars = residual_items(
             self._monitor.plant_state(plant),
             None if self._hac is None else self._hac.plant_state(plant))
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        # the change detector does not run in the batched forms: each plant is the single
+        # estimator with change_detection false (its detector and kept samples empty)
+        idle = {**ChangeDetector().get_state(),
+                'recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs))}
+        return ({**arrays, **residual_arrays, **idle},
+                {**scalars, **residual_scalars, 'seen': 0, 'change_note': ''})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:

@@ -160,7 +160,8 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
-        self._remember(y, u)
+        if self._change_detection:
+            self._remember(y, u)
         phi = self._regressor.push(y, u)
         if self._scales_pending and self._regressor.ready:
             self._choose_scales()
@@ -203,7 +204,8 @@ class Rls(LsAccessors, RecursiveEstimator):
                 # a refusal restarted the regressor, or a plant change refilled it
                 self._update(y, u)
                 return
-            self._remember(y, u)
+            if self._change_detection:
+                self._remember(y, u)
             if self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
                 if self._tau >= self._gate_from and not self._quiet_left:
@@ -237,7 +239,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             self._detect(error / math.sqrt(self._gain))
 
     def _remember(self, y: float, u: np.ndarray) -> None:
-        """Keep the sample among the last RESTART_SPAN (for a restart after a change)."""
+        """Keep the sample among the last RESTART_SPAN (for a restart after a change; on)."""
         row = self._recent[self._seen % RESTART_SPAN]
         row[0] = y
         row[1:] = u

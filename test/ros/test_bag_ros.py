@@ -145,8 +145,8 @@ def changing_plant_bag(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize('estimator', ['rls', 'rpem'])
-def test_node_equals_replay_through_a_detected_plant_change(estimator, tmp_path, domain,
-                                                             graph):
+def test_node_equals_replay_through_a_detected_plant_change(
+        estimator, tmp_path, domain, graph):
     # change_detection on (the default): the detection, the restart from the samples after
     # the change point and the valid decided at that sample run alike in node and replay
     bag = changing_plant_bag(tmp_path)
