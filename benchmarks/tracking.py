@@ -35,8 +35,9 @@ the ``none`` plants) per 100,000 samples.
 
 **Early in a run** (``--early``): plants that fit each estimator's model (rls: ARX with white
 equation error; bcrls: output error with white noise; rpem: output error with coloured noise),
-order 1-2, white input, 20-30 dB: the share of accurate estimates (delta <= 10 %) that are
-not ``valid`` at 500, 1000 and 3000 samples.
+order 1-2, white input, 20-30 dB: the share of accurate estimates (delta within twice the
+batch reference's of the same samples, or 1 %) that are not ``valid`` at 500, 1000 and 3000
+samples.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ import warnings
 import numpy as np
 from scipy import signal
 
-from bcid_ros.analysis.pem import fit_oe, Structure
+from bcid_ros.analysis.pem import fit_arx, fit_oe, Structure
 from bcid_ros.analysis.realistic import (_draw_numerators, _draw_poles, _predicted_error,
                                          MAX_PREDICTED_ERROR)
 from bcid_ros.estimators import make_estimator
@@ -285,7 +286,7 @@ def run_estimator(case: TrackingCase, config: str) -> dict[str, Any]:
                                    else 0)),
         'far_valid_share': float(far_valid.mean()), 'worst_update_ms': worst_ms,
         'delta_final': float(deltas[-1]), 'valid_final': bool(valid[-1]),
-        'deltas': deltas, 'valid': valid, 'changes': changes,
+        'deltas': deltas, 'valid': valid, 'changes': changes, 'theta': theta,
     }
 
 
@@ -352,8 +353,23 @@ def early_case(seed: int, model: str) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return x + v, u, np.concatenate((a[1:], b)), order
 
 
+def batch_delta(y: np.ndarray, u: np.ndarray, truth: np.ndarray, order: int,
+                model: str) -> float:
+    """Return the batch reference's delta on a record: ARX LS for ARX plants, else OE."""
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        fit = (fit_arx if model == 'arx' else fit_oe)(y, u, Structure(order))
+    return float(delta(fit.theta, truth))
+
+
 def early(count: int) -> list[list[Any]]:
-    """Return rows: per estimator, accurate but invalid at 500, 1000 and 3000 samples."""
+    """
+    Return rows: per estimator, accurate but invalid at 500, 1000 and 3000 samples.
+
+    Accurate as in ``benchmarks/realistic.py``: delta <= max(2 delta_ref, 1 %), delta_ref
+    the batch reference of the same samples (at 30 dB an estimate 10 % off is far outside
+    what the data allow, and the residual tests rightly see its error).
+    """
     rows = []
     for name, model in (('rls', 'arx'), ('bcrls', 'oe_white'), ('rpem', 'oe')):
         hits = {500: [0, 0], 1000: [0, 0], 3000: [0, 0]}
@@ -363,7 +379,9 @@ def early(count: int) -> list[list[Any]]:
             for t in range(3000):
                 valid = estimator.update(y[t], u[t])
                 if t + 1 in hits:
-                    accurate = float(delta(estimator.theta, truth)) <= FAR
+                    bound = max(2.0 * batch_delta(y[:t + 1], u[:t + 1], truth, order, model),
+                                0.01)
+                    accurate = float(delta(estimator.theta, truth)) <= bound
                     hits[t + 1][0] += accurate
                     hits[t + 1][1] += accurate and not valid
         rows.append([f'{name} ({model} plants)'] + [
@@ -380,6 +398,7 @@ def plot(case: TrackingCase, run: dict[str, Any], path: Path) -> None:
 
     figure, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
     t = np.arange(case.samples)
+    axes[0].plot(t, run['theta'], linewidth=0.9)
     axes[0].plot(t, case.theta, 'k--', linewidth=0.8)
     axes[0].set_ylabel('theta (dashed: truth)')
     axes[1].semilogy(t, np.maximum(run['deltas'], 1e-4))
@@ -436,7 +455,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps({config: [
             {key: value for key, value in run.items()
-             if key not in ('deltas', 'valid', 'changes')} for run in results]
+             if key not in ('deltas', 'valid', 'changes', 'theta')} for run in results]
             for config, results in runs.items()}, indent=1))
     return 0
 
