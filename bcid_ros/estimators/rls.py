@@ -329,13 +329,20 @@ class Rls(LsAccessors, RecursiveEstimator):
         for key, where in outcome.events.items():
             if where[0]:
                 self._flag(key)
-        if outcome.events.get('plant_change', _NO)[0]:
+        changed = bool(outcome.events.get('plant_change', _NO)[0])
+        if changed:  # the gate's (three refusals in a row): the memory was cut
             self._forget_residuals()
+            # (the samples given are counted while detection runs; else the updates)
+            sample = self._seen if self._change_detection else self._updates
+            self._change_note = f'plant changed (sample {sample})'
         if outcome.restart[0]:
             self._refused += 1
             self._restart_regressor()
         if outcome.relearn[0]:
             self._restart_learning()
+        if changed or outcome.restart[0]:
+            # valid is decided at every such event, not only every VALIDITY_PERIOD updates
+            self._check_validity()
         return bool(outcome.stepped[0])
 
     def _as_plants(self) -> LsPlants:
