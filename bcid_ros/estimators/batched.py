@@ -375,12 +375,19 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         outcome = ls_step_rows(self._plants, rows, y, phi, settings)
         for key, where in outcome.events.items():
             self._flag(key, rows, where)
-        if 'plant_change' in outcome.events:
-            self._forget_residuals(rows[outcome.events['plant_change']])
+        changed = outcome.events.get('plant_change', np.zeros(rows.shape[0], dtype=bool))
+        if changed.any():
+            self._forget_residuals(rows[changed])
+            for plant in rows[changed].tolist():  # as Rls._rare_step (no detector here)
+                self._change_notes[plant] = f'plant changed (sample {self._updates[plant]})'
         if outcome.restart.any():
             self._regressors.clear(rows[outcome.restart])
         if outcome.relearn.any():
             self._restart_learning(rows[outcome.relearn])
+        events = changed | outcome.events.get('outlier_rejected', changed & False)
+        if events.any():
+            # valid is decided at every such event (Rls._rare_step)
+            self._check_validity(rows[events])
         stepped = outcome.stepped
         if stepped.any():
             rows = rows[stepped]
@@ -448,7 +455,15 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                                         self._last_power[plants])
         if more is not None:
             own = [mine + list(theirs) for mine, theirs in zip(own, more)]
-        self._decide_validity(plants, own)
+        notes = [[self._change_notes[plant]] if self._change_notes[plant] else []
+                 for plant in plants.tolist()]
+        self._decide_validity(plants, [note + mine for note, mine in zip(notes, own)])
+        done = [k for k, plant in enumerate(plants.tolist()) if self._change_notes[plant]
+                and self._reasons.of(plant) == (self._change_notes[plant],)]
+        if done:  # the new estimate passed its checks: the change is done (Rls._check_validity)
+            for k in done:
+                self._change_notes[int(plants[k])] = ''
+            self._decide_validity(plants[done], [own[k] for k in done])
         self._last_power[plants] = power
 
     # ----------------------------------------------------------- the helpers
@@ -498,6 +513,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._next_check = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
         self._reasons = PlantReasons(plants)
+        # the reason of a change the gate found, until the new estimate passes its checks
+        self._change_notes = [''] * plants
         # the LS state as the step function sees it (the same arrays)
         self._plants = LsPlants(self._theta_ls, self._p, self._loss, self._tau, self._updates,
                                 self._undone_in_row, self._change_score, self._gate_tail,
@@ -521,6 +538,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._next_check[rows] = self.num_parameters
         self._last_power[rows] = math.inf
         self._reasons.clear(self._indices(rows))
+        for plant in self._indices(rows).tolist():
+            self._change_notes[plant] = ''
         self._forget_residuals(self._indices(rows))
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -537,7 +556,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         idle = {**ChangeDetector().get_state(),
                 'recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs))}
         return ({**arrays, **residual_arrays, **idle},
-                {**scalars, **residual_scalars, 'seen': 0, 'change_note': ''})
+                {**scalars, **residual_scalars, 'seen': 0,
+                 'change_note': self._change_notes[plant]})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
@@ -552,6 +572,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         if self._hac is not None:
             self._hac.load_plant(plant, hac)
         self._reasons.set(plant, scalars['reasons'])
+        self._change_notes[plant] = str(scalars.get('change_note', ''))
 
 
 class BatchedBcrls(BatchedRls):

@@ -340,7 +340,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             self._restart_regressor()
         if outcome.relearn[0]:
             self._restart_learning()
-        if changed or outcome.restart[0]:
+        if changed or outcome.events.get('outlier_rejected', _NO)[0]:
             # valid is decided at every such event, not only every VALIDITY_PERIOD updates
             self._check_validity()
         return bool(outcome.stepped[0])
