@@ -125,6 +125,16 @@ ONLINE_CASES = [
 ]
 
 
+def subscribe_estimates(graph):
+    """Subscribe to the identifier's parameters and valid; return the two lists they fill."""
+    received, valid = [], []
+    graph.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
+                                   lambda m: received.append(np.array(m.data)), LATCHED)
+    graph.node.create_subscription(Bool, '/bcid_identifier/valid',
+                                   lambda m: valid.append(m.data), LATCHED)
+    return received, valid
+
+
 def changing_plant_bag(tmp_path):
     """Return a bag of a second-order ARX plant whose gains change at sample 2001 of 3000."""
     from scipy import signal as filters
@@ -153,11 +163,7 @@ def test_node_equals_replay_through_a_detected_plant_change(
     settings = {'estimator': estimator, 'order': 2}
     offline = replay(bag, settings)
     assert offline.flags['plant_change'] == 1
-    received, valid = [], []
-    graph.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
-                                   lambda m: received.append(np.array(m.data)), LATCHED)
-    graph.node.create_subscription(Bool, '/bcid_identifier/valid',
-                                   lambda m: valid.append(m.data), LATCHED)
+    received, valid = subscribe_estimates(graph)
     env = ros_env(domain)
     node = subprocess.Popen(
         [str(BIN / 'identifier_node'), '--ros-args', '-p', f'estimator:={estimator}',
@@ -188,11 +194,7 @@ def test_play_into_identifier_equals_offline_replay(estimator, bag_name, message
     bag = head_of_bag(REPO / 'bags' / bag_name, tmp_path / 'bag', messages)
     config = REPO / 'config' / f'{bag_name}.yaml'
     offline = replay(bag, load_yaml_parameters(config), estimator=estimator)
-    received, valid = [], []
-    graph.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
-                                   lambda m: received.append(np.array(m.data)), LATCHED)
-    graph.node.create_subscription(Bool, '/bcid_identifier/valid',
-                                   lambda m: valid.append(m.data), LATCHED)
+    received, valid = subscribe_estimates(graph)
     env = ros_env(domain)
     node = subprocess.Popen(
         [str(BIN / 'identifier_node'), '--ros-args', '--params-file', str(config),
