@@ -129,6 +129,10 @@ class ReplayResult:
         if self.first_malformed:
             text += f'; first malformed message: {self.first_malformed}'
         return 'never became ready: ' + text
+    #: ``~/valid`` with each published estimate, and the flags raised since the one before.
+    valid_trajectory: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, dtype=bool))
+    events: list[tuple[str, ...]] = dataclasses.field(default_factory=list)
 
     @property
     def delta(self) -> float | None:
@@ -254,9 +258,10 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
         # The node's per-message rule, for the whole block in one loop.
         result = feeder.take_messages(rows, count, publish=trajectory, timed=False)
         failures += len(result.failures)
-        for index, used, estimates in zip(result.published, result.used_totals,
-                                          result.estimates):
-            published.add(int(block.times_ns[index]), used, estimates)
+        for index, used, estimates, valid, flags in zip(
+                result.published, result.used_totals, result.estimates, result.valid,
+                result.flags):
+            published.add(int(block.times_ns[index]), used, estimates, valid, flags)
     elapsed = time.perf_counter() - start
     if messages == 0:
         raise BcidError(f'{bag.path}: topic {topic} has no messages')
@@ -277,7 +282,8 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
         std=est.parameter_std,
         operating_point=est.operating_point,
         operating_point_names=est.operating_point_names,
-        ready=bool(est.ready), empty=dropped.empty, first_malformed=dropped.first_reason)
+        ready=bool(est.ready), empty=dropped.empty, first_malformed=dropped.first_reason,
+        valid_trajectory=np.array(published.valid, dtype=bool), events=published.events)
 
 
 class _Published:
@@ -287,12 +293,21 @@ class _Published:
         self.times: list[int] = []
         self.counts: list[int] = []
         self.estimates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.valid: list[bool] = []
+        self.events: list[tuple[str, ...]] = []
+        self._flags: dict[str, int] = {}
 
-    def add(self, stamp: int, used: int,
-            estimates: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    def add(self, stamp: int, used: int, estimates: tuple[np.ndarray, np.ndarray, np.ndarray],
+            valid: bool = False, flags: dict[str, int] | None = None) -> None:
         self.times.append(stamp)
         self.counts.append(used)
         self.estimates.append(estimates)
+        self.valid.append(bool(valid))
+        # the flags raised since the estimate before (their counts grew)
+        flags = self._flags if flags is None else flags
+        self.events.append(tuple(name for name, count in flags.items()
+                                 if count > self._flags.get(name, 0)))
+        self._flags = dict(flags)
 
     def array(self, which: int, width: int) -> np.ndarray:
         """Return estimate ``which`` (0 theta, 1 uncompensated, 2 noise) of all, one per row."""
@@ -342,7 +357,9 @@ def _take_one_by_one(feeder: SampleFeeder, block: MessageBlock, published: _Publ
             dropped.malformed += 1
             dropped.first_reason = dropped.first_reason or result.reason
         if result.estimates is not None:
-            published.add(int(block.times_ns[index]), feeder.used, result.estimates)
+            estimator = feeder.estimator
+            published.add(int(block.times_ns[index]), feeder.used, result.estimates,
+                          estimator.valid, dict(estimator.flags))
     return failures
 
 
@@ -375,7 +392,7 @@ def _write_csv(result: ReplayResult, path: Path) -> None:
 
     names = result.parameter_names
     header = (['time_s', 'samples'] + list(names) + [f'uncompensated_{n}' for n in names]
-              + list(result.noise_names))
+              + list(result.noise_names) + ['valid', 'events'])
     with path.open('w', newline='') as stream:
         writer = csv.writer(stream)
         writer.writerow(header)
@@ -383,7 +400,8 @@ def _write_csv(result: ReplayResult, path: Path) -> None:
             writer.writerow([f'{result.times_ns[k] / 1e9:.9f}', int(result.sample_counts[k])]
                             + [repr(float(v)) for v in result.theta_trajectory[k]]
                             + [repr(float(v)) for v in result.uncompensated_trajectory[k]]
-                            + [repr(float(v)) for v in result.noise_trajectory[k]])
+                            + [repr(float(v)) for v in result.noise_trajectory[k]]
+                            + [int(result.valid_trajectory[k]), ';'.join(result.events[k])])
 
 
 def _write_mcap(result: ReplayResult, path: Path) -> None:

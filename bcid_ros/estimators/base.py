@@ -51,6 +51,11 @@ CHECKPOINT_PERIOD = 64
 MAX_DELAY = 100000
 #: Values of the ``detrend`` setting.
 DETRENDS = ('none', 'mean')
+#: Values of the ``adaptation`` setting: exponential forgetting, or the random-walk model
+#: of the parameters (P <- P + Q at every sample; docs/tracking.md).
+ADAPTATIONS = ('forgetting', 'kalman')
+#: Largest ``parameter_drift`` (its random walk would then swamp any data).
+MAX_DRIFT = 1.0
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
@@ -190,8 +195,14 @@ class SharedSettings:
 
     The model structure (order, inputs, feedthrough), p0, and the two
     settings that may change while running: the forgetting factor and the
-    gate's threshold (whose squared limit the rulebook's gate takes).
+    gate's threshold (whose squared limit the rulebook's gate takes); and
+    those that follow a changing plant (``change_detection``, ``adaptation``,
+    ``parameter_drift``).
     """
+
+    #: Whether it follows a changing plant: the change detector runs (``change_detection``)
+    #: and ``adaptation: kalman`` is available (docs/tracking.md).
+    tracks: ClassVar[bool] = False
 
     def _check_settings(self, order: int, num_inputs: int, feedthrough: bool,
                         initial_covariance: float, forgetting_factor: float,
@@ -230,6 +241,54 @@ class SharedSettings:
             monitor.follow_forgetting_factor(self._forgetting_factor)
         if hac is not None:
             hac.forgetting_factor = self._forgetting_factor
+
+    def _check_tracking(self, change_detection: bool, adaptation: str,
+                        parameter_drift: float) -> None:
+        """Check and keep the settings that follow a changing plant (docs/tracking.md)."""
+        if adaptation not in ADAPTATIONS:
+            raise ValueError(f"adaptation must be 'forgetting' or 'kalman', got {adaptation!r}")
+        if not self.tracks and (adaptation != 'forgetting' or parameter_drift):
+            raise ValueError(f'adaptation: kalman and parameter_drift are not available for '
+                             f'{type(self).__name__}, got {adaptation!r}, {parameter_drift!r}')
+        if adaptation == 'kalman' and self._forgetting_factor < 1.0:
+            raise ValueError(f'adaptation: kalman takes the place of forgetting: '
+                             f'forgetting_factor must be 1, got {self._forgetting_factor!r}')
+        self.adaptation = adaptation
+        self.change_detection = change_detection
+        self.parameter_drift = parameter_drift
+
+    @property
+    def change_detection(self) -> bool:
+        """Whether the CUSUM test of plant changes runs (docs/tracking.md); may change live."""
+        return self._change_detection
+
+    @change_detection.setter
+    def change_detection(self, value: bool) -> None:
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f'change_detection must be true or false, got {value!r}')
+        self._change_detection = bool(value)
+
+    @property
+    def parameter_drift(self) -> float:
+        """
+        Return q, the random walk's step variance (``adaptation: kalman``; 0 otherwise).
+
+        Per sample, each parameter of the model of unit-size signals takes a
+        random step of variance q times the noise variance: P <- P + q S^-2 (S
+        the signal scales of the parameters; docs/tracking.md).
+        """
+        return self._parameter_drift
+
+    @parameter_drift.setter
+    def parameter_drift(self, value: float) -> None:
+        value = check_range('parameter_drift', value, 0.0, MAX_DRIFT)
+        if value and self.adaptation != 'kalman':
+            raise ValueError(f'parameter_drift needs adaptation: kalman, got {value!r} with '
+                             f'adaptation: {self.adaptation}')
+        self._parameter_drift = value
+        propagation = getattr(self, '_propagation', None)
+        if propagation is not None and hasattr(propagation, 'drift'):
+            propagation.drift = value  # the random walk's Q follows a live change
 
     @property
     def outlier_threshold(self) -> float:
@@ -382,9 +441,11 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
                  outlier_threshold: float = 0.0, input_delay: Any = 0,
-                 detrend: str = 'none', adapt: bool = True) -> None:
+                 detrend: str = 'none', adapt: bool = True, change_detection: bool = True,
+                 adaptation: str = 'forgetting', parameter_drift: float = 0.0) -> None:
         self._check_settings(order, num_inputs, feedthrough, initial_covariance,
                              forgetting_factor, outlier_threshold)
+        self._check_tracking(change_detection, adaptation, parameter_drift)
         self.input_delay = check_delays(input_delay, self.num_inputs)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough,
                                                self.input_delay)

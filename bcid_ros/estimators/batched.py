@@ -35,13 +35,14 @@ from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, par
                                       PlantsValidity, SharedSettings, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
                                        LaggedMoments, output_error_rows)
+from bcid_ros.estimators.change_detection import ChangeDetector
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
 from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
                                            scale_dependents)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
-from bcid_ros.estimators.rls import LsAccessors, Rls
+from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
 
 Rows = slice | np.ndarray
 
@@ -97,6 +98,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self.num_plants = check_int('num_plants', num_plants, 1)
         self._check_settings(order, num_inputs, feedthrough, initial_covariance,
                              forgetting_factor, outlier_threshold)
+        self._check_tracking(False, 'forgetting', 0.0)  # no detector here (yet)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
         self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
@@ -373,12 +375,19 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         outcome = ls_step_rows(self._plants, rows, y, phi, settings)
         for key, where in outcome.events.items():
             self._flag(key, rows, where)
-        if 'plant_change' in outcome.events:
-            self._forget_residuals(rows[outcome.events['plant_change']])
+        changed = outcome.events.get('plant_change', np.zeros(rows.shape[0], dtype=bool))
+        if changed.any():
+            self._forget_residuals(rows[changed])
+            for plant in rows[changed].tolist():  # as Rls._rare_step (no detector here)
+                self._change_notes[plant] = f'plant changed (sample {self._updates[plant]})'
         if outcome.restart.any():
             self._regressors.clear(rows[outcome.restart])
         if outcome.relearn.any():
             self._restart_learning(rows[outcome.relearn])
+        events = changed | outcome.events.get('outlier_rejected', changed & False)
+        if events.any():
+            # valid is decided at every such event (Rls._rare_step)
+            self._check_validity(rows[events])
         stepped = outcome.stepped
         if stepped.any():
             rows = rows[stepped]
@@ -446,7 +455,15 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                                         self._last_power[plants])
         if more is not None:
             own = [mine + list(theirs) for mine, theirs in zip(own, more)]
-        self._decide_validity(plants, own)
+        notes = [[self._change_notes[plant]] if self._change_notes[plant] else []
+                 for plant in plants.tolist()]
+        self._decide_validity(plants, [note + mine for note, mine in zip(notes, own)])
+        done = [k for k, plant in enumerate(plants.tolist()) if self._change_notes[plant]
+                and self._reasons.of(plant) == (self._change_notes[plant],)]
+        if done:  # the new estimate passed its checks: the change is done (Rls._check_validity)
+            for k in done:
+                self._change_notes[int(plants[k])] = ''
+            self._decide_validity(plants[done], [own[k] for k in done])
         self._last_power[plants] = power
 
     # ----------------------------------------------------------- the helpers
@@ -496,6 +513,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._next_check = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
         self._reasons = PlantReasons(plants)
+        # the reason of a change the gate found, until the new estimate passes its checks
+        self._change_notes = [''] * plants
         # the LS state as the step function sees it (the same arrays)
         self._plants = LsPlants(self._theta_ls, self._p, self._loss, self._tau, self._updates,
                                 self._undone_in_row, self._change_score, self._gate_tail,
@@ -519,6 +538,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._next_check[rows] = self.num_parameters
         self._last_power[rows] = math.inf
         self._reasons.clear(self._indices(rows))
+        for plant in self._indices(rows).tolist():
+            self._change_notes[plant] = ''
         self._forget_residuals(self._indices(rows))
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -530,7 +551,13 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         residual_arrays, residual_scalars = residual_items(
             self._monitor.plant_state(plant),
             None if self._hac is None else self._hac.plant_state(plant))
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        # the change detector does not run in the batched forms: each plant is the single
+        # estimator with change_detection false (its detector and kept samples empty)
+        idle = {**ChangeDetector().get_state(),
+                'recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs))}
+        return ({**arrays, **residual_arrays, **idle},
+                {**scalars, **residual_scalars, 'seen': 0,
+                 'change_note': self._change_notes[plant]})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
@@ -545,6 +572,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         if self._hac is not None:
             self._hac.load_plant(plant, hac)
         self._reasons.set(plant, scalars['reasons'])
+        self._change_notes[plant] = str(scalars.get('change_note', ''))
 
 
 class BatchedBcrls(BatchedRls):

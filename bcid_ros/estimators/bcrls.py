@@ -161,6 +161,8 @@ class Bcrls(Rls):
         past.pop()
         past.insert(0, error)
         self._monitor.record(error, u)
+        # the output error is what the model says is white: the change detector's input
+        self._detect(error)
 
     @property
     def sigma2(self) -> float:

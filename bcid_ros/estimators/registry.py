@@ -127,7 +127,23 @@ _CL_BCLS_OPTIONS = (
               low_open=True),
 )
 
-_RPEM_OPTIONS = (
+#: Following a plant that changes (docs/tracking.md): rls, bcrls, rpem and the batched forms.
+_TRACKING_OPTIONS = (
+    parameter('change_detection', 'bool', True, 'rls, bcrls, rpem: the CUSUM test of the '
+              'one-step errors for a plant change (at most 1 false alarm per 100,000 samples '
+              'of a plant that does not change); on a detection ~/valid turns false with '
+              '"plant changed (sample k)" and the estimate restarts from the samples after '
+              'the change point. May be changed while running.', read_only=False),
+    parameter('adaptation', 'string', 'forgetting', 'rls, bcrls, rpem: forgetting (the '
+              'forgetting_factor) or kalman (a random walk of the parameters, P <- P + Q at '
+              'every sample, Q from parameter_drift).', choices=('forgetting', 'kalman')),
+    parameter('parameter_drift', 'double', 0.0, 'rls, bcrls, rpem with adaptation: kalman: '
+              'q, the variance of each parameter\'s random step per sample, for signals of '
+              'unit size and relative to the noise variance (Q = q sigma2 S^-2; '
+              'docs/tracking.md). May be changed while running.', low=0.0, high=1.0,
+              read_only=False),
+)
+_RPEM_OPTIONS = _TRACKING_OPTIONS + (
     parameter('model', 'string', None, 'rpem: oe (output error y = sum B_i/F u_i + v, v of any '
               'colour) or armax (A y = sum B_i u_i + C e; adds c1..cn). Unset: the estimator '
               'default (oe).', choices=('oe', 'armax')),
@@ -173,9 +189,9 @@ def _rpem() -> Any:
 
 #: The registered estimators, by name, in the order the docs list them.
 REGISTRY: dict[str, EstimatorEntry] = {entry.name: entry for entry in (
-    EstimatorEntry('rls', _rls, _batched_rls, 'arx',
+    EstimatorEntry('rls', _rls, _batched_rls, 'arx', _TRACKING_OPTIONS,
                    summary='recursive least squares (the biased baseline)'),
-    EstimatorEntry('bcrls', _bcrls, _batched_bcrls, 'output_error',
+    EstimatorEntry('bcrls', _bcrls, _batched_bcrls, 'output_error', _TRACKING_OPTIONS,
                    summary='bias-compensated RLS, MISO output error (Ding et al. 2006)'),
     EstimatorEntry('bciv', _bciv, None, 'errors_in_variables', _BCIV_OPTIONS,
                    summary='recursive bias-compensated IV, errors in variables '

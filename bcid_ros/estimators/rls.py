@@ -9,6 +9,7 @@ exciting.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, Callable, Sequence
 
@@ -17,12 +18,19 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
+from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.recursion import (CAREFUL_GAIN, Forgetting, HEALTH_CHECK_PERIOD,
+                                           RandomWalk,
                                            ls_step, ls_step_rows, LsPlants, LsSettings,
                                            repair_rows, scale_dependents)
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
+
+#: After a detected plant change the estimate restarts from at most this many of the
+#: last samples (those after the change point); fewer than the detector's warm-up, so
+#: that the restart cannot detect again.
+RESTART_SPAN = 400
 
 
 #: No event (a mask of one False).
@@ -128,6 +136,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     name = 'rls'
     noise_names = ('residual_variance',)
+    tracks = True
     #: The residual the model says is white, for the residual tests
     #: (:data:`~bcid_ros.estimators.adequacy.MODEL_TESTS`): the equation error.
     adequacy_model = 'arx'
@@ -138,13 +147,21 @@ class Rls(LsAccessors, RecursiveEstimator):
         super().__init__(**settings)
         self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough,
                                        self.input_delay)
-        #: What happens to P between samples (recursion.Forgetting: P / lambda, anti-windup).
-        self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
+        #: What happens to P between samples: recursion.Forgetting (P / lambda, anti-windup)
+        #: or, with adaptation: kalman, recursion.RandomWalk (P + q S^-2)
+        self._propagation = (RandomWalk(self._parameter_drift) if self.adaptation == 'kalman'
+                             else Forgetting(self.initial_covariance * self.num_parameters))
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
+        self._detector = ChangeDetector()
+        # the last RESTART_SPAN samples as the step took them, for a restart after a change
+        self._recent = np.zeros((RESTART_SPAN, 1 + self.num_inputs))
+        self._relearned = 0
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
+        if self._change_detection:
+            self._remember(y, u)
         phi = self._regressor.push(y, u)
         if self._scales_pending and self._regressor.ready:
             self._choose_scales()
@@ -179,13 +196,17 @@ class Rls(LsAccessors, RecursiveEstimator):
                 or self._undone_in_row):
             return update
         regressors = iter(regressor.push_rows(rows))
-        refused_before = self._refused
+        refused_before, relearned_before = self._refused, self._relearned
 
         def step(y: float, u: np.ndarray) -> None:
             phi = next(regressors)
-            if self._refused != refused_before:  # a refusal restarted the regressor
+            if self._refused != refused_before or self._relearned != relearned_before:
+                # a refusal restarted the regressor, or a plant change refilled it
                 self._update(y, u)
-            elif self._ls_step(y, phi):
+                return
+            if self._change_detection:
+                self._remember(y, u)
+            if self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
                 if self._tau >= self._gate_from and not self._quiet_left:
                     self._record_residual(y, phi, u)
@@ -214,6 +235,57 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._monitor.record(error, u)
         # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
         self._hac.record_product(phi, error)
+        if self._gain:  # e / sqrt(s): the normalised one-step error (none after a rare step)
+            self._detect(error / math.sqrt(self._gain))
+
+    def _remember(self, y: float, u: np.ndarray) -> None:
+        """Keep the sample among the last RESTART_SPAN (for a restart after a change; on)."""
+        row = self._recent[self._seen % RESTART_SPAN]
+        row[0] = y
+        row[1:] = u
+        self._seen += 1
+
+    def _detect(self, error: float) -> None:
+        """Give the change detector this sample's normalised error; restart on a change."""
+        if self._change_detection:
+            age = self._detector.record(error)
+            if age:
+                self._plant_changed(age)
+
+    def _plant_changed(self, age: int) -> None:
+        """
+        Restart from the ``age`` samples after the detected change point (docs/tracking.md).
+
+        The estimate starts afresh (P(0), J = tau = 0, the residual tests and
+        the compensation of subclasses anew; the signal scales and the
+        estimate as the prior mean kept) and learns again from the samples
+        after the change point (at most RESTART_SPAN): the memory of the old
+        plant is cut, not blended in. Not valid from this sample on, with the
+        reason, until the new estimate passes the residual tests.
+        """
+        self._flag('plant_change')
+        first = self._seen - age + 1  # in the samples the estimator was given, from 1
+        count = min(age + self._regressor.span, RESTART_SPAN, self._seen)
+        rows = self._recent[(np.arange(self._seen - count, self._seen)) % RESTART_SPAN].copy()
+        theta, scale, updates, seen = (self._theta_ls.copy(), self._signal_scale.copy(),
+                                       self._updates, self._seen)
+        flags, quiet, recent = dict(self.flags), self._quiet_left, self._recent.copy()
+        self._reset()
+        self._signal_scale = scale
+        self._set_scale_dependents()
+        self._p = self._initial_p()
+        self._theta_ls[:] = theta
+        self._relearned += 1
+        self._quiet_left = 0
+        with np.errstate(all='ignore'):
+            for row in rows:
+                self._update(float(row[0]), row[1:])
+        self.flags = flags
+        self._quiet_left = quiet
+        self._recent[:] = recent  # the replay remembered its rows again
+        self._updates, self._seen = updates, seen
+        self._change_note = f'plant changed (sample {first})'
+        self._check_validity()
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
@@ -233,6 +305,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             if self._gate_tail != 1.0:
                 self._gate_tail = rules.lowered_tail(self._gate_tail)
         self._error = e
+        self._gain = s
         self._p = ls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
@@ -252,16 +325,24 @@ class Rls(LsAccessors, RecursiveEstimator):
                                self._ls_settings())
         self._take_scalars(plants)
         self._error = float(outcome.errors[0])
+        self._gain = 0.0
         for key, where in outcome.events.items():
             if where[0]:
                 self._flag(key)
-        if outcome.events.get('plant_change', _NO)[0]:
+        changed = bool(outcome.events.get('plant_change', _NO)[0])
+        if changed:  # the gate's (three refusals in a row): the memory was cut
             self._forget_residuals()
+            # (the samples given are counted while detection runs; else the updates)
+            sample = self._seen if self._change_detection else self._updates
+            self._change_note = f'plant changed (sample {sample})'
         if outcome.restart[0]:
             self._refused += 1
             self._restart_regressor()
         if outcome.relearn[0]:
             self._restart_learning()
+        if changed or outcome.events.get('outlier_rejected', _NO)[0]:
+            # valid is decided at every such event, not only every VALIDITY_PERIOD updates
+            self._check_validity()
         return bool(outcome.stepped[0])
 
     def _as_plants(self) -> LsPlants:
@@ -334,7 +415,12 @@ class Rls(LsAccessors, RecursiveEstimator):
             power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
             own = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
-        self._decide_validity(own + list(more))
+        note = [self._change_note] if self._change_note else []
+        self._decide_validity(note + own + list(more))
+        if self._change_note and self._reasons == (self._change_note,):
+            # the new estimate passed its checks: the change is done
+            self._change_note = ''
+            self._decide_validity(own + list(more))
         self._last_power = float(power[0])
 
     # --------------------------------------------------------- the accessors
@@ -408,6 +494,10 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
         self._error = 0.0
+        self._gain = 0.0
+        self._seen = 0
+        self._change_note = ''
+        self._detector.clear()
         self._forget_residuals()
 
     def _forget_residuals(self) -> None:
@@ -429,10 +519,20 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
-                   'last_power': self._last_power, 'reasons': self._reasons}
+                   'last_power': self._last_power, 'reasons': self._reasons,
+                   'seen': self._seen, 'change_note': self._change_note}
         residual_arrays, residual_scalars = residual_items(
             self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        return ({**arrays, **residual_arrays, **self._detector.get_state(),
+                 'recent': self._recent}, {**scalars, **residual_scalars})
+
+    def set_state(self, state: Any) -> None:
+        """Restore a :meth:`get_state` snapshot; one from before the detector loads too."""
+        own, _ = self._state_items()
+        arrays = with_detector_arrays(state.arrays, own)
+        if 'recent' not in arrays:
+            arrays = {**arrays, 'recent': np.zeros_like(own['recent'])}
+        super().set_state(dataclasses.replace(state, arrays=arrays))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -450,6 +550,10 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._next_check = int(scalars['next_check'])
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
+        self._seen = int(scalars.get('seen', 0))
+        self._change_note = str(scalars.get('change_note', ''))
+        self._recent[:] = arrays['recent']
+        self._detector.set_state(arrays)
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
         if self._hac is not None:

@@ -86,6 +86,10 @@ class BlockResult:
         :attr:`SampleFeeder.used` right after each of those messages.
     estimates : list of tuple
         ``(theta, theta_uncompensated, noise)`` for each of those messages.
+    valid : list of bool
+        ``~/valid`` right after each of those messages.
+    flags : list of dict
+        The estimator's flag counts right after each of those messages (copies).
 
     """
 
@@ -98,6 +102,8 @@ class BlockResult:
     used_totals: list[int] = dataclasses.field(default_factory=list)
     estimates: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = dataclasses.field(
         default_factory=list)
+    valid: list[bool] = dataclasses.field(default_factory=list)
+    flags: list[dict[str, int]] = dataclasses.field(default_factory=list)
 
 
 def block_is_finite(rows: np.ndarray) -> bool:
@@ -537,6 +543,8 @@ class SampleFeeder:
         result.published.append(index)
         result.used_totals.append(self.used)
         result.estimates.append(estimates)
+        result.valid.append(bool(self.estimator.valid))
+        result.flags.append(dict(self.estimator.flags))
 
     def _add_estimates(self, result: FeedResult) -> None:
         estimates = self.due_estimates()

@@ -247,15 +247,16 @@ class Identifier:
         if not result.successful or self.estimator is None:  # not configured: read later
             return result
         for parameter in parameters:
-            if parameter.name == 'forgetting_factor':
-                old = self.estimator.forgetting_factor
+            if parameter.name in ('forgetting_factor', 'parameter_drift'):
+                old = getattr(self.estimator, parameter.name)
                 try:
-                    # the estimator's own rule (cl_bcls takes only 1); applied after the check
-                    self.estimator.forgetting_factor = parameter.value
+                    # the estimator's own rule (cl_bcls takes only lambda = 1, parameter_drift
+                    # needs adaptation: kalman); applied after the check
+                    setattr(self.estimator, parameter.name, parameter.value)
                 except ValueError as error:
                     return SetParametersResult(successful=False, reason=str(error))
                 finally:
-                    self.estimator.forgetting_factor = old
+                    setattr(self.estimator, parameter.name, old)
         return result
 
     def on_parameters_set(self, parameters: list[Parameter]) -> None:
@@ -267,7 +268,8 @@ class Identifier:
                 self.estimator.forgetting_factor = parameter.value
             elif parameter.name == 'publish_period':
                 self.feeder.publish_period = parameter.value
-            elif parameter.name in ('adapt', 'outlier_threshold'):
+            elif parameter.name in ('adapt', 'outlier_threshold', 'change_detection',
+                                    'parameter_drift'):
                 setattr(self.estimator, parameter.name, parameter.value)
             else:
                 continue

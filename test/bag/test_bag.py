@@ -14,6 +14,7 @@ computations of this run (replay against the estimator run on the bag's own
 samples).
 """
 
+import csv
 from pathlib import Path
 import re
 import subprocess
@@ -23,6 +24,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
+from scipy import signal
 
 from bcid_ros.bag.reader import BagReader
 from bcid_ros.bag.replay import replay, write_output
@@ -514,3 +516,31 @@ def test_replay_json_says_why_an_estimate_is_not_valid(capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary['valid'] is False
     assert any(reason.startswith('residual not white') for reason in summary['validity_reasons'])
+
+
+def test_replay_output_csv_has_valid_and_events_of_a_plant_change(tmp_path):
+    # a second-order ARX plant whose gains change at sample 2001: the CSV replay's rows say
+    # valid (1/0) after each sample and the flags raised there ('plant_change' once)
+    rng = np.random.default_rng(8)
+    u = rng.standard_normal(3000)
+    e = 0.1 * rng.standard_normal(3000)
+    before = signal.lfilter([0.0, 1.0, 0.5], [1.0, -1.5, 0.7], u) + signal.lfilter(
+        [1.0], [1.0, -1.5, 0.7], e)
+    after = signal.lfilter([0.0, 1.6, 0.8], [1.0, -1.5, 0.7], u) + signal.lfilter(
+        [1.0], [1.0, -1.5, 0.7], e)
+    y = np.concatenate((before[:2000], after[2000:]))
+    log = tmp_path / 'log.csv'
+    np.savetxt(log, np.column_stack((y, u)), delimiter=',', header='y,u1', comments='')
+    result = replay(log, {'estimator': 'rls', 'order': 2})
+    write_output(result, tmp_path / 'out.csv')
+    with (tmp_path / 'out.csv').open() as stream:
+        rows = list(csv.DictReader(stream))
+    assert list(rows[0])[-2:] == ['valid', 'events']
+    changed = [k for k, row in enumerate(rows) if 'plant_change' in row['events'].split(';')]
+    assert len(changed) == 1 and result.flags['plant_change'] == 1
+    at = changed[0]
+    assert 2000 <= int(rows[at]['samples']) <= 2030
+    assert rows[at - 1]['valid'] == '1' and rows[at]['valid'] == '0'
+    assert rows[-1]['valid'] == '1' and rows[-1]['events'] == ''
+    np.testing.assert_array_equal([float(rows[-1][n]) for n in result.parameter_names],
+                                  result.theta)

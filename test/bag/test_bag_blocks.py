@@ -291,6 +291,7 @@ class Recorder:
     num_inputs = 1
 
     def __init__(self, fail_on=(), nan_at=()):
+        self.flags = {}  # the estimator's flag counts, which a replay's rows report
         self.log = []
         self.fail_on = set(fail_on)
         self.nan_at = set(nan_at)

@@ -41,7 +41,9 @@ def spoil(y, u, seed, rate=0.02):
 
 def single_runs(name, y, u, present, **settings):
     """Run one single-plant estimator per plant with the identifier's per-sample policy."""
-    singles = [make_estimator(name, **settings) for _ in range(y.shape[1])]
+    # the batched forms run no change detector: each plant is a single one without it
+    singles = [make_estimator(name, change_detection=False, **settings)
+               for _ in range(y.shape[1])]
     for t in range(y.shape[0]):
         for k, single in enumerate(singles):
             if present[t, k] and np.isfinite(y[t, k]) and np.isfinite(u[t, k]).all():
@@ -182,7 +184,7 @@ def test_equal_after_every_sample_through_the_start_and_gaps():
                                                       present[:t + 1], order=2), y, u)
                for t in range(steps)]
     batched = BatchedBcrls(len(PLANTS), order=2)
-    singles = [make_estimator('bcrls', order=2) for _ in PLANTS]
+    singles = [make_estimator('bcrls', order=2, change_detection=False) for _ in PLANTS]
     for t in range(steps):
         batched.update(y[t], u[t, :, 0], present[t])
         for k, single in enumerate(singles):
@@ -240,7 +242,7 @@ def spoil_states(states):
 
 def spoilt_singles(y, u, steps, spoil_at=50):
     """Return single bcrls plants run to ``spoil_at``, spoilt there, then run to ``steps``."""
-    singles = [make_estimator('bcrls', order=2) for _ in PLANTS]
+    singles = [make_estimator('bcrls', order=2, change_detection=False) for _ in PLANTS]
     for t in range(steps):
         if t == spoil_at:
             states = [single.get_state() for single in singles]
@@ -284,7 +286,7 @@ def test_safeguards_fire_per_plant_as_in_the_single_plant_estimator():
 
 def reset_single(y, u):
     """Return plant 0's single bcrls whose compensation is run away at sample 40 (one plant)."""
-    single = make_estimator('bcrls', order=2)
+    single = make_estimator('bcrls', order=2, change_detection=False)
     for t in range(y.shape[0]):
         if t == 40:
             state = single.get_state()
@@ -325,7 +327,7 @@ def round_trip(y, u):
     batched.update(y[200], u[200])
     singles = []
     for k in range(len(PLANTS)):
-        single = make_estimator('bcrls', order=2)
+        single = make_estimator('bcrls', order=2, change_detection=False)
         single.set_state(batched.plant_state(k))
         singles.append(single)
     moved = BatchedBcrls(len(PLANTS), order=2)

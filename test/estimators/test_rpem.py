@@ -194,10 +194,10 @@ def test_batch_and_recursion_keep_roots_inside():
 
 
 def test_a_drift_restarts_from_a_fit_and_says_so():
-    # without forgetting and with the gate off, a plant change is only seen as drift; the
-    # refit of the stored samples mixes both plants, and the residual tests see it
+    # without change detection, forgetting or the gate, a plant change is only seen as
+    # drift; the refit of the stored samples mixes both plants, and the residual tests see it
     y, u = hostile_cases()['plant change']
-    estimator = make_estimator('rpem', order=2)
+    estimator = make_estimator('rpem', order=2, change_detection=False)
     reasons = []
     for t in range(y.shape[0]):
         estimator.update(y[t], u[t])
@@ -209,6 +209,27 @@ def test_a_drift_restarts_from_a_fit_and_says_so():
     wrong = np.linalg.norm(estimator.theta - after) > 0.1 * np.linalg.norm(after)
     assert not (wrong and estimator.valid)
     assert wrong and any(r.startswith('residual correlated with u1') for r in reasons[-1])
+
+
+def test_a_plant_change_is_detected_and_the_fits_restart_after_it():
+    # the defaults: the CUSUM sees the change, the estimate is not valid from that sample
+    # on, and the fits take only the samples after the change point
+    y, u = hostile_cases()['plant change']
+    estimator = make_estimator('rpem', order=2)
+    valid, reasons = [], []
+    for t in range(y.shape[0]):
+        valid.append(estimator.update(y[t], u[t]))
+        reasons.append(estimator.validity_reasons)
+    detected = [t for t, why in enumerate(reasons) if any('plant changed' in r for r in why)]
+    assert estimator.flags['plant_change'] == 1 and 'restarted' not in estimator.flags
+    first = detected[0]
+    assert 1500 <= first <= 1530 and not valid[first]
+    # the change point: sample 1501 (1-based) is the first of the new plant
+    point = int(reasons[first][0].split('sample ')[1].rstrip(')'))
+    assert abs(point - 1501) <= 5
+    after = np.array([-0.6, 0.2, -0.5, 0.3])
+    assert np.linalg.norm(estimator.theta - after) < 0.05 * np.linalg.norm(after)
+    assert estimator.valid
 
 
 def test_a_projection_stuck_at_the_boundary_is_not_valid():

@@ -125,6 +125,66 @@ ONLINE_CASES = [
 ]
 
 
+def subscribe_estimates(graph):
+    """Subscribe to the identifier's parameters and valid; return the two lists they fill."""
+    received, valid = [], []
+    graph.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
+                                   lambda m: received.append(np.array(m.data)), LATCHED)
+    graph.node.create_subscription(Bool, '/bcid_identifier/valid',
+                                   lambda m: valid.append(m.data), LATCHED)
+    return received, valid
+
+
+def changing_plant_bag(tmp_path):
+    """Return a bag of a second-order ARX plant whose gains change at sample 2001 of 3000."""
+    from scipy import signal as filters
+
+    rng = np.random.default_rng(8)
+    u = rng.standard_normal(3000)
+    e = filters.lfilter([1.0], [1.0, -1.5, 0.7], 0.1 * rng.standard_normal(3000))
+    y = np.concatenate((filters.lfilter([0.0, 1.0, 0.5], [1.0, -1.5, 0.7], u)[:2000],
+                        filters.lfilter([0.0, 1.6, 0.8], [1.0, -1.5, 0.7], u)[2000:])) + e
+    log = tmp_path / 'log.csv'
+    np.savetxt(log, np.column_stack((y, u)), delimiter=',', header='y,u1', comments='')
+    done = subprocess.run([str(BIN / 'bcid'), 'import', str(log), '--out',
+                           str(tmp_path / 'changing'), '--rate', '1000'],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return tmp_path / 'changing'
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('estimator', ['rls', 'rpem'])
+def test_node_equals_replay_through_a_detected_plant_change(
+        estimator, tmp_path, domain, graph):
+    # change_detection on (the default): the detection, the restart from the samples after
+    # the change point and the valid decided at that sample run alike in node and replay
+    bag = changing_plant_bag(tmp_path)
+    settings = {'estimator': estimator, 'order': 2}
+    offline = replay(bag, settings)
+    assert offline.flags['plant_change'] == 1
+    received, valid = subscribe_estimates(graph)
+    env = ros_env(domain)
+    node = subprocess.Popen(
+        [str(BIN / 'identifier_node'), '--ros-args', '-p', f'estimator:={estimator}',
+         '-p', 'order:=2'], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        text=True)
+    try:
+        play = subprocess.run(
+            [str(BIN / 'bcid'), 'play', str(bag), '--rate', '1.0',
+             '--wait-for-subscribers', '30'], env=env, capture_output=True, text=True,
+            timeout=120)
+        assert play.returncode == 0, play.stderr
+        graph.spin_until(lambda: bool(received) and np.array_equal(received[-1], offline.theta),
+                         timeout=20)
+        graph.spin_until(lambda: valid, timeout=5)
+    finally:
+        stop(node)
+    assert received, 'identifier_node published nothing: ' + node.stderr.read()[-2000:]
+    np.testing.assert_array_equal(received[-1], offline.theta)
+    assert valid[-1] == offline.valid
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize('estimator, bag_name, messages, rate', ONLINE_CASES,
                          ids=[case[0] for case in ONLINE_CASES])
@@ -134,11 +194,7 @@ def test_play_into_identifier_equals_offline_replay(estimator, bag_name, message
     bag = head_of_bag(REPO / 'bags' / bag_name, tmp_path / 'bag', messages)
     config = REPO / 'config' / f'{bag_name}.yaml'
     offline = replay(bag, load_yaml_parameters(config), estimator=estimator)
-    received, valid = [], []
-    graph.node.create_subscription(Float64MultiArray, '/bcid_identifier/parameters',
-                                   lambda m: received.append(np.array(m.data)), LATCHED)
-    graph.node.create_subscription(Bool, '/bcid_identifier/valid',
-                                   lambda m: valid.append(m.data), LATCHED)
+    received, valid = subscribe_estimates(graph)
     env = ros_env(domain)
     # stale_after -1: the bag ends, and ~/valid would turn false a second later (no samples
     # for 1 s); the comparison here is of the estimator's own validity with the replay's

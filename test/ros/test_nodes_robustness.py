@@ -67,6 +67,23 @@ def test_live_parameters(ros_context):
         result, = node.set_parameters([Parameter('order', value=3)])
         assert not result.successful and 'read-only' in result.reason
         assert node.estimator.order == 2
+        # following a changing plant: detection is live; parameter_drift needs kalman
+        result, = node.set_parameters([Parameter('change_detection', value=False)])
+        assert result.successful and node.estimator.change_detection is False
+        result, = node.set_parameters([Parameter('parameter_drift', value=1e-6)])
+        assert not result.successful and 'adaptation: kalman' in result.reason
+        assert node.estimator.parameter_drift == 0.0
+    finally:
+        node.destroy_node()
+
+
+def test_live_parameter_drift_moves_the_random_walk(ros_context):
+    node = IdentifierNode(context=ros_context, parameter_overrides=overrides(
+        {**DING, 'estimator': 'rls', 'adaptation': 'kalman', 'parameter_drift': 1e-6}))
+    try:
+        result, = node.set_parameters([Parameter('parameter_drift', value=1e-4)])
+        assert result.successful and node.estimator.parameter_drift == 1e-4
+        assert node.estimator._propagation.drift == 1e-4
     finally:
         node.destroy_node()
 

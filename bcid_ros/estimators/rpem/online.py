@@ -25,8 +25,9 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
 from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
-                                           repair_covariance, VARIANCE_FLOOR)
+                                           RandomWalk, repair_covariance, VARIANCE_FLOOR)
 from bcid_ros.estimators.residual_state import (residual_items, residual_states,
                                                 with_gradient_arrays)
 from bcid_ros.estimators.rpem.fit import FitResult
@@ -173,6 +174,7 @@ class Rpem(RecursiveEstimator):
 
     name = 'rpem'
     noise_names = ('sigma2',)
+    tracks = True
 
     def __init__(self, *, model: str = 'oe', **settings: Any) -> None:
         if model not in MODELS:
@@ -206,6 +208,7 @@ class Rpem(RecursiveEstimator):
         self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
                                   self._offset, self._channel)
         self._watch = RestartWatch()
+        self._detector = ChangeDetector()
         self._reset()
 
     # ------------------------------------------------------------- the step
@@ -265,6 +268,15 @@ class Rpem(RecursiveEstimator):
             self._forgetting_factor - lam)
         self._updates += 1
         self._keep(y, u)
+        if self._change_detection and self._settled:
+            # the normalised one-step error e / sqrt(s) (docs/tracking.md), against the
+            # reference of the last fit's residuals, once the estimate has been valid
+            # since the last change: before, the errors are those of a model still
+            # converging, and a detection would only restart it from fewer samples
+            age = self._detector.record(e / math.sqrt(s))
+            if age:
+                self._plant_changed(age)
+                return
         if self._tau >= self._gate_from and not self._quiet_left:
             # the residual tests take the prediction error (and, OE, psi); the HAC psi e
             self._monitor.record(e, u, psi)
@@ -321,6 +333,7 @@ class Rpem(RecursiveEstimator):
             return
         self._flag(flag)
         self._refused += 1
+        self._decide_now()
         phi, psi, y, u = gating
         # y(t) unknown: its prediction in its place, residual 0
         theta = self._theta_n
@@ -370,6 +383,8 @@ class Rpem(RecursiveEstimator):
         p = result.covariance(self.initial_covariance)
         if p is None:
             return False
+        # the errors to come are judged against this fit's residuals (its own model's)
+        self._detector.prime(self._fit_residuals(result, segments[-1]))
         self._p = p
         self._theta_n[:self.num_parameters] = result.theta
         if self._offset:
@@ -390,6 +405,15 @@ class Rpem(RecursiveEstimator):
         self._fitted = True
         return True
 
+    def _fit_residuals(self, result: FitResult, segment: Segment) -> np.ndarray:
+        """Return the fit's one-step errors of its last segment (the weighted samples)."""
+        y, _, weights = segment
+        if self._armax:
+            residuals = result.tail_e
+        else:  # OE: the output minus the simulated output and the offset
+            residuals = y - result.tail_x - result.offset
+        return residuals[weights > 0.0]
+
     def _restart(self, reason: str) -> None:
         """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
         self._flag('restarted')
@@ -398,17 +422,42 @@ class Rpem(RecursiveEstimator):
         self._forget_residuals()
         self._fit()
         self._watch.restarted()
+        self._decide_now()
 
     def _accept_change(self) -> None:
-        """Cut the memory (rules.cut_memory) and restart the fits after the change."""
+        """Restart from this sample after a plant change the gate found (three refusals)."""
+        self._restart_after_change(0)
+
+    def _plant_changed(self, age: int) -> None:
+        """Flag a plant change the detector found ``age`` samples ago, and restart."""
+        self._flag('plant_change')
+        self._restart_after_change(age)
+
+    def _restart_after_change(self, age: int) -> None:
+        """
+        Cut the memory and restart the fits from the last ``age`` samples (the new plant's).
+
+        The memory cut (rules.cut_memory) lets the recursion move at once; the
+        stored samples before the change point leave the fits, and a fit of
+        the ones after it is made as soon as there are enough (now, if there
+        are). Not valid from this sample on, with the reason, until a fit of
+        the new samples has passed the checks (docs/tracking.md).
+        """
         self._changes += 1
+        first = self._samples - age + 1 if age else self._samples + 1
+        self._change_note = f'plant changed (sample {first})'
+        self._settled = False
         self._forget_residuals()
+        self._detector.clear()
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
         rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
         self._loss, self._tau = float(loss[0]), float(tau[0])
-        # the stored samples are of the old plant: the fits start again from here
-        self._store.restart_schedule()
+        # the drift watch measures from the errors now, not from the old plant's fit
+        self._watch.fitted(max(self._watch.recent, self._watch.sigma2_fit))
+        if self._store.restart_schedule(age):
+            self._fit()
+        self._decide_now()
 
     # --------------------------------------------------- health and validity
     def _check_covariance(self) -> None:
@@ -429,7 +478,27 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        self._decide_validity(watch.reasons(steps))
+        self._period_reasons = watch.reasons(steps)
+        self._decide_now()
+
+    def _decide_now(self) -> None:
+        """
+        Decide the reasons now: a plant change, a restart, the last period's, the tests'.
+
+        Called at every validity period and on every event (a detection, a
+        restart, a refusal), so that ``~/valid`` follows them at that sample.
+        The change's reason stays until a fit of the samples after it passes
+        the residual tests.
+        """
+        notes = [self._change_note] if self._change_note else []
+        if self._watch.restart_note:  # a restart since the last period (reported there too)
+            notes.append(f'restarted ({self._watch.restart_note})')
+        self._decide_validity(notes + self._period_reasons)
+        if (self._change_note and self._reasons == (self._change_note,)
+                and self._store.since_start < self._samples):
+            self._change_note = ''  # a fit of the new samples passed its checks: done
+            self._decide_validity(self._period_reasons)
+        self._settled = self._settled or not self._reasons
 
     # --------------------------------------------------------- the accessors
     @property
@@ -532,8 +601,10 @@ class Rpem(RecursiveEstimator):
         self._arx = np.zeros(p)
         self._signal_scale = np.ones(1 + self.num_inputs)
         self._set_scale_dependents()
-        #: What happens to P between samples (recursion.Forgetting: P / lambda, anti-windup).
-        self._propagation = Forgetting(self.initial_covariance * size)
+        #: What happens to P between samples: recursion.Forgetting (P / lambda, anti-windup)
+        #: or, with adaptation: kalman, recursion.RandomWalk (P + q I in normalised units)
+        self._propagation = (RandomWalk(self._parameter_drift) if self.adaptation == 'kalman'
+                             else Forgetting(self.initial_covariance * size))
         self._fitted = False
         self._fits = 0
         self._samples = 0
@@ -545,6 +616,11 @@ class Rpem(RecursiveEstimator):
         self._gate_from = rules.GATE_WARMUP * p
         self._changes = 0
         self._reasons: tuple[str, ...] = ()
+        self._period_reasons: list[str] = []
+        self._change_note = ''
+        # whether the estimate has been valid since the last change (the detector runs)
+        self._settled = False
+        self._detector.clear()
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -590,10 +666,13 @@ class Rpem(RecursiveEstimator):
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
-                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons)}
+                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
+                   'period_reasons': list(self._period_reasons),
+                   'change_note': self._change_note, 'settled': self._settled}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        return ({**arrays, **residual_arrays, **self._detector.get_state()},
+                {**scalars, **residual_scalars})
 
     def set_state(self, state: Any) -> None:
         """
@@ -603,7 +682,7 @@ class Rpem(RecursiveEstimator):
         after the load on (:func:`~bcid_ros.estimators.residual_state.with_gradient_arrays`).
         """
         own, _ = self._state_items()
-        arrays = with_gradient_arrays(state.arrays, own)
+        arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
         super().set_state(dataclasses.replace(state, arrays=arrays))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -616,6 +695,10 @@ class Rpem(RecursiveEstimator):
         for name in self._SCALARS:
             setattr(self, '_' + name, self._KINDS.get(name, int)(scalars[name]))
         self._reasons = tuple(scalars['reasons'])
+        self._period_reasons = list(scalars.get('period_reasons', ()))
+        self._change_note = str(scalars.get('change_note', ''))
+        self._settled = bool(scalars.get('settled', False))
+        self._detector.set_state(arrays)
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)

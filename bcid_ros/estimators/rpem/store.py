@@ -7,7 +7,9 @@ the samples are kept, on the raw operating point, in a ring of the last
 refused sample, a restart of the regressor, a plant change) and the samples
 no fit may weigh (an output the gate refused, an outlier a fit found). After
 ``max(FIRST_FIT_SAMPLES, FIRST_FIT_PER_PARAMETER p)`` of them, and again each
-time their count has grown by ``FIT_GROWTH`` up to ``BATCH_LIMIT``,
+time their count has grown by ``FIT_GROWTH`` up to ``BATCH_LIMIT`` (then, with
+forgetting, every ``SLIDE`` samples on the last ``BATCH_LIMIT``; after a plant
+change only the samples after its change point count),
 :meth:`SampleStore.fit` fits them with
 :class:`~bcid_ros.estimators.rpem.fit.BatchFit` (Ljung, *System
 Identification*, 2nd ed., 1999, ch. 10): centred on the current means, in
@@ -36,6 +38,9 @@ FIRST_FIT_PER_PARAMETER = 10
 FIT_GROWTH = 1.5
 #: See FIT_GROWTH.
 BATCH_LIMIT = 8192
+#: With forgetting, fits continue every SLIDE samples beyond BATCH_LIMIT (on the last
+#: BATCH_LIMIT samples).
+SLIDE = BATCH_LIMIT // 2
 #: A fit excludes the samples whose prediction error exceeds the gate's limit
 #: (robust scale) when they are at most this share of the stored samples.
 OUTLIER_SHARE = 0.05
@@ -147,12 +152,24 @@ class SampleStore:
         self.since_start += 1
         return self.since_start == self.next_fit
 
-    def restart_schedule(self) -> None:
-        """Drop the stored samples from the fits (a plant change): they start again from here."""
-        self.stored = 0
-        self.since_start = 0
-        self.next_fit = self.first_fit
-        self.break_pending = True
+    def restart_schedule(self, keep: int = 0) -> bool:
+        """
+        Keep only the last ``keep`` samples for the fits (a plant change at that point).
+
+        The samples before the change point are of the old plant: no fit may
+        blend them in. The schedule starts again from the kept ones; returns
+        whether they are already enough for a fit (the caller then fits now).
+        With ``keep`` 0 the next stored sample starts a segment.
+        """
+        keep = min(max(int(keep), 0), self.stored)
+        self.stored = keep
+        self.since_start = keep
+        self.next_fit = max(self.first_fit, keep)
+        if keep:
+            self.breaks[(self.position - keep) % BATCH_LIMIT] = True
+        else:
+            self.break_pending = True
+        return keep >= self.first_fit
 
     # ------------------------------------------------------------- the fit
     def fit(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
@@ -181,8 +198,7 @@ class SampleStore:
         StoredFit
 
         """
-        later = math.ceil(FIT_GROWTH * self.since_start)
-        self.next_fit = later if later <= BATCH_LIMIT else 0
+        self.next_fit = self._after(self.since_start, forgetting_factor)
         rows, breaks, excluded = self._rows()
         if mean is not None:
             rows = rows - mean
@@ -207,15 +223,31 @@ class SampleStore:
                 result = self._batch.fit(segments, [result.theta], prior)
         return StoredFit(result, segments, new_scale, outliers)
 
+    @staticmethod
+    def _after(since_start: int, forgetting_factor: float) -> int:
+        """
+        Return the sample count of the next fit after one at ``since_start`` (0: none).
+
+        The count grows by FIT_GROWTH up to BATCH_LIMIT. Beyond it, with
+        forgetting, a fit of the last BATCH_LIMIT samples every SLIDE samples
+        (a sliding schedule: the weights lambda^(T-t) of that window are the
+        recursion's own memory up to lambda^BATCH_LIMIT); without forgetting
+        the recursion carries on from the fits of the samples since the last
+        change (the change detector restarts the schedule), since a fit of
+        the last BATCH_LIMIT samples alone would forget the older ones the
+        recursion still weighs fully.
+        """
+        later = math.ceil(FIT_GROWTH * since_start)
+        if later <= BATCH_LIMIT:
+            return later
+        return since_start + SLIDE if forgetting_factor < 1.0 else 0
+
     def _rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return the stored samples, their segment starts and exclusions, oldest first."""
-        end, count = self.position, self.stored
-        if count < BATCH_LIMIT:
-            return (self.buffer[end - count:end].copy(), self.breaks[end - count:end].copy(),
-                    self.excluded[end - count:end].copy())
-        return (np.concatenate((self.buffer[end:], self.buffer[:end])),
-                np.concatenate((self.breaks[end:], self.breaks[:end])),
-                np.concatenate((self.excluded[end:], self.excluded[:end])))
+        # the ring positions of the last `stored` samples (they wrap round the ring's end
+        # when a plant change restarted the count part of the way through it)
+        index = np.arange(self.position - self.stored, self.position) % BATCH_LIMIT
+        return self.buffer[index], self.breaks[index], self.excluded[index]
 
     @staticmethod
     def _scales(rows: np.ndarray, scale: np.ndarray) -> np.ndarray:

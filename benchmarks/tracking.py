@@ -1,0 +1,464 @@
+"""
+Following a plant that changes: detection, recovery and honesty of ``valid``.
+
+Usage: ``.venv/bin/python -m benchmarks.tracking [--count 30] [--seed 0]
+[--estimators rpem,rpem_0.999,rls,bcrls] [--early 30] [--json OUT] [--plot OUT.png]``
+from the repository root (docs/tracking.md). Progress goes to stderr, the tables to stdout.
+
+**The family** (:func:`tracking_case`, seeded): open-loop plants of order 1-3 with one or
+two inputs, oversampled or moderate poles (the generators of
+:mod:`bcid_ros.analysis.realistic`), an input per channel (held PRBS, white noise or a
+multisine), white or coloured (ARMA(1, 1)) output noise at 10-40 dB. After 3000-5000
+samples, once the estimates have converged, the plant changes:
+
+* ``abrupt`` (16 in 30): every gain times 1.5-2, or one pole's time constant times
+  0.5-0.67 or 1.5-2 (with the numerators kept), at one sample;
+* ``drift`` (10 in 30): the same kind of change, spread linearly over 2000-4000 samples;
+* ``none`` (4 in 30): no change (false detections).
+
+The record ends 4000 samples after the change (after the drift's end).
+
+**The reference**: the batch prediction-error OE fit (:func:`bcid_ros.analysis.pem.fit_oe`,
+true structure) of the first W samples after the change; its recovery is the smallest W of
+a grid from which its delta stays within its band (twice the delta of the same fit over the
+2000 samples before the change, at least 1 %).
+
+**Per estimator** (run sample by sample with ``update``, the true structure, its defaults
+unless named): delta(t) = ||theta_hat(t) - theta(t)|| / ||theta(t)||; its band is twice its
+median delta over the 1000 samples before the change (at least 1 %); its recovery is the
+number of samples after the change (after the drift's end for a drift) from which delta stays
+within the band to the end of the record. Reported: abrupt changes recovered within 5 times
+the reference's recovery, the median recovery, changes flagged (``plant_change`` after the
+change), drifts never recovered, the share of the 2000 samples after the change that are
+``valid`` while delta > 10 %, and false detections (``plant_change`` before the change or on
+the ``none`` plants) per 100,000 samples.
+
+**Early in a run** (``--early``): plants that fit each estimator's model (rls: ARX with white
+equation error; bcrls: output error with white noise; rpem: output error with coloured noise),
+order 1-2, white input, 20-30 dB: the share of accurate estimates (delta within twice the
+batch reference's of the same samples, or 1 %) that are not ``valid`` at 500, 1000 and 3000
+samples.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+import sys
+import time
+from typing import Any, Sequence
+import warnings
+
+import numpy as np
+from scipy import signal
+
+from bcid_ros.analysis.pem import fit_arx, fit_oe, Structure
+from bcid_ros.analysis.realistic import (_draw_numerators, _draw_poles, _predicted_error,
+                                         MAX_PREDICTED_ERROR)
+from bcid_ros.estimators import make_estimator
+from bcid_ros.markdown import markdown_table
+
+#: Estimator configurations: name -> (registry name, settings).
+CONFIGS = {
+    'rpem': ('rpem', {}),
+    'rpem_0.999': ('rpem', {'forgetting_factor': 0.999}),
+    'rpem_kalman': ('rpem', {'adaptation': 'kalman', 'parameter_drift': 1e-7}),
+    'rpem_no_detection': ('rpem', {'change_detection': False}),
+    'rls': ('rls', {}),
+    'bcrls': ('bcrls', {}),
+    'bcrls_0.999': ('bcrls', {'forgetting_factor': 0.999}),
+}
+#: The reference's window grid (samples after the change).
+WINDOWS = (10, 15, 20, 30, 40, 60, 80, 120, 160, 240, 320, 480, 640, 960, 1280, 1920)
+#: Samples after the change over which "valid while far off" is counted.
+AFTER = 2000
+#: delta beyond which a valid estimate is "far off".
+FAR = 0.10
+#: Recovery within this many times the reference's counts as "within".
+WITHIN = 5.0
+
+
+class TrackingCase:
+    """One plant that changes (see the module docstring): data, truth per sample, change."""
+
+    def __init__(self, seed: tuple[int, int]) -> None:
+        rng = np.random.default_rng(seed)
+        self.seed = seed
+        # a plant whose truth 2000 samples do not determine (before or after the change) is
+        # drawn again, as in the realistic family: no estimator's error would mean anything
+        for _ in range(100):
+            self._draw(rng, seed)
+            if self.predicted_error <= MAX_PREDICTED_ERROR:
+                return
+        raise RuntimeError(f'no identifiable case from seed {seed}')
+
+    def _draw(self, rng: np.random.Generator, seed: tuple[int, int]) -> None:
+        index = seed[1] % 30
+        self.kind = 'abrupt' if index < 16 else ('drift' if index < 26 else 'none')
+        self.order = int(rng.integers(1, 4))
+        self.num_inputs = int(rng.choice([1, 2], p=[0.6, 0.4]))
+        poles = _draw_poles(rng, self.order)
+        numerators = _draw_numerators(rng, poles, self.num_inputs)
+        self.change_at = int(rng.integers(3000, 5001))
+        self.drift = int(rng.integers(2000, 4001)) if self.kind == 'drift' else 0
+        self.samples = self.change_at + self.drift + 4000
+        count = self.samples
+        inputs = [self._excitation(rng, count) for _ in range(self.num_inputs)]
+        self.inputs = [kind for kind, _ in inputs]
+        self.u = np.column_stack([x for _, x in inputs])
+        before = np.concatenate([np.real(np.poly(poles))[1:], *numerators])
+        # scale each input's share to a size of 1 before the change
+        a = np.concatenate(([1.0], before[:self.order]))
+        for i in range(self.num_inputs):
+            share = signal.lfilter(np.concatenate(([0.0], numerators[i])), a, self.u[:, i])
+            numerators[i] = numerators[i] / share.std()
+        before = np.concatenate([before[:self.order], *numerators])
+        after, self.change = self._changed(rng, poles, numerators)
+        self.theta = self._trajectory(before, after)
+        noise_free = self._simulate()
+        self.noise = str(rng.choice(['white', 'coloured']))
+        self.snr_db = float(rng.uniform(10.0, 40.0))
+        e = rng.standard_normal(count)
+        if self.noise == 'coloured':
+            e = signal.lfilter([1.0, rng.uniform(-0.5, 0.5)], [1.0, -rng.uniform(0.5, 0.95)], e)
+        scale = noise_free[:self.change_at].std() * 10.0 ** (-self.snr_db / 20.0)
+        self.y = noise_free + e * (scale / e.std())
+        structure = Structure(self.order, self.num_inputs)
+        self.predicted_error = max(
+            _predicted_error(self.theta[at], self.u[at - 2000:at], structure, scale ** 2)
+            for at in (self.change_at, self.samples - 1))
+
+    @staticmethod
+    def _excitation(rng: np.random.Generator, count: int) -> tuple[str, np.ndarray]:
+        kind = str(rng.choice(['prbs', 'white', 'multisine']))
+        if kind == 'white':
+            x = rng.standard_normal(count)
+        elif kind == 'prbs':
+            hold = int(rng.integers(2, 11))
+            levels = np.sign(rng.standard_normal(count // hold + 1))
+            x = np.repeat(levels, hold)[:count]
+            kind = f'prbs/{hold}'
+        else:
+            frequencies = rng.uniform(0.002 * math.pi, rng.uniform(0.05, 0.5) * math.pi,
+                                      size=int(rng.integers(10, 41)))
+            phases = rng.uniform(0.0, 2.0 * math.pi, size=frequencies.size)
+            x = np.cos(np.outer(np.arange(count), frequencies) + phases).sum(axis=1)
+        x = x - x.mean()
+        return kind, x / x.std()
+
+    def _changed(self, rng: np.random.Generator, poles: np.ndarray,
+                 numerators: list[np.ndarray]) -> tuple[np.ndarray, str]:
+        """Return theta after the change and its description."""
+        n = self.order
+        if self.kind == 'none':
+            return np.concatenate([np.real(np.poly(poles))[1:], *numerators]), 'none'
+        real = [k for k, p in enumerate(poles) if abs(p.imag) < 1e-12]
+        if real and rng.random() < 0.5:
+            k = int(rng.choice(real))
+            factor = float(rng.choice([rng.uniform(0.5, 0.67), rng.uniform(1.5, 2.0)]))
+            moved = poles.copy()
+            radius = float(poles[k].real)
+            # the time constant -1/ln(p) times factor: p' = p^(1/factor)
+            moved[k] = math.copysign(abs(radius) ** (1.0 / factor), radius)
+            return (np.concatenate([np.real(np.poly(moved))[1:], *numerators]),
+                    f'pole {radius:.3f} -> {moved[k].real:.3f}')
+        gain = float(rng.uniform(1.5, 2.0))
+        return (np.concatenate([np.real(np.poly(poles))[1:n + 1]] +
+                               [b * gain for b in numerators]), f'gain x{gain:.2f}')
+
+    def _trajectory(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:
+        """Return theta(t) per sample, shape (N, p)."""
+        weight = np.zeros(self.samples)
+        start = self.change_at
+        if self.kind == 'abrupt':
+            weight[start:] = 1.0
+        elif self.kind == 'drift':
+            weight[start:start + self.drift] = np.arange(self.drift) / self.drift
+            weight[start + self.drift:] = 1.0
+        return before[None, :] + weight[:, None] * (after - before)[None, :]
+
+    def _simulate(self) -> np.ndarray:
+        """Return the noise-free output of the time-varying plant (direct form)."""
+        n, r = self.order, self.num_inputs
+        y = np.zeros(self.samples)
+        u = self.u
+        for t in range(self.samples):
+            theta = self.theta[t]
+            total = 0.0
+            for k in range(1, n + 1):
+                if t - k >= 0:
+                    total -= theta[k - 1] * y[t - k]
+                    for i in range(r):
+                        total += theta[n + i * n + k - 1] * u[t - k, i]
+            y[t] = total
+        return y
+
+    @property
+    def settled_at(self) -> int:
+        """Return the first sample of the new plant at its final value."""
+        return self.change_at + self.drift
+
+    def describe(self) -> str:
+        """Return a one-line description."""
+        return (f'{self.seed}: {self.kind} ({self.change}) at {self.change_at}'
+                f'{f" over {self.drift}" if self.drift else ""}, n={self.order} '
+                f'r={self.num_inputs} u {"+".join(self.inputs)}, {self.noise} noise '
+                f'{self.snr_db:.0f} dB')
+
+
+def delta(theta_hat: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Return ||theta_hat - theta|| / ||theta|| row by row."""
+    return np.linalg.norm(theta_hat - theta, axis=-1) / np.linalg.norm(theta, axis=-1)
+
+
+def recovery(deltas: np.ndarray, start: int, band: float) -> int | None:
+    """Return the samples after ``start`` from which deltas stay within band (None: never)."""
+    outside = np.flatnonzero(~(deltas[start:] <= band))
+    if outside.size == 0:
+        return 0
+    last = int(outside[-1]) + 1
+    return None if start + last >= deltas.shape[0] else last
+
+
+def reference(case: TrackingCase) -> dict[str, Any]:
+    """Return the windowed batch OE reference's band and recovery (None: not in the grid)."""
+    structure = Structure(case.order, case.num_inputs)
+    start = case.settled_at
+
+    def fitted(first: int, last: int) -> float:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')
+            y = case.y[first:last]
+            u = case.u[first:last]
+            try:
+                fit = fit_oe(y - y.mean(), u - u.mean(axis=0), structure, offset=True)
+            except ValueError:  # too few samples for the structure
+                return math.inf
+        return float(delta(fit.theta, case.theta[last - 1]))
+
+    band = max(2.0 * fitted(case.change_at - 2000, case.change_at), 0.01)
+    deltas = []
+    for window in WINDOWS:
+        if start + window > case.samples:
+            break
+        deltas.append(fitted(start, start + window))
+    deltas = np.array(deltas)
+    inside = deltas <= band
+    found = None
+    for k in range(deltas.shape[0]):
+        if inside[k:].all():
+            found = WINDOWS[k]
+            break
+    return {'band': band, 'recovery': found, 'deltas': deltas.tolist()}
+
+
+def run_estimator(case: TrackingCase, config: str) -> dict[str, Any]:
+    """Run one configuration over a case; return its trajectory figures."""
+    name, settings = CONFIGS[config]
+    estimator = make_estimator(name, order=case.order, num_inputs=case.num_inputs, **settings)
+    count = case.samples
+    theta = np.zeros((count, estimator.num_parameters))
+    valid = np.zeros(count, dtype=bool)
+    changes = np.zeros(count, dtype=bool)
+    worst_ms = 0.0
+    before = 0
+    for t in range(count):
+        start = time.perf_counter()
+        valid[t] = estimator.update(float(case.y[t]), case.u[t])
+        if t >= 10:  # the first updates load modules
+            worst_ms = max(worst_ms, 1e3 * (time.perf_counter() - start))
+        theta[t] = estimator.theta
+        flagged = estimator.flags.get('plant_change', 0)
+        changes[t] = flagged > before
+        before = flagged
+    deltas = delta(theta, case.theta)
+    pre = deltas[case.change_at - 1000:case.change_at]
+    band = max(2.0 * float(np.median(pre)), 0.01)
+    window = slice(case.change_at, case.change_at + AFTER)
+    far_valid = valid[window] & (deltas[window] > FAR)
+    return {
+        'config': config, 'band': band, 'recovery': recovery(deltas, case.settled_at, band),
+        'flagged': bool(changes[case.change_at:].any()),
+        'false_detections': int(changes[:case.change_at].sum()
+                                + (changes[case.change_at:].sum() if case.kind == 'none'
+                                   else 0)),
+        'far_valid_share': float(far_valid.mean()), 'worst_update_ms': worst_ms,
+        'delta_final': float(deltas[-1]), 'valid_final': bool(valid[-1]),
+        'deltas': deltas, 'valid': valid, 'changes': changes, 'theta': theta,
+    }
+
+
+def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]],
+              runs: dict[str, list[dict[str, Any]]]) -> list[list[Any]]:
+    """Return the table rows: one figure per row, one column per configuration."""
+    abrupt = [k for k, case in enumerate(cases) if case.kind == 'abrupt']
+    drift = [k for k, case in enumerate(cases) if case.kind == 'drift']
+    changing = abrupt + drift
+    rows = []
+
+    def per(config: str) -> list[Any]:
+        results = runs[config]
+        within = 0
+        recoveries = []
+        for k in abrupt:
+            ours, ref = results[k]['recovery'], references[k]['recovery']
+            recoveries.append(math.inf if ours is None else ours)
+            if ours is not None and ref is not None and ours <= WITHIN * max(ref, 1):
+                within += 1
+        never_drift = sum(results[k]['recovery'] is None for k in drift)
+        flagged = sum(results[k]['flagged'] for k in abrupt)
+        far = np.mean([results[k]['far_valid_share'] for k in changing]) if changing else 0.0
+        false = sum(r['false_detections'] for r in results)
+        samples = sum(case.change_at for case in cases) + sum(
+            case.samples - case.change_at for case in cases if case.kind == 'none')
+        median = float(np.median(recoveries)) if recoveries else math.nan
+        return [f'{within} / {len(abrupt)}',
+                'never' if math.isinf(median) else f'{median:.0f}',
+                f'{flagged} / {len(abrupt)}', f'{never_drift} / {len(drift)}',
+                f'{100.0 * far:.1f} %', f'{1e5 * false / samples:.2f} ({false})',
+                f'{max(r["worst_update_ms"] for r in results):.0f} ms']
+
+    labels = ['abrupt within 5x the reference', 'abrupt, median recovery (samples)',
+              'abrupt change flagged', 'drift: never recovered',
+              f'valid while > 10 % off, first {AFTER} samples after the change',
+              'false detections per 100,000 samples (count)', 'slowest update']
+    columns = {config: per(config) for config in runs}
+    for index, label in enumerate(labels):
+        rows.append([label] + [columns[config][index] for config in runs])
+    return rows
+
+
+# ------------------------------------------------------------------ early in a run
+def early_case(seed: int, model: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Return (y, u, theta, order) of a plant that fits ``model`` (arx, oe_white, oe)."""
+    rng = np.random.default_rng((7, seed))
+    order = int(rng.integers(1, 3))
+    poles = rng.uniform(0.3, 0.95, size=order)
+    a = np.real(np.poly(poles))
+    b = rng.standard_normal(order)
+    b /= np.abs(b).sum()
+    u = rng.standard_normal(3000)
+    x = signal.lfilter(np.concatenate(([0.0], b)), a, u)
+    e = rng.standard_normal(3000)
+    if model == 'arx':
+        v = signal.lfilter([1.0], a, e)
+    elif model == 'oe':
+        v = signal.lfilter([1.0, 0.3], [1.0, -0.8], e)
+    else:
+        v = e
+    snr_db = rng.uniform(20.0, 30.0)
+    v *= x.std() / v.std() * 10.0 ** (-snr_db / 20.0)
+    return x + v, u, np.concatenate((a[1:], b)), order
+
+
+def batch_delta(y: np.ndarray, u: np.ndarray, truth: np.ndarray, order: int,
+                model: str) -> float:
+    """Return the batch reference's delta on a record: ARX LS for ARX plants, else OE."""
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        fit = (fit_arx if model == 'arx' else fit_oe)(y, u, Structure(order))
+    return float(delta(fit.theta, truth))
+
+
+def early(count: int) -> list[list[Any]]:
+    """
+    Return rows: per estimator, accurate but invalid at 500, 1000 and 3000 samples.
+
+    Accurate as in ``benchmarks/realistic.py``: delta <= max(2 delta_ref, 1 %), delta_ref
+    the batch reference of the same samples (at 30 dB an estimate 10 % off is far outside
+    what the data allow, and the residual tests rightly see its error).
+    """
+    rows = []
+    for name, model in (('rls', 'arx'), ('bcrls', 'oe_white'), ('rpem', 'oe')):
+        hits = {500: [0, 0], 1000: [0, 0], 3000: [0, 0]}
+        for seed in range(count):
+            y, u, truth, order = early_case(seed, model)
+            estimator = make_estimator(name, order=order)
+            for t in range(3000):
+                valid = estimator.update(y[t], u[t])
+                if t + 1 in hits:
+                    bound = max(2.0 * batch_delta(y[:t + 1], u[:t + 1], truth, order, model),
+                                0.01)
+                    accurate = float(delta(estimator.theta, truth)) <= bound
+                    hits[t + 1][0] += accurate
+                    hits[t + 1][1] += accurate and not valid
+        rows.append([f'{name} ({model} plants)'] + [
+            f'{bad} of {good} ({100.0 * bad / max(good, 1):.0f} %)'
+            for good, bad in hits.values()])
+    return rows
+
+
+def plot(case: TrackingCase, run: dict[str, Any], path: Path) -> None:
+    """Plot theta(t) against the truth, delta(t) and valid for one run."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    t = np.arange(case.samples)
+    axes[0].plot(t, run['theta'], linewidth=0.9)
+    axes[0].plot(t, case.theta, 'k--', linewidth=0.8)
+    axes[0].set_ylabel('theta (dashed: truth)')
+    axes[1].semilogy(t, np.maximum(run['deltas'], 1e-4))
+    axes[1].axhline(run['band'], color='grey', linewidth=0.8)
+    axes[1].set_ylabel('delta')
+    axes[2].plot(t, run['valid'].astype(float), drawstyle='steps-post')
+    for at in np.flatnonzero(run['changes']):
+        for axis in axes:
+            axis.axvline(at, color='red', linewidth=0.6)
+    axes[2].set_ylabel('valid')
+    axes[2].set_xlabel('sample')
+    figure.suptitle(f'{run["config"]}: {case.describe()}', fontsize=8)
+    figure.savefig(path, dpi=90)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the benchmark; print the tables."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--count', type=int, default=30)
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--estimators', default='rpem,rpem_0.999,rls,bcrls')
+    parser.add_argument('--early', type=int, default=0, help='plants for the early-run table')
+    parser.add_argument('--json', type=Path)
+    parser.add_argument('--plot', type=Path, help='plot the first abrupt case of the first '
+                        'configuration')
+    args = parser.parse_args(argv)
+    configs = args.estimators.split(',')
+    cases, references = [], []
+    runs: dict[str, list[dict[str, Any]]] = {config: [] for config in configs}
+    for k in range(args.count):
+        case = TrackingCase((args.seed, k))
+        cases.append(case)
+        references.append(reference(case) if case.kind != 'none' else {'recovery': None})
+        print(f'{case.describe()}: reference recovery {references[-1]["recovery"]}',
+              file=sys.stderr)
+        for config in configs:
+            result = run_estimator(case, config)
+            runs[config].append(result)
+            print(f'  {config}: recovery {result["recovery"]} flagged {result["flagged"]} '
+                  f'false {result["false_detections"]} far-valid '
+                  f'{result["far_valid_share"]:.3f}', file=sys.stderr)
+    recoveries = [r['recovery'] for r in references if r['recovery'] is not None]
+    print(f'reference recovery: median {np.median(recoveries):.0f} samples over '
+          f'{len(recoveries)} changes (none in the grid: '
+          f'{sum(c.kind != "none" for c in cases) - len(recoveries)})\n')
+    print(markdown_table(['', *configs], summarise(cases, references, runs)))
+    if args.early:
+        print()
+        print(markdown_table(['accurate but invalid at', '500', '1000', '3000'],
+                             early(args.early)))
+    if args.plot:
+        first = next(k for k, case in enumerate(cases) if case.kind == 'abrupt')
+        plot(cases[first], runs[configs[0]][first], args.plot)
+    if args.json:
+        args.json.write_text(json.dumps({config: [
+            {key: value for key, value in run.items()
+             if key not in ('deltas', 'valid', 'changes', 'theta')} for run in results]
+            for config, results in runs.items()}, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

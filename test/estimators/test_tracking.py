@@ -1,0 +1,143 @@
+"""
+Following a plant that changes: detection, restart, validity at the change, Kalman drift.
+
+Each test runs fixed seeds; the thresholds come from the detector's design (its delay
+about h over the mean increment, docs/tracking.md) or its false-alarm bound.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators.change_detection import FALSE_ALARM, WARMUP
+
+A_BEFORE, B_BEFORE = [1.0, -1.5, 0.7], [0.0, 1.0, 0.5]
+A_AFTER, B_AFTER = [1.0, -1.2, 0.5], [0.0, 1.5, 0.8]
+
+
+def changing_plant(seed, samples=6000, change=3000, equation=False, noise=0.3, after=None):
+    """Return (y, u, theta_after) of a second-order plant that changes at ``change``."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal(samples)
+    v = noise * rng.standard_normal(samples)
+    a_after, b_after = after or (A_AFTER, B_AFTER)
+
+    def output(a, b):
+        return signal.lfilter(b, a, u) + (signal.lfilter([1.0], a, v) if equation else v)
+
+    y = np.concatenate((output(A_BEFORE, B_BEFORE)[:change], output(a_after, b_after)[change:]))
+    return y, u, np.concatenate((a_after[1:], b_after[1:]))
+
+
+def run(estimator, y, u):
+    """Feed every sample; return valid and the reasons after each."""
+    valid, reasons = [], []
+    for t in range(y.shape[0]):
+        valid.append(estimator.update(y[t], u[t]))
+        reasons.append(estimator.validity_reasons)
+    return np.array(valid), reasons
+
+
+@pytest.mark.parametrize('name, equation', [('rls', True), ('bcrls', False)])
+def test_an_abrupt_change_is_detected_and_the_estimate_restarts_after_it(name, equation):
+    y, u, after = changing_plant(1, equation=equation)
+    estimator = make_estimator(name, order=2)
+    valid, reasons = run(estimator, y, u)
+    flagged = [t for t, why in enumerate(reasons) if why and why[0].startswith('plant changed')]
+    assert estimator.flags['plant_change'] == 1
+    first = flagged[0]
+    # the error variance grows about 20-fold: the variance CUSUM needs a handful of samples
+    assert 3000 <= first <= 3030
+    assert valid[first - 1] and not valid[first]  # valid false at the detection sample
+    point = int(reasons[first][0].split('sample ')[1].rstrip(')'))
+    assert abs(point - 3001) <= 3  # the change point: the 3001st sample
+    assert np.linalg.norm(estimator.theta - after) < 0.05 * np.linalg.norm(after)
+    assert estimator.valid
+
+
+def test_a_small_persistent_shift_is_detected():
+    # the gain grows by 12 %: the equation error gains 0.12^2 (1 + 0.5^2) = 0.018 of variance
+    # over 0.15^2 = 0.0225, a ratio of 1.8; the variance CUSUM's drift 1.8/6 - 0.203 = 0.097
+    # reaches h = 11.5 in about 120 samples (the bound below is five times that)
+    after = (A_BEFORE, [0.0, 1.12, 0.56])
+    y, u, _ = changing_plant(2, noise=0.15, equation=True, after=after)
+    estimator = make_estimator('rls', order=2)
+    _, reasons = run(estimator, y, u)
+    flagged = [t for t, why in enumerate(reasons) if why and why[0].startswith('plant changed')]
+    assert estimator.flags.get('plant_change', 0) == 1
+    assert 3000 <= flagged[0] <= 3600
+
+
+@pytest.mark.parametrize('name', ['rls', 'rpem'])
+def test_no_detection_on_a_plant_that_does_not_change(name):
+    # 60,000 samples of a stationary plant: the bound allows 0.6 false alarms on average;
+    # P(2 or more | Poisson 0.6) = 0.12 at the bound, and the measured rate is far below it
+    rng = np.random.default_rng(3)
+    samples = 60000
+    u = rng.standard_normal(samples)
+    v = 0.3 * rng.standard_normal(samples)
+    noise = signal.lfilter([1.0], A_BEFORE, v) if name == 'rls' else v
+    y = signal.lfilter(B_BEFORE, A_BEFORE, u) + noise
+    estimator = make_estimator(name, order=2)
+    for t in range(samples):
+        estimator.update(y[t], u[t])
+    expected = samples * FALSE_ALARM
+    assert estimator.flags.get('plant_change', 0) <= 1
+    assert expected < 1.0 and WARMUP < samples
+
+
+def test_kalman_p_does_not_collapse_while_forgetting_free_p_does():
+    y, u, _ = changing_plant(4, samples=40000, change=40000, equation=True)
+    drift = 1e-6
+    plain = make_estimator('rls', order=2)
+    kalman = make_estimator('rls', order=2, adaptation='kalman', parameter_drift=drift)
+    traces = []
+    for t in range(y.shape[0]):
+        plain.update(y[t], u[t])
+        kalman.update(y[t], u[t])
+        if t + 1 in (20000, 40000):
+            traces.append((plain.covariance_trace, kalman.covariance_trace))
+    # without forgetting P falls as 1/t: halved from 20,000 to 40,000 samples; the random
+    # walk holds it at its steady state, and P >= Q = q S^-2 after every step
+    assert traces[1][0] / traces[0][0] == pytest.approx(0.5, rel=0.1)
+    assert traces[1][1] / traces[0][1] == pytest.approx(1.0, rel=0.1)
+    assert np.linalg.eigvalsh(kalman.covariance).min() >= drift / (
+        kalman.signal_scale ** 2).max() * (1.0 - 1e-9)
+    with pytest.raises(ValueError, match='parameter_drift'):
+        make_estimator('rls', order=2, parameter_drift=1e-6)
+    with pytest.raises(ValueError, match='adaptation'):
+        make_estimator('rls', order=2, adaptation='random')
+
+
+def test_kalman_tracks_a_drift_that_forgetting_free_estimates_lag():
+    rng = np.random.default_rng(5)
+    samples = 12000
+    u = rng.standard_normal(samples)
+    b1 = np.linspace(1.0, 2.0, samples)  # the gain drifts by 100 % over the run
+    y = np.zeros(samples)
+    for t in range(2, samples):
+        y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + b1[t] * u[t - 1] + 0.5 * u[t - 2]
+    y += 0.1 * rng.standard_normal(samples)
+    final = np.array([-1.5, 0.7, b1[-1], 0.5])
+    errors = {}
+    for label, settings in (('off', {'change_detection': False}),
+                            ('kalman', {'adaptation': 'kalman', 'parameter_drift': 1e-5})):
+        estimator = make_estimator('rpem', order=2, **settings)
+        for t in range(samples):
+            estimator.update(y[t], u[t])
+        errors[label] = np.linalg.norm(estimator.theta - final) / np.linalg.norm(final)
+    assert errors['kalman'] < 0.05 < errors['off']
+
+
+def test_change_detection_off_keeps_the_old_behaviour_and_is_live():
+    y, u, _ = changing_plant(1, equation=True)
+    estimator = make_estimator('rls', order=2, change_detection=False)
+    run(estimator, y[:3500], u[:3500])
+    assert 'plant_change' not in estimator.flags
+    estimator.change_detection = True
+    with pytest.raises(ValueError, match='change_detection'):
+        estimator.change_detection = 'yes'
+    assert math.isfinite(estimator.theta.sum())
