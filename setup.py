@@ -35,10 +35,10 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'identifier_node = bcid_ros.nodes.identifier_node:main',
-            'identifier_lifecycle_node = bcid_ros.nodes.identifier_lifecycle_node:main',
-            'simulator_node = bcid_ros.nodes.simulator_node:main',
-            'adaptive_controller_node = bcid_ros.nodes.adaptive_controller_node:main',
+            'identifier_node = bcid_ros.entry_points:identifier_node',
+            'identifier_lifecycle_node = bcid_ros.entry_points:identifier_lifecycle_node',
+            'simulator_node = bcid_ros.entry_points:simulator_node',
+            'adaptive_controller_node = bcid_ros.entry_points:adaptive_controller_node',
             'bcid = bcid_ros.cli:main',
         ],
     },

@@ -26,7 +26,7 @@ LAYERS = (
     ('bag', 'control', 'reproduction'),
     ('analysis',),
     ('nodes',),
-    ('cli',),
+    ('cli', 'entry_points'),
 )
 LAYER_OF = {name: rank for rank, names in enumerate(LAYERS) for name in names}
 

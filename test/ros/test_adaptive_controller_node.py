@@ -234,5 +234,5 @@ def test_bad_parameters_stop_the_node_with_a_clear_message():
 
 
 def test_the_entry_point_is_declared():
-    assert "'adaptive_controller_node = bcid_ros.nodes.adaptive_controller_node:main'" in \
+    assert "'adaptive_controller_node = bcid_ros.entry_points:adaptive_controller_node'" in \
         (ROOT / 'setup.py').read_text()

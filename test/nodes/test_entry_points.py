@@ -1,0 +1,42 @@
+"""The nodes' console scripts end quietly on a SIGINT at any moment of their start."""
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _interrupted_after(delay: float) -> subprocess.CompletedProcess:
+    code = 'import sys; from bcid_ros.entry_points import identifier_node; ' \
+           'sys.exit(identifier_node())'
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    process = subprocess.Popen([sys.executable, '-c', code, '--ros-args', '-p', 'order:=1'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               cwd=ROOT, env=env)
+    time.sleep(delay)
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=60)
+    return subprocess.CompletedProcess(process.args, process.returncode, out, err)
+
+
+@pytest.mark.parametrize('delay', [0.0, 0.02, 0.08])
+def test_a_sigint_while_the_node_loads_prints_no_traceback(delay):
+    # 0 s can land in the interpreter's own start (its default handler: killed by the
+    # signal, no traceback); later, in the imports of rclpy and numpy (well before the
+    # node exists), which printed a traceback through the console script before
+    result = _interrupted_after(delay)
+    assert 'Traceback' not in result.stderr, result.stderr
+    assert result.returncode in (0, -signal.SIGINT), result.stderr
+
+
+def test_every_node_script_goes_through_entry_points():
+    setup = (ROOT / 'setup.py').read_text()
+    for name in ('identifier_node', 'identifier_lifecycle_node', 'simulator_node',
+                 'adaptive_controller_node'):
+        assert f"'{name} = bcid_ros.entry_points:{name}'" in setup
