@@ -25,7 +25,8 @@ from bcid_ros.estimators.cl_bcls.bias import bias_terms
 from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, plant_from_regression,
                                                     prefilter_polynomial, PrefilteredLs,
                                                     prefiltered_ls)
-from bcid_ros.estimators.lti import Controller, is_stable, make_controller, stable_reflection
+from bcid_ros.estimators.lti import Controller, make_controller, stable_reflection
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 
 #: Default stopping tolerance on the change of the estimate (the paper's 0.001, section 7.3).
 DEFAULT_TOLERANCE = 1e-3
@@ -254,7 +255,7 @@ def algorithm1(y: np.ndarray, u: np.ndarray, controller: Controller, prefilter: 
             break
         # steps (6), (7): f^(i+1) = â_p^(i), unstable roots mirrored (Remark 3)
         next_prefilter = stable_reflection(np.concatenate(([1.0], theta[:prefilter.size - 1])))
-        stable_next = is_stable(next_prefilter)
+        stable_next = is_stable(monic_coefficients(next_prefilter))
         last = (theta, theta_ls, sigma2, prefilter, next_prefilter if stable_next else prefilter,
                 ls, direction, beta)
         history.append(theta)
