@@ -73,8 +73,8 @@ def test_registry_refuses_unknown_estimator():
 
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
 @pytest.mark.parametrize('setting, value, message', [
-    ('order', 0, r'order must be an integer >= 1, got 0'),
-    ('num_inputs', 1.5, r'num_inputs must be an integer >= 1, got 1.5'),
+    ('order', 0, r'order must be an integer in \[1, 64\], got 0'),
+    ('num_inputs', 1.5, r'num_inputs must be an integer in \[1, 64\], got 1.5'),
     ('forgetting_factor', 1.5, r'forgetting_factor must be in \(0, 1\], got 1.5'),
     ('forgetting_factor', 0.0, r'forgetting_factor must be in \(0, 1\], got 0.0'),
     ('initial_covariance', -1.0, r'initial_covariance must be in \(0, 1e\+15\], got -1.0'),
