@@ -346,11 +346,8 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
     """
     Check simulator parameters and return all of them, defaults filled in.
 
-    Raises
-    ------
-    ValueError
-        Naming the parameter and its allowed values.
-
+    A bad value raises the ValueError of :func:`check_identifier_parameters`,
+    naming the parameter and its allowed values.
     """
     checked = check_parameters(values, SIMULATOR_PARAMETERS)
     if checked['scenario'] == 'joints':

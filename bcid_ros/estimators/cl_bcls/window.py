@@ -75,10 +75,8 @@ class WindowMemory:
 
     Parameters
     ----------
-    prefilter : numpy.ndarray, shape ``(n + 1,)``
-        The prefilter in use.
-    initial_p : numpy.ndarray, shape ``(2n, 2n)``
-        P(0) of the running LS.
+    prefilter, initial_p : numpy.ndarray
+        The prefilter in use ``(n + 1,)`` and P(0) ``(2n, 2n)`` of the running LS.
     window : int
         The samples kept.
     min_window, first_window : int
