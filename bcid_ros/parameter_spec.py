@@ -71,14 +71,11 @@ class ParameterSpec:
         if self.type == 'bool':
             return 'true or false'
         if self.low is not None or self.high is not None:
-            low = '-inf' if self.low is None else f'{self.low:g}'
-            high = 'inf' if self.high is None else f'{self.high:g}'
-            bracket = '(' if self.low_open else '['
             kind = {'integer': 'an integer', 'double': 'a number',
                     'double_array': 'a list of numbers',
                     'integer_array': 'a list of integers'}.get(self.type, self.type)
             each = ' each' if self.type.endswith('_array') else ''
-            return f'{kind}{each} in {bracket}{low}, {high}]'
+            return f'{kind}{each} in {self._range()}'
         return {'integer': 'an integer', 'double': 'a finite number',
                 'double_array': 'a list of numbers', 'string_array': 'a list of strings',
                 'string': 'a string'}[self.type]
@@ -109,6 +106,30 @@ class ParameterSpec:
         if self.choices and converted not in self.choices:
             raise ValueError(self._message(value))
         return converted
+
+    def check_argument(self, value: Any) -> Any:
+        """
+        Return a keyword argument of an estimator for this number parameter, or raise ValueError.
+
+        The constructors' form of :meth:`check`: any value ``int()`` or
+        ``float()`` takes (numpy scalars too) is converted, then held to the
+        same range; the message names the argument, the range and the value
+        (``order must be an integer in [1, 64], got 0``).
+        """
+        if self.type == 'integer':
+            if isinstance(value, bool) or int(value) != value or not self._in_range(value):
+                raise ValueError(f'{self.name} must be an integer in {self._range()}, '
+                                 f'got {value!r}')
+            return int(value)
+        number = float(value)
+        if not math.isfinite(number) or not self._in_range(number):
+            raise ValueError(f'{self.name} must be in {self._range()}, got {number!r}')
+        return number
+
+    def _range(self) -> str:
+        low = '-inf' if self.low is None else f'{self.low:g}'
+        high = 'inf' if self.high is None else f'{self.high:g}'
+        return f'{"(" if self.low_open else "["}{low}, {high}]'
 
     def _convert(self, value: Any) -> Any:
         if self.type == 'bool':

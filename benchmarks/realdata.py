@@ -40,7 +40,7 @@ from benchmarks.realistic import default_estimators
 from bcid_ros.analysis.metrics import nrmse_fit
 from bcid_ros.analysis.pem import fit_oe, simulate_oe, Structure
 from bcid_ros.estimators import ESTIMATORS, make_estimator
-from bcid_ros.estimators.lti import is_stable
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 from bcid_ros.markdown import markdown_table
 
 #: A structure within this many fit points of the best one counts as as good.
@@ -71,7 +71,9 @@ def records(folder: Path) -> list[tuple[str, str, np.ndarray]]:
 def validation_fit(theta: np.ndarray, structure: Structure, y: np.ndarray, u: np.ndarray,
                    point: np.ndarray, split: int) -> float:
     """Return the NRMSE fit (%) on samples ``split:`` of the model simulated over the record."""
-    if not np.isfinite(theta).all() or not is_stable(structure.split(theta)[0], 0.0):
+    if not np.isfinite(theta).all():
+        return -math.inf
+    if not is_stable(monic_coefficients(structure.split(theta)[0]), 0.0):
         return -math.inf
     simulated = point[0] + simulate_oe(theta, u - point[1:], structure)
     return nrmse_fit(y[split:], simulated[split:])

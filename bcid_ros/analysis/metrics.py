@@ -328,12 +328,7 @@ def accuracy_test(error_a: np.ndarray, error_b: np.ndarray, lags: int) -> tuple[
     return z, float(stats.norm.sf(z))
 
 
-def is_stable(a: np.ndarray) -> bool:
-    """Return whether every root of A lies strictly inside the unit circle."""
-    return bool(a.size == 1 or np.abs(np.roots(a)).max() < 1.0)
-
-
 __all__ = ['accuracy_test', 'ar_noise_model', 'autocorrelation', 'cross_correlation',
            'cross_correlation_test', 'equation_error',
-           'information_criteria', 'is_stable', 'ljung_box', 'nrmse_fit', 'simulate',
+           'information_criteria', 'ljung_box', 'nrmse_fit', 'simulate',
            'whiteness_lags']

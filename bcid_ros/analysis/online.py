@@ -21,7 +21,7 @@ import numpy as np
 from bcid_ros.analysis import metrics
 from bcid_ros.analysis.batch import Candidate, finite, Record
 from bcid_ros.analysis.pem import simulate_oe, Structure
-from bcid_ros.estimators.lti import is_stable
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 from bcid_ros.identifier.parameters import estimator_from_parameters
 
 
@@ -97,7 +97,7 @@ def run_online(record: Record, name: str, values: dict[str, Any], chosen: Candid
     if not np.isfinite(plant).all():
         result.reasons += ('the estimate is not finite',)
         return result
-    result.stable = is_stable(structure.split(plant)[0], 0.0)
+    result.stable = is_stable(monic_coefficients(structure.split(plant)[0]), 0.0)
     point = estimator.operating_point
     result.operating_point = None if point is None else np.asarray(point, dtype=float)
     y0, u0 = (0.0, 0.0) if point is None else (point[0], point[1:])

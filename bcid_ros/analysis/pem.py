@@ -37,7 +37,7 @@ from bcid_ros.analysis.least_squares import best_run, MAX_EVALUATIONS, SOLVERS
 from bcid_ros.analysis.metrics import coloured_noise_covariance, nrmse_fit
 from bcid_ros.analysis.structure import Structure
 from bcid_ros.estimators.base import check_int
-from bcid_ros.estimators.lti import is_stable, spectral_radius
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients, spectral_radius
 from bcid_ros.estimators.regressor import ArxRegressor
 
 #: Largest pole (or zero of C) radius of a start: a root beyond is reflected
@@ -148,7 +148,7 @@ class PemResult:
     @property
     def stable(self) -> bool:
         """Return whether every root of F (A) is strictly inside the unit circle."""
-        return is_stable(self.denominator, 0.0)
+        return is_stable(monic_coefficients(self.denominator), 0.0)
 
     def fit(self, y: np.ndarray) -> float:
         """Return the NRMSE fit in percent of :attr:`output` to the y it was fitted to."""
@@ -167,7 +167,7 @@ def stabilise(polynomial: np.ndarray, radius: float = START_RADIUS) -> np.ndarra
     to ``radius`` if the mirror is still beyond it.
     """
     polynomial = np.asarray(polynomial, dtype=float)
-    if is_stable(polynomial, 1.0 - radius):
+    if is_stable(monic_coefficients(polynomial), 1.0 - radius):
         return polynomial.copy()
     roots = np.roots(polynomial)
     magnitude = np.abs(roots)
@@ -231,7 +231,7 @@ def oe_jacobian(theta: Any, u: Any, structure: Structure) -> np.ndarray:
     theta = _check_theta(theta, structure, 'oe')
     u = _check_inputs(u, structure, None)
     problem = _OutputError(np.zeros(u.shape[0]), u, structure, 'zero')
-    if not is_stable(structure.split(theta)[0], 0.0):
+    if not is_stable(monic_coefficients(structure.split(theta)[0]), 0.0):
         raise ValueError('theta must have a stable F for its gradient')
     return problem.jacobian(theta)
 
@@ -435,7 +435,7 @@ class _OutputError:
         if self._cached is not None and self._cached[0] == key:
             return self._cached[1]
         denominator, b = self.structure.split(x[:self.num_theta])
-        if not is_stable(denominator, 0.0):
+        if not is_stable(monic_coefficients(denominator), 0.0):
             return None
         drive = _input_sum(b, self.u, self.structure)
         drive[:self.num_initial] += x[self.num_theta:self.num_theta + self.num_initial]
@@ -601,7 +601,7 @@ def _fit_oe(y: np.ndarray, u: np.ndarray, structure: Structure, initial: str, of
 
 def _time_constant(denominator: np.ndarray) -> float:
     """Return the longest time constant -1/ln|pole| of 1/F in samples (inf at |pole| >= 1)."""
-    radius = spectral_radius(denominator)
+    radius = spectral_radius(monic_coefficients(denominator))
     if radius >= 1.0:
         return math.inf
     return -1.0 / math.log(radius) if radius > 0.0 else 0.0
@@ -728,7 +728,7 @@ class _Armax:
         if self._cached is not None and self._cached[0] == key:
             return self._cached[1]
         noise = np.concatenate([[1.0], x[self.num_ab:]])
-        if not is_stable(noise, 0.0):
+        if not is_stable(monic_coefficients(noise), 0.0):
             return None
         error = signal.lfilter([1.0], noise, self.target - self.phi @ x[:self.num_ab])
         self._cached = (key, error)

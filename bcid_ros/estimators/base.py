@@ -36,6 +36,7 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
                                                  RunningMean)
 from bcid_ros.estimators.residual_state import residual_reasons
+from bcid_ros.estimators.settings import DETRENDS, MAX_DELAY, SHARED_SETTINGS, TRACKING
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
@@ -47,15 +48,6 @@ HUGE_VALUE = 1.0 / HUGE_SCREEN
 EXACT_CHECKPOINT_SIZE = 4096
 #: See EXACT_CHECKPOINT_SIZE.
 CHECKPOINT_PERIOD = 64
-#: Largest dead time accepted (samples): the regressor keeps d_i more past inputs.
-MAX_DELAY = 100000
-#: Values of the ``detrend`` setting.
-DETRENDS = ('none', 'mean')
-#: Values of the ``adaptation`` setting: exponential forgetting, or the random-walk model
-#: of the parameters (P <- P + Q at every sample; docs/tracking.md).
-ADAPTATIONS = ('forgetting', 'kalman')
-#: Largest ``parameter_drift`` (its random walk would then swamp any data).
-MAX_DRIFT = 1.0
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
@@ -186,7 +178,7 @@ def check_range(name: str, value: Any, low: float, high: float,
 
 def check_forgetting_factor(value: Any) -> float:
     """Return the forgetting factor lambda as a float in (0, 1], or raise ValueError."""
-    return check_range('forgetting_factor', value, 0.0, 1.0, low_open=True)
+    return SHARED_SETTINGS['forgetting_factor'].check_argument(value)
 
 
 class SharedSettings:
@@ -208,11 +200,11 @@ class SharedSettings:
                         initial_covariance: float, forgetting_factor: float,
                         outlier_threshold: float) -> None:
         """Check and keep the shared settings; raise ValueError naming a bad one."""
-        self.order = check_int('order', order, 1)
-        self.num_inputs = check_int('num_inputs', num_inputs, 1)
+        self.order = SHARED_SETTINGS['order'].check_argument(order)
+        self.num_inputs = SHARED_SETTINGS['num_inputs'].check_argument(num_inputs)
         self.feedthrough = bool(feedthrough)
-        self.initial_covariance = check_range(
-            'initial_covariance', initial_covariance, 0.0, 1e15, low_open=True)
+        self.initial_covariance = SHARED_SETTINGS['initial_covariance'].check_argument(
+            initial_covariance)
         # not through the property, which subclasses may extend with checks of their state
         self._forgetting_factor = check_forgetting_factor(forgetting_factor)
         self.outlier_threshold = outlier_threshold
@@ -245,7 +237,7 @@ class SharedSettings:
     def _check_tracking(self, change_detection: bool, adaptation: str,
                         parameter_drift: float) -> None:
         """Check and keep the settings that follow a changing plant (docs/tracking.md)."""
-        if adaptation not in ADAPTATIONS:
+        if adaptation not in TRACKING['adaptation'].choices:
             raise ValueError(f"adaptation must be 'forgetting' or 'kalman', got {adaptation!r}")
         if not self.tracks and (adaptation != 'forgetting' or parameter_drift):
             raise ValueError(f'adaptation: kalman and parameter_drift are not available for '
@@ -281,7 +273,7 @@ class SharedSettings:
 
     @parameter_drift.setter
     def parameter_drift(self, value: float) -> None:
-        value = check_range('parameter_drift', value, 0.0, MAX_DRIFT)
+        value = TRACKING['parameter_drift'].check_argument(value)
         if value and self.adaptation != 'kalman':
             raise ValueError(f'parameter_drift needs adaptation: kalman, got {value!r} with '
                              f'adaptation: {self.adaptation}')
@@ -297,8 +289,7 @@ class SharedSettings:
 
     @outlier_threshold.setter
     def outlier_threshold(self, value: float) -> None:
-        self._outlier_threshold = check_range('outlier_threshold', value, 0.0,
-                                              rules.IMPLAUSIBLE_ERROR)
+        self._outlier_threshold = SHARED_SETTINGS['outlier_threshold'].check_argument(value)
         self._gate_limit2 = rules.gate_limit2(self._outlier_threshold)
 
 

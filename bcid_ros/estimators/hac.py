@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators.lagged import effective_size, LaggedProducts, weights_of_counts
+from bcid_ros.estimators.settings import SHARED_SETTINGS
 
 #: Prewhitening: none (plain Newey-West) or an AR(1) per component (docs/trust.md).
 PREWHITENINGS = ('none', 'diagonal')
@@ -128,8 +129,7 @@ class HacCovariance:
                  plants: int | None = None) -> None:
         if not (isinstance(dimension, int) and dimension >= 1):
             raise ValueError(f'dimension must be an integer >= 1; got {dimension!r}')
-        if not 0.0 < forgetting_factor <= 1.0:
-            raise ValueError(f'forgetting_factor must be in (0, 1]; got {forgetting_factor!r}')
+        forgetting_factor = SHARED_SETTINGS['forgetting_factor'].check_argument(forgetting_factor)
         if prewhitening not in PREWHITENINGS:
             raise ValueError(f'prewhitening must be one of {", ".join(PREWHITENINGS)}; '
                              f'got {prewhitening!r}')
@@ -157,8 +157,7 @@ class HacCovariance:
 
     @forgetting_factor.setter
     def forgetting_factor(self, value: float) -> None:
-        if not 0.0 < value <= 1.0:
-            raise ValueError(f'forgetting_factor must be in (0, 1]; got {value!r}')
+        value = SHARED_SETTINGS['forgetting_factor'].check_argument(value)
         self._forgetting_factor = value
         # the scores' products are weighted by lambda^2 per step (w_t w_s of both)
         self._products.decay = value ** 2

@@ -3,7 +3,8 @@ Small discrete-time LTI helpers: polynomials in q, realisations, the Stein equat
 
 Polynomials are numpy arrays of coefficients in descending powers of the
 forward shift q, ``[c_0, c_1, ..., c_k]`` for
-:math:`c_0 q^k + c_1 q^{k-1} + \dots + c_k`. The closed-loop estimator
+:math:`c_0 q^k + c_1 q^{k-1} + \dots + c_k`, the convention of
+:mod:`bcid_ros.estimators.polynomials`, which tests their stability. The closed-loop estimator
 (:mod:`bcid_ros.estimators.cl_bcls`) and the closed-loop scenario
 (:mod:`bcid_ros.simulation.ikeda`) share them.
 
@@ -22,8 +23,8 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-#: A polynomial counts as stable when all its roots have modulus below 1 - this.
-STABILITY_MARGIN = 1e-6
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
+
 #: Allowed values of a controller's ``sign``.
 CONTROLLER_SIGNS = ('negative', 'positive')
 
@@ -37,62 +38,6 @@ def finite_vector(name: str, value: Any) -> np.ndarray:
     if vector.ndim != 1 or vector.size == 0 or not np.isfinite(vector).all():
         raise ValueError(f'{name} must be a non-empty list of finite floats, got {value!r}')
     return vector
-
-
-def spectral_radius(polynomial: Any) -> float:
-    """Return the largest root modulus of a polynomial in descending powers (0 if constant)."""
-    polynomial = np.trim_zeros(np.asarray(polynomial, dtype=float), 'f')
-    if polynomial.size <= 1:
-        return 0.0
-    return float(np.abs(np.roots(polynomial)).max())
-
-
-def is_stable(polynomial: Any, margin: float = STABILITY_MARGIN) -> bool:
-    r"""
-    Return whether all roots lie inside the circle of radius 1 - ``margin``.
-
-    Runs the Schur-Cohn step-down recursion on the monic polynomial with its
-    roots scaled by :math:`1/\rho`, :math:`\rho = 1 - \text{margin}`:
-
-    .. math::
-
-        a_i \leftarrow \frac{c_i}{c_0 \rho^i}, \qquad
-        k_j = a_j, \qquad
-        a_i \leftarrow \frac{a_i - k_j a_{j-i}}{1 - k_j^2}, \quad i < j,
-
-    for j = k, ..., 1. The roots are inside the circle if and only if every
-    reflection coefficient has :math:`|k_j| < 1`.
-
-    Parameters
-    ----------
-    polynomial : array_like, shape ``(k + 1,)``
-        Coefficients in descending powers; leading zeros are ignored.
-    margin : float
-        Required distance of the roots from the unit circle.
-
-    Returns
-    -------
-    bool
-        True for a non-zero constant; False for the zero polynomial or any
-        NaN coefficient.
-
-    """
-    coefficients = [float(c) for c in polynomial]
-    while coefficients and coefficients[0] == 0.0:
-        coefficients.pop(0)
-    if not coefficients:
-        return False
-    radius = 1.0 - margin
-    lead = coefficients[0]
-    # monic p(radius z) / radius^k: coefficient i becomes c_i / (c_0 radius^i)
-    a = [c / (lead * radius ** i) for i, c in enumerate(coefficients)]
-    for j in range(len(a) - 1, 0, -1):
-        k = a[j]
-        if not abs(k) < 1.0:
-            return False
-        scale = 1.0 / (1.0 - k * k)
-        a = [(a[i] - k * a[j - i]) * scale for i in range(j)]
-    return True
 
 
 def stable_reflection(polynomial: Any) -> np.ndarray:
@@ -116,7 +61,7 @@ def stable_reflection(polynomial: Any) -> np.ndarray:
 
     """
     polynomial = np.asarray(polynomial, dtype=float)
-    if is_stable(polynomial, 0.0):
+    if is_stable(monic_coefficients(polynomial), 0.0):
         return polynomial.copy()
     roots = np.roots(polynomial)
     outside = np.abs(roots) > 1.0

@@ -19,7 +19,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
-from bcid_ros.parameter_spec import parameter, ParameterSpec
+from bcid_ros.estimators.settings import (BCIV_OPTIONS, CL_BCLS_OPTIONS, RPEM_OPTIONS,
+                                           TRACKING_OPTIONS)
+from bcid_ros.parameter_spec import ParameterSpec
 
 #: The model kinds: what the estimator assumes about the plant and its noise.
 #: ``arx``: A y = B u + e, e white (equation error); ``output_error``:
@@ -86,69 +88,6 @@ class EstimatorEntry:
         return self.model in OPEN_LOOP_KINDS
 
 
-_BCIV_OPTIONS = (
-    parameter('iv_lag', 'integer', None, 'bciv: IV lag l (the IV vector has n + 2l past inputs; '
-              'colored input noise needs l >= 2n). Unset: the estimator default.',
-              low=1, high=1000),
-    parameter('input_noise', 'string', None, 'bciv: input measurement noise model. Unset: the '
-              'estimator default.', choices=('colored', 'white')),
-    parameter('idle_samples', 'integer', None, 'bciv: idle period L, samples before the bias '
-              'compensation starts. Unset: the estimator default.', low=0, high=1e9),
-    parameter('bciv_iterations', 'integer', None, 'bciv: alternations K of the compensation '
-              'per sample. Unset: the estimator default.', low=1, high=10000),
-    parameter('bciv_update', 'string', None, 'bciv: converged (K alternations from the IV '
-              'estimate) or printed (the paper\'s one-step recursion). Unset: the estimator '
-              'default.', choices=('converged', 'printed')),
-    parameter('allow_underdetermined', 'bool', None, 'bciv: allow l < 2n with colored input '
-              'noise (under-determined, poor). Unset: the estimator default.'),
-)
-
-_CL_BCLS_OPTIONS = (
-    parameter('controller_numerator', 'double_array', None, 'cl_bcls: controller numerator '
-              'b_c in descending powers of q.'),
-    parameter('controller_denominator', 'double_array', None, 'cl_bcls: controller '
-              'denominator a_c in descending powers of q.'),
-    parameter('controller_sign', 'string', None, 'cl_bcls: negative means u = (b_c/a_c)(r - y), '
-              'positive means u = (b_c/a_c)(y - r). Unset: the estimator default (negative).',
-              choices=('negative', 'positive')),
-    parameter('prefilter_initial', 'double_array', None, 'cl_bcls: initial prefilter f(q): one '
-              'pole [p] for (q - p)^n, or its n + 1 coefficients in descending powers of q. '
-              'Unset: the estimator default.'),
-    parameter('window', 'integer', None, 'cl_bcls: 0 (the estimator default) compensates over '
-              'every sample since the last controller change (recursive moments); > 0 over the '
-              'last window samples, for slowly varying plants. Unset: the estimator default.',
-              low=0, high=1e9),
-    parameter('redesign_period', 'integer', None, 'cl_bcls: samples between compensations and '
-              'prefilter redesigns. Unset: the estimator default.', low=1, high=1e9),
-    parameter('max_iterations', 'integer', None, 'cl_bcls: most prefilter redesign iterations '
-              'per redesign. Unset: the estimator default.', low=1, high=10000),
-    parameter('tolerance', 'double', None, 'cl_bcls: stop redesigning when the estimate moves '
-              'less than this. Unset: the estimator default.', low=0.0, high=1e6,
-              low_open=True),
-)
-
-#: Following a plant that changes (docs/tracking.md): rls, bcrls, rpem and the batched forms.
-_TRACKING_OPTIONS = (
-    parameter('change_detection', 'bool', True, 'rls, bcrls, rpem: the CUSUM test of the '
-              'one-step errors for a plant change (at most 1 false alarm per 100,000 samples '
-              'of a plant that does not change); on a detection ~/valid turns false with '
-              '"plant changed (sample k)" and the estimate restarts from the samples after '
-              'the change point. May be changed while running.', read_only=False),
-    parameter('adaptation', 'string', 'forgetting', 'rls, bcrls, rpem: forgetting (the '
-              'forgetting_factor) or kalman (a random walk of the parameters, P <- P + Q at '
-              'every sample, Q from parameter_drift).', choices=('forgetting', 'kalman')),
-    parameter('parameter_drift', 'double', 0.0, 'rls, bcrls, rpem with adaptation: kalman: '
-              'q, the variance of each parameter\'s random step per sample, for signals of '
-              'unit size and relative to the noise variance (Q = q sigma2 S^-2; '
-              'docs/tracking.md). May be changed while running.', low=0.0, high=1.0,
-              read_only=False),
-)
-_RPEM_OPTIONS = _TRACKING_OPTIONS + (
-    parameter('model', 'string', None, 'rpem: oe (output error y = sum B_i/F u_i + v, v of any '
-              'colour) or armax (A y = sum B_i u_i + C e; adds c1..cn). Unset: the estimator '
-              'default (oe).', choices=('oe', 'armax')),
-)
-
 # the loaders: each imports its module on first use
 
 
@@ -189,17 +128,17 @@ def _rpem() -> Any:
 
 #: The registered estimators, by name, in the order the docs list them.
 REGISTRY: dict[str, EstimatorEntry] = {entry.name: entry for entry in (
-    EstimatorEntry('rls', _rls, _batched_rls, 'arx', _TRACKING_OPTIONS,
+    EstimatorEntry('rls', _rls, _batched_rls, 'arx', TRACKING_OPTIONS,
                    summary='recursive least squares (the biased baseline)'),
-    EstimatorEntry('bcrls', _bcrls, _batched_bcrls, 'output_error', _TRACKING_OPTIONS,
+    EstimatorEntry('bcrls', _bcrls, _batched_bcrls, 'output_error', TRACKING_OPTIONS,
                    summary='bias-compensated RLS, MISO output error (Ding et al. 2006)'),
-    EstimatorEntry('bciv', _bciv, None, 'errors_in_variables', _BCIV_OPTIONS,
+    EstimatorEntry('bciv', _bciv, None, 'errors_in_variables', BCIV_OPTIONS,
                    summary='recursive bias-compensated IV, errors in variables '
                    '(Ikenoue et al. 2008)'),
-    EstimatorEntry('cl_bcls', _cl_bcls, None, 'closed_loop', _CL_BCLS_OPTIONS,
+    EstimatorEntry('cl_bcls', _cl_bcls, None, 'closed_loop', CL_BCLS_OPTIONS,
                    summary='BCLS in closed loop with prefilter redesign (Ikeda 2008)',
                    supports_delay=False, takes_controller=True),
-    EstimatorEntry('rpem', _rpem, None, 'output_error', _RPEM_OPTIONS,
+    EstimatorEntry('rpem', _rpem, None, 'output_error', RPEM_OPTIONS,
                    summary='recursive prediction-error method, OE or ARMAX, with a '
                    'batch-refined start (Ljung and Soderstrom 1983)'),
 )}

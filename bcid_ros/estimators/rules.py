@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from bcid_ros.estimators.polynomials import spectral_radii
+
 #: Normalised prediction error beyond which a sample is refused even with the
 #: gate off (``outlier_threshold`` = 0): no Gaussian noise produces it, and
 #: taking it would move the estimate by a million standard deviations.
@@ -361,64 +363,6 @@ def repair_covariances(p: np.ndarray, fallback: np.ndarray,
 
 
 # -------------------------------------------------------------- the validity
-def spectral_radii(a: np.ndarray) -> np.ndarray:
-    """
-    Return the largest pole magnitude of each A_k(q) = 1 + a_k1 q^-1 + ... (rows of ``a``).
-
-    Closed forms for n <= 2 (a twentieth of the eigenvalues' cost); a row
-    with a non-finite coefficient has radius inf.
-    """
-    count, order = a.shape
-    if count == 1 and order <= 2:  # one plant: the closed forms on floats, ten times cheaper
-        return np.array([_radius_of_one(a[0].tolist())])
-    radius = np.full(count, math.inf)
-    general = np.isfinite(a).all(axis=1)
-    if order == 1:
-        radius[general] = np.abs(a[general, 0])
-        return radius
-    if order == 2:
-        with np.errstate(over='ignore', invalid='ignore'):
-            discriminant = a[:, 0] * a[:, 0] - 4.0 * a[:, 1]
-        closed = general & np.isfinite(discriminant)  # an overflow takes the general way
-        a1, a2, d = a[closed, 0], a[closed, 1], discriminant[closed]
-        # real poles (-a1 +- sqrt(d)) / 2, or a complex pair with |z|^2 = a2 (> 0 there)
-        radius[closed] = np.where(d >= 0.0, 0.5 * (np.abs(a1) + np.sqrt(np.abs(d))),
-                                  np.sqrt(np.abs(a2)))
-        general &= ~closed
-    if general.any():
-        radius[general] = _companion_radii(a[general])
-    return radius
-
-
-def _radius_of_one(a: list[float]) -> float:
-    """Return :func:`spectral_radii` of one A(q) of order 1 or 2, on floats."""
-    if len(a) == 1:
-        return abs(a[0]) if math.isfinite(a[0]) else math.inf
-    a1, a2 = a
-    if not (math.isfinite(a1) and math.isfinite(a2)):
-        return math.inf
-    discriminant = a1 * a1 - 4.0 * a2
-    if not math.isfinite(discriminant):  # an overflow: the general way
-        return float(_companion_radii(np.array([a]))[0])
-    if discriminant >= 0.0:
-        return 0.5 * (abs(a1) + math.sqrt(discriminant))
-    return math.sqrt(abs(a2))
-
-
-def _companion_radii(a: np.ndarray) -> np.ndarray:
-    """Return the largest eigenvalue magnitude of each row's companion matrix (finite rows)."""
-    count, order = a.shape
-    companion = np.zeros((count, order, order))
-    companion[:, 0] = -a
-    companion[:, 1:, :-1] = np.eye(order - 1)
-    return np.abs(np.linalg.eigvals(companion)).max(axis=1)
-
-
-def spectral_radius(a: np.ndarray) -> float:
-    """Return the largest pole magnitude of one A(q) = 1 + a_1 q^-1 + ... + a_n q^-n."""
-    return float(spectral_radii(np.asarray(a, dtype=float)[None, :])[0])
-
-
 def output_powers(p: np.ndarray, tau: np.ndarray, order: int) -> np.ndarray:
     """
     Return the weighted mean square of y over each memory, from P^-1 (inf where singular).
@@ -463,5 +407,4 @@ __all__ = ['CHANGE_DECAY', 'CHANGE_MEMORY', 'CHANGE_SCORE', 'CONDITION_FLOOR', '
            'VALIDITY_PERIOD', 'choose_scales', 'cut_memory', 'definite', 'gate',
            'gate_is_quiet', 'gate_limit2', 'lowered_tail', 'memory_keep', 'output_powers',
            'powers_of_two_at_least', 'repair_covariances', 'rescale_new_channels',
-           'slow_change', 'sound_covariances', 'spectral_radii', 'spectral_radius',
-           'track_tail', 'unstable_models']
+           'slow_change', 'sound_covariances', 'track_tail', 'unstable_models']

@@ -101,7 +101,7 @@ def decode_head(raw: bytes) -> tuple[Layout, int, int, np.dtype]:
     Parameters
     ----------
     raw : bytes
-        The serialised message, encapsulation header included.
+        One serialised message whose head to read (from its encapsulation header on).
 
     Returns
     -------

@@ -25,6 +25,7 @@ from typing import Any
 from bcid_ros.estimators import RecursiveEstimator
 from bcid_ros.estimators.registry import (entry, ESTIMATOR_NAMES, estimator_class, INPUT_MODES,
                                           names_where, option_specs)
+from bcid_ros.estimators.settings import SHARED_SETTINGS
 from bcid_ros.identifier.interface import (check_input_width, INPUT_TYPES, MESSAGE_TYPES,
                                            OUTPUT_TYPES)
 from bcid_ros.parameter_spec import (check_parameters, load_yaml_parameters, markdown_table,
@@ -32,8 +33,7 @@ from bcid_ros.parameter_spec import (check_parameters, load_yaml_parameters, mar
 from bcid_ros.simulation import SCENARIOS
 
 #: The keyword arguments of every estimator's base constructor.
-BASE_SETTINGS = ('order', 'num_inputs', 'feedthrough', 'initial_covariance',
-                 'forgetting_factor', 'input_delay', 'detrend', 'adapt', 'outlier_threshold')
+BASE_SETTINGS = tuple(SHARED_SETTINGS)
 
 #: The JointState field of y when ``output_field`` is empty, by ``input_mode``.
 OUTPUT_FIELD_DEFAULTS = {'combined': 'position', 'separate': 'position',
@@ -44,30 +44,10 @@ IDENTIFIER_PARAMETERS: tuple[ParameterSpec, ...] = (
     # --- the estimator and the model structure
     _p('estimator', 'string', 'bcrls', 'Estimator, by its registry name '
        '(docs/estimators.md describes each).', choices=ESTIMATOR_NAMES),
-    _p('order', 'integer', 2, 'Plant order n: number of a coefficients and of input lags.',
-       low=1, high=64),
-    _p('num_inputs', 'integer', 1, 'Number of inputs r.', low=1, high=64),
-    _p('feedthrough', 'bool', False, 'Estimate the lag-0 input coefficients b{i}_0 '
-       '(direct feedthrough).'),
-    _p('initial_covariance', 'double', 1e6, 'p0 of the initial covariance P(0) = p0 I.',
-       low=0.0, high=1e15, low_open=True),
-    _p('forgetting_factor', 'double', 1.0, 'Exponential forgetting factor lambda; 1 means no '
-       'forgetting. May be changed while running.', low=0.0, high=1.0, low_open=True,
-       read_only=False),
+    *SHARED_SETTINGS.values(),
     # --- beside a real plant
-    _p('input_delay', 'integer_array', [0], 'Dead time d_i (samples) of each input, one '
-       'integer per input or one for all: B_i(q) = q^-d_i (b_i1 q^-1 + ... + b_in q^-n); '
-       'the parameter names carry the true lags. Not for cl_bcls.', low=0, high=100000),
-    _p('detrend', 'string', 'none', 'mean: regress the deviations from the recursive means of '
-       'y and u (with the forgetting factor), published on ~/operating_point; none: the raw '
-       'data.', choices=('none', 'mean')),
-    _p('adapt', 'bool', True, 'false holds the estimate, P and the noise statistics while '
-       'samples keep flowing. May be changed while running.', read_only=False),
     _p('freeze_unexcited', 'bool', False, 'Hold the adaptation while the input has not '
        'changed for excitation_window samples (instead of only warning).'),
-    _p('outlier_threshold', 'double', 0.0, 'Refuse (and count) a sample whose normalised '
-       'one-step prediction error exceeds this; 0 turns the gate off. May be changed while '
-       'running.', low=0.0, high=1e6, read_only=False),
     # --- node: input topics, pairing, publishing
     _p('input_mode', 'string', 'combined', 'combined: y and u in one Float64MultiArray on '
        'samples (single samples or frames). separate: u on input and y on output. '
@@ -370,11 +350,8 @@ def check_simulator_parameters(values: dict[str, Any]) -> dict[str, Any]:
     """
     Check simulator parameters and return all of them, defaults filled in.
 
-    Raises
-    ------
-    ValueError
-        Naming the parameter and its allowed values.
-
+    A bad value raises the ValueError of :func:`check_identifier_parameters`,
+    naming the parameter and its allowed values.
     """
     checked = check_parameters(values, SIMULATOR_PARAMETERS)
     if checked['scenario'] == 'joints':

@@ -28,6 +28,7 @@ from bcid_ros.control.design import (closed_loop_poles, Controller, format_poles
 from bcid_ros.control.parameters import CONTROLLER_PARAMETERS
 from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.errors import BcidError
+from bcid_ros.estimators.registry import entry
 from bcid_ros.identifier import interface
 from bcid_ros.nodes.demo_graph import (Child, demo_graph, DEMO_DEFAULTS, executable,
                                        START_TIMEOUT)
@@ -366,7 +367,7 @@ def run_adaptive_loop(args: argparse.Namespace) -> int:
 
     params = ['--ros-args', '--params-file', str(config)]
     identifier_overrides = ['-p', f'estimator:={estimator}']
-    if estimator != 'cl_bcls':
+    if not entry(estimator).takes_controller:
         identifier_overrides += ['-p', 'controller_topic:=""']
     switches = 0
     try:

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators.base import parameter_names
-from bcid_ros.estimators.lti import closed_loop_polynomial, is_stable, make_controller
+from bcid_ros.estimators.lti import closed_loop_polynomial, make_controller
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 from bcid_ros.simulation.base import SampleStream, Scenario, StreamingFilter, Truth
 
 #: b_p(q), a_p(q) of the example, descending powers of q.
@@ -115,7 +116,7 @@ class IkedaClosedLoop(Scenario):
         b_full = np.concatenate(([0.0], self.plant_numerator))
         # d_cl = a_p a_c + b_p b_c                                           (8)
         self.characteristic = closed_loop_polynomial(a_p, self.plant_numerator, self.controller)
-        if not is_stable(self.characteristic):
+        if not is_stable(monic_coefficients(self.characteristic)):
             raise ValueError('the closed loop must be stable (assumption A4); its poles are '
                              f'{np.roots(self.characteristic).round(4).tolist()}')
         # y = b_p b_c/d_cl r + a_p a_c/d_cl nu ; u = a_p b_c/d_cl (r - nu)   (22), (23)

@@ -29,11 +29,11 @@ def section(name, samples, seed=11, **settings):
 # ---------------------------------------------------------------- validation
 @pytest.mark.parametrize('settings, message', [
     ({'num_inputs': 2}, r'num_inputs must be 1 for bciv .*got 2'),
-    ({'iv_lag': 0}, r'iv_lag must be an integer >= 1, got 0'),
+    ({'iv_lag': 0}, r'iv_lag must be an integer in \[1, 1000\], got 0'),
     ({'input_noise': 'pink'}, r"input_noise must be 'colored' or 'white', got 'pink'"),
     ({'bciv_update': 'fast'}, r"bciv_update must be 'converged' or 'printed', got 'fast'"),
-    ({'idle_samples': -1}, r'idle_samples must be an integer >= 0, got -1'),
-    ({'bciv_iterations': 0}, r'bciv_iterations must be an integer >= 1, got 0'),
+    ({'idle_samples': -1}, r'idle_samples must be an integer in \[0, 1e\+09\], got -1'),
+    ({'bciv_iterations': 0}, r'bciv_iterations must be an integer in \[1, 10000\], got 0'),
     ({'tolerance': -1.0}, r'tolerance must be in \[0, 1\], got -1.0'),
     ({'allow_underdetermined': 'yes'}, r"allow_underdetermined must be true or false, got 'yes'"),
     ({'forgetting_factor': 0.0}, r'forgetting_factor must be in \(0, 1\], got 0.0'),

@@ -19,8 +19,9 @@ from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.identifier import persistence
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.adequacy import AdequacyMonitor
-from bcid_ros.estimators.rpem import (BATCH_LIMIT, FIT_GROWTH, inside, PredictorHistory,
-                                      pull_inside, Rpem, STABILITY_RADIUS)
+from bcid_ros.estimators.polynomials import is_stable
+from bcid_ros.estimators.rpem import (BATCH_LIMIT, FIT_GROWTH, PredictorHistory, pull_inside,
+                                      REGION_MARGIN, Rpem, STABILITY_RADIUS)
 from bcid_ros.identifier.parameters import check_identifier_parameters, estimator_from_parameters
 
 #: The OE plant of most tests: F = 1 - 1.5 q^-1 + 0.7 q^-2, B = q^-1 + 0.5 q^-2.
@@ -186,6 +187,10 @@ def test_never_publishes_an_unstable_or_diverged_model(case, model):
 
 
 def test_batch_and_recursion_keep_roots_inside():
+    def inside(a):
+        return is_stable(a, REGION_MARGIN)
+
+    assert 1.0 - REGION_MARGIN == STABILITY_RADIUS
     assert inside(np.array([-1.5, 0.7])) and not inside(np.array([-2.0, 1.0]))
     assert not inside(np.array([0.0, 0.0, -0.9995]))  # a root at 0.9995^(1/3) > radius
     pulled = pull_inside(np.array([-2.5, 1.0]))  # roots 2 and 0.5

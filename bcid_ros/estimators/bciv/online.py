@@ -20,7 +20,7 @@ import numpy as np
 from scipy.linalg.blas import dger
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.base import check_int, check_range, RecursiveEstimator
+from bcid_ros.estimators.base import check_range, RecursiveEstimator
 from bcid_ros.estimators.bciv.solver import (BcivSolver, check_structure, DEFAULT_TOLERANCE,
                                              INPUT_NOISE, OK, published_noise)
 from bcid_ros.estimators.bciv.history import SampleHistory
@@ -28,6 +28,7 @@ from bcid_ros.estimators.bciv.uncertainty import moment_function
 from bcid_ros.estimators.bciv.units import regularisation_weights
 from bcid_ros.estimators.moment_covariance import MomentBlocks
 from bcid_ros.estimators.recursion import VARIANCE_FLOOR
+from bcid_ros.estimators.settings import BCIV_OPTIONS, option
 
 UPDATES = ('converged', 'printed')
 #: A compensation farther than this from theta_IV (relative, normalised units) is a runaway.
@@ -180,7 +181,7 @@ class Bciv(RecursiveEstimator):
         if self.num_inputs != 1:
             raise ValueError(f'num_inputs must be 1 for bciv (the IV-type vector of eq. (54) '
                              f'is built for a single input), got {self.num_inputs}')
-        self.iv_lag = check_int('iv_lag', iv_lag, 1)
+        self.iv_lag = option(BCIV_OPTIONS, 'iv_lag').check_argument(iv_lag)
         if input_noise not in INPUT_NOISE:
             raise ValueError(f"input_noise must be 'colored' or 'white', got {input_noise!r}")
         if bciv_update not in UPDATES:
@@ -192,8 +193,9 @@ class Bciv(RecursiveEstimator):
         self.input_noise = input_noise
         self.bciv_update = bciv_update
         self.allow_underdetermined = bool(allow_underdetermined)
-        self.idle_samples = check_int('idle_samples', idle_samples, 0)
-        self.bciv_iterations = check_int('bciv_iterations', bciv_iterations, 1)
+        self.idle_samples = option(BCIV_OPTIONS, 'idle_samples').check_argument(idle_samples)
+        self.bciv_iterations = option(BCIV_OPTIONS, 'bciv_iterations').check_argument(
+            bciv_iterations)
         self.tolerance = check_range('tolerance', tolerance, 0.0, 1.0)
         check_structure(self.order, self.iv_lag, self.feedthrough, input_noise,
                         self.allow_underdetermined)

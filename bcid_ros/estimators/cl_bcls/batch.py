@@ -20,12 +20,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bcid_ros.estimators.base import check_int, check_range
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
 from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, plant_from_regression,
                                                     prefilter_polynomial, PrefilteredLs,
                                                     prefiltered_ls)
-from bcid_ros.estimators.lti import Controller, is_stable, make_controller, stable_reflection
+from bcid_ros.estimators.lti import Controller, make_controller, stable_reflection
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
+from bcid_ros.estimators.settings import CL_BCLS_OPTIONS, option, SHARED_SETTINGS
 
 #: Default stopping tolerance on the change of the estimate (the paper's 0.001, section 7.3).
 DEFAULT_TOLERANCE = 1e-3
@@ -204,9 +205,9 @@ def closed_loop_bcls(y: Any, u: Any, *, order: int, controller_numerator: Any,
         If the first iteration cannot be carried out.
 
     """
-    order = check_int('order', order, 1)
-    max_iterations = check_int('max_iterations', max_iterations, 1)
-    tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
+    order = SHARED_SETTINGS['order'].check_argument(order)
+    max_iterations = option(CL_BCLS_OPTIONS, 'max_iterations').check_argument(max_iterations)
+    tolerance = option(CL_BCLS_OPTIONS, 'tolerance').check_argument(tolerance)
     controller = make_controller(controller_numerator, controller_denominator, controller_sign)
     prefilter = prefilter_polynomial(prefilter_initial, order)
     y = np.asarray(y, dtype=float).reshape(-1)
@@ -254,7 +255,7 @@ def algorithm1(y: np.ndarray, u: np.ndarray, controller: Controller, prefilter: 
             break
         # steps (6), (7): f^(i+1) = â_p^(i), unstable roots mirrored (Remark 3)
         next_prefilter = stable_reflection(np.concatenate(([1.0], theta[:prefilter.size - 1])))
-        stable_next = is_stable(next_prefilter)
+        stable_next = is_stable(monic_coefficients(next_prefilter))
         last = (theta, theta_ls, sigma2, prefilter, next_prefilter if stable_next else prefilter,
                 ls, direction, beta)
         history.append(theta)

@@ -19,7 +19,8 @@ import numpy as np
 
 from bcid_ros.estimators.cl_bcls.regression import CompensationFailure
 from bcid_ros.estimators.lti import (closed_loop_polynomial, Controller, controller_canonical,
-                                     is_stable, solve_stein, spectral_radius)
+                                     solve_stein)
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients, spectral_radius
 
 
 def closed_loop_realisation(a_p: np.ndarray, b_p: np.ndarray, controller: Controller
@@ -174,11 +175,11 @@ def bias_terms(theta_plant: np.ndarray, prefilter: np.ndarray, controller: Contr
     n = prefilter.size - 1
     a_p = np.concatenate(([1.0], theta_plant[:n]))
     d_cl, a_cl, b_cl, c_cl = closed_loop_realisation(a_p, theta_plant[n:], controller)
-    if not is_stable(d_cl):
+    if not is_stable(monic_coefficients(d_cl)):
         raise CompensationFailure('unstable_closed_loop',
                                   f'estimated closed loop has a pole of modulus '
-                                  f'{spectral_radius(d_cl):.4g}')
-    if not is_stable(prefilter):
+                                  f'{spectral_radius(monic_coefficients(d_cl)):.4g}')
+    if not is_stable(monic_coefficients(prefilter)):
         raise CompensationFailure('unstable_prefilter', 'prefilter f(q) is not stable')
     f_matrix, g, h = prefilter_realisation(prefilter, a_p)
     try:

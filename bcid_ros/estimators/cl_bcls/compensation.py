@@ -26,7 +26,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from bcid_ros.estimators.lti import closed_loop_polynomial, Controller, is_stable
+from bcid_ros.estimators.lti import closed_loop_polynomial, Controller
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 
 #: ``no_excitation`` below this ratio of the varying power of the reconstructed
 #: reference b_c(q) r = a_c(q) u + b_c(q) y to that of b_c(q) y (docs/cl_bcls.md, "Validity").
@@ -223,7 +224,7 @@ def model_reasons(theta: np.ndarray, theta_ls: np.ndarray, information_inverse: 
     n = theta.shape[0] // 2
     reasons = []
     a_p = np.concatenate(([1.0], theta[:n]))
-    if not is_stable(closed_loop_polynomial(a_p, theta[n:], controller)):
+    if not is_stable(monic_coefficients(closed_loop_polynomial(a_p, theta[n:], controller))):
         reasons.append('unstable_closed_loop')
     step = theta - theta_ls
     if (np.linalg.norm(step[:n]) > RUNAWAY_RATIO * max(1.0, np.linalg.norm(theta_ls[:n]))

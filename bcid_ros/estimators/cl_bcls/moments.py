@@ -48,7 +48,8 @@ from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.regression import CompensationFailure, definite_inverse
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
                                                     STEPPED, UNSAFE)
-from bcid_ros.estimators.lti import Controller, is_stable, stable_reflection
+from bcid_ros.estimators.lti import Controller, stable_reflection
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 from bcid_ros.estimators.recursion import innovation
 
 #: With ``window`` 0 a redesign changes the prefilter only when the new f(q) differs from
@@ -433,7 +434,7 @@ class AllDataMemory:
             # steps (6), (7): f = a_BC with the unstable roots mirrored (Remark 3)
             following = stable_reflection(np.concatenate(([1.0], result.theta[:n])))
             next_terms = None
-            if not is_stable(following):
+            if not is_stable(monic_coefficients(following)):
                 flags.append('unstable_prefilter')
             elif (self.rows >= self.redesign_period
                   and np.linalg.norm(following - prefilter) > PREFILTER_STEP):

@@ -16,8 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.base import (all_finite, check_forgetting_factor, check_int,
-                                      check_range, RecursiveEstimator)
+from bcid_ros.estimators.base import all_finite, check_forgetting_factor, RecursiveEstimator
 from bcid_ros.estimators.cl_bcls.batch import DEFAULT_TOLERANCE
 from bcid_ros.estimators.cl_bcls.compensation import (Compensation, MIN_DISCRIMINANT_RATIO,
                                                       MIN_EXCITATION_RATIO, model_reasons)
@@ -30,6 +29,7 @@ from bcid_ros.estimators.cl_bcls.uncertainty import moment_function
 from bcid_ros.estimators.cl_bcls.window import window_lengths, WindowMemory
 from bcid_ros.estimators.lti import make_controller
 from bcid_ros.estimators.moment_covariance import MomentBlocks
+from bcid_ros.estimators.settings import CL_BCLS_OPTIONS, option
 
 #: Default ``window``: 0, every sample since the last controller change (recursive moments).
 DEFAULT_WINDOW = 0
@@ -167,9 +167,11 @@ class ClosedLoopBcls(RecursiveEstimator):
         self.window, self.min_window, self.first_window = window_lengths(window, self.order)
         self.all_data = self.window == 0
         self._check_forgetting(self._forgetting_factor)
-        self.redesign_period = check_int('redesign_period', redesign_period, 1)
-        self.max_iterations = check_int('max_iterations', max_iterations, 1)
-        self.tolerance = check_range('tolerance', tolerance, 0.0, math.inf, low_open=True)
+        self.redesign_period = option(CL_BCLS_OPTIONS, 'redesign_period').check_argument(
+            redesign_period)
+        self.max_iterations = option(CL_BCLS_OPTIONS, 'max_iterations').check_argument(
+            max_iterations)
+        self.tolerance = option(CL_BCLS_OPTIONS, 'tolerance').check_argument(tolerance)
         self._gate_from = rules.GATE_WARMUP * self.num_parameters
         # what a step may change, for the transaction: the collaborators save their own part
         self._name_step_state(

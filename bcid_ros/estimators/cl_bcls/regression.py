@@ -38,7 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.lti import finite_vector, is_stable
+from bcid_ros.estimators.lti import finite_vector
+from bcid_ros.estimators.polynomials import is_stable, monic_coefficients
 
 
 class CompensationFailure(ArithmeticError):
@@ -98,7 +99,7 @@ def prefilter_polynomial(prefilter: Any, order: int, name: str = 'prefilter_init
         raise ValueError(
             f'{name} must be a pole (one float) or the n + 1 = {order + 1} coefficients of '
             f'f(q) in descending powers of q with a non-zero first one, got {values.tolist()}')
-    if not is_stable(polynomial):
+    if not is_stable(monic_coefficients(polynomial)):
         raise ValueError(
             f'{name} must have all roots of f(q) strictly inside the unit circle, got roots '
             f'{np.roots(polynomial).round(6).tolist()}')

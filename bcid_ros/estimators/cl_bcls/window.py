@@ -22,7 +22,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from bcid_ros.estimators.base import check_int
 from bcid_ros.estimators.cl_bcls.batch import algorithm1, is_contracting
 from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.moments import PrefilteredMoments
@@ -32,6 +31,7 @@ from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPA
                                                     STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller
 from bcid_ros.estimators.recursion import innovation
+from bcid_ros.estimators.settings import CL_BCLS_OPTIONS, option
 
 
 #: Regression rows per parameter that the data must hold before a redesign.
@@ -55,7 +55,7 @@ def window_lengths(window: Any, order: int) -> tuple[int, int, int]:
 
     """
     min_window = ROWS_PER_PARAMETER * 2 * order + order
-    window = check_int('window', window, 0)
+    window = option(CL_BCLS_OPTIONS, 'window').check_argument(window)
     if 0 < window < min_window:
         raise ValueError(f'window must be 0 (all data since the controller change) or an '
                          f'integer >= {min_window}, got {window!r}')
@@ -75,10 +75,8 @@ class WindowMemory:
 
     Parameters
     ----------
-    prefilter : numpy.ndarray, shape ``(n + 1,)``
-        The prefilter in use.
-    initial_p : numpy.ndarray, shape ``(2n, 2n)``
-        P(0) of the running LS.
+    prefilter, initial_p : numpy.ndarray
+        The prefilter in use ``(n + 1,)`` and P(0) ``(2n, 2n)`` of the running LS.
     window : int
         The samples kept.
     min_window, first_window : int

@@ -34,7 +34,8 @@ The modules, each importing only those below it:
   :class:`RecursivePredictor`, the lags of the recursion's predictor and of
   its gradient filter;
 * :mod:`~bcid_ros.estimators.rpem.stability`: the stability region D_M
-  (:func:`inside`, :func:`pull_inside`).
+  (``REGION_MARGIN``, the margin of its test by
+  :func:`~bcid_ros.estimators.polynomials.is_stable`; :func:`pull_inside`).
 """
 
 from bcid_ros.estimators.rpem.fit import (BatchFit, FitResult, IV_ITERATIONS, LM_ITERATIONS,
@@ -43,7 +44,8 @@ from bcid_ros.estimators.rpem.history import PredictorHistory, RecursivePredicto
 from bcid_ros.estimators.rpem.online import LAMBDA_RATE, LAMBDA_START, MODELS, Rpem
 from bcid_ros.estimators.rpem.segment import (INITIAL_PRIOR, Prediction, SegmentPredictor,
                                               solve_regularised)
-from bcid_ros.estimators.rpem.stability import HALVINGS, inside, pull_inside, STABILITY_RADIUS
+from bcid_ros.estimators.rpem.stability import (HALVINGS, pull_inside, REGION_MARGIN,
+                                                STABILITY_RADIUS)
 from bcid_ros.estimators.rpem.store import (BATCH_LIMIT, FIRST_FIT_PER_PARAMETER,
                                             FIRST_FIT_SAMPLES, FIT_GROWTH, OUTLIER_SHARE,
                                             SampleStore, Segment, signal_size, StoredFit)
@@ -53,10 +55,11 @@ from bcid_ros.estimators.rpem.watch import (DRIFT_FACTOR, DRIFT_MEMORY, PROJECTI
                                             VARIANCE_FLOOR)
 
 __all__ = ['BATCH_LIMIT', 'BatchFit', 'DRIFT_FACTOR', 'DRIFT_MEMORY', 'FIRST_FIT_PER_PARAMETER',
-           'FIRST_FIT_SAMPLES', 'FIT_GROWTH', 'FitResult', 'HALVINGS', 'INITIAL_PRIOR', 'inside',
+           'FIRST_FIT_SAMPLES', 'FIT_GROWTH', 'FitResult', 'HALVINGS', 'INITIAL_PRIOR',
            'IV_ITERATIONS', 'LAMBDA_RATE', 'LAMBDA_START', 'LM_ITERATIONS', 'LM_TOLERANCE',
            'MODELS', 'OUTLIER_SHARE', 'OUTLIER_WEIGHT', 'parameter_covariance', 'Prediction',
            'PredictorHistory', 'PROJECTION_RESTART', 'PROJECTION_SHARE', 'pull_inside',
+           'REGION_MARGIN',
            'RecursivePredictor', 'RestartWatch', 'Rpem', 'SampleStore', 'Segment',
            'SegmentPredictor', 'signal_size', 'solve_regularised', 'STABILITY_RADIUS',
            'StoredFit', 'UNDONE_RESTART', 'VARIANCE_FLOOR']

@@ -19,8 +19,9 @@ import math
 
 import numpy as np
 
+from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.rpem.segment import SegmentPredictor, solve_regularised
-from bcid_ros.estimators.rpem.stability import HALVINGS, inside, pull_inside
+from bcid_ros.estimators.rpem.stability import HALVINGS, pull_inside, REGION_MARGIN
 
 #: Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterations of a fit.
 IV_ITERATIONS = 8
@@ -213,15 +214,16 @@ class BatchFit:
         """Return theta with F (or A and C) pulled into the stability region."""
         n = self.order
         theta = theta.copy()
-        if not inside(theta[:n]):
+        if not is_stable(theta[:n], REGION_MARGIN):
             theta[:n] = pull_inside(theta[:n])
-        if self.armax and not inside(theta[n + self.num_b:]):
+        if self.armax and not is_stable(theta[n + self.num_b:], REGION_MARGIN):
             theta[n + self.num_b:] = pull_inside(theta[n + self.num_b:])
         return theta
 
     def _is_inside(self, theta: np.ndarray) -> bool:
         n = self.order
-        return inside(theta[:n]) and (not self.armax or inside(theta[n + self.num_b:]))
+        return is_stable(theta[:n], REGION_MARGIN) and (
+            not self.armax or is_stable(theta[n + self.num_b:], REGION_MARGIN))
 
     def _arx(self, usable: list) -> np.ndarray:
         """Return the weighted least-squares ARX estimate (c = 0 for ARMAX, offset dropped)."""

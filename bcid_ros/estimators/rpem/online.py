@@ -26,13 +26,14 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
+from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
                                            RandomWalk, repair_covariance, VARIANCE_FLOOR)
 from bcid_ros.estimators.residual_state import (residual_items, residual_states,
                                                 with_gradient_arrays)
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
-from bcid_ros.estimators.rpem.stability import HALVINGS, inside
+from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.store import SampleStore, Segment
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
 from bcid_ros.estimators.rpem.watch import RestartWatch
@@ -294,7 +295,8 @@ class Rpem(RecursiveEstimator):
         for _ in range(HALVINGS + 1):
             # theta(t) = theta(t-1) + mu P psi e / s
             new = theta + g * gain
-            if inside(new[:n]) and (not armax or inside(new[noise])):
+            if is_stable(new[:n], REGION_MARGIN) and (
+                    not armax or is_stable(new[noise], REGION_MARGIN)):
                 theta[:] = new
                 return True
             gain *= 0.5

@@ -6,11 +6,12 @@ Identification* (L&S), the projection of the recursive prediction-error
 algorithm into the stability region D_M; Ljung, *System Identification*,
 2nd ed. (1999), ch. 11. The filter of the predictor and of its gradient
 (F for OE; A and C for ARMAX) must keep its roots strictly within
-``STABILITY_RADIUS``: :func:`inside` tests a candidate (the recursion halves
-its step up to ``HALVINGS`` times until one passes), :func:`pull_inside`
-moves the roots of a batch fit's start inside.
+``STABILITY_RADIUS``: :func:`~bcid_ros.estimators.polynomials.is_stable` with
+``REGION_MARGIN`` tests a candidate (the recursion halves its step up to
+``HALVINGS`` times until one passes), :func:`pull_inside` moves the roots of a
+batch fit's start inside.
 
-Not :func:`~bcid_ros.estimators.rules.spectral_radii`: the rulebook's radius
+The test is not a comparison of the spectral radius: the rulebook's radius
 answers whether a published model is unstable (radius beyond 1.01); here a
 strict test against a radius below 1 runs on every candidate step (up to
 ``HALVINGS`` + 1 per sample). Jury's conditions decide it without computing
@@ -23,32 +24,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from bcid_ros.estimators.lti import is_stable
-
 #: Largest pole (and, for ARMAX, zero of C) radius of an estimate: the
 #: stability region D_M of L&S (F, or A and C, kept inside it).
 STABILITY_RADIUS = 0.999
+#: The same as the distance from the unit circle that ``polynomials.is_stable`` takes
+#: (1 - (1 - 0.999) is 0.999 again in floats).
+REGION_MARGIN = 1.0 - STABILITY_RADIUS
 #: Step halvings tried before a step that leaves D_M is not taken at all.
 HALVINGS = 8
-
-
-def inside(a: np.ndarray, radius: float = STABILITY_RADIUS) -> bool:
-    r"""
-    Return whether the roots of :math:`1 + a_1 z^{-1} + \dots + a_k z^{-k}` lie within ``radius``.
-
-    One and two coefficients are tested in closed form (Jury's conditions on
-    the polynomial with its roots scaled by 1/radius), more by the
-    Schur-Cohn recursion of :func:`bcid_ros.estimators.lti.is_stable`.
-    """
-    k = a.shape[0]
-    if k == 1:
-        return abs(float(a[0])) < radius
-    if k == 2:
-        # roots of z^2 + c1 z + c2 with c1 = a1 / R, c2 = a2 / R^2 inside the unit circle
-        c1 = float(a[0]) / radius
-        c2 = float(a[1]) / (radius * radius)
-        return abs(c2) < 1.0 and abs(c1) < 1.0 + c2
-    return is_stable(np.concatenate(([1.0], a)), 1.0 - radius)
 
 
 def pull_inside(a: np.ndarray, radius: float = STABILITY_RADIUS) -> np.ndarray:
