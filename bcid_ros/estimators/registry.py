@@ -20,7 +20,7 @@ import dataclasses
 from typing import Any, Callable
 
 from bcid_ros.estimators.settings import (BCIV_OPTIONS, CL_BCLS_OPTIONS, RPEM_OPTIONS,
-                                           TRACKING_OPTIONS)
+                                          TRACKING_OPTIONS)
 from bcid_ros.parameter_spec import ParameterSpec
 
 #: The model kinds: what the estimator assumes about the plant and its noise.
