@@ -46,7 +46,7 @@ import numpy as np
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
 from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
 from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, definite_inverse,
-                                                     moment_loss)
+                                                    moment_loss)
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
                                                     STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller, is_stable, stable_reflection
