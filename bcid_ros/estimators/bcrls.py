@@ -187,7 +187,10 @@ class Bcrls(Rls):
             self._resets_checked += 1
             self._theta_c = self._theta_ls.copy()
             self._lambda_theta_c = self._theta_c * self._lambda_diagonal
-        return reasons + found[0]
+        # an instability is named first, before the residual tests' reasons ('not ready' on a
+        # short record said nothing of a compensation that had diverged; issue 34)
+        unstable = [reason for reason in reasons if reason.startswith('unstable')]
+        return unstable + found[0] + [reason for reason in reasons if reason not in unstable]
 
     def _covariances(self, rows: np.ndarray) -> np.ndarray:
         """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""

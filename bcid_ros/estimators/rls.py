@@ -22,6 +22,7 @@ from bcid_ros.estimators.blas import KERNELS, load_blas
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.simulation_check import SimulationWindow
 
 #: How often (in updates) the covariance is checked by a Cholesky factorisation.
 HEALTH_CHECK_PERIOD = 1000
@@ -541,6 +542,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         """
         error = self._error
         self._monitor.record(error, u)
+        self._simulation.record(y, u)  # (the simulation check, issue 34)
         # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
         self._hac.record_product(phi, error)
 
@@ -668,7 +670,19 @@ class Rls(LsAccessors, RecursiveEstimator):
         reasons = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
         self._last_power = float(power[0])
-        return reasons + residual_reasons(self._monitor)
+        return reasons + residual_reasons(self._monitor) + self._simulation_reasons()
+
+    def _simulation_reasons(self) -> list[str]:
+        """
+        Return the simulation check's reason (:mod:`~bcid_ros.estimators.simulation_check`).
+
+        Apart from the other reasons so that it can move with them: the model's simulated
+        output over the last samples against a refit (a one-step error that is small and
+        white does not make a simulation that is right).
+        """
+        theta = self._theta()
+        n = self.order
+        return self._simulation.reasons(theta[:n], theta[n:])
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -752,7 +766,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._forget_residuals()
 
     def _forget_residuals(self) -> None:
-        """Start the residual tests and the HAC afresh (at a reset and after a plant change)."""
+        """Start the residual tests, the HAC and the simulation check afresh (reset, change)."""
+        self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
+                                            self.input_delay)
         self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
                                         forgetting_factor=self._forgetting_factor)
         self._hac = (HacCovariance(dimension=self.num_parameters,
@@ -761,6 +777,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
+        self._simulation.clear()  # (a gap in its window)
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays = {'theta_ls': self._theta_ls, 'p': self._p,
@@ -773,7 +790,9 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'last_power': self._last_power, 'reasons': self._reasons}
         residual_arrays, residual_scalars = residual_items(
             self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        simulation_arrays, simulation_scalars = self._simulation.state_items()
+        return ({**arrays, **residual_arrays, **simulation_arrays},
+                {**scalars, **residual_scalars, **simulation_scalars})
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -793,6 +812,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._reasons = tuple(scalars['reasons'])
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
+        self._simulation.load(arrays, scalars)
         if self._hac is not None:
             self._hac.set_state(hac)
 

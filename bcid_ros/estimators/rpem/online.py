@@ -38,6 +38,9 @@ from bcid_ros.estimators.rpem.watch import RestartWatch, VARIANCE_FLOOR
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
+#: Share of a validity period's steps refused by the stability projection beyond which the
+#: estimate is not valid: most of them (:meth:`Rpem._projection_reasons`).
+PROJECTION_MOST = 0.5
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -434,7 +437,25 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        self._reasons = tuple(watch.reasons(steps) + residual_reasons(self._monitor))
+        named = watch.reasons(steps)
+        named += self._projection_reasons(steps, named)
+        self._reasons = tuple(named + residual_reasons(self._monitor))
+
+    def _projection_reasons(self, steps: int, named: list[str]) -> list[str]:
+        """
+        Return the reason of a stability projection active on most steps of the period.
+
+        Counted from the flag, apart from the drift watch (which names it too, and which is
+        being rewritten for change detection): the model keeps pushing against the stability
+        boundary, so it is not the model the data want (issue 34: 77 of the last 100 updates
+        on a heated plate). Not repeated when the watch has named it.
+        """
+        total = self.flags.get('stability_projection', 0)
+        projected, self._projections_checked = total - self._projections_checked, total
+        if (steps <= 0 or projected <= PROJECTION_MOST * steps
+                or any(reason.startswith('stability projection') for reason in named)):
+            return []
+        return [f'stability projection active ({projected} of the last {steps} updates)']
 
     def _validity_reasons(self) -> tuple[str, ...]:
         return self._reasons
@@ -557,6 +578,8 @@ class Rpem(RecursiveEstimator):
         self._gate_from = rules.GATE_WARMUP * p
         self._changes = 0
         self._reasons: tuple[str, ...] = ()
+        # (the flags may outlive a reset)
+        self._projections_checked = getattr(self, 'flags', {}).get('stability_projection', 0)
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -602,7 +625,8 @@ class Rpem(RecursiveEstimator):
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
-                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons)}
+                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
+                   'projections_checked': self._projections_checked}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
         return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
@@ -628,6 +652,7 @@ class Rpem(RecursiveEstimator):
         for name in self._SCALARS:
             setattr(self, '_' + name, self._KINDS.get(name, int)(scalars[name]))
         self._reasons = tuple(scalars['reasons'])
+        self._projections_checked = int(scalars.get('projections_checked', 0))
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
