@@ -34,7 +34,7 @@ low-pass noise. So
     \hat\sigma^2 = \frac{S_1}{L - q - p}, \qquad
     \text{contradicted when } T > \chi^2_{p,\,1-\alpha}
 
-with κ of the AR(2) model of the refitted error (at least 1, at most ``MAX_COLOUR``) and
+with κ of the AR(2) model of the refitted error (at least 1; ``MAX_COLOUR`` only bounds it) and
 α = ``FALSE_ALARM``. A model far off simulates much worse than the refit: :math:`S_0/S_1`
 large, T of the order of the window's length.
 
@@ -60,8 +60,10 @@ WINDOW = 1000
 SAMPLES_PER_PARAMETER = 20
 #: Largest false-alarm rate of one check under the model.
 FALSE_ALARM = 0.01
-#: Largest long-run variance ratio kappa taken for the error's colour.
-MAX_COLOUR = 100.0
+#: Largest long-run variance ratio kappa taken for the error's colour (a bound against a
+#: zero division only: 100 made an exact rls estimate under equation noise through a pole at
+#: 0.992, whose kappa is (1 + 0.992)/(1 - 0.992) = 249, fail the check on the realistic family).
+MAX_COLOUR = 1e6
 #: The check runs every this many recorded samples (its cost, a simulation of the window and
 #: one least-squares solve, a few ms, amortised).
 CHECK_PERIOD = 500
@@ -181,7 +183,7 @@ def _stable(a: np.ndarray) -> bool:
 
 
 def refit(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
-          lags: np.ndarray) -> tuple[float, float, np.ndarray]:
+          lags: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray]:
     """
     Return S_0, S_1 and the refitted error of one plant's window (see the module docstring).
 
@@ -197,7 +199,7 @@ def refit(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
     scale[scale == 0.0] = 1.0
     step = np.linalg.lstsq(columns / scale, error, rcond=None)[0]
     refitted = error - (columns / scale) @ step
-    return float(error @ error), float(refitted @ refitted), refitted
+    return float(error @ error), float(refitted @ refitted), error, refitted
 
 
 def colour(error: np.ndarray) -> float:
@@ -262,10 +264,11 @@ def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.n
         if kept <= 0 or not (_stable(a[k]) and np.isfinite(y[k]).all()
                              and np.isfinite(u[k]).all() and np.isfinite(b[k]).all()):
             continue
-        s0, s1, error = refit(y[k], u[k], a[k], b[k], lags)
+        s0, s1, error, refitted = refit(y[k], u[k], a[k], b[k], lags)
         if not (s1 > 0.0 and math.isfinite(s0)):
             continue
-        statistic[k] = (s0 - s1) / (colour(error) * s1 / kept)
+        kappa = max(colour(error), colour(refitted))
+        statistic[k] = (s0 - s1) / (kappa * s1 / kept)
         ratio[k] = s0 / s1
     with np.errstate(invalid='ignore'):
         return statistic, limit, ratio, statistic > limit
