@@ -34,11 +34,12 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
                                       SharedSettings, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
-                                       LaggedMoments, output_error_rows)
+                                       instability_first, LaggedMoments, output_error_rows)
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.simulation_check import SimulationWindow
 from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings, Rls,
                                      scale_dependents)
 
@@ -147,6 +148,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         regressors.push(y, u)
         if skipped is not None:
             regressors.clear(skipped)
+            self._clear_simulations(skipped)
         rows = regressors.ready_rows()
         if rows is not None:
             phi = regressors.phi(rows)
@@ -181,10 +183,18 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._gate_tail[rows] = 1.0
         self._reset_learning(rows)
         self._regressors.clear(rows)
+        self._clear_simulations(rows)
 
     def restart_regressor(self, plants: Any = None) -> None:
         """Forget plants' (default: all) sample history, keep what they learnt; n + 1 refill it."""
-        self._regressors.clear(self._plant_rows(plants))
+        rows = self._plant_rows(plants)
+        self._regressors.clear(rows)
+        self._clear_simulations(rows)
+
+    def _clear_simulations(self, rows: Any) -> None:
+        """Empty the simulation check's window of ``rows`` (a gap, a restart, a reset)."""
+        for row in self._indices(rows).tolist():
+            self._simulations[row].clear()
 
     @property
     def theta(self) -> np.ndarray:
@@ -390,6 +400,7 @@ class BatchedRls(LsAccessors, SharedSettings):
             self._forget_residuals(rows[outcome.events['plant_change']])
         if outcome.restart.any():
             self._regressors.clear(rows[outcome.restart])
+            self._clear_simulations(rows[outcome.restart])
         if outcome.relearn.any():
             self._restart_learning(rows[outcome.relearn])
         stepped = outcome.stepped
@@ -410,13 +421,16 @@ class BatchedRls(LsAccessors, SharedSettings):
 
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
-        """Give the residual tests and the HAC the equation errors of ``rows``."""
+        """Give the residual tests, the HAC and the simulation check the steps of ``rows``."""
         self._monitor.record_rows(rows, errors, u)
         self._hac.record_rows(rows, phi * errors[:, None])
+        for row, output, inputs in zip(rows.tolist(), y.tolist(), u):
+            self._simulations[row].record(output, inputs)
 
     def _forget_residuals(self, rows: np.ndarray) -> None:
         """Start the residual tests (and the HAC) of ``rows`` afresh (Rls._forget_residuals)."""
         self._monitor.clear(rows)
+        self._clear_simulations(rows)
         if self._hac is not None:
             self._hac.clear(rows)
         if hasattr(self, '_output_errors'):
@@ -464,7 +478,9 @@ class BatchedRls(LsAccessors, SharedSettings):
         reasons = rules.unstable_models(self._theta()[plants, :self.order], power,
                                         self._last_power[plants])
         self._last_power[plants] = power
+        theta, n = self._theta(), self.order
         return [found + residual_reasons(self._monitor, plant)
+                + self._simulations[plant].reasons(theta[plant, :n], theta[plant, n:])
                 for found, plant in zip(reasons, plants.tolist())]
 
     # ----------------------------------------------------------- the helpers
@@ -499,6 +515,9 @@ class BatchedRls(LsAccessors, SharedSettings):
     def _allocate(self) -> None:
         """Make the per-plant state arrays (their values are set by the resets)."""
         plants, p = self.num_plants, self.num_parameters
+        # the simulation check's window of each plant (Rls._simulation_reasons)
+        self._simulations = [SimulationWindow(self.order, self.num_inputs, self.feedthrough,
+                                              (0,) * self.num_inputs) for _ in range(plants)]
         self._theta_ls = np.zeros((plants, p))
         self._p = np.zeros((plants, p, p))
         self._loss = np.zeros(plants)
@@ -627,7 +646,7 @@ class BatchedBcrls(BatchedRls):
             self._resets_checked[restart] += 1
             self._theta_c[restart] = self._theta_ls[restart]
             self._lambda_theta_c[restart] = self._theta_c[restart] * self._lambda_diagonal
-        return [mine + theirs for mine, theirs in zip(reasons, found)]
+        return [instability_first(mine, theirs) for mine, theirs in zip(reasons, found)]
 
     def _covariances(self, plants: np.ndarray) -> np.ndarray:
         """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""

@@ -187,10 +187,7 @@ class Bcrls(Rls):
             self._resets_checked += 1
             self._theta_c = self._theta_ls.copy()
             self._lambda_theta_c = self._theta_c * self._lambda_diagonal
-        # an instability is named first, before the residual tests' reasons ('not ready' on a
-        # short record said nothing of a compensation that had diverged; issue 34)
-        unstable = [reason for reason in reasons if reason.startswith('unstable')]
-        return unstable + found[0] + [reason for reason in reasons if reason not in unstable]
+        return instability_first(reasons, found[0])
 
     def _covariances(self, rows: np.ndarray) -> np.ndarray:
         """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""
@@ -338,6 +335,17 @@ def compensate_rows(theta_ls: np.ndarray, p: np.ndarray, loss: np.ndarray, tau: 
         reset = ~((size <= limit) | (size <= limit * (1.0 + rowdot(theta_ls, theta_ls))))
         compensated[reset] = theta_ls[reset]
     return sigma2, compensated, low, reset
+
+
+def instability_first(reasons: list[str], found: list[str]) -> list[str]:
+    """
+    Return the RLS reasons' instabilities, then the compensation's ``found``, then the rest.
+
+    An instability is named before the residual tests' reasons: 'residual tests not ready'
+    on a short record came first, or alone, while the compensation had diverged (issue 34).
+    """
+    unstable = [reason for reason in reasons if reason.startswith('unstable')]
+    return unstable + found + [reason for reason in reasons if reason not in unstable]
 
 
 def compensation_problems(tau: np.ndarray, sigma2: np.ndarray, p: np.ndarray,

@@ -77,16 +77,17 @@ def test_the_false_alarm_rate_of_the_true_model(colour):
     assert alarms <= bound
 
 
-def test_the_window_survives_a_snapshot():
-    y, u, _ = three_inputs(0, count=600)
-    estimator = run_rls(y[:400], u[:400])
+def test_a_restored_estimator_refills_its_window():
+    # the window is not in the state (the batched forms' plant states must equal it)
+    y, u, _ = three_inputs(1)
+    estimator = run_rls(y[:600], u[:600])
+    assert estimator._simulation.reason
     restored = make_estimator('rls', order=2, num_inputs=3, detrend='mean')
     restored.set_state(estimator.get_state())
-    for k in range(400, 600):
-        estimator.update(y[k], u[k])
+    assert not restored._simulation.reason
+    for k in range(600, 1200):
         restored.update(y[k], u[k])
-    assert restored.validity_reasons == estimator.validity_reasons
-    assert restored._simulation.statistic == estimator._simulation.statistic
+    assert any(r.startswith('simulated output off') for r in restored.validity_reasons)
 
 
 def test_a_short_window_is_not_judged():
