@@ -10,45 +10,36 @@ The offline commands never import rclpy.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import os
 from pathlib import Path
 import sys
 import traceback
+from typing import Callable
 
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import ESTIMATOR_NAMES
 from bcid_ros.simulation import SCENARIOS
 
-#: Subcommand -> 'module:function(args) -> int'.
-HANDLERS = {
-    'replay': 'bcid_ros.bag.commands:replay',
-    'simulate': 'bcid_ros.bag.commands:simulate',
-    'reproduce': 'bcid_ros.cli:reproduce',
-    'record': 'bcid_ros.bag.commands:record',
-    'play': 'bcid_ros.bag.commands:play',
-    'info': 'bcid_ros.bag.commands:info',
-    'demo': 'bcid_ros.cli:demo',
-    'analyze': 'bcid_ros.analysis.command:run',
-    'import': 'bcid_ros.bag.commands:import_csv',
-}
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """
+    One ``bcid`` subcommand: everything the parser and :func:`main` ask about it.
+
+    ``handler`` is ``'module:function(args) -> int'``, imported only when the
+    command runs (an offline command never imports rclpy); ``summary`` its
+    one-line help; ``arguments`` the function that adds its arguments.
+    """
+
+    handler: str
+    summary: str
+    arguments: Callable[[argparse.ArgumentParser], None]
+
 
 #: The papers' scenarios; ``custom`` takes its plant from ROS parameters, which the CLI lacks.
 SCENARIO_NAMES = tuple(name for name in SCENARIOS if name != 'custom')
-
-
-#: Subcommand -> its one-line help.
-SUMMARIES = {
-    'replay': "run an estimator over a bag's /samples, no ROS graph",
-    'simulate': 'write a scenario bag offline, no ROS graph',
-    'reproduce': "run a paper's Monte Carlo study, write docs/",
-    'record': 'record topics to a rosbag2 MCAP over rclpy',
-    'play': 'play a bag over rclpy',
-    'info': 'topics, counts, duration and truth of a bag',
-    'demo': 'simulator + identifier nodes, converging live',
-    'analyze': 'choose the order and delay, validate and describe the model',
-    'import': 'write a CSV log as a rosbag2 MCAP bag of /samples',
-}
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -65,9 +56,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         description='Online bias-compensated system identification: offline tools.')
     parser.add_argument('--debug', action='store_true', help='show tracebacks on errors')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
-    for name, summary in SUMMARIES.items():
+    for name, command in COMMANDS.items():
         if only is None or only == name:
-            ARGUMENTS[name](sub.add_parser(name, formatter_class=fmt, help=summary))
+            command.arguments(sub.add_parser(name, formatter_class=fmt, help=command.summary))
     return parser
 
 
@@ -197,17 +188,26 @@ def _import_arguments(imports: argparse.ArgumentParser) -> None:
     _csv_arguments(imports)
 
 
-#: Subcommand -> the function that adds its arguments.
-ARGUMENTS = {
-    'replay': _replay_arguments,
-    'simulate': _simulate_arguments,
-    'reproduce': _reproduce_arguments,
-    'record': _record_arguments,
-    'play': _play_arguments,
-    'info': _info_arguments,
-    'demo': _demo_arguments,
-    'analyze': _analyze_arguments,
-    'import': _import_arguments,
+#: The subcommands, in the order the help lists them: the one table of ``bcid``.
+COMMANDS = {
+    'replay': Command('bcid_ros.bag.commands:replay',
+                      "run an estimator over a bag's /samples, no ROS graph", _replay_arguments),
+    'simulate': Command('bcid_ros.bag.commands:simulate',
+                        'write a scenario bag offline, no ROS graph', _simulate_arguments),
+    'reproduce': Command('bcid_ros.cli:reproduce', "run a paper's Monte Carlo study, write docs/",
+                         _reproduce_arguments),
+    'record': Command('bcid_ros.bag.commands:record',
+                      'record topics to a rosbag2 MCAP over rclpy', _record_arguments),
+    'play': Command('bcid_ros.bag.commands:play', 'play a bag over rclpy', _play_arguments),
+    'info': Command('bcid_ros.bag.commands:info', 'topics, counts, duration and truth of a bag',
+                    _info_arguments),
+    'demo': Command('bcid_ros.cli:demo', 'simulator + identifier nodes, converging live',
+                    _demo_arguments),
+    'analyze': Command('bcid_ros.analysis.command:run',
+                       'choose the order and delay, validate and describe the model',
+                       _analyze_arguments),
+    'import': Command('bcid_ros.bag.commands:import_csv',
+                      'write a CSV log as a rosbag2 MCAP bag of /samples', _import_arguments),
 }
 
 
@@ -236,9 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     words = sys.argv[1:] if argv is None else argv
     # The first word that is not an option names the subcommand; only it needs its arguments.
     command = next((word for word in words if not word.startswith('-')), None)
-    parser = build_parser(command if command in SUMMARIES else None)
+    parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
-    module, function = HANDLERS[args.command].split(':')
+    module, function = COMMANDS[args.command].handler.split(':')
     try:
         handler = getattr(importlib.import_module(module), function)
         return int(handler(args) or 0)

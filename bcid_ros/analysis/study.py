@@ -29,6 +29,7 @@ from scipy import signal
 
 from bcid_ros.bag.qos import LATCHED
 from bcid_ros.bag.writer import BagWriter, FLOAT64_MULTI_ARRAY, float64_multi_array
+from bcid_ros.identifier.interface import resolve, SAMPLES, SIMULATOR_NODE, TRUE_PARAMETERS
 from bcid_ros.identifier.layouts import estimate_layout, samples_layout
 from bcid_ros.simulation.custom import CustomScenario
 
@@ -127,14 +128,16 @@ def write_bag(scenario: CustomScenario, samples: int, seed: int, out: Path,
     y, u = scenario.simulate(samples, seed)
     truth = scenario.truth()
     rows = np.column_stack([y, u])
+    samples_topic = resolve(SAMPLES, SIMULATOR_NODE)
+    truth_topic = resolve(TRUE_PARAMETERS, SIMULATOR_NODE)
     with BagWriter(out) as writer:
-        writer.add_topic('/samples', FLOAT64_MULTI_ARRAY)
-        writer.add_topic('/bcid_simulator/true_parameters', FLOAT64_MULTI_ARRAY, [LATCHED])
-        writer.write_message('/bcid_simulator/true_parameters', 0, float64_multi_array(
+        writer.add_topic(samples_topic, FLOAT64_MULTI_ARRAY)
+        writer.add_topic(truth_topic, FLOAT64_MULTI_ARRAY, [LATCHED])
+        writer.write_message(truth_topic, 0, float64_multi_array(
             [estimate_layout(truth.parameter_names)], truth.parameters))
         for start in range(0, samples, FRAME):
             block = rows[start:start + FRAME]
-            writer.write_message('/samples', round((start + block.shape[0]) * 1e9 / rate_hz),
+            writer.write_message(samples_topic, round((start + block.shape[0]) * 1e9 / rate_hz),
                                  float64_multi_array(samples_layout(block.shape[0],
                                                                     u.shape[1]), block.ravel()))
     return out

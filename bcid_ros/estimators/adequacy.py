@@ -243,6 +243,8 @@ class AdequacyMonitor:
             raise ValueError(f'lags must be an integer >= 1; got {lags!r}')
         if not 0.0 < forgetting_factor <= 1.0:
             raise ValueError(f'forgetting_factor must be in (0, 1]; got {forgetting_factor!r}')
+        #: Whether the window is the estimator's memory, and follows a new forgetting factor.
+        self.window_follows = window is None
         window = default_window(forgetting_factor) if window is None else float(window)
         if not 0.5 * SAMPLES_PER_LAG * lags <= window < math.inf:
             raise ValueError(f'window must be at least {0.5 * SAMPLES_PER_LAG * lags:g} '
@@ -264,7 +266,7 @@ class AdequacyMonitor:
         self.num_parameters = num_parameters
         self._covariance_of = parameter_covariance
         self.num_inputs, self.model, self.lags = num_inputs, model, lags
-        self.window, self.false_alarm, self.plants = window, false_alarm, plants
+        self.false_alarm, self.plants = false_alarm, plants
         self.input_names = tuple(names)
         self.whiteness, self.coloured = MODEL_TESTS[model]
         self._filter_order = PREWHITENING_ORDER if self.coloured else 0
@@ -282,11 +284,9 @@ class AdequacyMonitor:
         q, colour = self._filter_order, self._colour_lags
         self._residual_lags = max(lags if self.whiteness else 0, colour + q)
         self._input_lags = lags + colour + q
-        self._decay = 1.0 - 1.0 / window
+        self._set_window(window)
         # psi(t - m), m = 0..q, to filter the gradient as the residual (the parameter term)
         self._gradient_history = q
-        #: blocks between two runs of the tests (see CHECKS_PER_WINDOW)
-        self.check_period = max(1, int(window / (CHECKS_PER_WINDOW * BLOCK)))
         self._plants = 1 if plants is None else plants
         self._history = max(self._residual_lags, self._input_lags)
         # z(t)[j] = channel _channels[j] at t - _lags[j]: e at lags 0..E, then each u_i at 1..U
@@ -297,9 +297,28 @@ class AdequacyMonitor:
         # where z(t)[j] is in a plant's ring (history rows, then the block), flattened
         self._gather = ((self._history + np.arange(BLOCK)[:, None] - self._lags[None, :])
                         * (1 + num_inputs) + self._channels[None, :]).ravel()
+        self.reset()
+
+    def _set_window(self, window: float) -> None:
+        """Take the window and what follows from it: the weights' decay and the test period."""
+        self.window = window
+        self._decay = 1.0 - 1.0 / window
         # w = mu^(age) of the rows of a block: the newest has weight 1
         self._block_weights = self._decay ** np.arange(BLOCK - 1, -1, -1, dtype=float)
-        self.reset()
+        #: blocks between two runs of the tests (see CHECKS_PER_WINDOW)
+        self.check_period = max(1, int(window / (CHECKS_PER_WINDOW * BLOCK)))
+
+    def follow_forgetting_factor(self, forgetting_factor: float) -> None:
+        """
+        Take the estimator's new forgetting factor, changed while running.
+
+        A window that is the estimator's memory (:func:`default_window`, the
+        window not given) becomes that of the new factor; the sums so far keep
+        their weights and decay with the new one from the next block on. A
+        window given at construction stays.
+        """
+        if self.window_follows:
+            self._set_window(default_window(forgetting_factor))
 
     def __repr__(self) -> str:
         return (f'AdequacyMonitor(num_inputs={self.num_inputs}, model={self.model!r}, '

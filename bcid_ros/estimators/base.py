@@ -28,13 +28,14 @@ import abc
 import dataclasses
 import math
 import operator
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, Sequence
 
 import numpy as np
 
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
                                                  RunningMean)
+from bcid_ros.estimators.residual_state import residual_reasons
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
@@ -144,6 +145,22 @@ def check_delays(value: Any, num_inputs: int) -> tuple[int, ...]:
     return tuple(int(v) for v in items)
 
 
+def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None) -> list[str]:
+    """
+    Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
+
+    ``own`` are the estimator's (from its own equations: an unstable model, a
+    compensation that does not converge, ...); the shared ones are the residual
+    tests' (:func:`~bcid_ros.estimators.residual_state.residual_reasons`) when the
+    estimator keeps an :class:`~bcid_ros.estimators.adequacy.AdequacyMonitor`
+    (``monitor`` None: none), of ``plant`` of a many-plant monitor. The one place
+    that decides which reasons count, for one plant and for K.
+    """
+    if monitor is None:
+        return list(own)
+    return list(own) + residual_reasons(monitor, plant)
+
+
 def check_int(name: str, value: Any, minimum: int) -> int:
     """Return ``value`` as an int, or raise ValueError naming ``name``."""
     if isinstance(value, bool) or int(value) != value or value < minimum:
@@ -197,6 +214,22 @@ class SharedSettings:
     @forgetting_factor.setter
     def forgetting_factor(self, value: float) -> None:
         self._forgetting_factor = check_forgetting_factor(value)
+        self._follow_forgetting_factor()
+
+    def _follow_forgetting_factor(self) -> None:
+        """
+        Give every part whose memory is the estimator's the forgetting factor now in force.
+
+        P's recursion reads it at every step; the residual tests' window
+        (:meth:`~bcid_ros.estimators.adequacy.AdequacyMonitor.follow_forgetting_factor`)
+        and the HAC covariance's weights (``_hac``) are told here, so that a
+        live change reaches them as it reaches P, not at the next reset.
+        """
+        monitor, hac = getattr(self, '_monitor', None), getattr(self, '_hac', None)
+        if monitor is not None:
+            monitor.follow_forgetting_factor(self._forgetting_factor)
+        if hac is not None:
+            hac.forgetting_factor = self._forgetting_factor
 
     @property
     def outlier_threshold(self) -> float:
@@ -208,6 +241,38 @@ class SharedSettings:
         self._outlier_threshold = check_range('outlier_threshold', value, 0.0,
                                               rules.IMPLAUSIBLE_ERROR)
         self._gate_limit2 = rules.gate_limit2(self._outlier_threshold)
+
+
+class PlantsValidity:
+    """
+    :attr:`valid` of K plants (the batched estimators): decided as one plant's, per plant.
+
+    Each plant is valid when :attr:`ready` with no reasons; the reasons are
+    its own and the shared ones (:func:`decided_reasons`), kept in
+    ``_reasons`` (a :class:`~bcid_ros.estimators.plants.PlantReasons`).
+    """
+
+    _monitor: Any = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Whether each plant is :attr:`ready` with no validity reasons, shape ``(K,)``."""
+        return self.ready & ~self._reasons.any
+
+    @property
+    def validity_reasons(self) -> tuple[tuple[str, ...], ...]:
+        """Return the reasons not to trust each plant's estimate, one tuple per plant."""
+        return tuple(self._reasons.of(plant) for plant in range(self.num_plants))
+
+    def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
+        """Return why plant k's estimate is not trustworthy now (empty when it is)."""
+        return self._reasons.of(range(self.num_plants)[plant])
+
+    def _decide_validity(self, plants: np.ndarray, own: Sequence[Sequence[str]]) -> None:
+        """Decide the reasons of ``plants`` from their ``own`` (as one plant's decision)."""
+        with np.errstate(all='ignore'):
+            for plant, mine in zip(plants.tolist(), own):
+                self._reasons.set(plant, tuple(decided_reasons(mine, self._monitor, plant)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -264,12 +329,13 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     array ``u`` of shape ``(r,)``), :meth:`_reset`, the state hooks and the
     ``_theta``/``_theta_uncompensated``/``_noise`` accessors; they may
     override :meth:`_guarded_update` (the transaction), call :meth:`_gate`
-    with their normalised prediction error, and report
-    :meth:`_validity_reasons`, and may override :meth:`_hold` (a sample
-    taken while the adaptation is held). The base class owns the input
-    checks, the generic transaction, the gate's change detection, the
-    snapshot plumbing and the operating point (``detrend``) and ``adapt``
-    settings.
+    with their normalised prediction error, hand their own reasons not to
+    trust the estimate to :meth:`_decide_validity` (and, if some change with
+    every sample, report them in :meth:`_live_reasons`), and may override
+    :meth:`_hold` (a sample taken while the adaptation is held). The base
+    class owns the input checks, the generic transaction, the gate's change
+    detection, :attr:`valid`, the snapshot plumbing and the operating point
+    (``detrend``) and ``adapt`` settings.
 
     Parameters
     ----------
@@ -308,6 +374,10 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     name: ClassVar[str] = ''
     #: Names of the published noise estimates.
     noise_names: tuple[str, ...] = ()
+    #: Whether the estimator has reasons that change with every sample (:meth:`_live_reasons`).
+    _LIVE_REASONS: ClassVar[bool] = False
+    #: The residual tests whose reasons join the estimator's own (None: it keeps none).
+    _monitor: Any = None
 
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
@@ -329,6 +399,8 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         self._since_checkpoint = 0
         self._checkpoint_period = 1
         self.flags: dict[str, int] = {}
+        #: The reasons of the last :meth:`_decide_validity` (kept in the estimators' state).
+        self._reasons: tuple[str, ...] = ()
 
     # ----------------------------------------------------------------- API
     def update(self, y: float, u: Any) -> bool:
@@ -647,6 +719,7 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
             self._means.weight = float(weight)
         self._checkpoint = None
         self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
+        self._follow_forgetting_factor()
 
     @property
     def theta(self) -> np.ndarray:
@@ -669,9 +742,12 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         Whether the estimate can be trusted: :attr:`ready` and no :attr:`validity_reasons`.
 
         A controller may act on the estimate while this is true; when it turns
-        false, :attr:`validity_reasons` says why.
+        false, :attr:`validity_reasons` says why. Decided here for every
+        estimator (none overrides it): the reasons of the last
+        :meth:`_decide_validity` and, where they change with every sample,
+        :meth:`_live_reasons`.
         """
-        return self.ready and not self._validity_reasons()
+        return self.ready and not (self._reasons or self._LIVE_REASONS and self._live_reasons())
 
     @property
     def ready(self) -> bool:
@@ -681,7 +757,9 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     @property
     def validity_reasons(self) -> tuple[str, ...]:
         """Return why the estimate is not trustworthy now (empty when it is, or not ready)."""
-        return tuple(self._validity_reasons())
+        if self._LIVE_REASONS:
+            return self._reasons + tuple(self._live_reasons())
+        return self._reasons
 
     @property
     @abc.abstractmethod
@@ -844,8 +922,21 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     def _accept_change(self) -> None:
         """Prepare for a real plant change detected by :meth:`_gate`; nothing here."""
 
-    def _validity_reasons(self) -> list[str] | tuple[str, ...]:
-        """Return the current reasons not to trust the estimate; none here."""
+    def _decide_validity(self, own: Sequence[str]) -> None:
+        """
+        Decide the reasons not to trust the estimate from the estimator's ``own`` reasons.
+
+        The estimators call this on their schedule (every ``VALIDITY_PERIOD``
+        updates), with the reasons their own equations give; the shared ones
+        join them here (:func:`decided_reasons`). It changes nothing but the
+        reasons: what a check finds that needs action (a diverging
+        compensation, a restart) is done by the estimator's update.
+        """
+        with np.errstate(all='ignore'):
+            self._reasons = tuple(decided_reasons(own, self._monitor))
+
+    def _live_reasons(self) -> list[str] | tuple[str, ...]:
+        """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""
         return ()
 
     def __repr__(self) -> str:

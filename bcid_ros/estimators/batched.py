@@ -10,7 +10,7 @@ plant) and each sample of all plants is one numpy pass.
 
 Each plant follows the recursion of its single-plant estimator with the same
 rules: the step and every safeguard around it are
-:func:`~bcid_ros.estimators.rls.ls_step_rows` (which the single plant runs as
+:func:`~bcid_ros.estimators.recursion.ls_step_rows` (which the single plant runs as
 K = 1 for its rare samples) and the rulebook
 (:mod:`~bcid_ros.estimators.rules`); the compensation of BCRLS is
 :func:`~bcid_ros.estimators.bcrls.compensate_rows`, the batched twin of the
@@ -32,21 +32,22 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
-                                      SharedSettings, weighted_square_ratio)
+                                      PlantsValidity, SharedSettings, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
-                                       instability_first, LaggedMoments, output_error_rows)
+                                       LaggedMoments, output_error_rows)
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
+from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
+                                           scale_dependents)
 from bcid_ros.estimators.regressor import phi_channels
-from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.residual_state import residual_items, residual_states
+from bcid_ros.estimators.rls import LsAccessors, Rls
 from bcid_ros.estimators.simulation_check import SimulationWindow
-from bcid_ros.estimators.rls import (LsAccessors, ls_step_rows, LsPlants, LsSettings, Rls,
-                                     scale_dependents)
 
 Rows = slice | np.ndarray
 
 
-class BatchedRls(LsAccessors, SharedSettings):
+class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     r"""
     K independent RLS estimators of one structure, updated together.
 
@@ -54,7 +55,7 @@ class BatchedRls(LsAccessors, SharedSettings):
     (47)-(50) of Ding et al. (2006) with forgetting) with everything around
     it (units, transaction, gate and plant change, anti-windup, covariance
     repair, validity), by the same functions
-    (:func:`~bcid_ros.estimators.rls.ls_step_rows` and the rulebook), counted
+    (:func:`~bcid_ros.estimators.recursion.ls_step_rows` and the rulebook), counted
     per plant in :attr:`flags`; P_k(0) = p0 S_k^-2 with plant k's own
     power-of-two signal scales (:attr:`signal_scale`).
 
@@ -99,7 +100,7 @@ class BatchedRls(LsAccessors, SharedSettings):
                              forgetting_factor, outlier_threshold)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
-        self._trace_limit = self.initial_covariance * self.num_parameters
+        self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
         self._gate_from = rules.GATE_WARMUP * self.num_parameters
         self._regressors = StackedRegressors(self.num_plants, self.order, self.num_inputs,
                                              self.feedthrough)
@@ -217,20 +218,6 @@ class BatchedRls(LsAccessors, SharedSettings):
     def ready(self) -> np.ndarray:
         """Whether each plant has made at least p updates, shape ``(K,)``."""
         return self._updates >= self.num_parameters
-
-    @property
-    def valid(self) -> np.ndarray:
-        """Whether each plant is :attr:`ready` with no validity reasons, shape ``(K,)``."""
-        return (self._updates >= self.num_parameters) & ~self._reasons.any
-
-    @property
-    def validity_reasons(self) -> tuple[tuple[str, ...], ...]:
-        """Return the reasons not to trust each plant's estimate, one tuple per plant."""
-        return tuple(self._reasons.of(plant) for plant in range(self.num_plants))
-
-    def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
-        """Return why plant k's estimate is not trustworthy now (empty when it is)."""
-        return self._reasons.of(range(self.num_plants)[plant])
 
     @property
     def samples(self) -> np.ndarray:
@@ -392,7 +379,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         if self._pending_any:
             self._choose_scales(rows)
         settings = LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
-                              self._trace_limit, self.initial_covariance)
+                              self._propagation, self.initial_covariance)
         outcome = ls_step_rows(self._plants, rows, y, phi, settings)
         for key, where in outcome.events.items():
             self._flag(key, rows, where)
@@ -464,24 +451,20 @@ class BatchedRls(LsAccessors, SharedSettings):
             scales, self._channel)
 
     # --------------------------------------------------------- the validity
-    def _check_validity(self, plants: np.ndarray) -> None:
-        """Re-evaluate the validity reasons of ``plants``."""
+    def _check_validity(self, plants: np.ndarray, more: Any = None) -> None:
+        """Decide the reasons of ``plants`` (Rls._check_validity; ``more``: a subclass's)."""
         self._next_check[plants] = self._updates[plants] + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
-            found = self._find_problems(plants)
-        for plant, reasons in zip(plants.tolist(), found):
-            self._reasons.set(plant, reasons)
-
-    def _find_problems(self, plants: np.ndarray) -> list[list[str]]:
-        """Return the reasons not to trust each of ``plants`` now (Rls._find_problems)."""
-        power = rules.output_powers(self._p[plants], self._tau[plants], self.order)
-        reasons = rules.unstable_models(self._theta()[plants, :self.order], power,
+            power = rules.output_powers(self._p[plants], self._tau[plants], self.order)
+            own = rules.unstable_models(self._theta()[plants, :self.order], power,
                                         self._last_power[plants])
-        self._last_power[plants] = power
+        if more is not None:
+            own = [mine + list(theirs) for mine, theirs in zip(own, more)]
         theta, n = self._theta(), self.order
-        return [found + residual_reasons(self._monitor, plant)
-                + self._simulations[plant].reasons(theta[plant, :n], theta[plant, n:])
-                for found, plant in zip(reasons, plants.tolist())]
+        own = [mine + self._simulations[plant].reasons(theta[plant, :n], theta[plant, n:])
+               for mine, plant in zip(own, plants.tolist())]
+        self._decide_validity(plants, own)
+        self._last_power[plants] = power
 
     # ----------------------------------------------------------- the helpers
     def _plant_rows(self, plants: Any) -> Rows:
@@ -567,7 +550,9 @@ class BatchedRls(LsAccessors, SharedSettings):
         residual_arrays, residual_scalars = residual_items(
             self._monitor.plant_state(plant),
             None if self._hac is None else self._hac.plant_state(plant))
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        window_arrays, window_scalars = self._simulations[plant].state_items()
+        return ({**arrays, **residual_arrays, **window_arrays},
+                {**scalars, **residual_scalars, **window_scalars})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
@@ -579,6 +564,7 @@ class BatchedRls(LsAccessors, SharedSettings):
         self._set_scale_dependents(np.array([plant]))
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.load_plant(plant, monitor)
+        self._simulations[plant].load(arrays, scalars)
         if self._hac is not None:
             self._hac.load_plant(plant, hac)
         self._reasons.set(plant, scalars['reasons'])
@@ -629,16 +615,17 @@ class BatchedBcrls(BatchedRls):
         self._theta_c[rows] = compensated
         self._lambda_theta_c[rows] = compensated * self._lambda_diagonal
 
-    def _find_problems(self, plants: np.ndarray) -> list[list[str]]:
-        """Add the conditioning and the convergence of the compensation (Bcrls._find_problems)."""
-        reasons = super()._find_problems(plants)
+    def _check_validity(self, plants: np.ndarray, more: Any = None) -> None:
+        """Add the compensation's reasons (Bcrls._check_validity); restart diverging ones."""
         resets = self.flags.get('compensation_reset', np.zeros(self.num_plants, np.int64))[plants]
-        found, diverging = compensation_problems(
-            self._tau[plants], self._sigma2[plants], self._p[plants], self._theta_c[plants],
-            self._theta_ls[plants], self._component_scale[plants],
-            resets > self._resets_checked[plants], self.order,
-            lambda rows: self._covariances(plants[rows]))
+        with np.errstate(all='ignore'):
+            found, diverging = compensation_problems(
+                self._tau[plants], self._sigma2[plants], self._p[plants], self._theta_c[plants],
+                self._theta_ls[plants], self._component_scale[plants],
+                resets > self._resets_checked[plants], self.order,
+                lambda rows: self._covariances(plants[rows]))
         self._resets_checked[plants] = resets
+        super()._check_validity(plants, found)
         if diverging.any():
             # (46) does not contract: restart it from theta_LS rather than follow it away
             restart = plants[diverging]
@@ -646,7 +633,6 @@ class BatchedBcrls(BatchedRls):
             self._resets_checked[restart] += 1
             self._theta_c[restart] = self._theta_ls[restart]
             self._lambda_theta_c[restart] = self._theta_c[restart] * self._lambda_diagonal
-        return [instability_first(mine, theirs) for mine, theirs in zip(reasons, found)]
 
     def _covariances(self, plants: np.ndarray) -> np.ndarray:
         """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""

@@ -9,13 +9,14 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.rls import ls_batch, matvec, Rls, rowdot
+from bcid_ros.estimators.recursion import matvec, rowdot
+from bcid_ros.estimators.rls import ls_batch, Rls
 
 #: Below this, the denominator 1 + theta_c' Lambda theta_LS of eq. (51) is
 #: treated as broken down. At the fixed point it is 1 + sum(a_c * a_LS), which
@@ -172,22 +173,27 @@ class Bcrls(Rls):
     def _noise(self) -> np.ndarray:
         return np.array([self._sigma2])
 
-    def _find_problems(self) -> list[str]:
-        """Add the conditioning and the convergence of the compensation to the RLS reasons."""
-        reasons = super()._find_problems()
+    def _check_validity(self, more: Sequence[str] = ()) -> None:
+        """
+        Add the conditioning and the convergence of the compensation to the RLS reasons.
+
+        A compensation found diverging restarts from theta_LS here, in the
+        update, after the reasons are decided (the check itself changes nothing).
+        """
         resets = self.flags.get('compensation_reset', 0)
-        found, diverging = compensation_problems(
-            np.array([self._tau]), np.array([self._sigma2]), self._p[None],
-            self._theta_c[None], self._theta_ls[None], self._component_scale[None],
-            np.array([resets > self._resets_checked]), self.order, self._covariances)
+        with np.errstate(all='ignore'):
+            found, diverging = compensation_problems(
+                np.array([self._tau]), np.array([self._sigma2]), self._p[None],
+                self._theta_c[None], self._theta_ls[None], self._component_scale[None],
+                np.array([resets > self._resets_checked]), self.order, self._covariances)
         self._resets_checked = resets
+        super()._check_validity(found[0] + list(more))
         if diverging[0]:
             # (46) does not contract: restart it from theta_LS rather than follow it away
             self._flag('compensation_reset')
             self._resets_checked += 1
             self._theta_c = self._theta_ls.copy()
             self._lambda_theta_c = self._theta_c * self._lambda_diagonal
-        return instability_first(reasons, found[0])
 
     def _covariances(self, rows: np.ndarray) -> np.ndarray:
         """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""
@@ -335,17 +341,6 @@ def compensate_rows(theta_ls: np.ndarray, p: np.ndarray, loss: np.ndarray, tau: 
         reset = ~((size <= limit) | (size <= limit * (1.0 + rowdot(theta_ls, theta_ls))))
         compensated[reset] = theta_ls[reset]
     return sigma2, compensated, low, reset
-
-
-def instability_first(reasons: list[str], found: list[str]) -> list[str]:
-    """
-    Return the RLS reasons' instabilities, then the compensation's ``found``, then the rest.
-
-    An instability is named before the residual tests' reasons: 'residual tests not ready'
-    on a short record came first, or alone, while the compensation had diverged (issue 34).
-    """
-    unstable = [reason for reason in reasons if reason.startswith('unstable')]
-    return unstable + found + [reason for reason in reasons if reason not in unstable]
 
 
 def compensation_problems(tau: np.ndarray, sigma2: np.ndarray, p: np.ndarray,

@@ -141,13 +141,27 @@ class HacCovariance:
             raise ValueError(f'max_lag must be an integer >= 1; got {max_lag!r}')
         if plants is not None and not (isinstance(plants, int) and plants >= 1):
             raise ValueError(f'plants must be None or an integer >= 1; got {plants!r}')
-        self.dimension, self.forgetting_factor = dimension, forgetting_factor
+        self.dimension = dimension
         self.prewhitening, self.kernel, self.bandwidth = prewhitening, kernel, bandwidth
         self.max_lag, self.plants = max_lag, plants
         self._products = LaggedProducts(width=dimension, lags=max_lag + 1,
                                         decay=forgetting_factor ** 2, plants=plants)
+        self.forgetting_factor = forgetting_factor
         self._lead = (1,) if plants is None else (plants,)
         self.reset()
+
+    @property
+    def forgetting_factor(self) -> float:
+        """Return the estimator's forgetting factor lambda; may change while running (as P's)."""
+        return self._forgetting_factor
+
+    @forgetting_factor.setter
+    def forgetting_factor(self, value: float) -> None:
+        if not 0.0 < value <= 1.0:
+            raise ValueError(f'forgetting_factor must be in (0, 1]; got {value!r}')
+        self._forgetting_factor = value
+        # the scores' products are weighted by lambda^2 per step (w_t w_s of both)
+        self._products.decay = value ** 2
 
     def __repr__(self) -> str:
         return (f'HacCovariance(dimension={self.dimension}, forgetting_factor='
@@ -222,7 +236,12 @@ class HacCovariance:
         return self._products.samples
 
     def _weights_now(self) -> tuple[Any, Any]:
-        """Return tau = sum w and tau_2 = sum w^2 over every recorded score (per plant)."""
+        """
+        Return tau = sum w and tau_2 = sum w^2 over every recorded score (per plant).
+
+        From the count at the factor now in force: after a live change, the
+        new factor's weights, which the sums' own reach within a few memories.
+        """
         return weights_of_counts(self.samples, self.forgetting_factor)
 
     def long_run(self, transform: np.ndarray | None = None) -> np.ndarray | None:

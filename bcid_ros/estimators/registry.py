@@ -10,14 +10,14 @@ table, the CLI's choices, the joint-state mode, the analysis): a new
 estimator is its module plus one entry here.
 
 The classes are imported when first asked for, so that reading the registry
-imports no estimator module (and no scipy).
+imports no estimator module (and no scipy): each entry holds a loader, a
+function whose import statement grep and the layer test see like any other.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
-from typing import Any
+from typing import Any, Callable
 
 from bcid_ros.parameter_spec import parameter, ParameterSpec
 
@@ -42,10 +42,10 @@ class EstimatorEntry:
     ----------
     name : str
         The value of the ``estimator`` parameter.
-    single : str
-        ``'module:Class'`` of the single-plant estimator.
-    batched : str or None
-        ``'module:Class'`` of the form that runs many plants at once, or None.
+    single : callable
+        Returns the single-plant estimator class (importing its module).
+    batched : callable or None
+        Returns the class that runs many plants at once, or None.
     model : str
         One of :data:`MODEL_KINDS`.
     options : tuple of ParameterSpec
@@ -53,15 +53,22 @@ class EstimatorEntry:
         (default None: the class's default).
     summary : str
         One line for the docs and the command-line help.
+    supports_delay : bool
+        Whether it takes a dead time (``input_delay`` other than 0).
+    takes_controller : bool
+        Whether it identifies under a known controller (``set_controller``,
+        the ``controller_topic`` parameter, the demo's closed loop).
 
     """
 
     name: str
-    single: str
-    batched: str | None
+    single: Callable[[], Any]
+    batched: Callable[[], Any] | None
     model: str
     options: tuple[ParameterSpec, ...] = ()
     summary: str = ''
+    supports_delay: bool = True
+    takes_controller: bool = False
 
     @property
     def input_modes(self) -> tuple[str, ...]:
@@ -126,20 +133,57 @@ _RPEM_OPTIONS = (
               'default (oe).', choices=('oe', 'armax')),
 )
 
+# the loaders: each imports its module on first use
+
+
+def _rls() -> Any:
+    from bcid_ros.estimators.rls import Rls
+    return Rls
+
+
+def _batched_rls() -> Any:
+    from bcid_ros.estimators.batched import BatchedRls
+    return BatchedRls
+
+
+def _bcrls() -> Any:
+    from bcid_ros.estimators.bcrls import Bcrls
+    return Bcrls
+
+
+def _batched_bcrls() -> Any:
+    from bcid_ros.estimators.batched import BatchedBcrls
+    return BatchedBcrls
+
+
+def _bciv() -> Any:
+    from bcid_ros.estimators.bciv import Bciv
+    return Bciv
+
+
+def _cl_bcls() -> Any:
+    from bcid_ros.estimators.cl_bcls import ClosedLoopBcls
+    return ClosedLoopBcls
+
+
+def _rpem() -> Any:
+    from bcid_ros.estimators.rpem import Rpem
+    return Rpem
+
+
 #: The registered estimators, by name, in the order the docs list them.
 REGISTRY: dict[str, EstimatorEntry] = {entry.name: entry for entry in (
-    EstimatorEntry('rls', 'bcid_ros.estimators.rls:Rls', 'bcid_ros.estimators.batched:BatchedRls',
-                   'arx', summary='recursive least squares (the biased baseline)'),
-    EstimatorEntry('bcrls', 'bcid_ros.estimators.bcrls:Bcrls',
-                   'bcid_ros.estimators.batched:BatchedBcrls', 'output_error',
+    EstimatorEntry('rls', _rls, _batched_rls, 'arx',
+                   summary='recursive least squares (the biased baseline)'),
+    EstimatorEntry('bcrls', _bcrls, _batched_bcrls, 'output_error',
                    summary='bias-compensated RLS, MISO output error (Ding et al. 2006)'),
-    EstimatorEntry('bciv', 'bcid_ros.estimators.bciv:Bciv', None, 'errors_in_variables',
-                   _BCIV_OPTIONS, summary='recursive bias-compensated IV, errors in variables '
+    EstimatorEntry('bciv', _bciv, None, 'errors_in_variables', _BCIV_OPTIONS,
+                   summary='recursive bias-compensated IV, errors in variables '
                    '(Ikenoue et al. 2008)'),
-    EstimatorEntry('cl_bcls', 'bcid_ros.estimators.cl_bcls:ClosedLoopBcls', None,
-                   'closed_loop', _CL_BCLS_OPTIONS, summary='BCLS in closed loop with '
-                   'prefilter redesign (Ikeda 2008)'),
-    EstimatorEntry('rpem', 'bcid_ros.estimators.rpem:Rpem', None, 'output_error', _RPEM_OPTIONS,
+    EstimatorEntry('cl_bcls', _cl_bcls, None, 'closed_loop', _CL_BCLS_OPTIONS,
+                   summary='BCLS in closed loop with prefilter redesign (Ikeda 2008)',
+                   supports_delay=False, takes_controller=True),
+    EstimatorEntry('rpem', _rpem, None, 'output_error', _RPEM_OPTIONS,
                    summary='recursive prediction-error method, OE or ARMAX, with a '
                    'batch-refined start (Ljung and Soderstrom 1983)'),
 )}
@@ -190,11 +234,6 @@ def option_specs() -> tuple[ParameterSpec, ...]:
     return tuple(specs.values())
 
 
-def _load(location: str) -> Any:
-    module, name = location.split(':')
-    return getattr(importlib.import_module(module), name)
-
-
 def estimator_class(name: str) -> Any:
     """
     Return the single-plant class of estimator ``name`` (its module imported on first use).
@@ -205,7 +244,7 @@ def estimator_class(name: str) -> Any:
         If ``name`` is not registered.
 
     """
-    return _load(entry(name).single)
+    return entry(name).single()
 
 
 def batched_class(name: str) -> Any:
@@ -218,11 +257,11 @@ def batched_class(name: str) -> Any:
         If ``name`` is not registered or has no batched form.
 
     """
-    location = entry(name).batched
-    if location is None:
+    load = entry(name).batched
+    if load is None:
         batched = ', '.join(names_where(input_modes='joint_state'))
         raise ValueError(f'estimator must be one of {batched} for many plants; got {name!r}')
-    return _load(location)
+    return load()
 
 
 __all__ = ['ESTIMATOR_NAMES', 'EstimatorEntry', 'INPUT_MODES', 'MODEL_KINDS', 'OPEN_LOOP_KINDS',

@@ -9,355 +9,25 @@ exciting.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
-from bcid_ros.estimators.blas import KERNELS, load_blas
 from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.recursion import (CAREFUL_GAIN, Forgetting, HEALTH_CHECK_PERIOD,
+                                           ls_step, ls_step_rows, LsPlants, LsSettings,
+                                           repair_rows, scale_dependents)
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
-from bcid_ros.estimators.residual_state import residual_items, residual_reasons, residual_states
+from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.simulation_check import SimulationWindow
-
-#: How often (in updates) the covariance is checked by a Cholesky factorisation.
-HEALTH_CHECK_PERIOD = 1000
-#: A step with s(t) / lambda above this (the sample carries 1e8 times the
-#: information of the memory) is checked before it is kept: its downdate
-#: cancels about 8 digits of P. Normalised data start near p0 |phi|^2 ~ 1e6.
-CAREFUL_GAIN = 1e8
-#: Floor of the prediction error standard deviation, relative to the y scale,
-#: so that noise-free data do not divide by zero in the gate.
-VARIANCE_FLOOR = 2.0 ** -40
-#: A plant whose steps are undone this many times in a row starts afresh with new scales.
-UNDONE_LIMIT = 3
-
-
-def rls_innovation(theta: np.ndarray, p: np.ndarray, phi: np.ndarray, y: float,
-                   lam: float) -> tuple[float, np.ndarray, float]:
-    r"""
-    Return the a-priori quantities of one RLS step, eqs. (47)-(48).
-
-    Parameters
-    ----------
-    theta : numpy.ndarray, shape ``(p,)``
-        :math:`\hat\theta(t-1)`.
-    p : numpy.ndarray, shape ``(p, p)``
-        :math:`P(t-1)`, symmetric positive definite.
-    phi : numpy.ndarray, shape ``(p,)``
-        :math:`\varphi(t)`.
-    y : float
-        :math:`y(t)`.
-    lam : float
-        Forgetting factor :math:`\lambda`.
-
-    Returns
-    -------
-    e : float
-        :math:`e(t) = y(t) - \varphi^T(t)\hat\theta(t-1)`.
-    g : numpy.ndarray, shape ``(p,)``
-        :math:`g = P(t-1)\varphi(t)`.
-    s : float
-        :math:`s(t) = \lambda + \varphi^T(t) P(t-1)\varphi(t)`; not finite or
-        :math:`\le 0` means the step must not be made.
-
-    """
-    # ndarray.dot: half the call overhead of @ at this size
-    g = p.dot(phi)
-    return y - phi.dot(theta), g, lam + phi.dot(g)
-
-
-def rls_step(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: float,
-             e: float) -> np.ndarray:
-    r"""
-    Make the RLS step (47)-(49) in place, without the division by :math:`\lambda`.
-
-    :math:`\hat\theta \leftarrow \hat\theta + g e/s` and
-    :math:`P \leftarrow P - h h^T` with :math:`h = g/\sqrt{s}`, which is
-    symmetric to the last bit. ``g``, ``s`` and ``e`` come from
-    :func:`rls_innovation` and ``s`` must be finite and positive; ``g`` is
-    overwritten with h.
-
-    Returns
-    -------
-    numpy.ndarray, shape ``(p, p)``
-        The downdated P (the memory of ``p``, updated in place when ``p``
-        is C-contiguous).
-
-    """
-    blas = KERNELS or load_blas()
-    # theta(t) = theta(t-1) + g e / s   (BLAS axpy in place: daxpy(x, y, n, a))
-    blas['daxpy'](g, theta, g.shape[0], e / s)
-    # h = g / sqrt(s), in place (a scaling into a new array costs twice as much)
-    h = blas['dscal'](1.0 / math.sqrt(s), g)
-    # BLAS rank-1 update in place (P is C-ordered, so P.T is the Fortran view):
-    # dger(alpha, x, y, incx, incy, a, overwrite_x, overwrite_y, overwrite_a)
-    return blas['dger'](-1.0, h, h, 1, 1, p.T, 0, 0, 1).T
-
-
-def rls_steps(theta: np.ndarray, p: np.ndarray, g: np.ndarray, s: np.ndarray,
-              e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    r"""
-    Make the RLS step (47)-(49) of K plants at once, without the division by :math:`\lambda`.
-
-    The batched form of :func:`rls_step` (the same algebra, in numpy
-    element-wise operations, which round in other places than the BLAS
-    kernels: the two agree within rounding, not bit for bit). ``theta``
-    ``(K, p)``, ``p`` ``(K, p, p)``, ``g`` ``(K, p)``, ``s`` and ``e``
-    ``(K,)``, from :func:`rls_innovation` per plant. Returns new arrays.
-    """
-    # theta(t) = theta(t-1) + g e / s
-    theta = theta + g * (e / s)[:, None]
-    # P(t) = P(t-1) - h h', h = g / sqrt(s): symmetric to the last bit
-    h = g * (1.0 / np.sqrt(s))[:, None]
-    return theta, p - h[:, :, None] * h[:, None, :]
-
-
-def matvec(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """Return ``matrices[k] @ vectors[k]`` for every k, shape ``(K, p)``."""
-    return np.matmul(matrices, vectors[:, :, None])[:, :, 0]
-
-
-def rowdot(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Return ``left[k] . right[k]`` for every k, shape ``(K,)``."""
-    return np.vecdot(left, right)
-
-
-def repair_covariance(p: np.ndarray, fallback: np.ndarray,
-                      weights: np.ndarray | None = None) -> np.ndarray:
-    """Return the nearest symmetric positive definite matrix to one ``p`` (see rules)."""
-    return rules.repair_covariances(p[None], fallback[None],
-                                    None if weights is None else weights[None])[0]
-
-
-@dataclasses.dataclass
-class LsPlants:
-    """
-    The least-squares state of K plants, arrays with a leading plant axis.
-
-    The batched estimators hold one over all their plants; a single-plant
-    :class:`Rls` makes one over itself (K = 1, views of its arrays) for the
-    rare samples that need more than the plain step (:func:`ls_step_rows`).
-
-    Attributes
-    ----------
-    theta : numpy.ndarray, shape ``(K, p)``
-        The LS estimates.
-    p : numpy.ndarray, shape ``(K, p, p)``
-        Their P.
-    loss, tau : numpy.ndarray, shape ``(K,)``
-        J and the weighted count of eq. (50).
-    updates, undone : numpy.ndarray of int, shape ``(K,)``
-        Updates made, and steps undone in a row.
-    score, tail : numpy.ndarray, shape ``(K,)``
-        The gate's change score and tail (:func:`~bcid_ros.estimators.rules.gate`).
-    variance_floor : numpy.ndarray, shape ``(K,)``
-        Floor of the prediction-error variance (VARIANCE_FLOOR times the y scale, squared).
-    component_scale : numpy.ndarray, shape ``(K, p)``
-        The signal scale of each component of phi.
-
-    """
-
-    theta: np.ndarray
-    p: np.ndarray
-    loss: np.ndarray
-    tau: np.ndarray
-    updates: np.ndarray
-    undone: np.ndarray
-    score: np.ndarray
-    tail: np.ndarray
-    variance_floor: np.ndarray
-    component_scale: np.ndarray
-
-
-@dataclasses.dataclass(frozen=True)
-class LsSettings:
-    """What :func:`ls_step_rows` needs of the estimator's settings (shared by its plants)."""
-
-    forgetting_factor: float
-    gate_limit2: float
-    gate_from: float
-    trace_limit: float
-    initial_covariance: float
-
-
-@dataclasses.dataclass
-class StepOutcome:
-    """
-    What happened to each plant of a :func:`ls_step_rows` call (masks over its rows).
-
-    ``stepped``: the LS step was made; ``events``: flag name -> where it
-    occurred; ``restart``: the regressor must restart (a step undone or a
-    sample refused); ``relearn``: the plant starts afresh with new scales;
-    ``errors``: the a-priori prediction errors (the equation errors).
-    """
-
-    stepped: np.ndarray
-    events: dict[str, np.ndarray]
-    restart: np.ndarray
-    relearn: np.ndarray
-    errors: np.ndarray
-
-
-def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
-                 settings: LsSettings) -> StepOutcome:
-    """
-    Do the guarded and gated RLS step (47)-(50) of plants ``rows`` (indices), in place.
-
-    Per plant, as :class:`Rls` describes: a step with s <= 0 repairs P
-    instead (``covariance_repaired``); one with a non-finite s or e^2 is
-    undone (``update_undone``); once tau >= GATE_WARMUP p the gate decides
-    (:func:`~bcid_ros.estimators.rules.gate`: ``outlier_rejected``, or
-    ``plant_change`` with the memory cut); a risky step (s / lambda above
-    CAREFUL_GAIN) is kept only if S P S stays sound and theta finite, and
-    UNDONE_LIMIT such failures in a row start the plant afresh; forgetting
-    stops while the normalised trace exceeds p0 p (``windup_limited``); every
-    HEALTH_CHECK_PERIOD updates P is checked by Cholesky and repaired if
-    needed. ``y`` ``(R,)`` and ``phi`` ``(R, p)`` are the rows' samples.
-    """
-    lam = settings.forgetting_factor
-    count = rows.shape[0]
-    theta, p_old = plants.theta[rows], plants.p[rows]
-    loss, tau = plants.loss[rows], plants.tau[rows]
-    # g = P(t-1) phi(t); s = lambda + phi' g; e = y(t) - phi' theta(t-1)
-    g = matvec(p_old, phi)
-    s = lam + rowdot(phi, g)
-    e = y - rowdot(phi, theta)
-    e2 = e * e
-    events: dict[str, np.ndarray] = {}
-    with np.errstate(invalid='ignore'):
-        careful = ~((s < CAREFUL_GAIN * lam) & (e2 < math.inf))
-        repair = s <= 0.0
-        broken = careful & ~repair & ~((s < math.inf) & (e2 < math.inf))
-    refused = np.zeros(count, dtype=bool)
-    tested = ~(repair | broken) & (tau >= settings.gate_from)
-    if tested.any():
-        # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)]: the error over its variance
-        z2 = e2[tested] / ((loss[tested] / tau[tested] + plants.variance_floor[rows[tested]])
-                           * (s[tested] + 1.0 - lam))
-        at = rows[tested]
-        used, plants.score[at], plants.tail[at], change = rules.gate(
-            z2, settings.gate_limit2, plants.score[at], plants.tail[at])
-        refused[tested] = ~used
-        if change.any():
-            changed = np.flatnonzero(tested)[change]
-            events['plant_change'] = _mask(count, changed)
-            cut = rows[changed]
-            p_cut, loss_cut, tau_cut = plants.p[cut], plants.loss[cut], plants.tau[cut]
-            rules.cut_memory(p_cut, loss_cut, tau_cut, theta.shape[1])
-            plants.p[cut], plants.loss[cut], plants.tau[cut] = p_cut, loss_cut, tau_cut
-            # the memory was cut (P grew): redo the a-priori part
-            p_old[changed], loss[changed], tau[changed] = p_cut, loss_cut, tau_cut
-            g[changed] = matvec(p_cut, phi[changed])
-            s[changed] = lam + rowdot(phi[changed], g[changed])
-    commit = ~(repair | broken | refused)
-    stepped = commit.copy()
-    if commit.any():
-        kept, windup, repaired = _commit_rows(
-            plants, rows[commit], theta[commit], p_old[commit], g[commit], s[commit], e[commit],
-            loss[commit], tau[commit], careful[commit], settings)
-        stepped[commit] = kept
-        for key, where in (('windup_limited', windup), ('covariance_repaired', repaired)):
-            if where.any():
-                events[key] = _mask(count, np.flatnonzero(commit)[where])
-    if repair.any():
-        repair_rows(plants, rows[repair], settings.initial_covariance)
-        events['covariance_repaired'] = events.get('covariance_repaired',
-                                                   np.zeros(count, dtype=bool)) | repair
-    relearn = np.zeros(count, dtype=bool)
-    unsound = commit & ~stepped
-    if unsound.any():
-        # three undone in a row: the signal level is far from the scales of the first
-        # samples, and what was learnt at that level is numerically worthless
-        relearn[unsound] = plants.undone[rows[unsound]] >= UNDONE_LIMIT
-    undone = broken | (unsound & ~relearn)
-    if undone.any():
-        events['update_undone'] = undone
-    if refused.any():
-        events['outlier_rejected'] = refused
-    return StepOutcome(stepped, events, undone | refused, relearn, e)
-
-
-def _mask(count: int, where: np.ndarray) -> np.ndarray:
-    mask = np.zeros(count, dtype=bool)
-    mask[where] = True
-    return mask
-
-
-def _commit_rows(plants: LsPlants, rows: np.ndarray, theta: np.ndarray, p_old: np.ndarray,
-                 g: np.ndarray, s: np.ndarray, e: np.ndarray, loss: np.ndarray,
-                 tau: np.ndarray, careful: np.ndarray,
-                 settings: LsSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    Commit the step of ``rows``; undo the careful ones that broke P.
-
-    Return masks over ``rows``: the steps kept, where forgetting was limited
-    (windup) and where the health check repaired P.
-    """
-    lam = settings.forgetting_factor
-    theta_new, p_new = rls_steps(theta, p_old, g, s, e)
-    windup = np.zeros(rows.shape[0], dtype=bool)
-    if lam < 1.0:
-        # P(t) <- P(t) / lambda unless that would wind the normalised P up past its start
-        weighted = rowdot(np.diagonal(p_new, axis1=1, axis2=2), plants.component_scale[rows] ** 2)
-        windup = ~(weighted < settings.trace_limit)
-        p_new *= np.where(windup, 1.0, 1.0 / lam)[:, None, None]
-    plants.theta[rows], plants.p[rows] = theta_new, p_new
-    # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
-    plants.loss[rows] = lam * (loss + e * e / s)
-    plants.tau[rows] = lam * tau + 1.0
-    updates = plants.updates[rows] + 1
-    plants.updates[rows] = updates
-    repaired = np.zeros(rows.shape[0], dtype=bool)
-    due = updates % HEALTH_CHECK_PERIOD == 0
-    if due.any():
-        repaired[due] = ~rules.definite(p_new[due])
-        if repaired.any():
-            repair_rows(plants, rows[repaired], settings.initial_covariance)
-    kept = np.ones(rows.shape[0], dtype=bool)
-    if careful.any():
-        risky = rows[careful]
-        kept[careful] = rules.sound_covariances(plants.p[risky], plants.component_scale[risky]) \
-            & np.isfinite(plants.theta[risky]).all(axis=1)
-        back = ~kept
-        if back.any():
-            lost = rows[back]
-            plants.theta[lost], plants.p[lost] = theta[back], p_old[back]
-            plants.loss[lost], plants.tau[lost] = loss[back], tau[back]
-            plants.updates[lost] -= 1
-            plants.undone[lost] += 1
-    plants.undone[rows[kept]] = 0
-    return kept, windup, repaired
-
-
-def repair_rows(plants: LsPlants, rows: np.ndarray, initial_covariance: float) -> None:
-    """Rebuild P of ``rows`` as the nearest symmetric positive definite matrices."""
-    scale = plants.component_scale[rows]
-    fallback = initial_covariance / scale ** 2
-    plants.p[rows] = rules.repair_covariances(
-        plants.p[rows], fallback[:, :, None] * np.eye(scale.shape[1]), scale)
 
 
 #: No event (a mask of one False).
 _NO = np.zeros(1, dtype=bool)
-
-
-def scale_dependents(scales: np.ndarray,
-                     channel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Return each plant's component scales ``(K, p)`` and variance floor ``(K,)``.
-
-    ``scales`` ``(K, 1 + r)`` are the signal scales (0: not chosen yet, taken
-    as 1), ``channel`` the channel of each component of phi
-    (:func:`~bcid_ros.estimators.regressor.phi_channels`).
-    """
-    component = scales[:, channel]
-    y_scale = np.where(scales[:, 0] > 0.0, scales[:, 0], 1.0)
-    return np.where(component > 0.0, component, 1.0), (VARIANCE_FLOOR * y_scale) ** 2
 
 
 class LsAccessors:
@@ -469,7 +139,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         super().__init__(**settings)
         self._regressor = ArxRegressor(self.order, self.num_inputs, self.feedthrough,
                                        self.input_delay)
-        self._trace_limit = self.initial_covariance * self.num_parameters
+        #: What happens to P between samples (recursion.Forgetting: P / lambda, anti-windup).
+        self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         self._reset()
 
@@ -564,12 +235,12 @@ class Rls(LsAccessors, RecursiveEstimator):
             if self._gate_tail != 1.0:
                 self._gate_tail = rules.lowered_tail(self._gate_tail)
         self._error = e
-        self._p = rls_step(self._theta_ls, self._p, g, s, e)
+        self._p = ls_step(self._theta_ls, self._p, g, s, e)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * tau + 1.0
-        if lam < 1.0:
-            self._forget()
+        if self._propagation.propagate_one(self._p, lam, self._trace_weights):
+            self._flag('windup_limited')
         self._updates += 1
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
@@ -611,7 +282,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _ls_settings(self) -> LsSettings:
         return LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
-                          self._trace_limit, self.initial_covariance)
+                          self._propagation, self.initial_covariance)
 
     def _restart_learning(self) -> None:
         """Start afresh with scales chosen from the samples now in the regressor."""
@@ -623,13 +294,6 @@ class Rls(LsAccessors, RecursiveEstimator):
         regressor.history[:] = history
         regressor.filled, regressor.position = filled, position
         self._choose_scales()
-
-    def _forget(self) -> None:
-        """Apply P(t) <- P(t) / lambda unless that would wind P up past its start."""
-        if self._p.diagonal().dot(self._trace_weights) < self._trace_limit:
-            self._p *= 1.0 / self._forgetting_factor
-        else:
-            self._flag('windup_limited')
 
     def _check_covariance(self) -> None:
         """Repair P if it lost definiteness (the health check of the plain step)."""
@@ -659,18 +323,21 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._trace_weights = self._component_scale ** 2
 
     # --------------------------------------------------------- the validity
-    def _check_validity(self) -> None:
+    def _check_validity(self, more: Sequence[str] = ()) -> None:
+        """
+        Decide the reasons (every VALIDITY_PERIOD updates; see the class docstring).
+
+        Own reasons: an unstable model while the output power is bounded,
+        then ``more`` (a subclass's); the base class adds the shared ones.
+        The growth test's memory moves on after the decision.
+        """
         self._next_check = self._updates + rules.VALIDITY_PERIOD
         with np.errstate(all='ignore'):
-            self._reasons = tuple(self._find_problems())
-
-    def _find_problems(self) -> list[str]:
-        """Return the reasons not to trust the estimate now (see the class docstring)."""
-        power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
-        reasons = rules.unstable_models(self._theta()[None, :self.order], power,
+            power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
+            own = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
+        self._decide_validity(own + list(more) + self._simulation_reasons())
         self._last_power = float(power[0])
-        return reasons + residual_reasons(self._monitor) + self._simulation_reasons()
 
     def _simulation_reasons(self) -> list[str]:
         """
@@ -684,19 +351,11 @@ class Rls(LsAccessors, RecursiveEstimator):
         n = self.order
         return self._simulation.reasons(theta[:n], theta[n:])
 
-    def _validity_reasons(self) -> tuple[str, ...]:
-        return self._reasons
-
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether phi(t) is filled and at least p updates have been made."""
         return self._updates >= self.num_parameters
-
-    @property
-    def valid(self) -> bool:
-        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
-        return self._updates >= self.num_parameters and not self._reasons
 
     @property
     def samples(self) -> int:
@@ -790,9 +449,9 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'last_power': self._last_power, 'reasons': self._reasons}
         residual_arrays, residual_scalars = residual_items(
             self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
-        # (the simulation check's window is not in the state: the batched forms, whose
-        # plant states must equal this one's, have no check yet; it refills after a restore)
-        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
+        window_arrays, window_scalars = self._simulation.state_items()
+        return ({**arrays, **residual_arrays, **window_arrays},
+                {**scalars, **residual_scalars, **window_scalars})
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -812,7 +471,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._reasons = tuple(scalars['reasons'])
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
-        self._simulation.clear()
+        self._simulation.load(arrays, scalars)
         if self._hac is not None:
             self._hac.set_state(hac)
 

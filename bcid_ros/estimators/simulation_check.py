@@ -349,6 +349,29 @@ class SimulationWindow:
                            f'{statistic[0]:.3g} > {limit[0]:.3g})' if contradicted[0] else '')
         return [self.reason] if self.reason else []
 
+    def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return (arrays, scalars) of the window for a snapshot (fixed shapes)."""
+        rows = np.zeros((self.window, self._rows.shape[1]))
+        if self._filled:
+            rows[:self._filled] = self._rows[self._end - self._filled:self._end]
+        return ({'simulation_rows': rows},
+                {'simulation_filled': self._filled, 'simulation_since': self._since,
+                 'simulation_reason': self.reason, 'simulation_judged': self._judged,
+                 'simulation_statistic': self.statistic})
+
+    def load(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        """Take over :meth:`state_items` (a snapshot without them: an empty window)."""
+        self.clear()
+        if 'simulation_rows' not in arrays:
+            return
+        filled = int(scalars['simulation_filled'])
+        self._rows[:filled] = arrays['simulation_rows'][:filled]
+        self._end = self._filled = filled
+        self._since = int(scalars['simulation_since'])
+        self.reason = str(scalars['simulation_reason'])
+        self._judged = bool(scalars['simulation_judged'])
+        self.statistic = float(scalars['simulation_statistic'])
+
 
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'MAX_COLOUR', 'SAMPLES_PER_PARAMETER',
            'WINDOW', 'SimulationWindow', 'check', 'colour', 'input_drive', 'numerator_lags',

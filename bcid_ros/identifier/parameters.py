@@ -248,9 +248,15 @@ def check_identifier_parameters(values: dict[str, Any]) -> dict[str, Any]:
     if len(delays) not in (1, checked['num_inputs']):
         raise ValueError(f"parameter 'input_delay' must have one integer or num_inputs = "
                          f"{checked['num_inputs']} integers, got {delays!r}")
-    if checked['estimator'] == 'cl_bcls' and any(delays):
-        raise ValueError(f"parameter 'input_delay' must be 0 with estimator 'cl_bcls' (no "
-                         f'dead time in its closed-loop model), got {delays!r}')
+    if checked['controller_topic'] and not entry(checked['estimator']).takes_controller:
+        takers = ', '.join(names_where(takes_controller=True))
+        raise ValueError(f"parameter 'controller_topic' applies to estimator {takers} only "
+                         f"(it identifies under a known controller), got estimator "
+                         f"{checked['estimator']!r} with controller_topic "
+                         f"{checked['controller_topic']!r}")
+    if not entry(checked['estimator']).supports_delay and any(delays):
+        raise ValueError(f"parameter 'input_delay' must be 0 with estimator "
+                         f"{checked['estimator']!r} (no dead time in its model), got {delays!r}")
     if checked['input_joints'] and len(checked['input_joints']) != checked['num_inputs']:
         raise ValueError(f"parameter 'input_joints' must have num_inputs = "
                          f"{checked['num_inputs']} names (or none), got "

@@ -2,7 +2,7 @@
 
 import pytest
 
-from bcid_ros.cli import ARGUMENTS, build_parser, SUMMARIES
+from bcid_ros.cli import build_parser, COMMANDS
 
 ARGV = {
     'replay': ['replay', 'bag', '--params', 'p.yaml', '--estimator', 'rls', '--json'],
@@ -18,7 +18,9 @@ ARGV = {
 
 
 def test_every_subcommand_has_a_summary_and_arguments():
-    assert list(SUMMARIES) == list(ARGUMENTS) == list(ARGV)
+    assert list(COMMANDS) == list(ARGV)
+    for command in COMMANDS.values():
+        assert command.summary and callable(command.arguments)
 
 
 @pytest.mark.parametrize('name', list(ARGV))
@@ -32,10 +34,8 @@ def test_a_subcommand_parsed_alone_parses_as_in_the_full_parser(name):
 def test_every_handler_is_a_function_of_its_module():
     import importlib
 
-    from bcid_ros.cli import HANDLERS
-
-    assert list(HANDLERS) == list(SUMMARIES)
-    for location in HANDLERS.values():
+    for command in COMMANDS.values():
+        location = command.handler
         module, function = location.split(':')
         assert callable(getattr(importlib.import_module(module), function)), location
 

@@ -524,22 +524,22 @@ def test_a_signal_far_above_its_first_samples_rescales_that_plant_only(name):
 
 def hot_steps(theta, p, phi, y, lam):
     """Return the single (BLAS) and batched (numpy) RLS step of each row, as two arrays."""
-    from bcid_ros.estimators.rls import rls_innovation, rls_step, rls_steps
+    from bcid_ros.estimators.recursion import innovation, ls_step, ls_steps
 
     singles, innovations = [], []
     for k in range(theta.shape[0]):
-        e, g, s = rls_innovation(theta[k], p[k], phi[k], y[k], lam)
+        e, g, s = innovation(theta[k], p[k], phi[k], y[k], lam)
         innovations.append((g.copy(), s, e))
         step_theta = theta[k].copy()
-        step_p = rls_step(step_theta, p[k].copy(), g, s, e)
+        step_p = ls_step(step_theta, p[k].copy(), g, s, e)
         singles.append(np.concatenate([step_theta, step_p.ravel()]))
     g, s, e = (np.array(column) for column in zip(*innovations))
-    batched_theta, batched_p = rls_steps(theta, p, g, s, e)
+    batched_theta, batched_p = ls_steps(theta, p, g, s, e)
     return np.array(singles), np.hstack([batched_theta, batched_p.reshape(len(theta), -1)])
 
 
 def test_the_hot_step_written_twice_agrees_within_rounding():
-    # rls_step (BLAS daxpy/dger) and rls_steps (numpy) are the one step written twice; the
+    # ls_step (BLAS daxpy/dger) and ls_steps (numpy) are the one step written twice; the
     # bound is the rounding spread of the single step under one-ulp nudges of its inputs.
     # (The compensation's twins, Bcrls._after_ls_step and compensate_rows, are compared
     # through whole runs above.)

@@ -9,8 +9,9 @@ from scipy import signal
 
 from bcid_ros.estimators import estimator_class, make_estimator, parameter_names
 from bcid_ros.estimators.bcrls import bcls_fixed_point
+from bcid_ros.estimators.recursion import innovation, ls_step, repair_covariance
 from bcid_ros.estimators.regressor import ArxRegressor
-from bcid_ros.estimators.rls import ls_batch, repair_covariance, rls_innovation, rls_step
+from bcid_ros.estimators.rls import ls_batch
 from bcid_ros.estimators.rules import spectral_radius
 from bcid_ros.simulation import make_scenario
 from equivalence import assert_paths_agree, two_path_spread
@@ -457,9 +458,9 @@ def test_the_rls_step_functions_are_the_textbook_step():
     theta, phi, y, lam = rng.standard_normal(6), rng.standard_normal(6), 0.7, 0.98
 
     def functions(theta, p, phi, y):
-        e, g, s = rls_innovation(theta, p, phi, float(y), lam)
+        e, g, s = innovation(theta, p, phi, float(y), lam)
         theta = theta.copy()
-        new_p = rls_step(theta, p.copy(), g, s, e)
+        new_p = ls_step(theta, p.copy(), g, s, e)
         return {'e': e, 's': s, 'theta': theta, 'p': new_p}
 
     def textbook(theta, p, phi, y):

@@ -134,7 +134,9 @@ def test_every_list_of_estimators_derives_from_the_registry():
     assert set(names_where(open_loop=True)) <= set(REGISTRY)
     for name, item in REGISTRY.items():
         assert item.model in ('arx', 'output_error', 'errors_in_variables', 'closed_loop')
-        assert make_estimator_class_name(name) == item.single.split(':')[1]
+        # the loader gives the class that says it is this estimator
+        assert make_estimator_class_name(name) == item.single().__name__
+        assert item.single().name == name
         assert set(item.option_names) <= set(spec.name for spec in IDENTIFIER_PARAMETERS)
     assert batched_class('bcrls').__name__ == 'BatchedBcrls'
     with pytest.raises(ValueError, match="one of rls, bcrls for many plants; got 'bciv'"):
@@ -148,3 +150,31 @@ def make_estimator_class_name(name):
     from bcid_ros.estimators import estimator_class
 
     return estimator_class(name).__name__
+
+
+def test_a_dead_time_is_refused_where_the_registry_says_the_model_has_none():
+    from bcid_ros.estimators.registry import REGISTRY
+
+    refusing = [name for name, item in REGISTRY.items() if not item.supports_delay]
+    assert refusing  # cl_bcls: its closed-loop model has no dead time
+    for name in REGISTRY:
+        values = {'estimator': name, 'order': 1, 'input_delay': [2]}
+        if name in refusing:
+            with pytest.raises(ValueError, match=f"'input_delay' must be 0 with estimator "
+                                                 f"'{name}'"):
+                check_identifier_parameters(values)
+        else:
+            assert check_identifier_parameters(values)['input_delay'] == [2]
+
+
+def test_a_controller_topic_is_refused_where_the_registry_says_none_is_taken():
+    from bcid_ros.estimators.registry import REGISTRY
+
+    for name, item in REGISTRY.items():
+        values = {'estimator': name, 'order': 1, 'controller_topic': '/controller'}
+        if item.takes_controller:
+            assert check_identifier_parameters(values)['controller_topic'] == '/controller'
+        else:
+            with pytest.raises(ValueError, match="'controller_topic' applies to estimator "
+                                                 "cl_bcls only"):
+                check_identifier_parameters(values)

@@ -27,7 +27,7 @@ from bcid_ros.estimators.bciv.history import SampleHistory
 from bcid_ros.estimators.bciv.uncertainty import moment_function
 from bcid_ros.estimators.bciv.units import regularisation_weights
 from bcid_ros.estimators.moment_covariance import MomentBlocks
-from bcid_ros.estimators.rls import VARIANCE_FLOOR
+from bcid_ros.estimators.recursion import VARIANCE_FLOOR
 
 UPDATES = ('converged', 'printed')
 #: A compensation farther than this from theta_IV (relative, normalised units) is a runaway.
@@ -380,21 +380,23 @@ class Bciv(RecursiveEstimator):
 
     # ------------------------------------------------------- the validity
     def _check_validity(self) -> None:
+        """Decide the reasons (every VALIDITY_PERIOD updates), then move the checks' memory on."""
         self._next_check = self._updates + rules.VALIDITY_PERIOD
-        with np.errstate(all='ignore'):
-            self._reasons = tuple(self._find_problems())
-
-    def _find_problems(self) -> list[str]:
-        """Return the reasons not to trust the estimate now (see the class docstring)."""
-        power = self._output_power
-        reasons = rules.unstable_models(self._theta_bciv[None, :self.order], np.array([power]),
-                                        np.array([self._last_power]))[0]
-        self._last_power = power
         fallbacks = self.flags.get('fallback_iv', 0)
-        if fallbacks > self._fallbacks_checked:
-            reasons.append(f'ill-conditioned or runaway compensation (fell back to theta_IV '
-                           f'{fallbacks - self._fallbacks_checked} times)')
+        with np.errstate(all='ignore'):
+            own = self._own_reasons(fallbacks - self._fallbacks_checked)
+        self._decide_validity(own)
+        self._last_power = self._output_power
         self._fallbacks_checked = fallbacks
+
+    def _own_reasons(self, fallbacks: int) -> list[str]:
+        """Return the reasons not to trust the estimate now (see the class docstring)."""
+        reasons = rules.unstable_models(self._theta_bciv[None, :self.order],
+                                        np.array([self._output_power]),
+                                        np.array([self._last_power]))[0]
+        if fallbacks > 0:
+            reasons.append(f'ill-conditioned or runaway compensation (fell back to theta_IV '
+                           f'{fallbacks} times)')
         units = self._normalised_units
         shift = float(np.linalg.norm(units * (self._theta_bciv - self._theta_iv)))
         size = float(np.linalg.norm(units * self._theta_iv))
@@ -403,10 +405,13 @@ class Bciv(RecursiveEstimator):
                            if size > 0 else 'compensation runs away from IV')
         return reasons
 
-    def _validity_reasons(self) -> tuple[str, ...]:
+    #: The last compensation's fallback is a reason from the sample it happens on.
+    _LIVE_REASONS = True
+
+    def _live_reasons(self) -> tuple[str, ...]:
         if self._last_status:
-            return self._reasons + (f'compensation fell back to theta_IV ({self._last_status})',)
-        return self._reasons
+            return (f'compensation fell back to theta_IV ({self._last_status})',)
+        return ()
 
     # --------------------------------------------------------- the accessors
     @property

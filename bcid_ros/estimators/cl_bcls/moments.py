@@ -50,6 +50,7 @@ from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, definit
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
                                                     STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller, is_stable, stable_reflection
+from bcid_ros.estimators.recursion import innovation
 
 #: With ``window`` 0 a redesign changes the prefilter only when the new f(q) differs from
 #: the one in use by more than this (2-norm of the coefficients; docs/cl_bcls.md).
@@ -359,9 +360,7 @@ class AllDataMemory:
         psi = phi * self._psi_signs
         ls = self.ls
         # e = y_f - psi' theta, g = P psi, s = lambda + psi' P psi
-        g = ls.p.dot(psi)
-        s = lam + psi.dot(g)
-        e = target - psi.dot(ls.theta)
+        e, g, s = innovation(ls.theta, ls.p, psi, target, lam)
         cuts = self.cuts
         if not passes_gate(e, s, float(self.moments.weights.sum())):
             return REFUSED

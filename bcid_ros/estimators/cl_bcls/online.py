@@ -195,6 +195,7 @@ class ClosedLoopBcls(RecursiveEstimator):
         value = check_forgetting_factor(value)
         self._check_forgetting(value)
         self._forgetting_factor = value
+        self._follow_forgetting_factor()
 
     def set_controller(self, numerator: Sequence[float], denominator: Sequence[float],
                        sign: str = 'negative') -> bool:
@@ -412,7 +413,10 @@ class ClosedLoopBcls(RecursiveEstimator):
         self._bc.model_reasons = model_reasons(self._theta(), self._theta_uncompensated(),
                                                self._memory.ls.p, self.controller)
 
-    def _validity_reasons(self) -> tuple[str, ...]:
+    #: The reasons follow the excitation and the compensation of every sample.
+    _LIVE_REASONS = True
+
+    def _live_reasons(self) -> tuple[str, ...]:
         """Return why the estimate is not valid (see :func:`.compensation.validity_reasons`)."""
         bc = self._bc
         if (not bc.model_reasons and bc.direction is not None and not bc.holding
@@ -422,11 +426,6 @@ class ClosedLoopBcls(RecursiveEstimator):
         return bc.reasons(self._excitation.ratio())
 
     # --------------------------------------------------------- the accessors
-    @property
-    def valid(self) -> bool:
-        """Whether the estimate can be trusted (the base class's, asked at every sample)."""
-        return self._bc.direction is not None and not self._validity_reasons()
-
     @property
     def ready(self) -> bool:
         """Whether a compensation (redesign) has succeeded since the last reset or change."""

@@ -28,8 +28,11 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.base import all_finite
 from bcid_ros.estimators.lti import controller_canonical
-from bcid_ros.estimators.rls import repair_covariance, rls_step, VARIANCE_FLOOR
+from bcid_ros.estimators.recursion import (Forgetting, ls_step, repair_covariance,
+                                           VARIANCE_FLOOR)
 
+#: The all-data memory forgets without anti-windup: its P is bounded by the redesigns.
+FORGETTING = Forgetting(math.inf)
 #: Squared 2-norm below which an update cannot overflow (see update_is_safe).
 SAFE_SQUARE = 2.0 ** 1022
 #: What a memory's row step did: the row is in; the gate refused it; its update may not be
@@ -210,14 +213,9 @@ class RunningLs:
     # --------------------------------------------- all data: psi rows, forgetting
     def forgetting_step(self, g: np.ndarray, s: float, e: float, lam: float) -> bool:
         """Do the step of theta, P and J; False (and nothing changed) if it may not be finite."""
-        update = g * (e / s)
-        if not (update_is_safe(self.theta, update, 1.0) or all_finite(self.theta + update)):
+        if not self._ls_step(g, s, e):
             return False
-        self.theta += update
-        h = g * (1.0 / math.sqrt(s))
-        self.p -= h[:, None] * h
-        if lam != 1.0:
-            self.p *= 1.0 / lam
+        FORGETTING.propagate_one(self.p, lam)
         # J = lam J + lam e^2 / s (weighted LS loss)
         self.loss = lam * (self.loss + e * e / s)
         return True
@@ -225,18 +223,24 @@ class RunningLs:
     # --------------------------------------------------- a window: phi rows, lambda 1
     def step(self, g: np.ndarray, s: float, e: float) -> bool:
         """Do the RLS step and count the row; False (and nothing changed) if not finite."""
+        if not self._ls_step(g, s, e):
+            return False
+        # J += e^2 / s ; N += 1
+        self.loss += e * e / s
+        self.count += 1.0
+        return True
+
+    def _ls_step(self, g: np.ndarray, s: float, e: float) -> bool:
+        """Do the shared RLS step of theta and P (``g`` is overwritten); False if not finite."""
         theta = self.theta
         safe = update_is_safe(theta, g, e / s)
         if not safe:  # (rare) keep what the step changes, to check it after
             saved = theta.copy(), self.p.copy()
         # theta_LS += g e / s ; P -= g g' / s
-        self.p = rls_step(theta, self.p, g, s, e)
+        self.p = ls_step(theta, self.p, g, s, e)
         if not safe and not all_finite(theta):
             theta[:], self.p = saved
             return False
-        # J += e^2 / s ; N += 1
-        self.loss += e * e / s
-        self.count += 1.0
         return True
 
     # ----------------------------------------------------------------- both

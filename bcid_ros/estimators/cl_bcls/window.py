@@ -31,7 +31,7 @@ from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, plant_f
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
                                                     STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller
-from bcid_ros.estimators.rls import rls_innovation
+from bcid_ros.estimators.recursion import innovation
 
 
 #: Regression rows per parameter that the data must hold before a redesign.
@@ -120,13 +120,13 @@ class WindowMemory:
         """
         ls, phi = self.ls, filters.phi
         # e = y[k] - phi' theta_LS, g = P phi, s = 1 + phi' P phi (the shared RLS step)
-        e, g, s = rls_innovation(ls.theta, ls.p, phi, y, 1.0)
+        e, g, s = innovation(ls.theta, ls.p, phi, y, 1.0)
         cuts = self.cuts
         if not passes_gate(e, s, ls.count):
             return REFUSED
         if self.cuts != cuts:
             # a plant change cut the memory (P grew): redo the a-priori part
-            e, g, s = rls_innovation(ls.theta, ls.p, phi, y, 1.0)
+            e, g, s = innovation(ls.theta, ls.p, phi, y, 1.0)
         if not s > 0.0:
             return REPAIR
         return STEPPED if ls.step(g, s, e) else UNSAFE

@@ -25,16 +25,16 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.residual_state import (residual_items, residual_reasons,
-                                                residual_states, with_gradient_arrays)
-from bcid_ros.estimators.rls import HEALTH_CHECK_PERIOD, repair_covariance
+from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
+                                           repair_covariance, VARIANCE_FLOOR)
+from bcid_ros.estimators.residual_state import (residual_items, residual_states,
+                                                with_gradient_arrays)
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, inside
 from bcid_ros.estimators.rpem.store import SampleStore, Segment
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
-from bcid_ros.estimators.rpem.watch import RestartWatch, VARIANCE_FLOOR
+from bcid_ros.estimators.rpem.watch import RestartWatch
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
@@ -185,7 +185,6 @@ class Rpem(RecursiveEstimator):
         # the residual tests: an OE model's output error may be coloured (only its
         # correlation with past inputs contradicts the model); ARMAX's innovation is white
         self.adequacy_model = model
-        self._blas = load_blas()
         super().__init__(**settings)
         n, r = self.order, self.num_inputs
         if self._armax:
@@ -295,14 +294,10 @@ class Rpem(RecursiveEstimator):
 
     def _commit_covariance(self, g: np.ndarray, s: float, lam: float) -> None:
         """Apply P(t) = [P - g g' / s] / lambda in place, without winding up."""
-        # h = g / sqrt(s); P <- P - h h'   (BLAS rank-1 update of the C-ordered P in place)
-        h = g * (1.0 / math.sqrt(s))
-        self._p = self._blas['dger'](-1.0, h, h, 1, 1, self._p.T, 0, 0, 1).T
-        if lam < 1.0:
-            if float(np.trace(self._p)) < self._trace_limit:
-                self._p *= 1.0 / lam
-            else:
-                self._flag('windup_limited')
+        # P <- P - h h', h = g / sqrt(s) (the shared step's; g is overwritten), then propagate
+        self._p = downdate(self._p, g, s)
+        if self._propagation.propagate_one(self._p, lam):
+            self._flag('windup_limited')
 
     def _refuse(self, s: float) -> None:
         """Refuse a step with a non-finite error or gain (repair P first if s <= 0)."""
@@ -438,8 +433,7 @@ class Rpem(RecursiveEstimator):
         if reason:
             self._restart(reason)
         named = watch.reasons(steps)
-        named += self._projection_reasons(steps, named)
-        self._reasons = tuple(named + residual_reasons(self._monitor))
+        self._decide_validity(named + self._projection_reasons(steps, named))
 
     def _projection_reasons(self, steps: int, named: list[str]) -> list[str]:
         """
@@ -457,19 +451,11 @@ class Rpem(RecursiveEstimator):
             return []
         return [f'stability projection active ({projected} of the last {steps} updates)']
 
-    def _validity_reasons(self) -> tuple[str, ...]:
-        return self._reasons
-
     # --------------------------------------------------------- the accessors
     @property
     def ready(self) -> bool:
         """Whether the first fit is made (and at least p samples were used)."""
         return self._fitted and self._samples >= self.num_parameters
-
-    @property
-    def valid(self) -> bool:
-        """Whether :attr:`ready` and no :attr:`validity_reasons` (see the class docstring)."""
-        return self.ready and not self._reasons
 
     @property
     def samples(self) -> int:
@@ -566,7 +552,8 @@ class Rpem(RecursiveEstimator):
         self._arx = np.zeros(p)
         self._signal_scale = np.ones(1 + self.num_inputs)
         self._set_scale_dependents()
-        self._trace_limit = self.initial_covariance * size
+        #: What happens to P between samples (recursion.Forgetting: P / lambda, anti-windup).
+        self._propagation = Forgetting(self.initial_covariance * size)
         self._fitted = False
         self._fits = 0
         self._samples = 0
