@@ -397,6 +397,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
             tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
             if tested.any():
+                for row, output, inputs in zip(rows[tested].tolist(), y[stepped][tested].tolist(),
+                                               u[stepped][tested]):
+                    self._simulations[row].record(output, inputs)
                 self._record_residuals(rows[tested], y[stepped][tested], phi[stepped][tested],
                                        u[stepped][tested], outcome.errors[stepped][tested])
             due = rows[self._updates[rows] >= self._next_check[rows]]
@@ -408,11 +411,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
 
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
-        """Give the residual tests, the HAC and the simulation check the steps of ``rows``."""
+        """Give the residual tests and the HAC the steps of ``rows``."""
         self._monitor.record_rows(rows, errors, u)
         self._hac.record_rows(rows, phi * errors[:, None])
-        for row, output, inputs in zip(rows.tolist(), y.tolist(), u):
-            self._simulations[row].record(output, inputs)
 
     def _forget_residuals(self, rows: np.ndarray) -> None:
         """Start the residual tests (and the HAC) of ``rows`` afresh (Rls._forget_residuals)."""
@@ -460,9 +461,6 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                                         self._last_power[plants])
         if more is not None:
             own = [mine + list(theirs) for mine, theirs in zip(own, more)]
-        theta, n = self._theta(), self.order
-        own = [mine + self._simulations[plant].reasons(theta[plant, :n], theta[plant, n:])
-               for mine, plant in zip(own, plants.tolist())]
         self._decide_validity(plants, own)
         self._last_power[plants] = power
 
@@ -498,9 +496,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     def _allocate(self) -> None:
         """Make the per-plant state arrays (their values are set by the resets)."""
         plants, p = self.num_plants, self.num_parameters
-        # the simulation check's window of each plant (Rls._simulation_reasons)
+        # the simulation check's window of each plant (RecursiveEstimator._start_simulation_check)
         self._simulations = [SimulationWindow(self.order, self.num_inputs, self.feedthrough,
-                                              (0,) * self.num_inputs) for _ in range(plants)]
+                                              (0,) * self.num_inputs, self._forgetting_factor)
+                             for _ in range(plants)]
         self._theta_ls = np.zeros((plants, p))
         self._p = np.zeros((plants, p, p))
         self._loss = np.zeros(plants)

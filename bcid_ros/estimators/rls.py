@@ -23,7 +23,6 @@ from bcid_ros.estimators.recursion import (CAREFUL_GAIN, Forgetting, HEALTH_CHEC
                                            repair_rows, scale_dependents)
 from bcid_ros.estimators.regressor import ArxRegressor, phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
-from bcid_ros.estimators.simulation_check import SimulationWindow
 
 
 #: No event (a mask of one False).
@@ -152,6 +151,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step(y, phi)
             if self._tau >= self._gate_from and not self._quiet_left:
+                self._simulation.record(y, u)
                 self._record_residual(y, phi, u)
             if self._updates >= self._next_check:
                 self._check_validity()
@@ -189,6 +189,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             elif self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
                 if self._tau >= self._gate_from and not self._quiet_left:
+                    self._simulation.record(y, u)
                     self._record_residual(y, phi, u)
                 if self._updates >= self._next_check:
                     self._check_validity()
@@ -213,7 +214,6 @@ class Rls(LsAccessors, RecursiveEstimator):
         """
         error = self._error
         self._monitor.record(error, u)
-        self._simulation.record(y, u)  # (the simulation check, issue 34)
         # the score phi e of the estimating equations sum_t w_t phi (y - phi' theta) = 0
         self._hac.record_product(phi, error)
 
@@ -336,20 +336,8 @@ class Rls(LsAccessors, RecursiveEstimator):
             power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
             own = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
-        self._decide_validity(own + list(more) + self._simulation_reasons())
+        self._decide_validity(own + list(more))
         self._last_power = float(power[0])
-
-    def _simulation_reasons(self) -> list[str]:
-        """
-        Return the simulation check's reason (:mod:`~bcid_ros.estimators.simulation_check`).
-
-        Apart from the other reasons so that it can move with them: the model's simulated
-        output over the last samples against a refit (a one-step error that is small and
-        white does not make a simulation that is right).
-        """
-        theta = self._theta()
-        n = self.order
-        return self._simulation.reasons(theta[:n], theta[n:])
 
     # --------------------------------------------------------- the accessors
     @property
@@ -426,8 +414,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _forget_residuals(self) -> None:
         """Start the residual tests, the HAC and the simulation check afresh (reset, change)."""
-        self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
-                                            self.input_delay)
+        self._start_simulation_check()
         self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
                                         forgetting_factor=self._forgetting_factor)
         self._hac = (HacCovariance(dimension=self.num_parameters,
@@ -449,9 +436,7 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'last_power': self._last_power, 'reasons': self._reasons}
         residual_arrays, residual_scalars = residual_items(
             self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
-        window_arrays, window_scalars = self._simulation.state_items()
-        return ({**arrays, **residual_arrays, **window_arrays},
-                {**scalars, **residual_scalars, **window_scalars})
+        return {**arrays, **residual_arrays}, {**scalars, **residual_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_ls = arrays['theta_ls']
@@ -471,7 +456,6 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._reasons = tuple(scalars['reasons'])
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
-        self._simulation.load(arrays, scalars)
         if self._hac is not None:
             self._hac.set_state(hac)
 

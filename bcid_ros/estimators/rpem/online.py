@@ -272,6 +272,7 @@ class Rpem(RecursiveEstimator):
             # the residual tests take the prediction error (and, OE, psi); the HAC psi e
             self._monitor.record(e, u, psi)
             self._hac.record_product(psi, e)
+            self._simulation.record(y, u)
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
         if self._updates >= self._watch.next_check:
@@ -573,7 +574,7 @@ class Rpem(RecursiveEstimator):
 
     def _forget_residuals(self) -> None:
         """
-        Start the residual tests and the HAC afresh (at a reset and at a plant change).
+        Start the residual tests, the HAC and the simulation check afresh (reset, change).
 
         OE: the cross test counts the estimate's own error (the parameter
         term, with the HAC covariance of every internal parameter in the
@@ -590,10 +591,12 @@ class Rpem(RecursiveEstimator):
             parameter_covariance=self._internal_covariance if oe else None)
         self._hac = HacCovariance(dimension=self._size,
                                   forgetting_factor=self._forgetting_factor)
+        self._start_simulation_check()
 
     def _restart_regressor(self) -> None:
         self._predictor.clear()
         self._store.break_pending = True
+        self._simulation.clear()  # (a gap in its window)
 
     #: The scalars of the recursion; the predictor and the store name theirs.
     _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
