@@ -312,6 +312,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         plant = range(self.num_plants)[plant]
         arrays, _ = self._plant_items(plant)
         arrays['history'] = self._regressors.history[plant]
+        # (the simulation check's window may be absent or of another lambda: it loads what fits)
+        arrays.pop('simulation_rows')
         for key, value in arrays.items():
             if key not in state.arrays or np.shape(state.arrays[key]) != np.shape(value):
                 raise ValueError(f'state array {key!r} does not match this configuration')

@@ -79,3 +79,18 @@ def test_the_window_follows_a_live_forgetting_factor():
     restored = make_estimator('rpem', order=2, num_inputs=2, forgetting_factor=0.995)
     restored.set_state(estimator.get_state())
     assert restored._simulation.window == 200
+
+
+def test_a_plant_state_without_a_window_loads_into_the_batched_form():
+    # a snapshot from before the window was in the state: the window starts empty
+    y, u = ding_miso(0)
+    single = make_estimator('rls', order=2, num_inputs=2)
+    single.run(y[:1500], u[:1500])
+    state = single.get_state()
+    arrays = {k: v for k, v in state.arrays.items() if not k.startswith('simulation_')}
+    scalars = {k: v for k, v in state.scalars.items() if not k.startswith('simulation_')}
+    batched = make_batched_estimator('rls', num_plants=2, order=2, num_inputs=2)
+    batched.set_plant_state(1, type(state)(state.estimator, arrays, scalars))
+    assert batched.plant_state(1).scalars['simulation_filled'] == 0
+    single.set_state(type(state)(state.estimator, arrays, scalars))
+    assert single.get_state().scalars['simulation_filled'] == 0
