@@ -6,7 +6,9 @@ Usage: ``.venv/bin/python -m benchmarks.realdata --data DIR [--estimators rls,bc
 folder per plant with ``data.csv`` (or ``data_y1.csv``, ``data_y2.csv``, one MISO problem
 each), header ``y,u1[,u2]``, one sample per row: the DaISy records (De Moor, KU Leuven,
 "DaISy: Database for the Identification of Systems") are not part of the repository.
-Progress goes to stderr, the markdown tables to stdout (docs/accuracy.md).
+Progress goes to stderr, the markdown tables to stdout (docs/accuracy.md). A folder ``emps``
+with ``estimation.csv`` and ``validation.csv`` (the EMPS closed-loop benchmark) is run by
+:mod:`benchmarks.emps`.
 
 Protocol, per record: the first half estimates, the second validates. The operating point
 is the means of the estimation half; the batch model is fitted to the centred estimation
@@ -36,6 +38,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from benchmarks import emps
 from benchmarks.realistic import default_estimators
 from bcid_ros.analysis.metrics import nrmse_fit
 from bcid_ros.analysis.pem import fit_oe, simulate_oe, Structure
@@ -230,8 +233,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f'unknown estimator(s) {", ".join(unknown)}')
     found = records(args.data)
-    if not found:
-        parser.error(f'no */data*.csv under {args.data}')
+    closed_loop = args.data / 'emps'
+    if not found and not (closed_loop / 'estimation.csv').exists():
+        parser.error(f'no */data*.csv or emps/estimation.csv under {args.data}')
     rows = []
     for name, plant, data in found:
         row = evaluate(name, plant, data, names, _range(args.orders), _range(args.delays))
@@ -240,11 +244,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f'{name}: batch OE n={chosen["order"]} d={chosen["delay"]} fit '
               f'{text(chosen["batch_fit"])} ({row["search_seconds"]:.1f} s search)',
               file=sys.stderr, flush=True)
-    print('Data: DaISy (De Moor, KU Leuven, "DaISy: Database for the Identification of '
-          'Systems").\n')
-    print(tables(rows, names))
+    if found:
+        print('Data: DaISy (De Moor, KU Leuven, "DaISy: Database for the Identification of '
+              'Systems").\n')
+        print(tables(rows, names))
+    output: dict[str, Any] = {'records': rows}
+    if (closed_loop / 'estimation.csv').exists():
+        output['emps'] = emps.run(closed_loop)
+        print('\nEMPS (Janot, Gautier and Brunot 2019), closed loop, order 2:\n')
+        print(emps.table(output['emps']))
     if args.json is not None:
-        args.json.write_text(json.dumps(_finite(rows), indent=1))
+        args.json.write_text(json.dumps(_finite(output), indent=1))
         print(f'wrote {args.json}', file=sys.stderr)
     return 0
 

@@ -8,6 +8,7 @@ import math
 import sys
 from typing import Any
 
+from bcid_ros.analysis.batch import NEAR_PAIR
 from bcid_ros.analysis.data import read_samples
 from bcid_ros.analysis.search import (Analysis, analyze, FIT_MARGIN, parse_delays,
                                       parse_orders, short_error, TEST_LEVEL)
@@ -79,6 +80,7 @@ def report(analysis: Analysis) -> str:
                      f'{_number(c.mdl, 1):>11} {_p_value(c.cross_correlation_p):>8} '
                      f'{_p_value(c.whiteness_p):>8} {"yes" if c.stable else "NO":>6} '
                      f'{"yes" if c.redundant else "no":>9}{mark}')
+    lines.extend(_pair_lines(analysis))
     chosen = analysis.recommended
     if chosen is None:
         lines.append('no recommendation: no candidate gave a stable model with a finite fit')
@@ -93,6 +95,18 @@ def report(analysis: Analysis) -> str:
     lines.extend(_model_lines(analysis))
     lines.extend(_online_lines(analysis))
     return '\n'.join(lines)
+
+
+def _pair_lines(analysis: Analysis) -> list[str]:
+    """Return one line per candidate with near-cancelling pole-zero pairs (none: no line)."""
+    lines = []
+    for c in analysis.candidates:
+        if c.pole_zero_pairs:
+            pairs = ', '.join(f'u{pair["input"]}: pole {_complex(pair["pole"])} / zero '
+                              f'{_complex(pair["zero"])}' for pair in c.pole_zero_pairs)
+            lines.append(f'order {c.order}, delay {c.delay_text}: near-cancelling pole-zero '
+                         f'pairs (within {NEAR_PAIR:g}): {pairs}')
+    return lines
 
 
 def _rule_text(analysis: Analysis) -> str:
@@ -125,10 +139,15 @@ def _online_lines(analysis: Analysis) -> list[str]:
                      f'{why}')
     name = analysis.recommended_estimator
     if name is None:
-        lines.append('recommended estimator: none (no online estimate was valid and stable)')
-    elif analysis.estimator_close:
+        lines.append('recommended estimator: none (no online estimate was stable)')
+    elif analysis.estimator_close and analysis.estimator_valid:
         lines.append(f'recommended estimator: {name} (the best valid online fit, within '
                      f'{100 * FIT_MARGIN:.0f} % of the batch model\'s validation RMS error)')
+    elif analysis.estimator_close:
+        lines.append(f'recommended estimator: {name}: the best online fit within '
+                     f'{100 * FIT_MARGIN:.0f} % of the batch model\'s validation RMS error, '
+                     'but NOT valid at the end of the estimation part (its reasons above; no '
+                     'valid estimate was as close): check them before a controller trusts it')
     else:
         lines.append(f'recommended estimator: {name}, but NONE is close to the batch model '
                      f'(within {100 * FIT_MARGIN:.0f} % of its validation RMS error): use the '

@@ -41,15 +41,31 @@ def best_run(residual: Callable[[np.ndarray], np.ndarray],
     The lowest start does not always lead to the lowest minimum (an
     over-parametrised OE model has several), so every start given is run.
     """
-    best = None
+    return min(runs(residual, jacobian, candidates, losses, starts, max_evaluations, solver),
+               key=lambda run: run.cost)
+
+
+def runs(residual: Callable[[np.ndarray], np.ndarray],
+         jacobian: Callable[[np.ndarray], np.ndarray], candidates: list[np.ndarray],
+         losses: list[float], starts: int, max_evaluations: int,
+         solver: str = 'trf') -> list[optimize.OptimizeResult]:
+    """Return the runs from the ``starts`` lowest start losses, in that order."""
+    ended = []
     for index in np.argsort(losses, kind='stable')[:starts]:
         if solver == 'lm':
-            run = levenberg_marquardt(residual, jacobian, candidates[index], max_evaluations)
+            ended.append(levenberg_marquardt(residual, jacobian, candidates[index],
+                                             max_evaluations))
         else:
-            run = minimise_trf(residual, jacobian, candidates[index], max_evaluations)
-        if best is None or run.cost < best.cost:
-            best = run
-    return best
+            ended.append(minimise_trf(residual, jacobian, candidates[index], max_evaluations))
+    return ended
+
+
+def kept_start(residual: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
+               why: str) -> optimize.OptimizeResult:
+    """Return a start as a run that did not move (status 0, no evaluations counted)."""
+    fun = residual(x)
+    return optimize.OptimizeResult(x=x.copy(), fun=fun, cost=0.5 * float(fun @ fun), status=0,
+                                   nfev=0, message=why)
 
 
 def minimise_trf(residual: Callable[[np.ndarray], np.ndarray],

@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from scipy import linalg, optimize, signal
 
-from bcid_ros.analysis.least_squares import best_run, MAX_EVALUATIONS, SOLVERS
+from bcid_ros.analysis.least_squares import (best_run, kept_start, MAX_EVALUATIONS, runs,
+                                             SOLVERS)
 from bcid_ros.analysis.metrics import coloured_noise_covariance, nrmse_fit
 from bcid_ros.analysis.structure import Structure
 from bcid_ros.estimators.base import check_int
@@ -494,7 +495,8 @@ class _OutputError:
 
 def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
            offset: bool = False, starts: int = 2,
-           max_evaluations: int = MAX_EVALUATIONS, solver: str = 'trf') -> PemResult:
+           max_evaluations: int = MAX_EVALUATIONS, solver: str = 'trf',
+           denominators: Sequence[np.ndarray] = ()) -> PemResult:
     r"""
     Fit the MISO output-error model ``y = sum_i B_i/F u_i + v`` by prediction-error minimisation.
 
@@ -528,6 +530,13 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
     losses; the lowest end wins (an over-parametrised OE model has several
     minima, and the lowest start does not always lead to the lowest).
 
+    ``denominators`` adds starts: each F given (of degree n, reflected to
+    stability) with its B, w and c refitted, every one run besides the
+    ``starts`` best of the others. A fit of order n + 1 started from an
+    order-n fit's F times (1 - p q^-1) can end no higher than that fit (its
+    B times the same factor is one of the B refitted), so the search's
+    estimation loss never rises with the order (docs/analyze.md).
+
     Covariance (Ljung 1999, ch. 9: an OE estimate under coloured noise):
     the sandwich :math:`B^{-1}\,(\hat\sigma_w^2\,G^TG)\,B^{-1}` with
     :math:`B = \psi^T\psi`, ψ the Jacobian of theta with the w (and offset)
@@ -553,6 +562,8 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
         Most least-squares runs, >= 1, from the best starts first.
     max_evaluations : int
         Most residual evaluations of one run, >= 1.
+    denominators : sequence of numpy.ndarray
+        More starts: F = [1, f_1, ..., f_n] each (see above).
     solver : str
         ``'trf'`` (default): :func:`scipy.optimize.least_squares`, trust-region
         reflective, which factors the N x p Jacobian by SVD at every
@@ -582,21 +593,59 @@ def fit_oe(y: Any, u: Any, structure: Structure, *, initial: str = 'auto',
     y, u = _check_data(y, u, _check_structure(structure),
                        0 if initial == 'zero' else structure.span)
     offset = bool(offset)
+    denominators = [stabilise(_check_denominator(f, structure)) for f in denominators]
+    longest = PERSISTENT_RECORDS * y.size if initial == 'auto' else math.inf
     result = _fit_oe(y, u, structure, 'zero' if initial == 'zero' else 'estimate', offset,
-                     starts, max_evaluations, solver)
-    if initial == 'auto' and _time_constant(result.denominator) > PERSISTENT_RECORDS * y.size:
-        result = _fit_oe(y, u, structure, 'zero', offset, starts, max_evaluations, solver)
+                     starts, max_evaluations, solver, denominators, longest)
+    if _time_constant(result.denominator) > longest:
+        result = _fit_oe(y, u, structure, 'zero', offset, starts, max_evaluations, solver,
+                         denominators)
     return result
 
 
+def _check_denominator(denominator: Any, structure: Structure) -> np.ndarray:
+    denominator = np.asarray(denominator, dtype=float).reshape(-1)
+    if (denominator.size != structure.order + 1 or denominator[0] != 1.0
+            or not np.isfinite(denominator).all()):
+        raise ValueError(f'denominators must each be [1, f_1, ..., f_{structure.order}], '
+                         f'finite, got {denominator.tolist()}')
+    return denominator
+
+
 def _fit_oe(y: np.ndarray, u: np.ndarray, structure: Structure, initial: str, offset: bool,
-            starts: int, max_evaluations: int, solver: str) -> PemResult:
+            starts: int, max_evaluations: int, solver: str,
+            denominators: Sequence[np.ndarray] = (), longest: float = math.inf) -> PemResult:
+    """
+    Run the starts; return the lowest end whose longest time constant is within ``longest``.
+
+    The starts of ``denominators`` (an order-n fit with a pole added) count
+    as ends too, so the result is never worse than they are; with no end
+    within ``longest``, the lowest end.
+    """
     problem = _OutputError(y, u, structure, initial, offset)
     candidates = _oe_starts(problem)
     losses = [float(np.mean(problem.residual(x) ** 2)) for x in candidates]
-    best = best_run(problem.residual, problem.jacobian, candidates, losses, starts,
-                    max_evaluations, solver)
+    ended = runs(problem.residual, problem.jacobian, candidates, losses, starts,
+                 max_evaluations, solver)
+    warm = [problem.best_numerators(denominator) for denominator in denominators]
+    for x in warm:
+        losses.append(float(np.mean(problem.residual(x) ** 2)))
+        ended += runs(problem.residual, problem.jacobian, [x], [losses[-1]], 1,
+                      max_evaluations, solver)
+    # (the warm starts themselves too: where the runs from them end beyond the record's
+    # time constant, the start is still no worse than the order-n fit it came from)
+    ended += [kept_start(problem.residual, x, 'an order-n fit with a pole added, kept: the '
+                         'runs ended higher or with a time constant beyond the record')
+              for x in warm]
+    within = [run for run in ended if _time_constant(_denominator_of(run.x, structure))
+              <= longest]
+    best = min(within or ended, key=lambda run: run.cost)
     return _oe_result(problem, best, tuple(losses))
+
+
+def _denominator_of(x: np.ndarray, structure: Structure) -> np.ndarray:
+    """Return F = [1, a_1, ..., a_n] of the unknowns x (theta first)."""
+    return np.concatenate(([1.0], x[:structure.order]))
 
 
 def _time_constant(denominator: np.ndarray) -> float:

@@ -55,6 +55,7 @@ class Analysis:
     online: list[OnlineResult] = dataclasses.field(default_factory=list)
     recommended_estimator: str | None = None
     estimator_close: bool = False
+    estimator_valid: bool = False
     sample_period: float | None = None
     residual_kind: str = RESIDUAL_KIND
 
@@ -100,6 +101,7 @@ class Analysis:
             'poles': complex_list(model.poles()),
             'zeros': zeros[0] if model.num_inputs == 1 else zeros,
             'dc_gain': finite(gains[0]) if gains.size == 1 else [finite(g) for g in gains],
+            'pole_zero_pairs': list(chosen.pole_zero_pairs),
         }
         if self.sample_period is not None:
             out['continuous'] = model.continuous(self.sample_period)
@@ -126,6 +128,7 @@ class Analysis:
             'model': self.model_summary(),
             'recommended_estimator': self.recommended_estimator,
             'recommended_estimator_close': self.estimator_close,
+            'recommended_estimator_valid': self.estimator_valid,
             'online': {r.name: r.figures() for r in self.online},
             'detrend': self.detrend,
             'identifier_parameters': self.identifier_parameters(),
@@ -302,8 +305,9 @@ def analyze(y: np.ndarray, u: np.ndarray, parameters: dict[str, Any], *,
     if recommended is not None:
         names = compared_estimators(values['estimator'], estimator)
         analysis.online = compare_online(record, names, values, recommended, detrend, progress)
-        analysis.recommended_estimator, analysis.estimator_close = recommend_estimator(
-            analysis.online, recommended.fit, FIT_MARGIN)
+        (analysis.recommended_estimator, analysis.estimator_close,
+         analysis.estimator_valid) = recommend_estimator(analysis.online, recommended.fit,
+                                                         FIT_MARGIN)
     return analysis
 
 

@@ -43,6 +43,9 @@ MODEL_TESTS = {
 }
 #: Default number of lags M of both tests.
 LAGS = 10
+#: Fewest effective samples a short record is judged on (:meth:`AdequacyMonitor.short_reasons`),
+#: with N // SAMPLES_PER_LAG lags (2 at 50 samples).
+SHORT_MINIMUM = 50
 #: The default window is the estimator's memory 1/(1 - lambda), clipped to this range...
 MIN_WINDOW = 200
 #: ...(see MIN_WINDOW).
@@ -454,17 +457,25 @@ class AdequacyMonitor:
             self._add_blocks(full)
             self._check(full)
 
-    def _add_blocks(self, plants: Any) -> None:
-        """Add the full blocks of ``plants``, as rows z(t) with their lags, to their sums."""
+    def _add_blocks(self, plants: Any, rows: int = BLOCK) -> None:
+        """
+        Add the full blocks of ``plants``, as rows z(t) with their lags, to their sums.
+
+        ``rows`` < BLOCK: only the block's first rows (a short record's pending samples, on
+        a probe: :meth:`short_reasons`); the others weigh nothing.
+        """
         history = self._history
         ring = self._ring[plants]
         count = ring.shape[0]
         z = ring.reshape(count, -1).take(self._gather, axis=1).reshape(count, BLOCK, -1)
         if not np.isfinite(z).all():  # a non-finite sample counts as zero
             z = np.where(np.isfinite(z), z, 0.0)
-        weighted = z * self._block_weights[:, None]
+        block_weights = self._block_weights
+        if rows < BLOCK:
+            block_weights = np.concatenate([block_weights[BLOCK - rows:], np.zeros(BLOCK - rows)])
+        weighted = z * block_weights[:, None]
         first, q = 1 + self._residual_lags, self._filter_order
-        decay = self._decay ** BLOCK
+        decay = self._decay ** rows
         # S <- mu^BLOCK S + sum_t w_t x(t) y(t)'
         sums = self._residual_sums[plants]
         sums *= decay
@@ -481,16 +492,17 @@ class AdequacyMonitor:
             sums += np.swapaxes(weighted, -1, -2) @ lagged
             self._input_sums[plants] = sums
         if self.num_parameters and self.num_inputs:
-            self._add_gradients(plants, z[:, :, first:])
+            self._add_gradients(plants, z[:, :, first:], block_weights, decay)
         if self.plants is None:
             self._weight, self._squared_weight = decayed_weights(
-                self._weight, self._squared_weight, BLOCK, self._decay)
+                self._weight, self._squared_weight, rows, self._decay)
         else:  # element-wise with one plant's scalar factors: its weights bit for bit
             self._weight[plants], self._squared_weight[plants] = decayed_weights(
-                self._weight[plants], self._squared_weight[plants], BLOCK, self._decay)
+                self._weight[plants], self._squared_weight[plants], rows, self._decay)
         self._ring[plants, :history] = ring[:, BLOCK:]
 
-    def _add_gradients(self, plants: Any, inputs: np.ndarray) -> None:
+    def _add_gradients(self, plants: Any, inputs: np.ndarray, block_weights: np.ndarray,
+                       decay: float) -> None:
         """Add psi(t - m) u_i(t - a)' of the full blocks of ``plants`` (``inputs``: z's u lags)."""
         q = self._gradient_history
         ring = self._gradient_ring[plants]
@@ -500,8 +512,8 @@ class AdequacyMonitor:
             lagged = np.where(np.isfinite(lagged), lagged, 0.0)
         # S <- mu^BLOCK S + sum_t w_t psi(t - m) u_i(t - a)'
         sums = self._gradient_sums[plants]
-        sums *= self._decay ** BLOCK
-        sums += np.swapaxes(lagged * self._block_weights[:, None], -1, -2) @ inputs
+        sums *= decay
+        sums += np.swapaxes(lagged * block_weights[:, None], -1, -2) @ inputs
         self._gradient_sums[plants] = sums
         self._gradient_ring[plants, :q] = ring[:, BLOCK:]
 
@@ -592,6 +604,51 @@ class AdequacyMonitor:
         means = means.reshape(rows.shape[0], self._gradient_history + 1, p, self.num_inputs,
                               self._input_lags)
         return np.moveaxis(means, 3, 1), covariance
+
+    def short_reasons(self, plant: int | None = None) -> tuple[str, ...] | None:
+        """
+        Return the tests' reasons on what a window not yet :attr:`ready` holds, or None.
+
+        A short record never fills the window (issue 34: 148 samples against 200), so it
+        is judged on what it has: once the samples in the sums and the pending ones come to
+        N >= SHORT_MINIMUM, the tests run on all of them with M' = min(M, N // SAMPLES_PER_LAG)
+        lags (20 samples a lag, as a full window) at the same false-alarm rate (docs/trust.md
+        states the power). On a probe (a one-plant copy of plant k's state): this monitor
+        changes nothing, and the full window's tests take over once it is ready.
+        """
+        state = self.get_state() if self.plants is None else self.plant_state(plant)
+        pending = state.pending_residuals.shape[0]
+        weight, squared = state.weights
+        weight, squared = decayed_weights(weight, squared, pending, self._decay)
+        size = effective_size(weight, squared)
+        if not size >= SHORT_MINIMUM:
+            return None
+        lags = min(self.lags, int(size // SAMPLES_PER_LAG))
+        covariance = self._covariance_of
+        if covariance is not None and self.plants is not None:
+            covariance = lambda rows: self._covariance_of(np.array([plant]))  # noqa: E731
+        probe = AdequacyMonitor(num_inputs=self.num_inputs, model=self.model, lags=self.lags,
+                                window=self.window, false_alarm=self.false_alarm,
+                                input_names=self.input_names,
+                                num_parameters=self.num_parameters,
+                                parameter_covariance=covariance)
+        probe.set_state(state)
+        if pending:
+            slots = slice(probe._history, probe._history + pending)
+            probe._ring[0, slots, 0] = state.pending_residuals[:, 0]
+            probe._ring[0, slots, 1:] = state.pending_inputs[:, 0]
+            probe._ring[0, probe._history + pending:] = 0.0
+            if self.num_parameters:
+                q = probe._gradient_history
+                probe._gradient_ring[0, q:q + pending] = state.pending_gradients[:, 0]
+                probe._gradient_ring[0, q + pending:] = 0.0
+            probe._add_blocks(_ALL, pending)
+        probe.lags = lags
+        per_test = 1.0 - (1.0 - self.false_alarm) ** (1.0 / max(self.num_tests, 1))
+        probe.thresholds = (chi2_quantile(per_test, lags),) * 2
+        probe._checks[:] = 0
+        probe._check(_ALL)
+        return probe.reasons_of(0)
 
     # ------------------------------------------------------------ the results
     def reasons_of(self, plant: int) -> tuple[str, ...]:

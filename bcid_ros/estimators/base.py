@@ -37,6 +37,7 @@ from bcid_ros.estimators.operating_point import (CentringMonitor, operating_poin
                                                  RunningMean)
 from bcid_ros.estimators.residual_state import residual_reasons
 from bcid_ros.estimators.settings import DETRENDS, MAX_DELAY, SHARED_SETTINGS, TRACKING
+from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationWindow
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see _quiet_update.
@@ -142,7 +143,9 @@ def check_delays(value: Any, num_inputs: int) -> tuple[int, ...]:
     return tuple(int(v) for v in items)
 
 
-def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None) -> list[str]:
+def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
+                    simulation: SimulationWindow | None = None,
+                    theta: np.ndarray | None = None, order: int = 0) -> list[str]:
     """
     Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
 
@@ -150,12 +153,18 @@ def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None) 
     compensation that does not converge, ...); the shared ones are the residual
     tests' (:func:`~bcid_ros.estimators.residual_state.residual_reasons`) when the
     estimator keeps an :class:`~bcid_ros.estimators.adequacy.AdequacyMonitor`
-    (``monitor`` None: none), of ``plant`` of a many-plant monitor. The one place
-    that decides which reasons count, for one plant and for K.
+    (``monitor`` None: none), of ``plant`` of a many-plant monitor, then the
+    simulation check's of the model ``theta`` of order ``order`` on ``simulation``
+    (:func:`~bcid_ros.estimators.simulation_check.simulation_reasons`; None: the
+    estimator keeps no window). The one place that decides which reasons count,
+    for one plant and for K.
     """
-    if monitor is None:
-        return list(own)
-    return list(own) + residual_reasons(monitor, plant)
+    reasons = list(own)
+    if monitor is not None:
+        reasons += residual_reasons(monitor, plant)
+    if simulation is not None:
+        reasons += simulation_reasons(simulation, theta, order)
+    return reasons
 
 
 def check_int(name: str, value: Any, minimum: int) -> int:
@@ -233,6 +242,16 @@ class SharedSettings:
             monitor.follow_forgetting_factor(self._forgetting_factor)
         if hac is not None:
             hac.forgetting_factor = self._forgetting_factor
+        for window in self._simulation_windows():
+            window.follow_forgetting_factor(self._forgetting_factor)
+
+    def _simulation_windows(self) -> list[SimulationWindow]:
+        """Return the simulation check's windows (one per plant; none kept: [])."""
+        windows = getattr(self, '_simulations', None)
+        if windows is not None:
+            return windows
+        window = getattr(self, '_simulation', None)
+        return [] if window is None else [window]
 
     def _check_tracking(self, change_detection: bool, adaptation: str,
                         parameter_drift: float) -> None:
@@ -303,6 +322,8 @@ class PlantsValidity:
     """
 
     _monitor: Any = None
+    #: One simulation check's window per plant (None: none kept).
+    _simulations: Any = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -320,9 +341,13 @@ class PlantsValidity:
 
     def _decide_validity(self, plants: np.ndarray, own: Sequence[Sequence[str]]) -> None:
         """Decide the reasons of ``plants`` from their ``own`` (as one plant's decision)."""
+        windows = self._simulations
+        theta = None if windows is None else self._theta()
         with np.errstate(all='ignore'):
             for plant, mine in zip(plants.tolist(), own):
-                self._reasons.set(plant, tuple(decided_reasons(mine, self._monitor, plant)))
+                self._reasons.set(plant, tuple(decided_reasons(
+                    mine, self._monitor, plant, None if windows is None else windows[plant],
+                    None if theta is None else theta[plant], self.order)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -428,6 +453,9 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     _LIVE_REASONS: ClassVar[bool] = False
     #: The residual tests whose reasons join the estimator's own (None: it keeps none).
     _monitor: Any = None
+    #: The simulation check's window, whose reason joins them too (None: it keeps none;
+    #: :meth:`_start_simulation_check`).
+    _simulation: SimulationWindow | None = None
 
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
@@ -739,6 +767,11 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         arrays, scalars = self._state_items()
         scalars = dict(scalars, flags=dict(self.flags), change_score=self._change_score,
                        gate_tail=self._gate_tail)
+        if self._simulation is not None:
+            # (not in _state_items: the step's checkpoint need not copy the window, which a
+            # refused step clears with the regressor)
+            window_arrays, window_scalars = self._simulation.state_items()
+            arrays, scalars = {**arrays, **window_arrays}, {**scalars, **window_scalars}
         if self._means is not None:
             arrays = dict(arrays, operating_point=self._means.mean)
             scalars['operating_weight'] = self._means.weight
@@ -771,6 +804,8 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
             self._means.weight = float(weight)
         self._checkpoint = None
         self._load_state({k: np.array(v, copy=True) for k, v in state.arrays.items()}, scalars)
+        if self._simulation is not None:
+            self._simulation.load(state.arrays, scalars)
         self._follow_forgetting_factor()
 
     @property
@@ -985,7 +1020,21 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         compensation, a restart) is done by the estimator's update.
         """
         with np.errstate(all='ignore'):
-            self._reasons = tuple(decided_reasons(own, self._monitor))
+            self._reasons = tuple(decided_reasons(
+                own, self._monitor, simulation=self._simulation,
+                theta=None if self._simulation is None else self._theta(), order=self.order))
+
+    def _start_simulation_check(self) -> None:
+        """
+        Start the simulation check's window afresh (a reset, a plant change, a restart).
+
+        An estimator whose model predicts a simulated output from the measured inputs
+        keeps one and records the samples it learns from in it (as the model sees them:
+        deviations with ``detrend: mean``), clearing it at a gap; the base class judges
+        it in :meth:`_decide_validity` and keeps it in the state (docs/trust.md).
+        """
+        self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
+                                            self.input_delay, self._forgetting_factor)
 
     def _live_reasons(self) -> list[str] | tuple[str, ...]:
         """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""

@@ -43,6 +43,7 @@ from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, L
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
+from bcid_ros.estimators.simulation_check import SimulationWindow
 
 Rows = slice | np.ndarray
 
@@ -150,6 +151,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         regressors.push(y, u)
         if skipped is not None:
             regressors.clear(skipped)
+            self._clear_simulations(skipped)
         rows = regressors.ready_rows()
         if rows is not None:
             phi = regressors.phi(rows)
@@ -184,10 +186,18 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._gate_tail[rows] = 1.0
         self._reset_learning(rows)
         self._regressors.clear(rows)
+        self._clear_simulations(rows)
 
     def restart_regressor(self, plants: Any = None) -> None:
         """Forget plants' (default: all) sample history, keep what they learnt; n + 1 refill it."""
-        self._regressors.clear(self._plant_rows(plants))
+        rows = self._plant_rows(plants)
+        self._regressors.clear(rows)
+        self._clear_simulations(rows)
+
+    def _clear_simulations(self, rows: Any) -> None:
+        """Empty the simulation check's window of ``rows`` (a gap, a restart, a reset)."""
+        for row in self._indices(rows).tolist():
+            self._simulations[row].clear()
 
     @property
     def theta(self) -> np.ndarray:
@@ -304,6 +314,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         plant = range(self.num_plants)[plant]
         arrays, _ = self._plant_items(plant)
         arrays['history'] = self._regressors.history[plant]
+        # (the simulation check's window may be absent or of another lambda: it loads what fits)
+        arrays.pop('simulation_rows')
         for key, value in arrays.items():
             if key not in state.arrays or np.shape(state.arrays[key]) != np.shape(value):
                 raise ValueError(f'state array {key!r} does not match this configuration')
@@ -382,6 +394,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                 self._change_notes[plant] = f'plant changed (sample {self._updates[plant]})'
         if outcome.restart.any():
             self._regressors.clear(rows[outcome.restart])
+            self._clear_simulations(rows[outcome.restart])
         if outcome.relearn.any():
             self._restart_learning(rows[outcome.relearn])
         events = changed | outcome.events.get('outlier_rejected', changed & False)
@@ -395,6 +408,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
             tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
             if tested.any():
+                for row, output, inputs in zip(rows[tested].tolist(), y[stepped][tested].tolist(),
+                                               u[stepped][tested]):
+                    self._simulations[row].record(output, inputs)
                 self._record_residuals(rows[tested], y[stepped][tested], phi[stepped][tested],
                                        u[stepped][tested], outcome.errors[stepped][tested])
             due = rows[self._updates[rows] >= self._next_check[rows]]
@@ -406,13 +422,14 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
 
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
-        """Give the residual tests and the HAC the equation errors of ``rows``."""
+        """Give the residual tests and the HAC the steps of ``rows``."""
         self._monitor.record_rows(rows, errors, u)
         self._hac.record_rows(rows, phi * errors[:, None])
 
     def _forget_residuals(self, rows: np.ndarray) -> None:
         """Start the residual tests (and the HAC) of ``rows`` afresh (Rls._forget_residuals)."""
         self._monitor.clear(rows)
+        self._clear_simulations(rows)
         if self._hac is not None:
             self._hac.clear(rows)
         if hasattr(self, '_output_errors'):
@@ -498,6 +515,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     def _allocate(self) -> None:
         """Make the per-plant state arrays (their values are set by the resets)."""
         plants, p = self.num_plants, self.num_parameters
+        # the simulation check's window of each plant (RecursiveEstimator._start_simulation_check)
+        self._simulations = [SimulationWindow(self.order, self.num_inputs, self.feedthrough,
+                                              (0,) * self.num_inputs, self._forgetting_factor)
+                             for _ in range(plants)]
         self._theta_ls = np.zeros((plants, p))
         self._p = np.zeros((plants, p, p))
         self._loss = np.zeros(plants)
@@ -555,9 +576,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         # estimator with change_detection false (its detector and kept samples empty)
         idle = {**ChangeDetector().get_state(),
                 'recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs))}
-        return ({**arrays, **residual_arrays, **idle},
+        window_arrays, window_scalars = self._simulations[plant].state_items()
+        return ({**arrays, **residual_arrays, **idle, **window_arrays},
                 {**scalars, **residual_scalars, 'seen': 0,
-                 'change_note': self._change_notes[plant]})
+                 'change_note': self._change_notes[plant], **window_scalars})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
@@ -569,6 +591,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._set_scale_dependents(np.array([plant]))
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.load_plant(plant, monitor)
+        self._simulations[plant].load(arrays, scalars)
         if self._hac is not None:
             self._hac.load_plant(plant, hac)
         self._reasons.set(plant, scalars['reasons'])

@@ -23,12 +23,17 @@ def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list
     """
     Return the reasons of the residual tests of one plant (``plant`` None: a one-plant monitor).
 
-    Until the tests have a window of SAMPLES_PER_LAG samples per lag, that is a
-    reason itself: a model the data have not yet been able to contradict is
-    not yet trusted.
+    Until the tests have a window of SAMPLES_PER_LAG samples per lag, they judge what
+    they have once it comes to SHORT_MINIMUM samples, with fewer lags
+    (:meth:`~bcid_ros.estimators.adequacy.AdequacyMonitor.short_reasons`: a short record
+    gets a verdict); before that, not being ready is a reason itself: a model the data
+    have not yet been able to contradict is not yet trusted.
     """
     ready = monitor.ready if plant is None else monitor.ready[plant]
     if not ready:
+        short = monitor.short_reasons(plant)
+        if short is not None:
+            return list(short)
         size = monitor.effective_samples if plant is None else monitor.effective_samples[plant]
         return [f'residual tests not ready ({size:.0f} of '
                 f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)']

@@ -168,6 +168,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         if self._regressor.ready and self._ls_step(y, phi):
             self._after_ls_step(y, phi)
             if self._tau >= self._gate_from and not self._quiet_left:
+                self._simulation.record(y, u)
                 self._record_residual(y, phi, u)
             if self._updates >= self._next_check:
                 self._check_validity()
@@ -209,6 +210,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             if self._ls_step(y, phi):
                 self._after_ls_step(y, phi)
                 if self._tau >= self._gate_from and not self._quiet_left:
+                    self._simulation.record(y, u)
                     self._record_residual(y, phi, u)
                 if self._updates >= self._next_check:
                     self._check_validity()
@@ -501,7 +503,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._forget_residuals()
 
     def _forget_residuals(self) -> None:
-        """Start the residual tests and the HAC afresh (at a reset and after a plant change)."""
+        """Start the residual tests, the HAC and the simulation check afresh (reset, change)."""
+        self._start_simulation_check()
         self._monitor = AdequacyMonitor(num_inputs=self.num_inputs, model=self.adequacy_model,
                                         forgetting_factor=self._forgetting_factor)
         self._hac = (HacCovariance(dimension=self.num_parameters,
@@ -510,6 +513,7 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _restart_regressor(self) -> None:
         self._regressor.clear()
+        self._simulation.clear()  # (a gap in its window)
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays = {'theta_ls': self._theta_ls, 'p': self._p,

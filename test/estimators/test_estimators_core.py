@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from bcid_ros.estimators import estimator_class, make_estimator, parameter_names
+from bcid_ros.estimators import estimator_class, make_estimator, parameter_names, rules
+from bcid_ros.estimators.adequacy import SHORT_MINIMUM
 from bcid_ros.estimators.bcrls import bcls_fixed_point
 from bcid_ros.estimators.recursion import innovation, ls_step, repair_covariance
 from bcid_ros.estimators.regressor import ArxRegressor
@@ -375,11 +376,13 @@ def test_validity_waits_for_the_regressor_p_updates_and_the_residual_tests():
         ready.append(est.ready)
         reasons.append(est.validity_reasons)
     # 2 samples fill the lags, then p = 6 updates: ready from sample 8 on; the residual
-    # tests start at the gate's warm-up (60 updates) and need 200 effective samples and a
-    # block of 128: until then that is the reason
+    # tests start at the gate's warm-up (60 updates) and judge once they have SHORT_MINIMUM
+    # samples (with fewer lags until the window is full), at the next validity check:
+    # until then that is the reason
     assert ready == [False] * 7 + [True] * 993
     first = valid.index(True)
-    assert 7 + 60 + 200 <= first < 7 + 60 + 2 * 128 + 100 and all(valid[first:])
+    assert (7 + 60 + SHORT_MINIMUM <= first < 7 + 60 + SHORT_MINIMUM + rules.VALIDITY_PERIOD
+            and all(valid[first:]))
     assert reasons[7][0].startswith('residual tests not ready')
     assert all(r and r[0].startswith('residual tests not ready') for r in reasons[7:first])
     est.restart_regressor()

@@ -38,6 +38,8 @@ RUNAWAY_RATIO = 1.0
 #: ``ill_conditioned_compensation`` when sqrt(beta^2 - 4 alpha gamma) / beta of eq. (58)
 #: falls below this: sigma2 is then near the double root and infinitely sensitive.
 MIN_DISCRIMINANT_RATIO = 0.05
+#: :attr:`Compensation.discriminant_ratio` after B^2 - 4 C'PC J < 0 (``model_contradicted``).
+CONTRADICTED = -1.0
 #: ``ill_conditioned_information`` above this condition number of the information
 #: matrix scaled to unit diagonal (scale-free).
 MAX_CONDITION = 1e8
@@ -126,7 +128,8 @@ class Compensation:
         quadratic = direction.dot(pc)
         discriminant = total_beta * total_beta - 4.0 * quadratic * loss
         if not discriminant >= 0.0:
-            self.discriminant_ratio = 0.0
+            # (negative: the data contradict the model, see validity_reasons)
+            self.discriminant_ratio = CONTRADICTED
             return 'negative_variance_argument'
         root = math.sqrt(discriminant)
         # sigma2 = 2 J / (B + sqrt(B^2 - 4 C'PC J))                          (58)
@@ -251,6 +254,13 @@ def validity_reasons(model: tuple[str, ...], compensated: bool, holding: bool,
       diagonal has a condition number above :data:`MAX_CONDITION`;
     * ``redesign_failed``: the last redesign failed and the compensated
       estimate is held (``holding``);
+    * ``model_contradicted``: the last compensation found
+      :math:`B^2 - 4 C^T P C J < 0` (``discriminant_ratio`` is
+      ``CONTRADICTED``). Under the model the loss is
+      :math:`J \approx B\sigma^2 - \sigma^4 C^T P C`, at most
+      :math:`B^2 / (4 C^T P C)` for any noise variance: a larger loss is more
+      equation error than white output noise can give, as from process
+      noise or a nonlinearity in the loop (a motor's friction);
     * ``ill_conditioned_compensation``: eq. (58) is near its double root,
       :math:`\sqrt{\beta^2 - 4\alpha\gamma}/\beta` <
       :data:`MIN_DISCRIMINANT_RATIO` (sigma2 and theta then react without
@@ -267,7 +277,9 @@ def validity_reasons(model: tuple[str, ...], compensated: bool, holding: bool,
         reasons = list(model)
         if holding:
             reasons.append('redesign_failed')
-        if discriminant_ratio < MIN_DISCRIMINANT_RATIO:
+        if discriminant_ratio == CONTRADICTED:
+            reasons.append('model_contradicted')
+        elif discriminant_ratio < MIN_DISCRIMINANT_RATIO:
             reasons.append('ill_conditioned_compensation')
     if excitation_ratio < MIN_EXCITATION_RATIO:
         reasons.append('no_excitation')

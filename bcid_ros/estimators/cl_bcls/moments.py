@@ -45,7 +45,8 @@ import numpy as np
 
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
 from bcid_ros.estimators.cl_bcls.compensation import Compensation, Redesign
-from bcid_ros.estimators.cl_bcls.regression import CompensationFailure, definite_inverse
+from bcid_ros.estimators.cl_bcls.regression import (CompensationFailure, definite_inverse,
+                                                    moment_loss)
 from bcid_ros.estimators.cl_bcls.running_ls import (PrefilterBank, REFUSED, REPAIR, RunningLs,
                                                     STEPPED, UNSAFE)
 from bcid_ros.estimators.lti import Controller, stable_reflection
@@ -167,7 +168,7 @@ class PrefilteredMoments:
         """
         inverse = definite_inverse(self.information, 'the information matrix')
         theta = inverse.dot(self.cross)
-        loss = max(self.energy - self.cross.dot(theta), 0.0)
+        loss = moment_loss(self.information, self.cross, self.energy, theta)
         if not (np.isfinite(theta).all() and np.isfinite(inverse).all()):
             raise CompensationFailure('singular_information', 'the LS solution is not finite')
         return theta, 0.5 * (inverse + inverse.T), loss

@@ -189,6 +189,26 @@ def definite_inverse(information: np.ndarray, name: str) -> np.ndarray:
                                   f'{name} is not positive definite') from None
 
 
+def moment_loss(information: np.ndarray, cross: np.ndarray, energy: float,
+                theta: np.ndarray) -> float:
+    r"""
+    Return the residual sum of squares of ``theta`` from the moments M, sum psi y and sum y^2.
+
+    .. math::
+
+        J(\theta) = \sum y^2 - 2\theta^T \sum\psi y + \theta^T M \theta
+
+    is quadratic in an error of theta, where the usual
+    :math:`\sum y^2 - \theta^T\sum\psi y` is linear in it: with M ill
+    conditioned (the lags of a slowly moving output, cond 1e10 on a 1 kHz
+    position loop) theta's rounding error alone made that form cancel to a
+    negative loss (clipped to 0: no noise, and every later row refused).
+    This form's rounding error is of order eps times the terms (about
+    eps sum y^2), and it is the loss of the theta actually used. Floored at 0.
+    """
+    return max(float(energy - 2.0 * theta.dot(cross) + theta.dot(information.dot(theta))), 0.0)
+
+
 def prefiltered_ls(y: np.ndarray, u: np.ndarray, prefilter: np.ndarray) -> PrefilteredLs:
     r"""
     Solve the prefiltered LS problem over a record, eqs. (16), (17) and (45).

@@ -42,7 +42,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from bcid_ros.estimators.cl_bcls.bias import bias_terms
-from bcid_ros.estimators.cl_bcls.regression import plant_from_regression
+from bcid_ros.estimators.cl_bcls.regression import moment_loss, plant_from_regression
 from bcid_ros.estimators.lti import Controller
 from bcid_ros.estimators.moment_covariance import fixed_point_system, implicit_step
 
@@ -76,7 +76,7 @@ def moment_function(controller: Controller, prefilter: np.ndarray,
         inverse = np.linalg.inv(0.5 * (information + information.T))
         cross = means[p * p:p * p + p]
         theta_ls = inverse.dot(cross)
-        loss = means[-1] - cross.dot(theta_ls)
+        loss = moment_loss(information, cross, means[-1], theta_ls)
         direction, beta = np.zeros(p), 0.0
         for share, f in epochs:
             c_e, beta_e = bias_terms(theta, f, controller)

@@ -40,6 +40,9 @@ from bcid_ros.estimators.rpem.watch import RestartWatch
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
+#: Share of a validity period's steps refused by the stability projection beyond which the
+#: estimate is not valid: most of them (:meth:`Rpem._projection_reasons`).
+PROJECTION_MOST = 0.5
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -282,6 +285,7 @@ class Rpem(RecursiveEstimator):
             # the residual tests take the prediction error (and, OE, psi); the HAC psi e
             self._monitor.record(e, u, psi)
             self._hac.record_product(psi, e)
+            self._simulation.record(y, u)
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
         if self._updates >= self._watch.next_check:
@@ -480,7 +484,8 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        self._period_reasons = watch.reasons(steps)
+        named = watch.reasons(steps)
+        self._period_reasons = named + self._projection_reasons(steps, named)
         self._decide_now()
 
     def _decide_now(self) -> None:
@@ -501,6 +506,22 @@ class Rpem(RecursiveEstimator):
             self._change_note = ''  # a fit of the new samples passed its checks: done
             self._decide_validity(self._period_reasons)
         self._settled = self._settled or not self._reasons
+
+    def _projection_reasons(self, steps: int, named: list[str]) -> list[str]:
+        """
+        Return the reason of a stability projection active on most steps of the period.
+
+        Counted from the flag, apart from the drift watch (which names it too): the model
+        keeps pushing against the stability boundary, so it is not the model the data want
+        (a heated plate's record: 77 of the last 100 updates). Not repeated when the watch
+        has named it.
+        """
+        total = self.flags.get('stability_projection', 0)
+        projected, self._projections_checked = total - self._projections_checked, total
+        if (steps <= 0 or projected <= PROJECTION_MOST * steps
+                or any(reason.startswith('stability projection') for reason in named)):
+            return []
+        return [f'stability projection active ({projected} of the last {steps} updates)']
 
     # --------------------------------------------------------- the accessors
     @property
@@ -623,13 +644,15 @@ class Rpem(RecursiveEstimator):
         # whether the estimate has been valid since the last change (the detector runs)
         self._settled = False
         self._detector.clear()
+        # (the flags may outlive a reset)
+        self._projections_checked = getattr(self, 'flags', {}).get('stability_projection', 0)
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
 
     def _forget_residuals(self) -> None:
         """
-        Start the residual tests and the HAC afresh (at a reset and at a plant change).
+        Start the residual tests, the HAC and the simulation check afresh (reset, change).
 
         OE: the cross test counts the estimate's own error (the parameter
         term, with the HAC covariance of every internal parameter in the
@@ -646,10 +669,12 @@ class Rpem(RecursiveEstimator):
             parameter_covariance=self._internal_covariance if oe else None)
         self._hac = HacCovariance(dimension=self._size,
                                   forgetting_factor=self._forgetting_factor)
+        self._start_simulation_check()
 
     def _restart_regressor(self) -> None:
         self._predictor.clear()
         self._store.break_pending = True
+        self._simulation.clear()  # (a gap in its window)
 
     #: The scalars of the recursion; the predictor and the store name theirs.
     _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
@@ -670,7 +695,8 @@ class Rpem(RecursiveEstimator):
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
                    **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
                    'period_reasons': list(self._period_reasons),
-                   'change_note': self._change_note, 'settled': self._settled}
+                   'change_note': self._change_note, 'settled': self._settled,
+                   'projections_checked': self._projections_checked}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
         return ({**arrays, **residual_arrays, **self._detector.get_state()},
@@ -701,6 +727,7 @@ class Rpem(RecursiveEstimator):
         self._change_note = str(scalars.get('change_note', ''))
         self._settled = bool(scalars.get('settled', False))
         self._detector.set_state(arrays)
+        self._projections_checked = int(scalars.get('projections_checked', 0))
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)

@@ -1,0 +1,96 @@
+"""
+The simulation check wired through base.py: rls, bcrls and rpem (and the batched forms).
+
+Each estimator keeps a window and the base class judges it (docs/trust.md). A model left
+behind by a plant whose gain drifts by half over the record (lambda = 1: the estimate
+averages the record, the last 1000 samples want another model) is caught; the model of a
+stationary plant is not flagged beyond the check's false-alarm rate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from bcid_ros.estimators import make_batched_estimator, make_estimator
+from bcid_ros.estimators.simulation_check import FALSE_ALARM, window_length
+from bcid_ros.simulation import make_scenario
+
+#: Samples of each record.
+SAMPLES = 3000
+#: Monte Carlo runs of the false-alarm test.
+RUNS = 60
+
+
+def ding_miso(seed, drift=0.0):
+    """Return Ding's two-input output-error data, the plant's gain drifting by ``drift``."""
+    plant = make_scenario('ding_miso')
+    y, u = plant.simulate(SAMPLES, seed)
+    theta = plant.truth().parameters
+    a = np.r_[1.0, theta[:2]]
+    noise_free = sum(signal.lfilter(np.r_[0.0, theta[2 + 2 * i:4 + 2 * i]], a, u[:, i])
+                     for i in range(2))
+    return y + drift * np.arange(SAMPLES) / SAMPLES * noise_free, u
+
+
+def simulation_reasons(estimator):
+    return [r for r in estimator.validity_reasons if r.startswith('simulated output off')]
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls', 'rpem'])
+@pytest.mark.parametrize('seed', [0, 1])
+def test_a_model_left_behind_by_a_drifting_gain_is_caught(name, seed):
+    y, u = ding_miso(seed, drift=0.5)
+    estimator = make_estimator(name, order=2, num_inputs=2)
+    estimator.run(y, u)
+    assert simulation_reasons(estimator), estimator.validity_reasons
+
+
+def test_rpem_is_not_flagged_beyond_the_false_alarm_rate():
+    # one verdict per record (the last check); 3 binomial standard deviations over the runs
+    alarms = 0
+    for seed in range(RUNS):
+        y, u = ding_miso(100 + seed)
+        estimator = make_estimator('rpem', order=2, num_inputs=2)
+        estimator.run(y, u)
+        alarms += bool(simulation_reasons(estimator))
+    bound = RUNS * FALSE_ALARM + 3.0 * np.sqrt(RUNS * FALSE_ALARM * (1.0 - FALSE_ALARM))
+    assert alarms <= bound
+
+
+def test_the_batched_bcrls_plant_equals_its_single_run():
+    y, u = ding_miso(0, drift=0.5)
+    single = make_estimator('bcrls', order=2, num_inputs=2)
+    single.run(y, u)
+    batched = make_batched_estimator('bcrls', num_plants=2, order=2, num_inputs=2)
+    for k in range(SAMPLES):
+        batched.update(np.array([y[k], y[k]]), np.stack([u[k], u[k]]))
+    assert batched.plant_validity_reasons(1) == single.validity_reasons
+    assert simulation_reasons(single)
+
+
+def test_the_window_follows_a_live_forgetting_factor():
+    y, u = ding_miso(0)
+    estimator = make_estimator('rpem', order=2, num_inputs=2)
+    estimator.run(y[:1500], u[:1500])
+    estimator.forgetting_factor = 0.995
+    assert estimator._simulation.window == window_length(0.995) == 200
+    restored = make_estimator('rpem', order=2, num_inputs=2, forgetting_factor=0.995)
+    restored.set_state(estimator.get_state())
+    assert restored._simulation.window == 200
+
+
+def test_a_plant_state_without_a_window_loads_into_the_batched_form():
+    # a snapshot from before the window was in the state: the window starts empty
+    y, u = ding_miso(0)
+    single = make_estimator('rls', order=2, num_inputs=2)
+    single.run(y[:1500], u[:1500])
+    state = single.get_state()
+    arrays = {k: v for k, v in state.arrays.items() if not k.startswith('simulation_')}
+    scalars = {k: v for k, v in state.scalars.items() if not k.startswith('simulation_')}
+    batched = make_batched_estimator('rls', num_plants=2, order=2, num_inputs=2)
+    batched.set_plant_state(1, type(state)(state.estimator, arrays, scalars))
+    assert batched.plant_state(1).scalars['simulation_filled'] == 0
+    single.set_state(type(state)(state.estimator, arrays, scalars))
+    assert single.get_state().scalars['simulation_filled'] == 0
