@@ -476,7 +476,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                  for plant in plants.tolist()]
         self._decide_validity(plants, [note + mine for note, mine in zip(notes, own)])
         done = [k for k, plant in enumerate(plants.tolist()) if self._change_notes[plant]
-                and self._reasons.of(plant) == (self._change_notes[plant],)]
+                and self._reasons.of(plant) == (self._change_notes[plant],)
+                and self._monitor.ready[plant]]
         if done:  # the new estimate passed its checks: the change is done (Rls._check_validity)
             for k in done:
                 self._change_notes[int(plants[k])] = ''

@@ -419,8 +419,11 @@ class Rls(LsAccessors, RecursiveEstimator):
                                         np.array([self._last_power]))[0]
         note = [self._change_note] if self._change_note else []
         self._decide_validity(note + own + list(more))
-        if self._change_note and self._reasons == (self._change_note,):
-            # the new estimate passed its checks: the change is done
+        if (self._change_note and self._reasons == (self._change_note,)
+                and np.all(self._monitor.ready)):
+            # the new estimate passed its checks on a full window of the new plant's
+            # samples (not the short-record verdict on the samples replayed at the
+            # restart): the change is done
             self._change_note = ''
             self._decide_validity(own + list(more))
         self._last_power = float(power[0])
