@@ -86,7 +86,7 @@ def scan_summary(stream: BinaryIO) -> Recovered:
             index, records = _read_chunk(stream, pos, length)
             summary.chunk_indexes.append(index)
             _add_records(summary, records)
-            for channel, stamp in _messages(records):
+            for channel, stamp, _, _ in _message_records(records):
                 counts[channel] = counts.get(channel, 0) + 1
                 first = stamp if first is None else min(first, stamp)
                 last = stamp if last is None else max(last, stamp)
@@ -125,15 +125,15 @@ def _add_records(summary: Summary, records: bytes) -> None:
     summary.channels.update(found.channels)
 
 
-def _messages(records: bytes) -> Iterator[tuple[int, int]]:
-    """Yield ``(channel id, log time)`` of each Message record of a chunk."""
+def _message_records(records: bytes) -> Iterator[tuple[int, int, int, int]]:
+    """Yield ``(channel id, log time, record start, record end)`` of each Message of a chunk."""
     pos, end = 0, len(records)
     while pos < end:
         opcode, length = RECORD.unpack_from(records, pos)
         if opcode == MESSAGE:
             (channel,) = struct.unpack_from('<H', records, pos + CHANNEL_AT)
             (stamp,) = struct.unpack_from('<Q', records, pos + LOG_TIME_AT)
-            yield channel, stamp
+            yield channel, stamp, pos, pos + RECORD.size + length
         pos += RECORD.size + length
 
 
@@ -142,14 +142,8 @@ def chunk_messages(stream: BinaryIO, summary: Summary) -> Iterator[tuple[int, in
     data_at = LOG_TIME_AT + 16
     for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         records = chunk_records(stream, index)
-        pos, end = 0, len(records)
-        while pos < end:
-            opcode, length = RECORD.unpack_from(records, pos)
-            if opcode == MESSAGE:
-                (channel,) = struct.unpack_from('<H', records, pos + CHANNEL_AT)
-                (stamp,) = struct.unpack_from('<Q', records, pos + LOG_TIME_AT)
-                yield channel, stamp, records[pos + data_at:pos + RECORD.size + length]
-            pos += RECORD.size + length
+        for channel, stamp, start, end in _message_records(records):
+            yield channel, stamp, records[start + data_at:end]
 
 
 def reindex_bag(path: str | Path) -> str:

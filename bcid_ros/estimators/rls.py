@@ -166,12 +166,16 @@ class Rls(LsAccessors, RecursiveEstimator):
         if self._scales_pending and self._regressor.ready:
             self._choose_scales()
         if self._regressor.ready and self._ls_step(y, phi):
-            self._after_ls_step(y, phi)
-            if self._tau >= self._gate_from and not self._quiet_left:
-                self._simulation.record(y, u)
-                self._record_residual(y, phi, u)
-            if self._updates >= self._next_check:
-                self._check_validity()
+            self._after_step(y, u, phi)
+
+    def _after_step(self, y: float, u: np.ndarray, phi: np.ndarray) -> None:
+        """Follow a committed step: the subclass's part, the trust monitors, the validity."""
+        self._after_ls_step(y, phi)
+        if self._tau >= self._gate_from and not self._quiet_left:
+            self._simulation.record(y, u)
+            self._record_residual(y, phi, u)
+        if self._updates >= self._next_check:
+            self._check_validity()
 
     #: _ls_step checks before it commits: the cheap form of the transaction.
     _guarded_update = _update
@@ -208,12 +212,7 @@ class Rls(LsAccessors, RecursiveEstimator):
             if self._change_detection:
                 self._remember(y, u)
             if self._ls_step(y, phi):
-                self._after_ls_step(y, phi)
-                if self._tau >= self._gate_from and not self._quiet_left:
-                    self._simulation.record(y, u)
-                    self._record_residual(y, phi, u)
-                if self._updates >= self._next_check:
-                    self._check_validity()
+                self._after_step(y, u, phi)
 
         return step
 
