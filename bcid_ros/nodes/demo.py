@@ -190,6 +190,9 @@ class Monitor:
 def live_line(monitor: Monitor, total: int, elapsed: float) -> str:
     """Return one status line: samples, delta, sigma^2 and the estimate."""
     parts = [f'{elapsed:5.1f} s', f'samples {monitor.samples:6d}/{total}']
+    used = monitor.diagnostics.get(Key.SAMPLES_USED)
+    if used is not None:  # the identifier's own count, at its last diagnostics
+        parts.append(f'used {used}')
     if monitor.theta is None:
         parts.append('waiting for the first valid estimate')
     else:
