@@ -154,9 +154,12 @@ class SimulatorNode(Node):
         true = ', '.join(f'{n}={v:.6g}' for n, v in zip(truth.parameter_names, truth.parameters))
         if mode == 'joint_state':
             true = f'of {len(self.joint_names)} joints on ~/<joint>/true_parameters'
+        change = (f'; the plant changes after {changing.plant.change_after} samples'
+                  if changing is not None else '')
         self.get_logger().info(
             f'scenario {settings["scenario"]}, seed {settings["seed"]}: {total} at '
-            f'{self.rate:g} Hz, {self.frame_size} per message, output_mode {mode}; true {true}')
+            f'{self.rate:g} Hz, {self.frame_size} per message, output_mode {mode}; true '
+            f'{true}{change}')
 
     def _start_joints(self, settings: dict[str, Any]) -> None:
         """Scenario joints: one JointState per sample; each joint's truth on its own topics."""
