@@ -143,9 +143,10 @@ def _info_arguments(info: argparse.ArgumentParser) -> None:
 
 
 def _demo_arguments(demo: argparse.ArgumentParser) -> None:
-    demo.add_argument('--scenario', choices=SCENARIO_NAMES + ('adaptive_loop',),
-                      default='ding_miso', help='a paper scenario, or adaptive_loop: plant, '
-                      'identifier and adaptive controller as three processes')
+    demo.add_argument('--scenario', choices=SCENARIO_NAMES + ('payload_change', 'adaptive_loop'),
+                      default='ding_miso', help='a paper scenario; payload_change: a plant that '
+                      'changes at mid-run, detected and followed by rpem; or adaptive_loop: '
+                      'plant, identifier and adaptive controller as three processes')
     demo.add_argument('--estimator', choices=ESTIMATOR_NAMES, default=None,
                       help="adaptive_loop: the identifier's estimator (default: the config's "
                       'cl_bcls)')

@@ -153,8 +153,6 @@ class Rls(LsAccessors, RecursiveEstimator):
                              else Forgetting(self.initial_covariance * self.num_parameters))
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         self._detector = ChangeDetector()
-        # the last RESTART_SPAN samples as the step took them, for a restart after a change
-        self._recent = np.zeros((RESTART_SPAN, 1 + self.num_inputs))
         self._relearned = 0
         self._reset()
 
@@ -270,7 +268,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         rows = self._recent[(np.arange(self._seen - count, self._seen)) % RESTART_SPAN].copy()
         theta, scale, updates, seen = (self._theta_ls.copy(), self._signal_scale.copy(),
                                        self._updates, self._seen)
-        flags, quiet, recent = dict(self.flags), self._quiet_left, self._recent.copy()
+        # _reset starts a new ring, so the old one stays as it was through the replay
+        flags, quiet, recent = dict(self.flags), self._quiet_left, self._recent
         self._reset()
         self._signal_scale = scale
         self._set_scale_dependents()
@@ -283,7 +282,7 @@ class Rls(LsAccessors, RecursiveEstimator):
                 self._update(float(row[0]), row[1:])
         self.flags = flags
         self._quiet_left = quiet
-        self._recent[:] = recent  # the replay remembered its rows again
+        self._recent = recent  # the replay remembered its rows again, in the new ring
         self._updates, self._seen = updates, seen
         self._change_note = f'plant changed (sample {first})'
         self._check_validity()
@@ -499,6 +498,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._reasons: tuple[str, ...] = ()
         self._error = 0.0
         self._gain = 0.0
+        # the last RESTART_SPAN samples as the step took them, for a restart after a change;
+        # part of the state, so a reset empties it
+        self._recent = np.zeros((RESTART_SPAN, 1 + self.num_inputs))
         self._seen = 0
         self._change_note = ''
         self._detector.clear()

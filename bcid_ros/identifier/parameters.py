@@ -164,12 +164,12 @@ SIMULATOR_PARAMETERS: tuple[ParameterSpec, ...] = (
        '(custom only): the input is read from the input topic and held (zero-order hold, 0 '
        'until the first command); samples [y, u] and output are published at rate_hz.',
        choices=('open_loop', 'plant')),
-    _p('change_after_samples', 'integer', 0, 'plant mode: after this many samples the plant '
-       'becomes plant_denominator_after / plant_numerator_after and the truth topics are '
-       'published again; 0: no change.', low=0, high=1e12),
-    _p('plant_denominator_after', 'double_array', [], 'plant mode: A(z) after the change, as '
-       '[1, a1, ..., an] (empty: unchanged).'),
-    _p('plant_numerator_after', 'double_array', [], 'plant mode: B_i(z) after the change, '
+    _p('change_after_samples', 'integer', 0, 'custom scenario (either mode): after this many '
+       'samples the plant becomes plant_denominator_after / plant_numerator_after and the truth '
+       'topics are published again; 0: no change.', low=0, high=1e12),
+    _p('plant_denominator_after', 'double_array', [], 'custom scenario: A(z) after the change, '
+       'as [1, a1, ..., an] (empty: unchanged).'),
+    _p('plant_numerator_after', 'double_array', [], 'custom scenario: B_i(z) after the change, '
        'concatenated as plant_numerator (empty: unchanged).'),
     _p('lockstep', 'bool', False, 'plant mode: before each sample, wait (up to 1 s) for the '
        'command computed from the previous output, so that a slow controller never misses '

@@ -26,6 +26,7 @@ DEMO_DEFAULTS = {
     'ikenoue_white_input': (10000, 2000.0, 20),
     'ikeda_closed_loop': (8192, 2000.0, 8),
     'adaptive_loop': (12000, 500.0, 1),
+    'payload_change': (8000, 1000.0, 1),
 }
 #: Seconds to wait for a node to exit after SIGINT before it is killed.
 STOP_TIMEOUT = 5.0

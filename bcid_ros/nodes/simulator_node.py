@@ -37,7 +37,7 @@ from bcid_ros.nodes.common import (declare_table, LATCHED_QOS, run_node, SAMPLES
 from bcid_ros.nodes.joint_identifier import QUIET_PUBLISHER
 from bcid_ros.nodes.messages import as_doubles, estimate_message, SamplesLayouts, topic_class
 from bcid_ros.simulation import make_scenario
-from bcid_ros.simulation.plant import HeldInputPlant, plant_pair
+from bcid_ros.simulation.plant import ChangingStream, HeldInputPlant, plant_pair
 
 #: Longest timer period (s); ticks publish whatever is due.
 MAX_TICK = 0.01
@@ -76,17 +76,24 @@ class SimulatorNode(Node):
         settings = check_simulator_parameters(declare_table(self, SIMULATOR_PARAMETERS))
         self.settings = settings
         self.plant: HeldInputPlant | None = None
+        self.changing: ChangingStream | None = None
         self.joint_state_publisher = None  # scenario joints only (finish() looks at it)
         if settings['mode'] == 'plant':
             self._start_plant_mode(settings)
             return
-        if settings['change_after_samples']:
-            raise ValueError("parameter 'change_after_samples' needs mode: plant (the plant "
-                             f"change is simulated in plant mode only), got "
-                             f"{settings['change_after_samples']} with mode: open_loop")
+        if settings['change_after_samples'] and settings['scenario'] != 'custom':
+            raise ValueError("parameter 'change_after_samples' needs scenario: custom (the "
+                             "plant after the change is given by the custom parameters), got "
+                             f"{settings['change_after_samples']} with scenario "
+                             f"{settings['scenario']!r}")
+        changing = None
         if settings['scenario'] == 'custom':
-            self.scenario = make_scenario(
-                'custom', **{k: settings[k] for k in CUSTOM_SETTINGS + OPERATING_POINT_SETTINGS})
+            self.scenario, after = plant_pair(settings,
+                                              CUSTOM_SETTINGS + OPERATING_POINT_SETTINGS)
+            if after is not None:
+                changing = ChangingStream(self.scenario, np.random.default_rng(settings['seed']),
+                                          after=after,
+                                          change_after=settings['change_after_samples'])
         elif settings['scenario'] == 'joints':
             self.scenario = make_scenario('joints', num_joints=settings['num_joints'],
                                           seed=settings['seed'])
@@ -102,7 +109,9 @@ class SimulatorNode(Node):
         self.rate = settings['rate_hz']
         self.frame_size = settings['frame_size']
         self.num_samples = settings['num_samples']
-        self.stream = self.scenario.stream(np.random.default_rng(settings['seed']))
+        self.stream = changing or self.scenario.stream(np.random.default_rng(settings['seed']))
+        #: The open-loop plant that changes (change_after_samples), or None.
+        self.changing = changing
         self.sent = 0
         self.done = False
         self._created = time.monotonic()
@@ -145,9 +154,12 @@ class SimulatorNode(Node):
         true = ', '.join(f'{n}={v:.6g}' for n, v in zip(truth.parameter_names, truth.parameters))
         if mode == 'joint_state':
             true = f'of {len(self.joint_names)} joints on ~/<joint>/true_parameters'
+        change = (f'; the plant changes after {changing.plant.change_after} samples'
+                  if changing is not None else '')
         self.get_logger().info(
             f'scenario {settings["scenario"]}, seed {settings["seed"]}: {total} at '
-            f'{self.rate:g} Hz, {self.frame_size} per message, output_mode {mode}; true {true}')
+            f'{self.rate:g} Hz, {self.frame_size} per message, output_mode {mode}; true '
+            f'{true}{change}')
 
     def _start_joints(self, settings: dict[str, Any]) -> None:
         """Scenario joints: one JointState per sample; each joint's truth on its own topics."""
@@ -205,11 +217,14 @@ class SimulatorNode(Node):
         if not (self.num_samples and due == self.num_samples):
             count -= count % self.frame_size  # whole frames, but for the last one
         if count > 0:
+            changed = self.changing is not None and self.changing.plant.changed
             y, u = self.stream.take(count)
             for start in range(0, count, self.frame_size):
                 stop = min(start + self.frame_size, count)
                 self._publish(y[start:stop], u[start:stop], self.sent + start)
             self.sent += count
+            if self.changing is not None and self.changing.plant.changed and not changed:
+                self._open_loop_changed()
         if self.num_samples and self.sent >= self.num_samples:
             self.finish()
 
@@ -295,13 +310,23 @@ class SimulatorNode(Node):
             f'input held from {self.input_topic} ({self.input_class.__name__}); true '
             f'{self._truth_text()}{change}')
 
+    def _stepped_plant(self) -> HeldInputPlant:
+        """Return the plant stepped sample by sample: plant mode's, or the changing stream's."""
+        return self.plant if self.plant is not None else self.changing.plant
+
+    def _open_loop_changed(self) -> None:
+        """Publish and log the truth of the open-loop plant after its change."""
+        self._publish_truth()
+        self.get_logger().info(f'plant changed after {self.changing.plant.change_after} '
+                               f'samples: true {self._truth_text()}')
+
     def _truth_text(self) -> str:
-        truth = self.plant.truth()
+        truth = self._stepped_plant().truth()
         pairs = zip(truth.parameter_names, truth.parameters)
         return ', '.join(f'{n}={v:.6g}' for n, v in pairs)
 
     def _publish_truth(self) -> None:
-        truth = self.plant.truth()
+        truth = self._stepped_plant().truth()
         self.truth = truth
         self.true_parameters_publisher.publish(
             estimate_message(truth.parameter_names, truth.parameters))

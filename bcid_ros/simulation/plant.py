@@ -17,6 +17,10 @@ is applied from sample t + 1: the timing an adaptive controller with
 t + 1). After ``change_after`` samples A and B become those of the plant
 after the change; the signal histories carry over, so the change is a
 change of coefficients, not a restart.
+
+:class:`ChangingStream` runs the same plant in open loop (``simulator_node``
+``mode: open_loop`` with ``change_after_samples``): the input is the custom
+scenario's own input model, applied sample by sample.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bcid_ros.simulation.base import Truth
+from bcid_ros.simulation.base import SampleStream, Truth
 from bcid_ros.simulation.custom import CustomScenario
 
 
@@ -168,6 +172,44 @@ class HeldInputPlant:
         return scenario.output_offset + x + v, u
 
 
+class ChangingStream(SampleStream):
+    """
+    The custom scenario's input, open loop, through a plant that changes after a sample count.
+
+    The input is drawn by the scenario's own stream (its input model,
+    offsets and measurement noise; that stream's output is not used), and
+    each sample is held and stepped by a :class:`HeldInputPlant`, whose
+    noise has a generator of its own seeded once from ``rng``: the samples
+    do not depend on the block sizes, as every :class:`SampleStream`'s.
+    The plant sees the measured input (``input_noise_variance`` > 0 then
+    adds its noise to the plant's input too).
+
+    Parameters
+    ----------
+    scenario, after, change_after
+        As :class:`HeldInputPlant`.
+    rng : numpy.random.Generator
+        Source of the input and of the plant noise's seed.
+
+    """
+
+    def __init__(self, scenario: CustomScenario, rng: np.random.Generator, *,
+                 after: CustomScenario | None, change_after: int) -> None:
+        plant_seed = int(rng.integers(2 ** 63))
+        self._inputs = scenario.stream(rng)
+        self.plant = HeldInputPlant(scenario, np.random.default_rng(plant_seed), after=after,
+                                    change_after=change_after)
+
+    def take(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return the next ``count`` samples ``(y, u)``, u held through each sample."""
+        _, u = self._inputs.take(count)
+        y = np.empty(count)
+        for row in range(count):
+            self.plant.hold(u[row])
+            y[row] = self.plant.step()[0]
+        return y, u
+
+
 def plant_pair(settings: dict[str, Any],
                names: Sequence[str]) -> tuple[CustomScenario, CustomScenario | None]:
     """
@@ -200,4 +242,4 @@ def plant_pair(settings: dict[str, Any],
     return before, after
 
 
-__all__ = ['HeldInputPlant', 'plant_pair']
+__all__ = ['ChangingStream', 'HeldInputPlant', 'plant_pair']

@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 from scipy import signal
+from test_contract import same_state
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.change_detection import FALSE_ALARM, WARMUP
@@ -141,3 +142,23 @@ def test_change_detection_off_keeps_the_old_behaviour_and_is_live():
     with pytest.raises(ValueError, match='change_detection'):
         estimator.change_detection = 'yes'
     assert math.isfinite(estimator.theta.sum())
+
+
+@pytest.mark.parametrize('name, equation', [('rls', True), ('bcrls', False), ('rpem', False)])
+def test_state_and_reset_carry_a_detected_change(name, equation):
+    # the detector's statistics and the kept samples a restart replays are state: a run
+    # saved after the detection goes on bit for bit, and a reset forgets both
+    y, u, _ = changing_plant(1, samples=4000, equation=equation)
+    estimator = make_estimator(name, order=2)
+    run(estimator, y[:3400], u[:3400])
+    assert estimator.flags.get('plant_change', 0) >= 1
+    restored = make_estimator(name, order=2)
+    restored.set_state(estimator.get_state())
+    same_state(estimator.get_state(), restored.get_state())
+    valid, reasons = run(estimator, y[3400:], u[3400:])
+    valid_restored, reasons_restored = run(restored, y[3400:], u[3400:])
+    np.testing.assert_array_equal(valid, valid_restored)
+    assert reasons == reasons_restored
+    np.testing.assert_array_equal(estimator.theta, restored.theta)
+    estimator.reset()
+    same_state(make_estimator(name, order=2).get_state(), estimator.get_state())

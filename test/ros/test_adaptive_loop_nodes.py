@@ -111,9 +111,9 @@ def test_plant_mode_refuses_other_scenarios_and_frames(ros_context):
     with pytest.raises(ValueError, match="'frame_size' must be 1 in mode: plant"):
         SimulatorNode(context=ros_context, parameter_overrides=overrides(
             dict(PLANT, frame_size=4)))
-    with pytest.raises(ValueError, match="'change_after_samples' needs mode: plant"):
+    with pytest.raises(ValueError, match="'change_after_samples' needs scenario: custom"):
         SimulatorNode(context=ros_context, parameter_overrides=overrides(
-            dict(scenario='custom', change_after_samples=10)))
+            dict(scenario='ding_miso', change_after_samples=10)))
 
 
 CL_BCLS = dict(estimator='cl_bcls', order=1, controller_numerator=[0.2289],

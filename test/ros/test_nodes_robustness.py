@@ -283,6 +283,30 @@ def test_demo_runs_two_processes_and_converges(tmp_path):
     assert delta < 3.0
 
 
+@pytest.mark.slow
+def test_demo_payload_change_flags_the_change_and_follows_the_new_plant(tmp_path):
+    # 3000 samples, the plant changes after 1500 (config/payload_change.yaml): the old
+    # estimate is 25 % off the new plant; rpem detects the change within a few samples
+    # (the error variance grows some 20-fold) and converges again within ~150 samples
+    # (replay of the same data: delta 0.16 % at 3000)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    result = subprocess.run([sys.executable, '-m', 'bcid_ros.cli', 'demo', '--scenario',
+                             'payload_change', '--samples', '3000', '--out-dir', str(tmp_path)],
+                            capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr + result.stdout
+    out = result.stdout
+    assert (tmp_path / 'demo_payload_change.png').stat().st_size > 10000
+    assert 'the plant changed (simulator)' in out
+    flagged = [line for line in out.splitlines() if 'flagged a plant change' in line]
+    assert flagged and 'count 1' in flagged[0], out
+    summary = [line for line in out.splitlines() if line.startswith('plant changed at sample')]
+    assert summary and 'false at' in summary[0], out  # ~/valid turned false at the change
+    final = [line for line in out.splitlines() if line.startswith('wall time')]
+    delta = float(final[0].split('final delta ')[1].split(' %')[0])
+    assert delta < 5.0, out  # against the plant after the change
+
+
 # ------------------------------------------------ bad-input matrix, end to end
 BAD_KINDS = ('nan', 'inf', 'short', 'long', 'empty', 'label', 'size', 'huge308', 'huge150')
 

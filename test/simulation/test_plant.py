@@ -9,7 +9,7 @@ from bcid_ros.control.design import ModelStructure, Plant
 from bcid_ros.identifier.parameters import (check_simulator_parameters, CUSTOM_SETTINGS,
                                             OPERATING_POINT_SETTINGS)
 from bcid_ros.simulation.custom import CustomScenario
-from bcid_ros.simulation.plant import HeldInputPlant, plant_pair
+from bcid_ros.simulation.plant import ChangingStream, HeldInputPlant, plant_pair
 
 NAMES = CUSTOM_SETTINGS + OPERATING_POINT_SETTINGS
 
@@ -104,6 +104,31 @@ def test_plant_pair_from_the_simulator_parameters():
         plant_pair(settings, NAMES)
     settings['change_after_samples'] = 0
     assert plant_pair(settings, NAMES)[1] is None
+
+
+def test_the_open_loop_changing_stream_filters_its_input_and_changes_once():
+    # mode: open_loop with change_after_samples: the scenario's own input, each sample held
+    # and stepped; before the change y is the plant's filter of u (noise-free here), after it
+    # the new coefficients act on the same histories; the samples do not depend on blocks
+    before = CustomScenario(plant_denominator=[1.0, -1.5, 0.7], plant_numerator=[0.0, 1.0, 0.5],
+                            noise_variance=0.0, input_signal='binary', input_hold=3)
+    after = CustomScenario(plant_denominator=[1.0, -1.6, 0.8], plant_numerator=[0.0, 0.6, 0.3],
+                           noise_variance=0.0)
+    stream = ChangingStream(before, np.random.default_rng(5), after=after, change_after=200)
+    y, u = stream.take(400)
+    pieces = ChangingStream(before, np.random.default_rng(5), after=after, change_after=200)
+    blocks = [pieces.take(n) for n in (1, 150, 49, 200)]
+    np.testing.assert_array_equal(np.concatenate([b[0] for b in blocks]), y)
+    np.testing.assert_array_equal(np.concatenate([b[1] for b in blocks]), u)
+    assert set(np.unique(u)) == {-1.0, 1.0}
+    np.testing.assert_allclose(y[:200], signal.lfilter(before.b[0], before.a, u[:200, 0]),
+                               rtol=1e-12, atol=1e-12)
+    # after the change: y(t) = -a' y(t-1..t-2) + b' u(t-1..t-2) of the new plant
+    t = np.arange(202, 400)
+    expected = (1.6 * y[t - 1] - 0.8 * y[t - 2] + 0.6 * u[t - 1, 0] + 0.3 * u[t - 2, 0])
+    np.testing.assert_allclose(y[t], expected, rtol=1e-12, atol=1e-12)
+    assert stream.plant.changed and stream.plant.truth().parameters.tolist() == [
+        -1.6, 0.8, 0.6, 0.3]
 
 
 def test_a_pole_placement_loop_on_the_held_input_plant_has_the_designed_poles():
