@@ -165,10 +165,11 @@ def test_node_equals_replay_through_a_detected_plant_change(
     assert offline.flags['plant_change'] == 1
     received, valid = subscribe_estimates(graph)
     env = ros_env(domain)
+    # stale_after -1: the bag ends, and ~/valid would turn false a second later
     node = subprocess.Popen(
         [str(BIN / 'identifier_node'), '--ros-args', '-p', f'estimator:={estimator}',
-         '-p', 'order:=2'], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-        text=True)
+         '-p', 'order:=2', '-p', 'stale_after:=-1.0'], env=env, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True)
     try:
         play = subprocess.run(
             [str(BIN / 'bcid'), 'play', str(bag), '--rate', '1.0',

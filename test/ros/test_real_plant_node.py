@@ -48,8 +48,11 @@ def test_operating_point_delay_and_live_adapt(ros_context, executor):
     node.on_samples(samples_message(rows[:2000]), {})
     reference = estimator_from_parameters(values)
     reference.run(y[:2000], u[:2000])
-    assert spin_until(executor, lambda: 'operating_point' in received and 'parameters' in
-                      received, timeout=10)
+    # a frame of 4000 values goes in slices from the node's timer: wait for the last one
+    assert spin_until(executor, lambda: not node.slices.busy and 'operating_point' in received
+                      and 'parameters' in received
+                      and np.array_equal(received['parameters'].data, reference.theta),
+                      timeout=10)
     assert received['parameters'].layout.dim[0].label == 'a1,a2,b1_2,b1_3'
     assert received['operating_point'].layout.dim[0].label == 'y,u1'
     np.testing.assert_array_equal(received['operating_point'].data,
@@ -81,13 +84,17 @@ def test_offsets_without_detrend_warn_on_diagnostics(ros_context, executor):
     node = identifier(ros_context, {'estimator': 'rls', 'order': 2, 'input_delay': [1]})
     executor.add_node(node)
     y, u = PLANT.simulate(2000, 12)
+    # a frame of 4000 values goes in slices from the node's timer (identifier/slicing.py)
     node.on_samples(samples_message(np.column_stack([y, u])), {})
+    assert spin_until(executor, lambda: not node.slices.busy, timeout=30)
     status = node.diagnostics.status()
     assert 'data not centred' in status.message and status.level == 1
     node.feeder.reset()
     y0, u0 = y - 5.0, u - 2.0
     centred = identifier(ros_context, {'estimator': 'rls', 'order': 2, 'input_delay': [1]})
+    executor.add_node(centred)
     centred.on_samples(samples_message(np.column_stack([y0, u0])), {})
+    assert spin_until(executor, lambda: not centred.slices.busy, timeout=30)
     assert 'not centred' not in centred.diagnostics.status().message
     centred.destroy_node()
 
