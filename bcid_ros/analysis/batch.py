@@ -41,7 +41,7 @@ SEARCH_SOLVER = 'lm'
 #: The pole p of the factor (1 - p q^-1) by which an order-n fit's F starts the fit of
 #: order n + 1 (with its B refitted): the same model at p's cancellation, so the fit of
 #: order n + 1 ends no worse on the estimation part; several p, as the added pole may be
-#: fast, slow or oscillating (the heated plate of issue 34: orders 3-6 fell into minima of
+#: fast, slow or oscillating (a lamp-heated plate record: orders 3-6 fell into minima of
 #: 34-61 % validation fit from the cold starts, against 76 % at order 3).
 WARM_POLES = (0.0, 0.5, 0.9, -0.5)
 #: A pole and a zero of one B_i closer than this (in the z-plane) are reported as a

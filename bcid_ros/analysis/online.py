@@ -144,7 +144,7 @@ def recommend_estimator(results: Sequence[OnlineResult], batch_fit: float,
     nonlinear plant, a drift watch that restarted it; the accuracy is there,
     and its ``valid`` will say when to trust it); (3) valid but not close.
     A valid estimate far from the batch model is thus not preferred to an
-    accurate one that is not valid (issue 34: rls valid at 64.7 % was
+    accurate one that is not valid (a glass furnace record: rls valid at 64.7 % was
     recommended over rpem at 72.0 % beside a batch model of 72.8 %). None
     when no estimate is usable.
     """

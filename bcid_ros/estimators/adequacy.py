@@ -609,7 +609,7 @@ class AdequacyMonitor:
         """
         Return the tests' reasons on what a window not yet :attr:`ready` holds, or None.
 
-        A short record never fills the window (issue 34: 148 samples against 200), so it
+        A short record never fills the window (148 samples against 200 in one), so it
         is judged on what it has: once the samples in the sums and the pending ones come to
         N >= SHORT_MINIMUM, the tests run on all of them with M' = min(M, N // SAMPLES_PER_LAG)
         lags (20 samples a lag, as a full window) at the same false-alarm rate (docs/trust.md
