@@ -133,3 +133,16 @@ def test_simulator_custom_plant_with_dead_time_and_offsets(ros_context, executor
     assert node.estimator.parameter_names == scenario.truth().parameter_names
     np.testing.assert_array_equal(node.estimator.theta, reference.theta)
     np.testing.assert_array_equal(node.estimator.operating_point, reference.operating_point)
+
+
+def test_a_live_integer_for_a_double_parameter_is_taken_as_at_start_up(ros_context):
+    # `-p forgetting_factor:=1` is accepted at start-up; a live set of the same 1 was refused
+    # by rclpy's type check (INTEGER for a DOUBLE) before the pre-set coercion
+    node = identifier(ros_context, {'estimator': 'rls', 'order': 2, 'forgetting_factor': 1})
+    result = node.set_parameters([Parameter('outlier_threshold', value=5)])[0]
+    assert result.successful, result.reason
+    assert node.get_parameter('outlier_threshold').value == 5.0
+    assert node.estimator.outlier_threshold == 5.0
+    result = node.set_parameters([Parameter('outlier_threshold', value=-1)])[0]
+    assert not result.successful and 'outlier_threshold' in result.reason
+    node.destroy_node()
