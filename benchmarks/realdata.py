@@ -2,8 +2,8 @@
 Measured data (DaISy): the online estimators' validation fit beside the batch OE model's.
 
 Usage: ``.venv/bin/python -m benchmarks.realdata --data DIR [--estimators rls,bcrls]
-[--orders 1-6] [--delays 0-4] [--json OUT]`` from the repository root, where DIR holds one
-folder per plant with ``data.csv`` (or ``data_y1.csv``, ``data_y2.csv``, one MISO problem
+[--orders 1-6] [--delays 0-4] [--json OUT] [--no-emps]`` from the repository root, where DIR
+holds one folder per plant with ``data.csv`` (or ``data_y1.csv``, ``data_y2.csv``, one MISO problem
 each), header ``y,u1[,u2]``, one sample per row: the DaISy records (De Moor, KU Leuven,
 "DaISy: Database for the Identification of Systems") are not part of the repository.
 Progress goes to stderr, the markdown tables to stdout (docs/accuracy.md). A folder ``emps``
