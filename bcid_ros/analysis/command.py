@@ -10,7 +10,7 @@ from typing import Any
 
 from bcid_ros.analysis.batch import NEAR_PAIR
 from bcid_ros.analysis.data import read_samples
-from bcid_ros.analysis.search import (Analysis, analyze, FIT_MARGIN, parse_delays,
+from bcid_ros.analysis.search import (Analysis, analyze, FIT_MARGIN, FIT_POINTS, parse_delays,
                                       parse_orders, short_error, TEST_LEVEL)
 from bcid_ros.errors import BcidError
 
@@ -112,7 +112,8 @@ def _pair_lines(analysis: Analysis) -> list[str]:
 def _rule_text(analysis: Analysis) -> str:
     """Return why the recommended candidate was chosen, in one sentence."""
     chosen = analysis.recommended
-    margin = f'within {100 * FIT_MARGIN:.0f} % of the best validation RMS error'
+    margin = (f'within {100 * FIT_MARGIN:.0f} % of the best validation RMS error and '
+              f'{FIT_POINTS:g} fit points')
     if analysis.adequate:
         return (f'the smallest order {margin} whose simulation error is uncorrelated with '
                 f'the inputs (p >= {TEST_LEVEL}) and that no smaller structure describes, the '

@@ -14,9 +14,9 @@ import math
 import numpy as np
 from scipy import linalg, signal, stats
 
-#: Largest order of the AR model of a residual in the cross-correlation test (as the
-#: OE covariance of bcid_ros.analysis.pem uses).
-MAX_NOISE_ORDER = 30
+# one AR noise model for analysis and the estimators' simulation check (layer 2)
+from bcid_ros.estimators.simulation_check import (ar_noise_model, autocorrelation,
+                                                  MAX_NOISE_ORDER)
 #: Directions of the test's covariance below this fraction of its largest eigenvalue
 #: are left out (inputs that do not excite them: a held or narrow-band signal).
 EIGENVALUE_FLOOR = 1e-10
@@ -93,46 +93,6 @@ def information_criteria(residual: np.ndarray, num_parameters: int) -> tuple[flo
         return float('nan'), float('nan')
     return (count * np.log(loss) + 2 * num_parameters,
             count * np.log(loss) + num_parameters * np.log(count))
-
-
-def autocorrelation(residual: np.ndarray, lags: int) -> np.ndarray:
-    """Return the sample autocorrelation r_1 ... r_lags (biased, normalised by r_0)."""
-    centred = residual - residual.mean()
-    denominator = float(centred @ centred)
-    if denominator == 0.0:
-        return np.zeros(lags)
-    return np.array([centred[k:] @ centred[:-k] for k in range(1, lags + 1)]) / denominator
-
-
-def ar_noise_model(residual: np.ndarray, max_order: int) -> tuple[np.ndarray, float]:
-    r"""
-    Return (D, sigma_w^2): the AR model D(q) v = w of ``residual`` chosen by AIC.
-
-    Levinson-Durbin on the biased sample autocorrelation (Ljung 1999,
-    ch. 10) for orders 0 ... ``max_order``; the order minimises
-    :math:`N\ln\sigma_k^2 + 2k` (Akaike 1974). D is monic and stable (the
-    biased autocorrelation is positive definite).
-    """
-    count = residual.size
-    centred = residual - residual.mean()
-    power = float(centred @ centred) / count
-    if not power > 0.0:
-        return np.ones(1), 0.0
-    r = np.concatenate([[1.0], autocorrelation(residual, max_order)])
-    polynomial = np.ones(1)
-    error = 1.0
-    best = (0.0, np.ones(1), 1.0)
-    for k in range(1, max_order + 1):
-        reflection = -float(polynomial @ r[k:0:-1]) / error
-        if not abs(reflection) < 1.0:
-            break
-        extended = np.concatenate([polynomial, [0.0]])
-        polynomial = extended + reflection * extended[::-1]
-        error *= 1.0 - reflection ** 2
-        criterion = count * math.log(error) + 2 * k
-        if criterion < best[0]:
-            best = (criterion, polynomial.copy(), error)
-    return best[1], power * best[2]
 
 
 def coloured_noise_covariance(psi: np.ndarray, residual: np.ndarray,

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from bcid_ros.analysis import metrics
-from bcid_ros.analysis.search import Analysis, FIT_MARGIN, TEST_LEVEL
+from bcid_ros.analysis.search import Analysis, FIT_MARGIN, fit_limit, TEST_LEVEL
 from bcid_ros.errors import BcidError
 
 #: At most this many validation samples are drawn, so that the traces stay readable.
@@ -211,8 +211,7 @@ def _fit_against_order(ax, analysis: Analysis) -> None:
         per_order = [c for c in analysis.best_per_order().values() if c.usable]
         ax.plot([c.order for c in per_order], [c.fit for c in per_order], 'o-',
                 color='tab:blue', lw=1.2, ms=5, label='delays of the lowest MDL per order')
-    limit = 100.0 - (100.0 - best) * (1.0 + FIT_MARGIN)
-    ax.axhline(limit, color='0.4', ls=':', lw=1.2, label='margin below the best')
+    ax.axhline(fit_limit(best), color='0.4', ls=':', lw=1.2, label='margin below the best')
     rejected = [c for c in usable if not c.uncorrelated]
     ax.plot([c.order for c in rejected], [c.fit for c in rejected], 'x', color='tab:red',
             ms=9, mew=1.5, label='correlated with u', zorder=4)
