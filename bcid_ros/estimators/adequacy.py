@@ -126,7 +126,12 @@ class AdequacyMonitor(MonitorStates):
     when the tests run. An OE model under coloured noise is consistent but not
     efficient: at a high SNR its estimation error, which the prewhitening
     does not shrink as it shrinks the noise, alone fails the plain test
-    (docs/trust.md).
+    (docs/trust.md). With a whiteness test (``oe_white``, :attr:`settling`)
+    the residual is that of an estimate that settles,
+    :math:`\psi^T(t)\tilde\theta(t)`: C is read at every block, the gradients
+    are taken to :math:`\tilde\psi = L^T\psi` (:math:`LL^T = C`), and both
+    tests take one :math:`\xi \sim N(0, I)` for the window (whiteness:
+    :func:`~bcid_ros.estimators.residual_statistics.profiled_whiteness`).
 
     **Storage.** Each sample is kept as the row
     :math:`z(t) = [e(t) \ldots e(t-E), u_1(t-1) \ldots u_1(t-U), \ldots]` with
@@ -190,11 +195,12 @@ class AdequacyMonitor(MonitorStates):
         p >= 0, the length of the gradient :math:`\psi(t)` recorded with each
         sample for the parameter term; 0: no term (the plain tests).
     parameter_covariance : callable, optional
-        With p > 0: called when the tests run with the plants tested, an
-        int array ``(R,)`` (one plant: ``[0]``), it returns the covariance C of
-        their estimates in the units of :math:`\psi`, ``(R, p, p)`` (one
-        plant: ``(p, p)``), or None; a plant whose C is not finite, or None,
-        is tested without the term.
+        With p > 0: called when the tests run (with a whiteness test: when
+        a block is added) with the plants concerned, an int array ``(R,)``
+        (one plant: ``[0]``), it returns the covariance C of their estimates
+        in the units of :math:`\psi`, ``(R, p, p)`` (one plant: ``(p, p)``),
+        or None; a plant whose C is not finite, or None, is tested (or its
+        block is added) without the term.
 
     Raises
     ------
