@@ -18,8 +18,12 @@ import numpy as np
 
 #: Starts of the profiled whiteness statistic's search besides xi = 0 (:func:`profiled_whiteness`).
 PROFILE_STARTS = 2
-#: Damped Gauss-Newton steps from each start.
-PROFILE_ITERATIONS = 30
+#: Damped Gauss-Newton steps from each start, at most (a stop early only raises Q slightly:
+#: 0.06 % above the minimum after 10 steps in a measured case).
+PROFILE_ITERATIONS = 10
+#: A start's search stops once a step lowers the statistic by less than this share of it
+#: (the statistic is compared with thresholds about 2 apart).
+PROFILE_TOLERANCE = 1e-6
 
 
 def chi2_survival(x: float, dof: int) -> float:
@@ -130,34 +134,40 @@ def profiled_whiteness(rho: np.ndarray, forms: np.ndarray, size: float
     a quadratic in :math:`u = s^2`); ``forms`` ``(M, p, p)`` holds
     :math:`A_k`, ``size`` N.
     """
-    def objective(xi: np.ndarray) -> tuple[float, np.ndarray]:
-        residual = rho - np.einsum('i,kij,j->k', xi, forms, xi)
-        return size * float(residual @ residual) + float(xi @ xi), residual
+    lags, p = forms.shape[0], forms.shape[-1]
+    rows = forms.reshape(lags * p, p)
 
-    p = forms.shape[-1]
-    best, deviation = objective(np.zeros(p))
-    values, vectors = np.linalg.eigh(np.einsum('k,kij->ij', rho, forms))
+    def objective(xi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        # A_k xi of every k (M, p), then q_k = xi' A_k xi
+        spread = (rows @ xi).reshape(lags, p)
+        residual = rho - spread @ xi
+        return size * float(residual @ residual) + float(xi @ xi), residual, spread
+
+    best, deviation, _ = objective(np.zeros(p))
+    values, vectors = np.linalg.eigh(np.tensordot(rho, forms, axes=1))
+    identity = np.eye(p)
     for j in np.argsort(values)[::-1][:PROFILE_STARTS].tolist():
         direction = vectors[:, j]
-        along = np.einsum('i,kij,j->k', direction, forms, direction)
+        along = (rows @ direction).reshape(lags, p) @ direction
         # F(u) = N |rho - u a|^2 + u: least at u = (2 N rho.a - 1) / (2 N a.a)
         scale = (2.0 * size * float(rho @ along) - 1.0) / max(2.0 * size * float(along @ along),
                                                               1e-300)
         if not scale > 0.0:
             continue
         xi = math.sqrt(scale) * direction
-        value, residual = objective(xi)
+        value, residual, spread = objective(xi)
         damping = 1e-3
         for _ in range(PROFILE_ITERATIONS):
-            # F = |[sqrt(N) (rho - q); xi]|^2, Jacobian of q: 2 A_k xi
-            jacobian = -2.0 * np.einsum('kij,j->ki', forms, xi)
-            gradient = size * (jacobian.T @ residual) + xi
-            hessian = size * (jacobian.T @ jacobian) + np.eye(p)
+            # F = |[sqrt(N) (rho - q); xi]|^2; the Jacobian of q is 2 A_k xi
+            jacobian = -2.0 * spread
+            gradient = size * (residual @ jacobian) + xi
+            hessian = size * (jacobian.T @ jacobian) + identity
             step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), -gradient)
-            trial, trial_residual = objective(xi + step)
+            trial, trial_residual, trial_spread = objective(xi + step)
             if trial < value:
-                converged = value - trial <= 1e-10 * value
-                xi, value, residual, damping = xi + step, trial, trial_residual, damping / 10.0
+                converged = value - trial <= PROFILE_TOLERANCE * value
+                xi, value, residual, spread = xi + step, trial, trial_residual, trial_spread
+                damping /= 10.0
                 if converged:
                     break
             else:
