@@ -15,16 +15,17 @@ and the measured false-alarm rate and power.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any, Callable
 
 import numpy as np
 
+from bcid_ros.estimators.adequacy_state import MonitorState, MonitorStates
 from bcid_ros.estimators.lagged import decayed_weights, effective_size, PlantCursors
 from bcid_ros.estimators.residual_statistics import (chi2_quantile, chi2_survival,
-                                                     cross_statistics, levinson,
-                                                     prewhitening_filter,
+                                                     covariance_factors, cross_statistics,
+                                                     levinson, prewhitening_filter,
+                                                     settling_known, settling_sums,
                                                      whiteness_statistic)
 
 #: The monitor, its state and its settings; the chi-square tails and the Levinson
@@ -74,38 +75,7 @@ def default_window(forgetting_factor: float) -> float:
     return float(min(max(1.0 / (1.0 - forgetting_factor), MIN_WINDOW), MAX_WINDOW))
 
 
-@dataclasses.dataclass(frozen=True)
-class MonitorState:
-    """A copy of an :class:`AdequacyMonitor`'s state (:meth:`AdequacyMonitor.get_state`)."""
-
-    residual_sums: np.ndarray
-    input_sums: np.ndarray
-    weights: tuple[Any, Any]
-    ring: np.ndarray
-    pending_residuals: np.ndarray
-    pending_inputs: np.ndarray
-    alarms: np.ndarray
-    statistics: np.ndarray
-    worst: np.ndarray
-    values: np.ndarray
-    checks: Any
-    #: K plants: each plant's pending samples, which sit in ``ring`` after the history
-    #: rows (``pending_residuals`` and ``pending_inputs`` are then empty). None: one
-    #: plant, whose pending samples are ``pending_residuals`` and ``pending_inputs``.
-    pending: np.ndarray | None = None
-    #: The blocks added (an int, or ``(K,)``): the tests run every ``check_period``.
-    blocks: Any = 0
-    #: With ``num_parameters`` p > 0: the sums of psi(t - m) u_i(t - a) ``(K, (q + 1) p, r U)``,
-    #: the last gradients ``(K, q + BLOCK, p)`` (as ``ring``) and a plant's pending ones
-    #: ``(m, 1, p)`` (K plants: ``(0, K, p)``, they sit in ``gradient_ring``). None (a
-    #: state from before the parameter term): loaded as zeros, so the term starts from the
-    #: gradients recorded after the load.
-    gradient_sums: np.ndarray | None = None
-    gradient_ring: np.ndarray | None = None
-    pending_gradients: np.ndarray | None = None
-
-
-class AdequacyMonitor:
+class AdequacyMonitor(MonitorStates):
     r"""
     Whiteness and input cross-correlation tests of a residual over a recent window.
 
@@ -156,7 +126,12 @@ class AdequacyMonitor:
     when the tests run. An OE model under coloured noise is consistent but not
     efficient: at a high SNR its estimation error, which the prewhitening
     does not shrink as it shrinks the noise, alone fails the plain test
-    (docs/trust.md).
+    (docs/trust.md). With a whiteness test (``oe_white``, :attr:`settling`)
+    the residual is that of an estimate that settles,
+    :math:`\psi^T(t)\tilde\theta(t)`: C is read at every block, the gradients
+    are taken to :math:`\tilde\psi = L^T\psi` (:math:`LL^T = C`), and both
+    tests take one :math:`\xi \sim N(0, I)` for the window (whiteness:
+    :func:`~bcid_ros.estimators.residual_statistics.profiled_whiteness`).
 
     **Storage.** Each sample is kept as the row
     :math:`z(t) = [e(t) \ldots e(t-E), u_1(t-1) \ldots u_1(t-U), \ldots]` with
@@ -220,11 +195,12 @@ class AdequacyMonitor:
         p >= 0, the length of the gradient :math:`\psi(t)` recorded with each
         sample for the parameter term; 0: no term (the plain tests).
     parameter_covariance : callable, optional
-        With p > 0: called when the tests run with the plants tested, an
-        int array ``(R,)`` (one plant: ``[0]``), it returns the covariance C of
-        their estimates in the units of :math:`\psi`, ``(R, p, p)`` (one
-        plant: ``(p, p)``), or None; a plant whose C is not finite, or None,
-        is tested without the term.
+        With p > 0: called when the tests run (with a whiteness test: when
+        a block is added) with the plants concerned, an int array ``(R,)``
+        (one plant: ``[0]``), it returns the covariance C of their estimates
+        in the units of :math:`\psi`, ``(R, p, p)`` (one plant: ``(p, p)``),
+        or None; a plant whose C is not finite, or None, is tested (or its
+        block is added) without the term.
 
     Raises
     ------
@@ -272,6 +248,9 @@ class AdequacyMonitor:
         self.false_alarm, self.plants = false_alarm, plants
         self.input_names = tuple(names)
         self.whiteness, self.coloured = MODEL_TESTS[model]
+        #: Whether the estimate's error enters the whiteness test as well (a whiteness test and
+        #: p > 0): the covariance is then read at every block, along the window (docs/trust.md).
+        self.settling = self.whiteness and num_parameters > 0
         self._filter_order = PREWHITENING_ORDER if self.coloured else 0
         self._colour_lags = COLOUR_LAGS if self.coloured else 0
         # tests: whiteness (if any), then one per input
@@ -288,8 +267,9 @@ class AdequacyMonitor:
         self._residual_lags = max(lags if self.whiteness else 0, colour + q)
         self._input_lags = lags + colour + q
         self._set_window(window)
-        # psi(t - m), m = 0..q, to filter the gradient as the residual (the parameter term)
-        self._gradient_history = q
+        # psi(t - m), m = 0..q, to filter the gradient as the residual (the parameter term),
+        # and m = 0..M for the whiteness test's term
+        self._gradient_history = max(q, lags if self.settling else 0)
         self._plants = 1 if plants is None else plants
         self._history = max(self._residual_lags, self._input_lags)
         # z(t)[j] = channel _channels[j] at t - _lags[j]: e at lags 0..E, then each u_i at 1..U
@@ -366,10 +346,14 @@ class AdequacyMonitor:
         count, p = self._plants, self.num_parameters
         if not p:
             self._gradient_sums = self._gradient_ring = self._gradients = None
+            self._settling_sums = None
             return
         # sum_t w_t psi(t - m) u_i(t - a)': rows (m, j), columns (i, a), a = 1..U
-        self._gradient_sums = np.zeros((count, (self._gradient_history + 1) * p,
+        self._gradient_sums = np.zeros((count, (self._filter_order + 1) * p,
                                         self.num_inputs * self._input_lags))
+        # sum_t w_t psi~(t) psi~(t - k)', k = 0..M (the whiteness test's term)
+        self._settling_sums = (np.zeros((count, self.lags + 1, p, p)) if self.settling
+                               else None)
         self._gradient_ring = np.zeros((count, self._gradient_history + BLOCK, p))
         # one plant: the pending gradients (K plants: in the ring after the history rows)
         self._gradients = np.zeros((BLOCK, 1, p)) if self.plants is None else None
@@ -381,7 +365,8 @@ class AdequacyMonitor:
             return
         for array in (self._residual_sums, self._input_sums, self._ring, self._weight,
                       self._squared_weight, self._alarms, self._worst, self._values,
-                      self._checks, self._blocks, self._gradient_sums, self._gradient_ring):
+                      self._checks, self._blocks, self._gradient_sums, self._gradient_ring,
+                      self._settling_sums):
             if array is not None:
                 array[rows] = 0
         self._statistics[rows] = np.nan
@@ -491,7 +476,7 @@ class AdequacyMonitor:
             sums *= decay
             sums += np.swapaxes(weighted, -1, -2) @ lagged
             self._input_sums[plants] = sums
-        if self.num_parameters and self.num_inputs:
+        if self.num_parameters and (self.num_inputs or self.settling):
             self._add_gradients(plants, z[:, :, first:], block_weights, decay)
         if self.plants is None:
             self._weight, self._squared_weight = decayed_weights(
@@ -503,19 +488,40 @@ class AdequacyMonitor:
 
     def _add_gradients(self, plants: Any, inputs: np.ndarray, block_weights: np.ndarray,
                        decay: float) -> None:
-        """Add psi(t - m) u_i(t - a)' of the full blocks of ``plants`` (``inputs``: z's u lags)."""
-        q = self._gradient_history
-        ring = self._gradient_ring[plants]
+        """
+        Add psi(t - m) u_i(t - a)' of the full blocks of ``plants`` (``inputs``: z's u lags).
+
+        With :attr:`settling`, psi is first taken to psi~ = L' psi, L L' the covariance
+        C of the estimate now, and the lag products psi~(t) psi~(t - k)' are added too.
+        """
+        history, q = self._gradient_history, self._filter_order
+        ring = raw = self._gradient_ring[plants]
+        if not np.isfinite(ring).all():  # a non-finite gradient counts as zero
+            ring = np.where(np.isfinite(ring), ring, 0.0)
+        if self.settling:
+            ring = ring @ self._covariance_factors(plants)
         # [psi(t), psi(t - 1) ... psi(t - q)] of each row t of the block: (R, BLOCK, (q + 1) p)
-        lagged = np.concatenate([ring[:, q - m:q - m + BLOCK] for m in range(q + 1)], axis=2)
-        if not np.isfinite(lagged).all():  # a non-finite gradient counts as zero
-            lagged = np.where(np.isfinite(lagged), lagged, 0.0)
+        lagged = np.concatenate([ring[:, history - m:history - m + BLOCK]
+                                 for m in range(q + 1)], axis=2)
         # S <- mu^BLOCK S + sum_t w_t psi(t - m) u_i(t - a)'
         sums = self._gradient_sums[plants]
         sums *= decay
         sums += np.swapaxes(lagged * block_weights[:, None], -1, -2) @ inputs
         self._gradient_sums[plants] = sums
-        self._gradient_ring[plants, :q] = ring[:, BLOCK:]
+        if self.settling:
+            self._settling_sums[plants] = settling_sums(
+                self._settling_sums[plants] * decay, ring, block_weights, self.lags)
+        self._gradient_ring[plants, :history] = raw[:, BLOCK:]
+
+    def _covariance_factors(self, plants: Any) -> np.ndarray:
+        """Return L ``(R, p, p)`` with L L' = C of ``plants`` now (zeros where C is unknown)."""
+        rows = np.arange(self._plants)[plants]
+        p = self.num_parameters
+        covariance = None if self._covariance_of is None else self._covariance_of(rows)
+        if covariance is None:
+            return np.zeros((rows.shape[0], p, p))
+        return covariance_factors(np.reshape(np.asarray(covariance, dtype=float),
+                                             (rows.shape[0], p, p)))
 
     # ------------------------------------------------------------ the tests
     @property
@@ -573,8 +579,10 @@ class AdequacyMonitor:
         statistics, worst, values = np.empty(shape), np.empty(shape, dtype=np.intp), np.empty(
             shape)
         if self.whiteness:
+            settling = (None if not self.settling
+                        else self._settling_sums[plants] / scale[..., None])
             statistics[:, 0], worst[:, 0], values[:, 0] = whiteness_statistic(
-                residual[:, 0, :first], self.lags, sizes)
+                residual[:, 0, :first], self.lags, sizes, settling)
         if inputs:
             whitening = (prewhitening_filter(residual[:, 0, :q + 1], q) if q
                          else np.ones((count, 1)))
@@ -595,13 +603,18 @@ class AdequacyMonitor:
         if not p or self._covariance_of is None:
             return None, None
         rows = np.arange(self._plants)[plants]
-        covariance = self._covariance_of(rows)
-        if covariance is None:
-            return None, None
-        covariance = np.reshape(np.asarray(covariance, dtype=float), (rows.shape[0], p, p))
+        if self.settling:  # psi~ = L' psi along the window: theta~ = L xi, xi of covariance I
+            power = self._residual_sums[plants][:, 0, 0] / scale[:, 0, 0]
+            known = settling_known(self._settling_sums[plants] / scale[..., None], power)
+            covariance = np.where(known[:, None, None], np.eye(p), np.nan)
+        else:
+            covariance = self._covariance_of(rows)
+            if covariance is None:
+                return None, None
+            covariance = np.reshape(np.asarray(covariance, dtype=float), (rows.shape[0], p, p))
         means = self._gradient_sums[plants] / scale
         # (R, (q + 1) p, r U) -> (R, r, q + 1, p, U)
-        means = means.reshape(rows.shape[0], self._gradient_history + 1, p, self.num_inputs,
+        means = means.reshape(rows.shape[0], self._filter_order + 1, p, self.num_inputs,
                               self._input_lags)
         return np.moveaxis(means, 3, 1), covariance
 
@@ -685,129 +698,3 @@ class AdequacyMonitor:
     def checks(self) -> Any:
         """Count the checks made (one per BLOCK samples once ready): an int, or ``(K,)``."""
         return int(self._checks[0]) if self.plants is None else self._checks.copy()
-
-    # ------------------------------------------------------------ the state
-    def get_state(self) -> MonitorState:
-        """Return a copy of the state (K plants: :meth:`plant_state` gives one plant's)."""
-        if self.plants is not None:
-            return MonitorState(
-                residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
-                weights=(self._weight.copy(), self._squared_weight.copy()),
-                ring=self._ring.copy(), pending_residuals=np.zeros((0, self._plants)),
-                pending_inputs=np.zeros((0, self._plants, self.num_inputs)),
-                alarms=self._alarms.copy(), statistics=self._statistics.copy(),
-                worst=self._worst.copy(), values=self._values.copy(),
-                checks=self._checks.copy(), pending=self._cursors.counts().copy(),
-                blocks=self._blocks.copy(), **self._gradient_state(0))
-        lead = (len(self._residuals), self._plants)
-        return MonitorState(
-            residual_sums=self._residual_sums.copy(), input_sums=self._input_sums.copy(),
-            weights=(self._weight, self._squared_weight),
-            ring=self._ring.copy(),
-            pending_residuals=np.array(self._residuals, dtype=float).reshape(lead),
-            pending_inputs=self._inputs[:lead[0]].copy(),
-            alarms=self._alarms.copy(), statistics=self._statistics.copy(),
-            worst=self._worst.copy(), values=self._values.copy(), checks=int(self._checks[0]),
-            blocks=int(self._blocks[0]), **self._gradient_state(lead[0]))
-
-    def _gradient_state(self, pending: int) -> dict[str, Any]:
-        """Return the gradient fields of a state: copies, with ``pending`` rows (one plant)."""
-        if not self.num_parameters:
-            return {}
-        rows = (self._gradients[:pending] if self.plants is None
-                else np.zeros((0, self._plants, self.num_parameters)))
-        return {'gradient_sums': self._gradient_sums.copy(),
-                'gradient_ring': self._gradient_ring.copy(), 'pending_gradients': rows.copy()}
-
-    def set_state(self, state: MonitorState) -> None:
-        """Continue from a :meth:`get_state` of a monitor with the same settings."""
-        self._residual_sums = state.residual_sums.copy()
-        self._input_sums = state.input_sums.copy()
-        self._ring = state.ring.copy()
-        self._alarms = state.alarms.copy()
-        self._statistics = state.statistics.copy()
-        self._worst = state.worst.copy()
-        self._values = state.values.copy()
-        lead = (self._plants,)
-        self._checks = np.broadcast_to(np.asarray(state.checks, dtype=np.int64), lead).copy()
-        self._blocks = np.broadcast_to(np.asarray(state.blocks, dtype=np.int64), lead).copy()
-        self._reset_gradients()
-        if self.num_parameters and state.gradient_sums is not None:
-            self._gradient_sums[:] = state.gradient_sums
-            self._gradient_ring[:] = state.gradient_ring
-        if self.plants is None:
-            self._weight, self._squared_weight = state.weights
-            self._residuals = [float(r[0]) for r in state.pending_residuals]
-            self._inputs[:len(self._residuals)] = state.pending_inputs
-            if self.num_parameters and state.pending_gradients is not None:
-                self._gradients[:len(self._residuals)] = state.pending_gradients
-            return
-        weight, squared = state.weights
-        self._weight = np.broadcast_to(np.asarray(weight, dtype=float), lead).copy()
-        self._squared_weight = np.broadcast_to(np.asarray(squared, dtype=float), lead).copy()
-        if state.pending is not None:
-            self._cursors.set(_ALL, state.pending)
-        else:  # pending samples (m, K) that all plants shared before the cursors
-            count = state.pending_residuals.shape[0]
-            slots = slice(self._history, self._history + count)
-            self._ring[:, slots, 0] = state.pending_residuals.T
-            self._ring[:, slots, 1:] = np.swapaxes(state.pending_inputs, 0, 1)
-            self._cursors.set(_ALL, count)
-
-    def plant_state(self, plant: int) -> MonitorState:
-        """Return plant k's state in the form of a single plant's :meth:`get_state` (K plants)."""
-        count = int(self._cursors.counts()[plant])
-        ring = self._ring[plant:plant + 1].copy()
-        pending = ring[0, self._history:self._history + count]
-        state = MonitorState(
-            residual_sums=self._residual_sums[plant:plant + 1].copy(),
-            input_sums=self._input_sums[plant:plant + 1].copy(),
-            weights=(float(self._weight[plant]), float(self._squared_weight[plant])),
-            ring=ring, pending_residuals=pending[:, :1].copy(),
-            pending_inputs=pending[:, None, 1:].copy(),
-            alarms=self._alarms[plant:plant + 1].copy(),
-            statistics=self._statistics[plant:plant + 1].copy(),
-            worst=self._worst[plant:plant + 1].copy(),
-            values=self._values[plant:plant + 1].copy(), checks=int(self._checks[plant]),
-            blocks=int(self._blocks[plant]), **self._plant_gradients(plant, count))
-        ring[0, self._history:] = 0.0  # one plant keeps its pending samples in lists
-        return state
-
-    def _plant_gradients(self, plant: int, count: int) -> dict[str, Any]:
-        """Return plant k's gradient fields in a single plant's form (``count`` pending)."""
-        if not self.num_parameters:
-            return {}
-        q = self._gradient_history
-        ring = self._gradient_ring[plant:plant + 1].copy()
-        pending = ring[0, q:q + count, None].copy()
-        ring[0, q:] = 0.0  # one plant keeps its pending gradients apart
-        return {'gradient_sums': self._gradient_sums[plant:plant + 1].copy(),
-                'gradient_ring': ring, 'pending_gradients': pending}
-
-    def load_plant(self, plant: int, state: MonitorState) -> None:
-        """Take over plant k from a single plant's :meth:`get_state` (K plants)."""
-        self._residual_sums[plant] = state.residual_sums[0]
-        self._input_sums[plant] = state.input_sums[0]
-        self._weight[plant], self._squared_weight[plant] = state.weights
-        count = state.pending_residuals.shape[0]
-        ring = self._ring[plant]
-        ring[:] = state.ring[0]
-        ring[self._history:self._history + count, 0] = state.pending_residuals[:, 0]
-        ring[self._history:self._history + count, 1:] = state.pending_inputs[:, 0]
-        self._cursors.set(plant, count)
-        self._alarms[plant] = state.alarms[0]
-        self._statistics[plant] = state.statistics[0]
-        self._worst[plant] = state.worst[0]
-        self._values[plant] = state.values[0]
-        self._checks[plant] = int(state.checks)
-        self._blocks[plant] = int(state.blocks)
-        if not self.num_parameters:
-            return
-        q, ring = self._gradient_history, self._gradient_ring[plant]
-        if state.gradient_sums is None:  # a state from before the parameter term
-            self._gradient_sums[plant] = 0.0
-            ring[:] = 0.0
-            return
-        self._gradient_sums[plant] = state.gradient_sums[0]
-        ring[:] = state.gradient_ring[0]
-        ring[q:q + count] = state.pending_gradients[:, 0]

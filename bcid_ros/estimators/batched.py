@@ -34,7 +34,8 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
                                       PlantsValidity, SharedSettings, weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
-                                       LaggedMoments, output_error_rows)
+                                       gradient_covariances, LaggedMoments,
+                                       output_error_rows, output_gradient)
 from bcid_ros.estimators.change_detection import ChangeDetector
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
@@ -434,6 +435,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._hac.clear(rows)
         if hasattr(self, '_output_errors'):
             self._output_errors[rows] = 0.0
+            self._output_gradients[rows] = 0.0
 
     def _restart_learning(self, plants: np.ndarray) -> None:
         """Start ``plants`` afresh with scales chosen from the samples now in their regressors."""
@@ -615,7 +617,8 @@ class BatchedBcrls(BatchedRls):
 
     name: ClassVar[str] = 'bcrls'
     noise_names: ClassVar[tuple[str, ...]] = ('sigma2',)
-    _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c', 'output_errors')
+    _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c', 'output_errors',
+                                                      'output_gradients')
     _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int}
     adequacy_model = Bcrls.adequacy_model
     hac_std = Bcrls.hac_std
@@ -670,10 +673,14 @@ class BatchedBcrls(BatchedRls):
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
         """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
+        past = self._output_gradients[rows]
+        psi = output_gradient(self._theta_c[rows], phi, self._output_errors[rows], past)
         error, bounded, self._output_errors[rows] = output_error_rows(
             self._theta_c[rows], self._output_errors[rows], y, phi, self._signal_scale[rows, 0])
+        past[~bounded] = 0.0
+        self._output_gradients[rows] = past
         if bounded.any():
-            self._monitor.record_rows(rows[bounded], error[bounded], u[bounded])
+            self._monitor.record_rows(rows[bounded], error[bounded], u[bounded], psi[bounded])
 
     def _theta(self) -> np.ndarray:
         return self._theta_c
@@ -706,8 +713,15 @@ class BatchedBcrls(BatchedRls):
         self._sigma2 = np.zeros(plants)
         self._resets_checked = np.zeros(plants, dtype=np.int64)
         self._moments = LaggedMoments(plants, self.order, p)
-        # e_oe(t-1) ... e_oe(t-n) of each plant, newest first (Bcrls._record_residual)
+        # e_oe(t-1) ... e_oe(t-n) and psi(t-1) ... psi(t-n), newest first (Bcrls._record_residual)
         self._output_errors = np.zeros((plants, self.order))
+        self._output_gradients = np.zeros((plants, self.order, p))
+        # the output error's tests with the estimate's own error (Bcrls._forget_residuals)
+        self._monitor = AdequacyMonitor(
+            num_inputs=self.num_inputs, model=self.adequacy_model,
+            forgetting_factor=self._forgetting_factor, plants=plants, num_parameters=p,
+            parameter_covariance=lambda plants: gradient_covariances(
+                self._covariances(plants), self._theta_c[plants], self.order))
 
     def _reset_learning(self, rows: Rows) -> None:
         super()._reset_learning(rows)
@@ -717,6 +731,7 @@ class BatchedBcrls(BatchedRls):
         self._resets_checked[rows] = 0
         self._moments.clear(rows)
         self._output_errors[rows] = 0.0
+        self._output_gradients[rows] = 0.0
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._plant_items(plant)
@@ -725,6 +740,8 @@ class BatchedBcrls(BatchedRls):
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:
+        # a snapshot from before the output error's gradient: its filter starts from zero
+        arrays = {'output_gradients': np.zeros(self._output_gradients.shape[1:]), **arrays}
         super()._load_plant(plant, arrays, scalars)
         self._lambda_theta_c[plant] = self._theta_c[plant] * self._lambda_diagonal
         self._moments.load_plant(plant, arrays, scalars)

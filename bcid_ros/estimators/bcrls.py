@@ -9,12 +9,16 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import weighted_square_ratio
+from bcid_ros.estimators.bcrls_covariance import LaggedMoments, MOMENT_BLOCK
 from bcid_ros.estimators.blas import load_blas
+from bcid_ros.estimators.polynomials import spectral_radii
 from bcid_ros.estimators.recursion import matvec, rowdot
 from bcid_ros.estimators.rls import ls_batch, Rls
 
@@ -42,9 +46,6 @@ CONVERGED = 3.0
 #: An output error beyond this times the output scale means an unstable A: the
 #: filter that makes it from the equation error restarts.
 OUTPUT_ERROR_LIMIT = 1e6
-#: The extended regressors z = [phi; y] of this many updates are kept, then
-#: added to the lagged moments of the covariance in one product per lag.
-MOMENT_BLOCK = 64
 
 
 class Bcrls(Rls):
@@ -91,7 +92,11 @@ class Bcrls(Rls):
     than ``CONVERGED`` std from the fixed point of the current statistics (not
     converged). A ``compensation_reset`` since the last check is a reason
     too, and the output error of the compensated model goes to the residual
-    tests (``adequacy_model`` 'oe_white').
+    tests (``adequacy_model`` 'oe_white') with its gradient, so that they
+    count the settling estimate's error (docs/trust.md). The change detector
+    takes the LS step's normalised error, as rls's: the output error's colour
+    (1/A times the noise's) and the compensation's wandering break its
+    reference (docs/tracking.md, "False detections").
 
     The noise estimate is published as ``sigma2``.
 
@@ -148,21 +153,23 @@ class Bcrls(Rls):
         a. An unstable A makes it grow without bound: a value beyond
         ``OUTPUT_ERROR_LIMIT`` times the output scale (or not finite) restarts
         the filter and is not recorded. The covariance is bcrls's own
-        sandwich, not the HAC.
+        sandwich, not the HAC. With it go the output error's gradient psi
+        (:func:`output_gradient`), for the estimate's own error in the tests.
         """
         theta = self._theta_c
         past = self._output_errors
         error = y - float(phi.dot(theta))
         for a, previous in zip(theta[:self.order].tolist(), past):
             error -= a * previous
-        if not abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[0]:
-            self._output_errors = [0.0] * self.order
-            return
-        past.pop()
-        past.insert(0, error)
-        self._monitor.record(error, u)
-        # the output error is what the model says is white: the change detector's input
-        self._detect(error)
+        if abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[0]:
+            psi = output_gradient(theta, phi, past, self._output_gradients)
+            past.pop()
+            past.insert(0, error)
+            self._monitor.record(error, u, psi)
+        else:
+            self._forget_output_errors()
+        if self._gain:  # the change detector's input: the LS step's normalised error, as rls's
+            self._detect(self._error / math.sqrt(self._gain))
 
     @property
     def sigma2(self) -> float:
@@ -204,10 +211,24 @@ class Bcrls(Rls):
             return np.full((1, self.num_parameters, self.num_parameters), np.nan)
         return covariance[None]
 
+    def _gradient_covariances(self, rows: np.ndarray) -> np.ndarray:
+        """Return this plant's covariance for the tests' term (:func:`gradient_covariances`)."""
+        return gradient_covariances(self._covariances(rows), self._theta_c[None], self.order)
+
     def _forget_residuals(self) -> None:
         super()._forget_residuals()
-        # e_oe(t-1) ... e_oe(t-n), newest first
+        # the output error's tests with the estimate's own error (docs/trust.md)
+        self._monitor = AdequacyMonitor(
+            num_inputs=self.num_inputs, model=self.adequacy_model,
+            forgetting_factor=self._forgetting_factor, num_parameters=self.num_parameters,
+            parameter_covariance=self._gradient_covariances)
+        self._forget_output_errors()
+
+    def _forget_output_errors(self) -> None:
+        """Restart the filters 1 / A of the output error and of its gradient."""
+        # e_oe(t-1) ... e_oe(t-n) and psi(t-1) ... psi(t-n), newest first
         self._output_errors = [0.0] * self.order
+        self._output_gradients = np.zeros((self.order, self.num_parameters))
 
     def _reset(self) -> None:
         super()._reset()
@@ -224,13 +245,17 @@ class Bcrls(Rls):
         arrays, scalars = super()._state_items()
         moment_arrays, moment_scalars = self._moment_state()
         return {**arrays, 'theta_c': self._theta_c, 'output_errors': np.array(
-            self._output_errors), **moment_arrays}, {
+            self._output_errors), 'output_gradients': self._output_gradients.copy(),
+            **moment_arrays}, {
             **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked,
             **moment_scalars}
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
         self._output_errors = arrays['output_errors'].tolist()
+        # a snapshot from before the gradient: its filter starts from zero
+        self._output_gradients = np.array(arrays.get(
+            'output_gradients', np.zeros((self.order, self.num_parameters))), dtype=float)
         self._theta_c = arrays['theta_c']
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
@@ -430,227 +455,6 @@ def _uncertain_compensation(covariance: np.ndarray, theta_c: np.ndarray,
     return []
 
 
-class LaggedMoments:
-    """
-    The lagged moments of z = [phi; y] of K plants, kept for the sandwich covariance.
-
-    Per plant: a ring holding the lag context (the last n rows already summed)
-    and up to ``MOMENT_BLOCK`` rows not yet summed; the weighted sums of
-    z_t z_{t-k}' (k = 0..n) and of the weights; the estimates and scales at
-    the last flush; and the sandwich of that block once computed. A full
-    block is summed at once (:func:`add_lagged_moments`); the sandwich
-    (:func:`block_sandwich`) is evaluated only when read. Bcrls holds one
-    with K = 1 (its hot path collects the rows in lists, then hands over a
-    full block), BatchedBcrls one over its plants.
-    """
-
-    def __init__(self, plants: int, order: int, num_parameters: int) -> None:
-        self.order = order
-        width = num_parameters + 1
-        self.ring = np.zeros((plants, order + MOMENT_BLOCK, width))
-        self.pending = np.zeros(plants, dtype=np.intp)
-        self.sums = np.zeros((plants, order + 1, width, width))
-        self.weight = np.zeros(plants)
-        self.snapshot = np.zeros((plants, 2, width))
-        self.sandwich = np.full((plants, num_parameters, num_parameters), np.nan)
-        self.due = np.zeros(plants, dtype=bool)
-
-    def clear(self, rows: Any) -> None:
-        """Forget the moments of ``rows``."""
-        for array in (self.ring, self.pending, self.sums, self.weight, self.snapshot):
-            array[rows] = 0
-        self.sandwich[rows] = np.nan
-        self.due[rows] = False
-
-    def record(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
-        """Keep z = [phi; y] of ``rows``; return the plants whose block is now full."""
-        slots = self.order + self.pending[rows]
-        self.ring[rows, slots, :-1] = phi
-        self.ring[rows, slots, -1] = y
-        self.pending[rows] += 1
-        return rows[self.pending[rows] == MOMENT_BLOCK]
-
-    def flush(self, rows: np.ndarray | slice, forgetting_factor: float, theta_c: np.ndarray,
-              sigma2: np.ndarray, component_scale: np.ndarray, y_scale: np.ndarray) -> None:
-        """Sum the full blocks of ``rows``; keep their estimates and scales for the sandwich."""
-        n, ring = self.order, self.ring[rows]
-        self.sums[rows], self.weight[rows] = add_lagged_moments(
-            self.sums[rows], self.weight[rows], ring, n, forgetting_factor)
-        # the last n rows are the lag context of the next block
-        self.ring[rows, :n] = ring[:, MOMENT_BLOCK:]
-        self.pending[rows] = 0
-        self.snapshot[rows, 0, :-1] = theta_c
-        self.snapshot[rows, 0, -1] = sigma2
-        self.snapshot[rows, 1, :-1] = component_scale
-        self.snapshot[rows, 1, -1] = np.where(y_scale > 0.0, y_scale, 1.0)
-        self.due[rows] = True
-
-    def sandwiches(self, known: np.ndarray) -> np.ndarray:
-        """
-        Return H^-1 S H^-T of each plant's last block, ``(K, p, p)``; NaN where ``known`` is not.
-
-        All plants whose block ended since the last read are evaluated in one
-        batched call; a singular one (LinAlgError) is evaluated alone and
-        stays NaN.
-        """
-        due = np.flatnonzero(known & self.due)
-        if due.size:
-            try:
-                self.sandwich[due] = block_sandwich(self.sums[due], self.weight[due],
-                                                    self.snapshot[due], self.order)
-            except np.linalg.LinAlgError:
-                for plant in due.tolist():
-                    self.sandwich[plant] = sandwich_or_nan(
-                        self.sums[plant], self.weight[plant], self.snapshot[plant], self.order)
-            self.due[due] = False
-        return np.where(known[:, None, None], self.sandwich, np.nan)
-
-    def plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Return plant k's moments as a single-plant snapshot's (arrays, scalars)."""
-        ring = self.ring[plant].copy()
-        ring[self.order + int(self.pending[plant]):] = 0.0
-        return ({'moment_ring': ring, 'moment_sums': self.sums[plant],
-                 'moment_snapshot': self.snapshot[plant]},
-                {'moment_pending': int(self.pending[plant]),
-                 'moment_weight': float(self.weight[plant])})
-
-    def load_plant(self, plant: int, arrays: dict[str, np.ndarray],
-                   scalars: dict[str, Any]) -> None:
-        """Take over plant k's moments from a snapshot made by :meth:`plant_items`."""
-        self.ring[plant] = arrays['moment_ring']
-        self.pending[plant] = int(scalars['moment_pending'])
-        self.sums[plant] = arrays['moment_sums']
-        self.weight[plant] = float(scalars['moment_weight'])
-        self.snapshot[plant] = arrays['moment_snapshot']
-        self.sandwich[plant] = np.nan
-        self.due[plant] = self.weight[plant] > 0.0
-
-
-def add_lagged_moments(sums: np.ndarray, weight: Any, ring: np.ndarray, order: int,
-                       forgetting_factor: float) -> tuple[np.ndarray, Any]:
-    """
-    Return the lagged moment sums and their weight with the new rows of ``ring`` added.
-
-    ``ring`` ``(..., n + m, p + 1)`` holds the lag context (the last n rows z
-    already summed) then m new rows z = [phi; y], oldest first; ``sums``
-    ``(..., n + 1, p + 1, p + 1)`` are the sums of w_t z_t z_{t-k}' (k = 0..n)
-    and ``weight`` ``(...)`` the sum of w_t. Old sums decay by lambda^m, the
-    newest row has weight 1. Leading dimensions are plants (the batched
-    estimators).
-    """
-    n, lam = order, forgetting_factor
-    count = ring.shape[-2] - n
-    decay = lam ** count
-    sums = sums * decay
-    weight = weight * decay
-    if count:
-        newest = ring[..., n:, :]
-        if lam == 1.0:  # all weights 1: no product to form
-            weight = weight + float(count)
-        else:
-            # w = lambda^(age): the newest row has weight 1
-            weights = lam ** np.arange(count - 1, -1, -1, dtype=float)
-            newest = newest * weights[:, None]
-            weight = weight + float(weights.sum())
-        newest = np.swapaxes(newest, -1, -2)
-        for k in range(n + 1):
-            sums[..., k, :, :] += newest @ ring[..., n - k:n - k + count, :]
-    return sums, weight
-
-
-def block_sandwich(sums: np.ndarray, weight: Any, snapshot: np.ndarray,
-                   order: int) -> np.ndarray:
-    """
-    Return H^-1 S H^-T in the user's units from the moments and estimates of a block.
-
-    ``sums`` ``(..., n + 1, p + 1, p + 1)`` are the weighted sums of
-    z_t z_{t-k}' (k = 0..n) over ``weight`` ``(...)``; ``snapshot``
-    ``(..., 2, p + 1)`` holds ``[theta_c, sigma2]`` and ``[scales of phi,
-    scale of y]`` at the block's end. Leading dimensions are plants (the
-    batched estimators). The sandwich is evaluated in normalised units
-    (z / scale), where its conditioning does not depend on the user's units.
-    """
-    estimates, scale = snapshot[..., 0, :], snapshot[..., 1, :]
-    p = estimates.shape[-1] - 1
-    # normalised units: z~ = z / scale, theta~_k = theta_k s_k / s_y, sigma2~ = sigma2 / s_y^2
-    y_scale = scale[..., p:]
-    outer = scale[..., :, None] * scale[..., None, :]
-    gamma_z = sums / (np.asarray(weight)[..., None, None, None] * outer[..., None, :, :])
-    theta = estimates[..., :p] * scale[..., :p] / y_scale
-    sigma2 = estimates[..., p] / (y_scale[..., 0] * y_scale[..., 0])
-    back = y_scale / scale[..., :p]
-    return (bcls_sandwich(gamma_z, theta, sigma2, order)
-            * (back[..., :, None] * back[..., None, :]))
-
-
-def sandwich_or_nan(sums: np.ndarray, weight: float, snapshot: np.ndarray,
-                    order: int) -> np.ndarray:
-    """Return one plant's :func:`block_sandwich`, or NaN where its bread is singular."""
-    try:
-        return block_sandwich(sums, weight, snapshot, order)
-    except np.linalg.LinAlgError:  # no covariance for this block
-        return np.full((snapshot.shape[-1] - 1,) * 2, np.nan)
-
-
-def bcls_sandwich(gamma_z: np.ndarray, theta: np.ndarray, sigma2: Any,
-                  order: int) -> np.ndarray:
-    r"""
-    Return :math:`H^{-1} S H^{-T}` of the BCLS fixed point, the p x p block of theta.
-
-    Parameters
-    ----------
-    gamma_z : numpy.ndarray, shape ``(..., n + 1, p + 1, p + 1)``
-        :math:`\Gamma_z(k)`, the mean of :math:`z_t z_{t-k}^T` with
-        :math:`z = [\varphi; y]`, k = 0..n.
-    theta : numpy.ndarray, shape ``(..., p)``
-        :math:`\hat\theta_c` (its first n entries are :math:`a_1 \ldots a_n`).
-    sigma2 : float or numpy.ndarray, shape ``(...)``
-        :math:`\hat\sigma^2`.
-    order : int
-        n.
-
-    Returns
-    -------
-    numpy.ndarray, shape ``(..., p, p)``
-        The covariance of one sample's worth: divide by the (effective) count.
-        Leading dimensions (plants) are computed at once.
-
-    """
-    n, p = order, theta.shape[-1]
-    sigma2 = np.asarray(sigma2, dtype=float)[..., None]
-    lead = theta.shape[:-1]
-    a = np.concatenate((np.ones(lead + (1,)), theta[..., :n]), axis=-1)
-    # gamma_w(k) = sigma2 sum_i a_i a_{i+k}, k = 0..n
-    gamma_w = sigma2 * np.stack([(a[..., :n + 1 - k] * a[..., k:]).sum(axis=-1)
-                                 for k in range(n + 1)], axis=-1)
-    # c_k = E[zeta_t w_{t-k}], d_k = E[w_t zeta_{t-k}] (rows k); zeta = [-v(t-1..t-n), 0, v(t)]
-    padded = np.zeros(lead + (3 * n + 1,))
-    padded[..., n:2 * n + 1] = a  # padded[m + n] = a_m, zero outside 0..n
-    lags = np.arange(1, n + 1) + n - np.arange(n + 1)[:, None]
-    c = np.zeros(lead + (n + 1, p + 1))
-    d = np.zeros(lead + (n + 1, p + 1))
-    c[..., :n] = -sigma2[..., None] * padded[..., lags]
-    d[..., :n] = -sigma2[..., None] * padded[..., lags + 2 * np.arange(n + 1)[:, None]]
-    c[..., 0, p] = sigma2[..., 0]
-    d[..., p] = sigma2 * a
-    # S = S_0 + sum_{k>=1} (S_k + S_k'), S_k = Gamma_z(k) gamma_w(k) + c_k d_k'
-    lagged = (np.einsum('...k,...kij->...ij', gamma_w, gamma_z)
-              + np.swapaxes(c, -1, -2) @ d)
-    first = (gamma_z[..., 0, :, :] * gamma_w[..., :1, None]
-             + c[..., 0, :, None] * d[..., 0, None, :])
-    meat = lagged + np.swapaxes(lagged, -1, -2) - first
-    lam = np.zeros(p)
-    lam[:n] = 1.0
-    bread = np.empty(lead + (p + 1, p + 1))
-    bread[..., :p, :p] = sigma2[..., None] * np.diag(lam) - gamma_z[..., 0, :p, :p]
-    bread[..., :p, p] = lam * theta
-    bread[..., p, :p] = -gamma_z[..., 0, p, :p]
-    bread[..., p, p] = -1.0
-    half = np.linalg.solve(bread, meat)
-    covariance = np.linalg.solve(bread, np.swapaxes(half, -1, -2))
-    return 0.5 * (covariance + np.swapaxes(covariance, -1, -2))[..., :p, :p]
-
-
 def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
                      feedthrough: bool = False, tolerance: float = 1e-12,
                      max_iterations: int = 1000,
@@ -707,6 +511,45 @@ def bcls_fixed_point(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: in
             return updated, sigma2, theta_ls
         theta_c = updated
     raise ValueError(f'the BCLS fixed point did not converge in {max_iterations} iterations')
+
+
+def gradient_covariances(covariance: np.ndarray, theta_c: np.ndarray, order: int
+                         ) -> np.ndarray:
+    """
+    Return the covariances ``(K, p, p)`` for the residual tests' term: NaN where A is not stable.
+
+    The gradient psi = phi_hat / A (:func:`output_gradient`) is that of a
+    stationary predictor only while A is stable; through an unstable A it
+    grows without bound and its products would let the term explain any
+    colour away, so those samples get no term.
+    """
+    stable = spectral_radii(theta_c[:, :order]) < 1.0
+    return np.where(stable[:, None, None], covariance, np.nan)
+
+
+def output_gradient(theta: np.ndarray, phi: np.ndarray, past_errors: np.ndarray,
+                    past: np.ndarray) -> np.ndarray:
+    r"""
+    Return psi(t) = d y_hat / d theta of the output-error model, updating ``past`` in place.
+
+    :math:`\hat y = (B/A) u`, so :math:`\psi = \hat\varphi / A(q)` with
+    :math:`\hat\varphi(t) = [-\hat y(t-1) \ldots -\hat y(t-n), u \text{ lags}]`
+    (Ljung, sec. 10.3), the regressor phi with y replaced by the simulated
+    output :math:`\hat y = y - e_{oe}`: its first n entries plus the past output
+    errors ``past_errors`` (newest first). ``past`` ``(..., n, p)`` holds
+    psi(t-1) ... psi(t-n), newest first. Leading dimensions are plants.
+    """
+    order = past.shape[-2]
+    # psi(t) = phi_hat(t) - a_1 psi(t-1) - ... - a_n psi(t-n)
+    if theta.ndim == 1:  # one plant: a vector-matrix product
+        psi = phi - theta[:order] @ past
+    else:
+        psi = phi - np.einsum('ki,kij->kj', theta[:, :order], past)
+    psi[..., :order] += past_errors
+    if order > 1:
+        past[..., 1:, :] = past[..., :-1, :]  # overlapping: numpy copies first
+    past[..., 0, :] = psi
+    return psi
 
 
 def output_error_rows(theta: np.ndarray, past: np.ndarray, y: np.ndarray, phi: np.ndarray,

@@ -86,13 +86,18 @@ def term_data(inputs):
 
 
 def monitor_settings(model, covariance, plant=None):
-    """Return the monitor's settings: 'oe_term' is 'oe' with the parameter term."""
-    if model != 'oe_term':
+    """
+    Return the monitor's settings: 'oe_term' is 'oe' with the parameter term.
+
+    'oe_white_term' is 'oe_white' with its settling term (C read at every block).
+    """
+    if not model.endswith('_term'):
         return {'model': model}
+    base = model[:-len('_term')]
     if plant is None:  # K plants: the rows asked for
-        return {'model': 'oe', 'num_parameters': TERM,
+        return {'model': base, 'num_parameters': TERM,
                 'parameter_covariance': lambda rows: covariance[rows]}
-    return {'model': 'oe', 'num_parameters': TERM,
+    return {'model': base, 'num_parameters': TERM,
             'parameter_covariance': lambda rows: covariance[plant]}
 
 
@@ -178,14 +183,14 @@ def test_each_plant_of_a_batch_decides_as_a_single_monitor_fed_its_samples(model
                            {'statistics': expected}, spread, SAMPLES, 'changed')
 
 
-@pytest.mark.parametrize('model', ['arx', 'oe_term'])
+@pytest.mark.parametrize('model', ['arx', 'oe_term', 'oe_white_term'])
 def test_a_plant_moves_out_to_a_single_monitor_and_back(model):
     rng = np.random.default_rng(52)
     residual, inputs = monitor_data(rng, SAMPLES)
     mask = recording_masks(rng, SAMPLES, PLANTS)
     gradients, covariance = term_data(inputs)
     covariance[2] = 1e-3  # plant 2 moves: with a term
-    if model != 'oe_term':
+    if not model.endswith('_term'):
         gradients = None
     moved, back = 1100, 1900  # plant 2 is in its warm-up gap part of the way
     single_samples = np.flatnonzero(mask[:, 2])
@@ -230,7 +235,7 @@ def test_a_plant_moves_out_to_a_single_monitor_and_back(model):
                        {'statistics': expected.statistics}, spread, SAMPLES, 'moved')
 
 
-@pytest.mark.parametrize('model', ['arx', 'oe_term'])
+@pytest.mark.parametrize('model', ['arx', 'oe_term', 'oe_white_term'])
 def test_a_plant_state_has_the_form_of_a_single_monitors(model):
     rng = np.random.default_rng(53)
     residual, inputs = monitor_data(rng, 1000)
@@ -256,13 +261,13 @@ def test_a_plant_state_has_the_form_of_a_single_monitors(model):
     np.testing.assert_array_equal(mine.alarms, theirs.alarms)
     history = batch._history
     np.testing.assert_array_equal(mine.ring[:, :history], theirs.ring[:, :history])
-    if model == 'oe_term':
+    if model.endswith('_term'):
         np.testing.assert_array_equal(mine.pending_gradients, theirs.pending_gradients)
         q = batch._gradient_history
         np.testing.assert_array_equal(mine.gradient_ring[:, :q], theirs.gradient_ring[:, :q])
 
 
-@pytest.mark.parametrize('model', ['oe', 'oe_term'])
+@pytest.mark.parametrize('model', ['oe', 'oe_term', 'oe_white_term'])
 def test_a_batch_restored_with_uneven_cursors_continues_bit_for_bit(model):
     rng = np.random.default_rng(54)
     residual, inputs = monitor_data(rng, SAMPLES)

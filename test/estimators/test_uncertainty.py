@@ -16,7 +16,7 @@ from uncertainty_cases import (arx_data, ding_data, IKEDA, ikeda, IKENOUE_COLORE
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.base import standard_deviations, weighted_square_ratio
-from bcid_ros.estimators.bcrls import add_lagged_moments
+from bcid_ros.estimators.bcrls_covariance import add_lagged_moments
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.moment_covariance import MAX_BLOCKS, MomentBlocks
 from equivalence import assert_paths_agree, assert_within, EPS, rounding_spread
