@@ -1,11 +1,15 @@
 """
 The per-sample interface that every bcid_ros estimator implements.
 
-An estimator is fed one sample at a time with :meth:`RecursiveEstimator.update`
-and exposes its current estimate through properties. The offline tools run
-the very same ``update`` over an array with :meth:`RecursiveEstimator.run`,
-so there is one code path for the node, the replay, the reproductions and
-the benchmarks.
+An estimator is fed one sample with :meth:`RecursiveEstimator.update` or a
+block of samples with :meth:`RecursiveEstimator.update_block`: the only two
+ways in, and a block gives the estimate of the same samples one by one. Both
+go down one chain, each link named for what it does: the operating point and
+the held adaptation (``_operate``), the quiet warnings after a huge value
+(``_learn``), the transaction (``_guarded_update``) and the estimator's own
+step (``_update``). The offline tools run ``update`` over an array with
+:meth:`RecursiveEstimator.run`; the identifier's feeder (node and replay)
+feeds its frames through ``update_block``.
 
 Parameter names follow the node's topics (docs/nodes.md): ``a1,...,an`` then,
 for each input ``i`` and lag ``k``, ``b{i}_{k}`` (lag 0 only with direct
@@ -28,6 +32,7 @@ import abc
 import dataclasses
 import math
 import operator
+import time
 from typing import Any, Callable, ClassVar, Sequence
 
 import numpy as np
@@ -40,7 +45,7 @@ from bcid_ros.estimators.settings import DETRENDS, MAX_DELAY, SHARED_SETTINGS, T
 from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationWindow
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
-#: whose products in an update could overflow: see _quiet_update.
+#: whose products in an update could overflow: see RecursiveEstimator._learn.
 HUGE_SCREEN = 2.0 ** -450
 #: The same limit, for the sum of the magnitudes of a sample.
 HUGE_VALUE = 1.0 / HUGE_SCREEN
@@ -70,6 +75,65 @@ def all_finite(*vectors: np.ndarray) -> bool:
     for vector in vectors:
         total += sum(vector.tolist())
     return math.isfinite(total) or all(bool(np.isfinite(vector).all()) for vector in vectors)
+
+
+def checked_rows(rows: Any, num_inputs: int) -> np.ndarray:
+    """
+    Return ``rows`` as a float array of samples ``[y, u1, ..., ur]``, shape ``(k, 1 + r)``.
+
+    Raises
+    ------
+    ValueError
+        If the rows do not have 1 + ``num_inputs`` columns.
+
+    """
+    rows = np.asarray(rows, dtype=float)
+    if rows.ndim != 2 or rows.shape[1] != 1 + num_inputs:
+        raise ValueError(f'rows must have 1 + num_inputs = {1 + num_inputs} '
+                         f'columns, got shape {rows.shape}')
+    return rows
+
+
+class BlockStopped(Exception):
+    """
+    A row's update raised in :meth:`RecursiveEstimator.update_block`; the block ended there.
+
+    Attributes
+    ----------
+    taken : int
+        The rows taken before the one that raised.
+    error : Exception
+        What its update raised (also the ``__cause__``).
+
+    """
+
+    def __init__(self, taken: int, error: Exception) -> None:
+        super().__init__(f'the update of row {taken} raised {error!r}')
+        self.taken = taken
+        self.error = error
+
+
+@dataclasses.dataclass(slots=True)
+class UpdateTimes:
+    """The count, total and largest time of updates since :meth:`take` (the diagnostics')."""
+
+    count: int = 0
+    total_ns: int = 0
+    largest_ns: int = 0
+
+    def add(self, count: int, total_ns: int = 0, largest_ns: int = 0) -> None:
+        """Count ``count`` updates taking ``total_ns``, the longest ``largest_ns`` (0: untimed)."""
+        self.count += count
+        self.total_ns += total_ns
+        self.largest_ns = max(self.largest_ns, largest_ns)
+
+    def take(self) -> tuple[int, float, float]:
+        """Return ``(updates, mean µs, max µs)`` since the last call, and start over."""
+        count = self.count
+        mean = self.total_ns / count / 1e3 if count else 0.0
+        largest = self.largest_ns / 1e3
+        self.count = self.total_ns = self.largest_ns = 0
+        return count, mean, largest
 
 
 def weighted_square_ratio(tau: Any, forgetting_factor: float) -> Any:
@@ -520,69 +584,117 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
                 raise ValueError('sample contains NaN or Inf')
             self._quiet_left = self.order + 2
         if self._operated:
-            self._operated_update(y, u)
-        elif self._quiet_left:
-            self._quiet_update(y, u)
+            self._operate(y, u)
         else:
-            self._guarded_update(y, u)
+            self._learn(y, u)
         return self.valid
 
-    def update_trusted(self, y: float, u: np.ndarray) -> None:
+    def update_block(self, rows: Any, times: UpdateTimes | None = None) -> int:
         """
-        Process one sample that the caller has already checked, without checking it again.
+        Process a block of samples, oldest first, and return how many were taken.
 
-        For callers that check whole blocks of samples at once (the node's
-        frames): ``y`` must be a finite float and ``u`` a finite float64 array
-        of shape ``(r,)``. The result is the same as :meth:`update`'s: the
-        size screen for values beyond 2^450 still runs (see
-        :meth:`_quiet_update`), the NaN/Inf check does not.
+        The estimate is the one :meth:`update` gives on each row in turn; what
+        that does per sample is done for the block at once where it can be
+        (:meth:`_block_step`). This is how the identifier's feeder, ``bcid
+        replay`` and the node feed their frames.
+
+        Parameters
+        ----------
+        rows : array_like, shape ``(k, 1 + r)``
+            The samples ``[y, u1, ..., ur]``.
+        times : UpdateTimes, optional
+            Add each row's update time to these.
+
+        Returns
+        -------
+        int
+            The rows taken: k.
+
+        Raises
+        ------
+        ValueError
+            If ``rows`` do not have 1 + r columns or a value is not finite
+            (nothing is taken then).
+        BlockStopped
+            If a row's update raised: the block ends there, and the error says
+            how many rows were taken before it.
+
         """
-        if not abs(y) + sum(map(abs, u.tolist())) < HUGE_VALUE:
-            self._quiet_left = self.order + 2
-        if self._operated:
-            self._operated_update(y, u)
-        elif self._quiet_left:
-            self._quiet_update(y, u)
-        else:
-            self._guarded_update(y, u)
+        rows = checked_rows(rows, self.num_inputs)
+        if not all_finite(rows.reshape(-1)):
+            raise ValueError('rows contain NaN or Inf')
+        step = self._block_step(rows)
+        outputs, inputs = rows[:, 0].tolist(), rows[:, 1:]
+        taken = total = 0
+        largest = 0 if times is None else times.largest_ns
+        try:
+            if times is None:
+                for taken, (y, u) in enumerate(zip(outputs, inputs)):
+                    step(y, u)
+            else:
+                clock = time.perf_counter_ns
+                for taken, (y, u) in enumerate(zip(outputs, inputs)):
+                    start = clock()
+                    step(y, u)
+                    elapsed = clock() - start
+                    total += elapsed
+                    if elapsed > largest:
+                        largest = elapsed
+        except Exception as error:
+            if times is not None:
+                times.add(taken, total, largest)
+            raise BlockStopped(taken, error) from error
+        if times is not None:
+            times.add(len(outputs), total, largest)
+        return len(outputs)
 
-    def trusted_block_update(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
+    def _block_step(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
         """
-        Return the update to call instead of :meth:`update_trusted` on each of these rows.
+        Return the function that takes each row of the checked block ``rows``.
 
-        For a caller that feeds a checked block ``rows`` (shape ``(k, 1 + r)``,
-        finite) row by row, in order; the estimate is the same as
-        :meth:`update_trusted`'s on each row. What that does per sample is
-        done here for the block at once where it can be: the size screen
-        (no value near 2^450: then no sample needs the quiet path, and the
-        rows go straight to the step), and the centring monitor's share (one
-        row in ``CENTRING_STRIDE``, the same rows as sample by sample). If a
-        row's update raises, the monitor has already seen the rows after it
-        (it only ever gives a warning).
+        The size screen of :meth:`update` is done here for the block at once
+        (no value near 2^450: then no row needs the quiet path, and the rows go
+        straight to the step), and so is the centring monitor's share (one
+        row in ``CENTRING_STRIDE``, the same rows as sample by sample). With
+        an operating point or a held adaptation each row takes the whole
+        per-sample path. If a row's update raises, the monitor has already
+        seen the rows after it (it only ever gives a warning).
         """
         if self._means is not None or not self._adapting or not rows.size:
-            return self.update_trusted
+            return self._take_row
         if self._centring is not None:
             self._centring.take_rows(rows)
         if self._quiet_left or not float(np.abs(rows).max()) * rows.shape[1] < HUGE_VALUE:
-            return self._update_trusted_plain
+            return self._learn_row
         return self._guarded_update
 
-    def _update_trusted_plain(self, y: float, u: np.ndarray) -> None:
-        # update_trusted without the operating-point step (see trusted_block_update)
+    def _screen_size(self, y: float, u: np.ndarray) -> None:
+        """Quiet the next updates if a checked sample is beyond 2^450 (see :meth:`_learn`)."""
         if not abs(y) + sum(map(abs, u.tolist())) < HUGE_VALUE:
             self._quiet_left = self.order + 2
+
+    def _take_row(self, y: float, u: np.ndarray) -> None:
+        """Take a checked row of a block with an operating point or a held adaptation."""
+        self._screen_size(y, u)
+        self._operate(y, u)
+
+    def _learn_row(self, y: float, u: np.ndarray) -> None:
+        """Learn from a checked row of a block with a huge value (the monitor has the block)."""
+        self._screen_size(y, u)
         self._learn(y, u)
 
-    def _quiet_update(self, y: float, u: np.ndarray) -> None:
+    def _learn(self, y: float, u: np.ndarray) -> None:
         """
-        Update with floating-point warnings off, while a huge sample is in the regressor.
+        Learn from a sample (the operating point removed, if one is) through the transaction.
 
         A value beyond 2^450 (about 3e135) makes phi' P phi overflow to Inf,
         which the transaction refuses; numpy would also warn about it. The
         warnings are silenced for the order + 2 samples whose regressors can
         hold that value (errstate costs microseconds, so only for those).
         """
+        if not self._quiet_left:
+            self._guarded_update(y, u)
+            return
         self._quiet_left -= 1
         with np.errstate(all='ignore'):
             self._guarded_update(y, u)
@@ -603,9 +715,9 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         self._operated = bool(self._means is not None or self._centring is not None
                               or not self._adapting)
 
-    def _operated_update(self, y: float, u: np.ndarray) -> None:
+    def _operate(self, y: float, u: np.ndarray) -> None:
         """
-        Update with the operating point removed, or hold the learnt state.
+        Learn with the operating point removed, or hold the learnt state.
 
         With ``detrend: mean`` the sample minus the recursive means goes to
         the estimator (the means themselves are held with the adaptation); a
@@ -631,13 +743,6 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
             # a sample the estimator refused (an outlier) must not move the
             # operating point either: the means would carry it for 1 / (1 - lambda)
             self._means.undo()
-
-    def _learn(self, y: float, u: np.ndarray) -> None:
-        """Update on a sample from which the operating point is removed, if one is."""
-        if self._quiet_left:
-            self._quiet_update(y, u)
-        else:
-            self._guarded_update(y, u)
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """

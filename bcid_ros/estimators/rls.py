@@ -178,9 +178,9 @@ class Rls(LsAccessors, RecursiveEstimator):
     #: _ls_step checks before it commits: the cheap form of the transaction.
     _guarded_update = _update
 
-    def trusted_block_update(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
+    def _block_step(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
         """
-        Return the update for each row of a checked block (see the base class).
+        Return the function that takes each row of a checked block (see the base class).
 
         When the rows would go straight to the step with a filled regressor
         and chosen scales, their regressors are formed for the block at once
@@ -193,7 +193,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         before it, so a block that starts after one goes sample by sample. A
         row that raises ends the block, and its caller restarts the regressor.
         """
-        update = super().trusted_block_update(rows)
+        update = super()._block_step(rows)
         regressor = self._regressor
         if (update != self._guarded_update or self._scales_pending or not regressor.ready
                 or self._undone_in_row):

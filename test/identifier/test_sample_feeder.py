@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from bcid_ros.estimators.base import BlockStopped
 from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
 from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters
@@ -35,15 +36,17 @@ class RecordingEstimator:
 
     valid = ready
 
-    def update_trusted(self, y, u):
-        """Record an update (or raise on the chosen y)."""
-        if y == self.fail_on:
-            raise FloatingPointError('boom')
-        self.log.append(y)
-
-    def trusted_block_update(self, rows):
-        """Return the per-row update of a checked block."""
-        return self.update_trusted
+    def update_block(self, rows, times=None):
+        """Record an update per row (or stop at the chosen y, as the estimators do)."""
+        for taken, y in enumerate(rows[:, 0].tolist()):
+            if y == self.fail_on:
+                if times is not None:
+                    times.add(taken)
+                raise BlockStopped(taken, FloatingPointError('boom'))
+            self.log.append(y)
+        if times is not None:
+            times.add(len(rows))
+        return len(rows)
 
     def restart_regressor(self):
         """Record a restart."""
