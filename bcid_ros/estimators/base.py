@@ -31,29 +31,24 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
-import operator
 import time
-from typing import Any, Callable, ClassVar, Sequence
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.operating_point import (CentringMonitor, operating_point_names,
-                                                 RunningMean)
-from bcid_ros.estimators.residual_state import residual_reasons
-from bcid_ros.estimators.settings import DETRENDS, MAX_DELAY, SHARED_SETTINGS, TRACKING
-from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationWindow
+from bcid_ros.estimators.blocks import BlockStopped, checked_rows, UpdateTimes
+from bcid_ros.estimators.operation import Operation
+from bcid_ros.estimators.settings import MAX_DELAY
+from bcid_ros.estimators.shared_settings import SharedSettings
+from bcid_ros.estimators.transaction import all_finite, Transaction
+from bcid_ros.estimators.validity import Validity
 
 #: |value| * HUGE_SCREEN >= 1 (|value| >= 2^450, about 3e135) marks a sample
 #: whose products in an update could overflow: see RecursiveEstimator._learn.
 HUGE_SCREEN = 2.0 ** -450
 #: The same limit, for the sum of the magnitudes of a sample.
 HUGE_VALUE = 1.0 / HUGE_SCREEN
-#: The generic transaction copies a state of at most this many numbers before
-#: every sample, and a larger one every CHECKPOINT_PERIOD samples.
-EXACT_CHECKPOINT_SIZE = 4096
-#: See EXACT_CHECKPOINT_SIZE.
-CHECKPOINT_PERIOD = 64
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
@@ -61,79 +56,6 @@ def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
     if covariance is None:
         return None
     return np.sqrt(np.maximum(np.diagonal(covariance), 0.0))
-
-
-def all_finite(*vectors: np.ndarray) -> bool:
-    """
-    Return whether every value of the 1-D float arrays ``vectors`` is finite.
-
-    The sum of all the values is finite when they are, which one cheap sum of
-    Python floats tells in the usual case; a non-finite sum is a NaN, an Inf
-    or an overflow of finite values, which the exact test then tells apart.
-    """
-    total = 0.0
-    for vector in vectors:
-        total += sum(vector.tolist())
-    return math.isfinite(total) or all(bool(np.isfinite(vector).all()) for vector in vectors)
-
-
-def checked_rows(rows: Any, num_inputs: int) -> np.ndarray:
-    """
-    Return ``rows`` as a float array of samples ``[y, u1, ..., ur]``, shape ``(k, 1 + r)``.
-
-    Raises
-    ------
-    ValueError
-        If the rows do not have 1 + ``num_inputs`` columns.
-
-    """
-    rows = np.asarray(rows, dtype=float)
-    if rows.ndim != 2 or rows.shape[1] != 1 + num_inputs:
-        raise ValueError(f'rows must have 1 + num_inputs = {1 + num_inputs} '
-                         f'columns, got shape {rows.shape}')
-    return rows
-
-
-class BlockStopped(Exception):
-    """
-    A row's update raised in :meth:`RecursiveEstimator.update_block`; the block ended there.
-
-    Attributes
-    ----------
-    taken : int
-        The rows taken before the one that raised.
-    error : Exception
-        What its update raised (also the ``__cause__``).
-
-    """
-
-    def __init__(self, taken: int, error: Exception) -> None:
-        super().__init__(f'the update of row {taken} raised {error!r}')
-        self.taken = taken
-        self.error = error
-
-
-@dataclasses.dataclass(slots=True)
-class UpdateTimes:
-    """The count, total and largest time of updates since :meth:`take` (the diagnostics')."""
-
-    count: int = 0
-    total_ns: int = 0
-    largest_ns: int = 0
-
-    def add(self, count: int, total_ns: int = 0, largest_ns: int = 0) -> None:
-        """Count ``count`` updates taking ``total_ns``, the longest ``largest_ns`` (0: untimed)."""
-        self.count += count
-        self.total_ns += total_ns
-        self.largest_ns = max(self.largest_ns, largest_ns)
-
-    def take(self) -> tuple[int, float, float]:
-        """Return ``(updates, mean µs, max µs)`` since the last call, and start over."""
-        count = self.count
-        mean = self.total_ns / count / 1e3 if count else 0.0
-        largest = self.largest_ns / 1e3
-        self.count = self.total_ns = self.largest_ns = 0
-        return count, mean, largest
 
 
 def weighted_square_ratio(tau: Any, forgetting_factor: float) -> Any:
@@ -207,30 +129,6 @@ def check_delays(value: Any, num_inputs: int) -> tuple[int, ...]:
     return tuple(int(v) for v in items)
 
 
-def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
-                    simulation: SimulationWindow | None = None,
-                    theta: np.ndarray | None = None, order: int = 0) -> list[str]:
-    """
-    Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
-
-    ``own`` are the estimator's (from its own equations: an unstable model, a
-    compensation that does not converge, ...); the shared ones are the residual
-    tests' (:func:`~bcid_ros.estimators.residual_state.residual_reasons`) when the
-    estimator keeps an :class:`~bcid_ros.estimators.adequacy.AdequacyMonitor`
-    (``monitor`` None: none), of ``plant`` of a many-plant monitor, then the
-    simulation check's of the model ``theta`` of order ``order`` on ``simulation``
-    (:func:`~bcid_ros.estimators.simulation_check.simulation_reasons`; None: the
-    estimator keeps no window). The one place that decides which reasons count,
-    for one plant and for K.
-    """
-    reasons = list(own)
-    if monitor is not None:
-        reasons += residual_reasons(monitor, plant)
-    if simulation is not None:
-        reasons += simulation_reasons(simulation, theta, order)
-    return reasons
-
-
 def check_int(name: str, value: Any, minimum: int) -> int:
     """Return ``value`` as an int, or raise ValueError naming ``name``."""
     if isinstance(value, bool) or int(value) != value or value < minimum:
@@ -247,171 +145,6 @@ def check_range(name: str, value: Any, low: float, high: float,
         bracket = '(' if low_open else '['
         raise ValueError(f'{name} must be in {bracket}{low:g}, {high:g}], got {value!r}')
     return value
-
-
-def check_forgetting_factor(value: Any) -> float:
-    """Return the forgetting factor lambda as a float in (0, 1], or raise ValueError."""
-    return SHARED_SETTINGS['forgetting_factor'].check_argument(value)
-
-
-class SharedSettings:
-    """
-    The settings a single-plant estimator and a batched one check and expose alike.
-
-    The model structure (order, inputs, feedthrough), p0, and the two
-    settings that may change while running: the forgetting factor and the
-    gate's threshold (whose squared limit the rulebook's gate takes); and
-    those that follow a changing plant (``change_detection``, ``adaptation``,
-    ``parameter_drift``).
-    """
-
-    #: Whether it follows a changing plant: the change detector runs (``change_detection``)
-    #: and ``adaptation: kalman`` is available (docs/tracking.md).
-    tracks: ClassVar[bool] = False
-
-    def _check_settings(self, order: int, num_inputs: int, feedthrough: bool,
-                        initial_covariance: float, forgetting_factor: float,
-                        outlier_threshold: float) -> None:
-        """Check and keep the shared settings; raise ValueError naming a bad one."""
-        self.order = SHARED_SETTINGS['order'].check_argument(order)
-        self.num_inputs = SHARED_SETTINGS['num_inputs'].check_argument(num_inputs)
-        self.feedthrough = bool(feedthrough)
-        self.initial_covariance = SHARED_SETTINGS['initial_covariance'].check_argument(
-            initial_covariance)
-        # not through the property, which subclasses may extend with checks of their state
-        self._forgetting_factor = check_forgetting_factor(forgetting_factor)
-        self.outlier_threshold = outlier_threshold
-
-    @property
-    def forgetting_factor(self) -> float:
-        """Forgetting factor lambda in (0, 1]; may be changed while running."""
-        return self._forgetting_factor
-
-    @forgetting_factor.setter
-    def forgetting_factor(self, value: float) -> None:
-        self._forgetting_factor = check_forgetting_factor(value)
-        self._follow_forgetting_factor()
-
-    def _follow_forgetting_factor(self) -> None:
-        """
-        Give every part whose memory is the estimator's the forgetting factor now in force.
-
-        P's recursion reads it at every step; the residual tests' window
-        (:meth:`~bcid_ros.estimators.adequacy.AdequacyMonitor.follow_forgetting_factor`)
-        and the HAC covariance's weights (``_hac``) are told here, so that a
-        live change reaches them as it reaches P, not at the next reset.
-        """
-        monitor, hac = getattr(self, '_monitor', None), getattr(self, '_hac', None)
-        if monitor is not None:
-            monitor.follow_forgetting_factor(self._forgetting_factor)
-        if hac is not None:
-            hac.forgetting_factor = self._forgetting_factor
-        for window in self._simulation_windows():
-            window.follow_forgetting_factor(self._forgetting_factor)
-
-    def _simulation_windows(self) -> list[SimulationWindow]:
-        """Return the simulation check's windows (one per plant; none kept: [])."""
-        windows = getattr(self, '_simulations', None)
-        if windows is not None:
-            return windows
-        window = getattr(self, '_simulation', None)
-        return [] if window is None else [window]
-
-    def _check_tracking(self, change_detection: bool, adaptation: str,
-                        parameter_drift: float) -> None:
-        """Check and keep the settings that follow a changing plant (docs/tracking.md)."""
-        if adaptation not in TRACKING['adaptation'].choices:
-            raise ValueError(f"adaptation must be 'forgetting' or 'kalman', got {adaptation!r}")
-        if not self.tracks and (adaptation != 'forgetting' or parameter_drift):
-            raise ValueError(f'adaptation: kalman and parameter_drift are not available for '
-                             f'{type(self).__name__}, got {adaptation!r}, {parameter_drift!r}')
-        if adaptation == 'kalman' and self._forgetting_factor < 1.0:
-            raise ValueError(f'adaptation: kalman takes the place of forgetting: '
-                             f'forgetting_factor must be 1, got {self._forgetting_factor!r}')
-        self.adaptation = adaptation
-        self.change_detection = change_detection
-        self.parameter_drift = parameter_drift
-
-    @property
-    def change_detection(self) -> bool:
-        """Whether the CUSUM test of plant changes runs (docs/tracking.md); may change live."""
-        return self._change_detection
-
-    @change_detection.setter
-    def change_detection(self, value: bool) -> None:
-        if not isinstance(value, (bool, np.bool_)):
-            raise ValueError(f'change_detection must be true or false, got {value!r}')
-        self._change_detection = bool(value)
-
-    @property
-    def parameter_drift(self) -> float:
-        """
-        Return q, the random walk's step variance (``adaptation: kalman``; 0 otherwise).
-
-        Per sample, each parameter of the model of unit-size signals takes a
-        random step of variance q times the noise variance: P <- P + q S^-2 (S
-        the signal scales of the parameters; docs/tracking.md).
-        """
-        return self._parameter_drift
-
-    @parameter_drift.setter
-    def parameter_drift(self, value: float) -> None:
-        value = TRACKING['parameter_drift'].check_argument(value)
-        if value and self.adaptation != 'kalman':
-            raise ValueError(f'parameter_drift needs adaptation: kalman, got {value!r} with '
-                             f'adaptation: {self.adaptation}')
-        self._parameter_drift = value
-        propagation = getattr(self, '_propagation', None)
-        if propagation is not None and hasattr(propagation, 'drift'):
-            propagation.drift = value  # the random walk's Q follows a live change
-
-    @property
-    def outlier_threshold(self) -> float:
-        """Gate of the normalised prediction error, >= 0 (0 = off); may change while running."""
-        return self._outlier_threshold
-
-    @outlier_threshold.setter
-    def outlier_threshold(self, value: float) -> None:
-        self._outlier_threshold = SHARED_SETTINGS['outlier_threshold'].check_argument(value)
-        self._gate_limit2 = rules.gate_limit2(self._outlier_threshold)
-
-
-class PlantsValidity:
-    """
-    :attr:`valid` of K plants (the batched estimators): decided as one plant's, per plant.
-
-    Each plant is valid when :attr:`ready` with no reasons; the reasons are
-    its own and the shared ones (:func:`decided_reasons`), kept in
-    ``_reasons`` (a :class:`~bcid_ros.estimators.plants.PlantReasons`).
-    """
-
-    _monitor: Any = None
-    #: One simulation check's window per plant (None: none kept).
-    _simulations: Any = None
-
-    @property
-    def valid(self) -> np.ndarray:
-        """Whether each plant is :attr:`ready` with no validity reasons, shape ``(K,)``."""
-        return self.ready & ~self._reasons.any
-
-    @property
-    def validity_reasons(self) -> tuple[tuple[str, ...], ...]:
-        """Return the reasons not to trust each plant's estimate, one tuple per plant."""
-        return tuple(self._reasons.of(plant) for plant in range(self.num_plants))
-
-    def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
-        """Return why plant k's estimate is not trustworthy now (empty when it is)."""
-        return self._reasons.of(range(self.num_plants)[plant])
-
-    def _decide_validity(self, plants: np.ndarray, own: Sequence[Sequence[str]]) -> None:
-        """Decide the reasons of ``plants`` from their ``own`` (as one plant's decision)."""
-        windows = self._simulations
-        theta = None if windows is None else self._theta()
-        with np.errstate(all='ignore'):
-            for plant, mine in zip(plants.tolist(), own):
-                self._reasons.set(plant, tuple(decided_reasons(
-                    mine, self._monitor, plant, None if windows is None else windows[plant],
-                    None if theta is None else theta[plant], self.order)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -460,7 +193,7 @@ class Trajectory:
         return self.theta[-1]
 
 
-class RecursiveEstimator(SharedSettings, abc.ABC):
+class RecursiveEstimator(SharedSettings, Validity, Operation, Transaction, abc.ABC):
     """
     Base class of the per-sample estimators.
 
@@ -513,13 +246,6 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
     name: ClassVar[str] = ''
     #: Names of the published noise estimates.
     noise_names: tuple[str, ...] = ()
-    #: Whether the estimator has reasons that change with every sample (:meth:`_live_reasons`).
-    _LIVE_REASONS: ClassVar[bool] = False
-    #: The residual tests whose reasons join the estimator's own (None: it keeps none).
-    _monitor: Any = None
-    #: The simulation check's window, whose reason joins them too (None: it keeps none;
-    #: :meth:`_start_simulation_check`).
-    _simulation: SimulationWindow | None = None
 
     def __init__(self, *, order: int, num_inputs: int = 1, feedthrough: bool = False,
                  initial_covariance: float = 1e6, forgetting_factor: float = 1.0,
@@ -699,120 +425,6 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         with np.errstate(all='ignore'):
             self._guarded_update(y, u)
 
-    # --------------------------------------- operating point and adaptation
-    def _init_operation(self, detrend: str, adapt: bool) -> None:
-        if detrend not in DETRENDS:
-            raise ValueError(f"detrend must be 'none' or 'mean', got {detrend!r}")
-        self.detrend = detrend
-        self._means = RunningMean(self.num_inputs) if detrend == 'mean' else None
-        self._centring: CentringMonitor | None = None
-        self._excitation_hold = False
-        self._held = 0
-        self.adapt = adapt
-
-    def _set_operated(self) -> None:
-        # the plain per-sample path unless a mean, a hold or a monitor is involved
-        self._operated = bool(self._means is not None or self._centring is not None
-                              or not self._adapting)
-
-    def _operate(self, y: float, u: np.ndarray) -> None:
-        """
-        Learn with the operating point removed, or hold the learnt state.
-
-        With ``detrend: mean`` the sample minus the recursive means goes to
-        the estimator (the means themselves are held with the adaptation); a
-        sample the estimator refuses (:meth:`_undo`) is taken back out of the
-        means.
-        While adaptation is held, :meth:`_hold` only moves the sample
-        history on: nothing learnt changes, so nothing can wind up.
-        """
-        if self._centring is not None:
-            self._centring.take(y, u)
-        if not self._adapting:
-            self._held += 1
-            if self._means is not None:
-                y, u = self._means.apply(y, u)
-            self._hold(y, u)
-            return
-        if self._means is None:
-            self._learn(y, u)
-            return
-        refused = self._refused
-        self._learn(*self._means.centre(y, u, self._forgetting_factor))
-        if self._refused != refused:
-            # a sample the estimator refused (an outlier) must not move the
-            # operating point either: the means would carry it for 1 / (1 - lambda)
-            self._means.undo()
-
-    def _hold(self, y: float, u: np.ndarray) -> None:
-        """
-        Take a sample without learning from it (adaptation held).
-
-        This generic form restarts the regressor, so that no update regresses
-        across the held stretch; estimators whose sample history is separate
-        from what they learn override it to keep the history running.
-        """
-        self._restart_regressor()
-
-    @property
-    def adapt(self) -> bool:
-        """
-        Whether samples update the estimate; may change while running.
-
-        False holds theta, P, the noise statistics and the operating point
-        while the regressor and the counters keep running (:attr:`held_samples`).
-        """
-        return self._adapt
-
-    @adapt.setter
-    def adapt(self, value: bool) -> None:
-        if not isinstance(value, (bool, np.bool_)):
-            raise ValueError(f'adapt must be true or false, got {value!r}')
-        self._adapt = bool(value)
-        self._adapting = self._adapt and not self._excitation_hold
-        self._set_operated()
-
-    @property
-    def excitation_hold(self) -> bool:
-        """Whether adaptation is held because the input is not exciting (set by the feeder)."""
-        return self._excitation_hold
-
-    @excitation_hold.setter
-    def excitation_hold(self, value: bool) -> None:
-        self._excitation_hold = bool(value)
-        self.adapt = self._adapt
-
-    @property
-    def held_samples(self) -> int:
-        """Count the samples taken while adaptation was held (since construction)."""
-        return self._held
-
-    @property
-    def operating_point(self) -> np.ndarray | None:
-        """Return the recursive means ``[y0, u1, ..., ur]`` (``detrend: mean``), else None."""
-        return None if self._means is None else self._means.mean.copy()
-
-    @property
-    def operating_point_names(self) -> tuple[str, ...]:
-        """Return ``('y', 'u1', ..., 'ur')``, the names of :attr:`operating_point`."""
-        return operating_point_names(self.num_inputs)
-
-    def monitor_centring(self, on: bool = True) -> None:
-        """Watch whether the data are centred (see :attr:`centring_problem`)."""
-        self._centring = CentringMonitor(self.num_inputs) if on else None
-        self._set_operated()
-
-    @property
-    def centring_problem(self) -> str:
-        """
-        Return why the raw data look far from centred, or '' (see :meth:`monitor_centring`).
-
-        Only with ``detrend: none``: with ``mean`` the regression sees centred data.
-        """
-        if self._centring is None or self._means is not None:
-            return ''
-        return self._centring.problem()
-
     def run(self, y: Any, u: Any) -> Trajectory:
         """
         Run :meth:`update` over arrays and return the trajectory.
@@ -929,29 +541,9 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         return np.array(self._noise(), dtype=float)
 
     @property
-    def valid(self) -> bool:
-        """
-        Whether the estimate can be trusted: :attr:`ready` and no :attr:`validity_reasons`.
-
-        A controller may act on the estimate while this is true; when it turns
-        false, :attr:`validity_reasons` says why. Decided here for every
-        estimator (none overrides it): the reasons of the last
-        :meth:`_decide_validity` and, where they change with every sample,
-        :meth:`_live_reasons`.
-        """
-        return self.ready and not (self._reasons or self._LIVE_REASONS and self._live_reasons())
-
-    @property
     def ready(self) -> bool:
         """Whether the regressor is filled and the estimator is past its idle phase."""
         return self.samples >= self.num_parameters
-
-    @property
-    def validity_reasons(self) -> tuple[str, ...]:
-        """Return why the estimate is not trustworthy now (empty when it is, or not ready)."""
-        if self._LIVE_REASONS:
-            return self._reasons + tuple(self._live_reasons())
-        return self._reasons
 
     @property
     @abc.abstractmethod
@@ -993,96 +585,6 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         """Count one occurrence of a reported condition (see :attr:`flags`)."""
         self.flags[key] = self.flags.get(key, 0) + 1
 
-    # ------------------------------------------------ the generic safeguards
-    def _guarded_update(self, y: float, u: np.ndarray) -> None:
-        """
-        Do one step as a transaction: step, check, and go back if the state is unsound.
-
-        This generic form keeps a checkpoint of the state, renewed before
-        every sample when the state holds at most ``EXACT_CHECKPOINT_SIZE``
-        numbers and every ``CHECKPOINT_PERIOD`` samples otherwise (a copy of
-        a long data window per sample would cost more than the step), and
-        checks after every step that the estimates and noise statistics are
-        finite. An unsound step takes the state back to the checkpoint
-        (before the sample, or at most that many samples before it), is
-        counted as ``update_undone`` and restarts the regressor, so the suspect
-        sample does not enter the next regressors either. Estimators that can
-        tell before committing whether a step is sound override this with an
-        exact and cheaper form (:class:`~bcid_ros.estimators.rls.Rls`);
-        those that name what a step changes take :meth:`_step_transaction`.
-        """
-        if self._checkpoint is None or self._since_checkpoint >= self._checkpoint_period:
-            arrays, scalars = self._state_items()
-            self._checkpoint = ({key: np.array(value, copy=True)
-                                 for key, value in arrays.items()}, dict(scalars))
-            self._since_checkpoint = 0
-            size = sum(value.size for value in self._checkpoint[0].values())
-            self._checkpoint_period = 1 if size <= EXACT_CHECKPOINT_SIZE else CHECKPOINT_PERIOD
-        self._since_checkpoint += 1
-        self._update(y, u)
-        if not self._is_sound():
-            arrays, scalars = self._checkpoint
-            self._load_state({key: value.copy() for key, value in arrays.items()},
-                             dict(scalars))
-            self._undo('update_undone')
-
-    def _name_step_state(self, attributes: tuple[str, ...], arrays: tuple[str, ...]) -> None:
-        """
-        Name what one step may change, for :meth:`_step_transaction`.
-
-        ``attributes`` are those a step may rebind (kept by reference: the
-        objects they refer to must not be changed in place), ``arrays`` the
-        arrays or lists it may change in place (copied; dotted paths
-        allowed). An array that a step may also rebind is named in both.
-        """
-        self._step_attributes = attributes
-        self._step_split = len(attributes)
-        # one C-level call reads them all (it returns a tuple from two names on)
-        read = operator.attrgetter(*attributes, *arrays)
-        self._read_step_state = read if len(attributes + arrays) > 1 else (
-            lambda obj: (read(obj),))
-
-    def _step_transaction(self, y: float, u: np.ndarray) -> None:
-        """
-        Do one step as an exact transaction that saves only what the step may change.
-
-        The light form of :meth:`_guarded_update`, for estimators that name
-        what one step may change (:meth:`_name_step_state`): before every
-        sample it keeps references to those attributes and copies of those
-        arrays (a few dozen numbers, where the generic checkpoint copies the
-        whole state), steps, and checks with :meth:`_is_sound`. An unsound
-        step puts them back, calls :meth:`_step_restored`, is counted as
-        ``update_undone`` and restarts the regressor: the state is exactly the
-        one before the sample with the regressor restarted (what the restart
-        clears need not be saved; the flags and the gate's change score count
-        on, as with the generic form).
-        """
-        saved = self._read_step_state(self)
-        arrays = saved[self._step_split:]
-        copies = [array.copy() for array in arrays]
-        self._update(y, u)
-        if self._is_sound():
-            return
-        for name, value in zip(self._step_attributes, saved):
-            setattr(self, name, value)
-        for array, copy in zip(arrays, copies):
-            array[:] = copy
-        self._step_restored()
-        self._undo('update_undone')
-
-    def _step_restored(self) -> None:
-        """Recompute what derives from the state put back by :meth:`_step_transaction`."""
-
-    def _is_sound(self) -> bool:
-        """Whether the estimates and noise statistics are all finite."""
-        return all_finite(self._theta(), self._theta_uncompensated(), self._noise())
-
-    def _undo(self, flag: str) -> None:
-        """Count a refused step and restart the regressor."""
-        self._flag(flag)
-        self._refused += 1
-        self._restart_regressor()
-
     def _gate(self, z2: float, error_z2: float | None = None) -> bool:
         r"""
         Return whether a sample with squared normalised prediction error ``z2`` is used.
@@ -1113,37 +615,6 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
 
     def _accept_change(self) -> None:
         """Prepare for a real plant change detected by :meth:`_gate`; nothing here."""
-
-    def _decide_validity(self, own: Sequence[str]) -> None:
-        """
-        Decide the reasons not to trust the estimate from the estimator's ``own`` reasons.
-
-        The estimators call this on their schedule (every ``VALIDITY_PERIOD``
-        updates), with the reasons their own equations give; the shared ones
-        join them here (:func:`decided_reasons`). It changes nothing but the
-        reasons: what a check finds that needs action (a diverging
-        compensation, a restart) is done by the estimator's update.
-        """
-        with np.errstate(all='ignore'):
-            self._reasons = tuple(decided_reasons(
-                own, self._monitor, simulation=self._simulation,
-                theta=None if self._simulation is None else self._theta(), order=self.order))
-
-    def _start_simulation_check(self) -> None:
-        """
-        Start the simulation check's window afresh (a reset, a plant change, a restart).
-
-        An estimator whose model predicts a simulated output from the measured inputs
-        keeps one and records the samples it learns from in it (as the model sees them:
-        deviations with ``detrend: mean``), clearing it at a gap; the base class judges
-        it in :meth:`_decide_validity` and keeps it in the state (docs/trust.md).
-        """
-        self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
-                                            self.input_delay, self._forgetting_factor)
-
-    def _live_reasons(self) -> list[str] | tuple[str, ...]:
-        """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""
-        return ()
 
     def __repr__(self) -> str:
         return (f'{type(self).__name__}(order={self.order}, num_inputs={self.num_inputs}, '

@@ -32,7 +32,7 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import (check_int, EstimatorState, HUGE_VALUE, parameter_names,
-                                      PlantsValidity, SharedSettings, weighted_square_ratio)
+                                      weighted_square_ratio)
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
                                        LaggedMoments, output_error_rows)
 from bcid_ros.estimators.change_detection import ChangeDetector
@@ -43,7 +43,9 @@ from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, L
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
+from bcid_ros.estimators.shared_settings import SharedSettings
 from bcid_ros.estimators.simulation_check import SimulationWindow
+from bcid_ros.estimators.validity import PlantsValidity
 
 Rows = slice | np.ndarray
 

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.base import all_finite, BlockStopped, checked_rows, UpdateTimes
+from bcid_ros.estimators.blocks import BlockStopped, checked_rows, UpdateTimes
+from bcid_ros.estimators.transaction import all_finite
 from bcid_ros.identifier.layouts import decode_samples
 
 #: Fewest samples for which the vectorised excitation check beats the sample loop (measured:

@@ -25,7 +25,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bcid_ros.estimators.base import UpdateTimes
+from bcid_ros.estimators.blocks import UpdateTimes
 from bcid_ros.identifier.interface import JOINT_STATES
 from bcid_ros.identifier.joint_demux import JointStateDemux
 

@@ -24,7 +24,7 @@ from bcid_ros.bag.replay import replay
 from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.cli import main as bcid
-from bcid_ros.estimators.base import BlockStopped
+from bcid_ros.estimators.blocks import BlockStopped
 from bcid_ros.identifier.feeder import SampleFeeder, VECTOR_CHECK_MIN
 from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters

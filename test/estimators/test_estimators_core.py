@@ -9,8 +9,8 @@ from scipy import signal
 
 from bcid_ros.estimators import estimator_class, make_estimator, parameter_names, rules
 from bcid_ros.estimators.adequacy import SHORT_MINIMUM
-from bcid_ros.estimators.base import BlockStopped
 from bcid_ros.estimators.bcrls import bcls_fixed_point
+from bcid_ros.estimators.blocks import BlockStopped
 from bcid_ros.estimators.recursion import innovation, ls_step, repair_covariance
 from bcid_ros.estimators.regressor import ArxRegressor
 from bcid_ros.estimators.rls import ls_batch

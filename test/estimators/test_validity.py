@@ -1,4 +1,4 @@
-"""`valid` has one home (base.py): every registered estimator, one plant and K, decides there."""
+"""`valid` has one home (validity.py): every registered estimator, one plant and K, decides it."""
 
 import inspect
 
@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from registry_cases import BATCHED_NAMES, data, make, NAMES
 
-from bcid_ros.estimators import base, make_batched_estimator
-from bcid_ros.estimators.base import decided_reasons
+from bcid_ros.estimators import make_batched_estimator, validity
 from bcid_ros.estimators.registry import batched_class, estimator_class
 
 
@@ -21,9 +20,9 @@ def registered_classes():
 def test_no_estimator_decides_valid_itself():
     for cls in registered_classes():
         for owner in inspect.getmro(cls):
-            if owner.__module__ == base.__name__ or owner is object:
+            if owner.__module__ == validity.__name__ or owner is object:
                 continue
-            # the decision and its reasons live in base.py; an estimator gives its own reasons
+            # the decision and its reasons live in validity.py; an estimator gives its own reasons
             assert not {'valid', 'validity_reasons', '_validity_reasons'} & set(vars(owner)), (
                 f'{owner.__module__}.{owner.__name__} decides valid itself')
 
@@ -56,7 +55,7 @@ def test_the_decision_joins_the_estimators_reasons_to_the_shared_ones(name):
     before = est.get_state()
     est._decide_validity(['an own reason'])
     # its reasons first, then the residual tests' (for an estimator that keeps them)
-    expected = tuple(decided_reasons(['an own reason'], est._monitor))
+    expected = tuple(validity.decided_reasons(['an own reason'], est._monitor))
     assert est.validity_reasons[:len(expected)] == expected
     assert not est.valid
     after = est.get_state()

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from bcid_ros.estimators.base import BlockStopped
+from bcid_ros.estimators.blocks import BlockStopped
 from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
 from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters
