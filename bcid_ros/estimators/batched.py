@@ -474,16 +474,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                                         self._last_power[plants])
         if more is not None:
             own = [mine + list(theirs) for mine, theirs in zip(own, more)]
-        notes = [[self._change_notes[plant]] if self._change_notes[plant] else []
-                 for plant in plants.tolist()]
-        self._decide_validity(plants, [note + mine for note, mine in zip(notes, own)])
-        done = [k for k, plant in enumerate(plants.tolist()) if self._change_notes[plant]
-                and self._reasons.of(plant) == (self._change_notes[plant],)
-                and self._monitor.ready[plant]]
-        if done:  # the new estimate passed its checks: the change is done (Rls._check_validity)
-            for k in done:
-                self._change_notes[int(plants[k])] = ''
-            self._decide_validity(plants[done], [own[k] for k in done])
+        self._decide_validity(plants, own, self._change_notes)
         self._last_power[plants] = power
 
     # ----------------------------------------------------------- the helpers

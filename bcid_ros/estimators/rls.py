@@ -415,15 +415,8 @@ class Rls(LsAccessors, RecursiveEstimator):
             power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
             own = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
-        note = [self._change_note] if self._change_note else []
-        self._decide_validity(note + own + list(more))
-        if (self._change_note and self._reasons == (self._change_note,)
-                and np.all(self._monitor.ready)):
-            # the new estimate passed its checks on a full window of the new plant's
-            # samples (not the short-record verdict on the samples replayed at the
-            # restart): the change is done
-            self._change_note = ''
-            self._decide_validity(own + list(more))
+        # a plant change's reason holds until the new estimate passes its checks
+        self._change_note = self._decide_validity(own + list(more), self._change_note)
         self._last_power = float(power[0])
 
     # --------------------------------------------------------- the accessors

@@ -111,20 +111,25 @@ class Validity:
             return self._reasons + tuple(self._live_reasons())
         return self._reasons
 
-    def _decide_validity(self, own: Sequence[str]) -> None:
+    def _decide_validity(self, own: Sequence[str], change: str = '') -> str:
         """
         Decide the reasons not to trust the estimate from the estimator's ``own`` reasons.
 
         The estimators call this on their schedule (every ``VALIDITY_PERIOD``
         updates), with the reasons their own equations give; the shared ones
-        join them here (:func:`decided_reasons`). It changes nothing but the
-        reasons: what a check finds that needs action (a diverging
-        compensation, a restart) is done by the estimator's update.
+        join them here (:func:`decided_reasons`), and a detected plant
+        change's reason ``change`` holds as :func:`decided_after_change`
+        says. Returns the change's reason that still holds (``''``: done or
+        none). It changes nothing but the reasons: what a check finds that
+        needs action (a diverging compensation, a restart) is done by the
+        estimator's update.
         """
         with np.errstate(all='ignore'):
-            self._reasons = tuple(decided_reasons(
-                own, self._monitor, simulation=self._simulation,
-                theta=None if self._simulation is None else self._theta(), order=self.order))
+            reasons, change = decided_after_change(
+                own, change, self._monitor, simulation=self._simulation,
+                theta=None if self._simulation is None else self._theta(), order=self.order)
+        self._reasons = tuple(reasons)
+        return change
 
     def _start_simulation_check(self) -> None:
         """
@@ -170,15 +175,26 @@ class PlantsValidity:
         """Return why plant k's estimate is not trustworthy now (empty when it is)."""
         return self._reasons.of(range(self.num_plants)[plant])
 
-    def _decide_validity(self, plants: np.ndarray, own: Sequence[Sequence[str]]) -> None:
-        """Decide the reasons of ``plants`` from their ``own`` (as one plant's decision)."""
+    def _decide_validity(self, plants: np.ndarray, own: Sequence[Sequence[str]],
+                         changes: list[str] | None = None) -> None:
+        """
+        Decide the reasons of ``plants`` from their ``own``, as one plant's decision.
+
+        ``changes``: each plant's plant-change reason (``''``: none), which
+        holds as :func:`decided_after_change` says; cleared in place where a
+        change is done. None: no plant changes.
+        """
         windows = self._simulations
         theta = None if windows is None else self._theta()
         with np.errstate(all='ignore'):
             for plant, mine in zip(plants.tolist(), own):
-                self._reasons.set(plant, tuple(decided_reasons(
-                    mine, self._monitor, plant, None if windows is None else windows[plant],
-                    None if theta is None else theta[plant], self.order)))
+                reasons, change = decided_after_change(
+                    mine, '' if changes is None else changes[plant], self._monitor, plant,
+                    None if windows is None else windows[plant],
+                    None if theta is None else theta[plant], self.order)
+                self._reasons.set(plant, tuple(reasons))
+                if changes is not None:
+                    changes[plant] = change
 
 
 __all__ = ['PlantsValidity', 'Validity', 'decided_after_change', 'decided_reasons']
