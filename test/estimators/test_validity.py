@@ -79,3 +79,35 @@ def test_many_plants_decide_as_one(name):
     np.testing.assert_array_equal(batched.valid, batched.ready & [
         not batched.plant_validity_reasons(k) for k in range(2)])
     assert not batched.valid[1]
+
+
+class ShortRecordMonitor:
+    """The residual tests of one plant or K, ready or judging a short record with no reason."""
+
+    def __init__(self, ready):
+        self.ready = ready
+        self.reasons = []
+
+    def short_reasons(self, plant=None):
+        return ()
+
+    def reasons_of(self, plant):
+        return []
+
+
+@pytest.mark.parametrize('plant', [None, 1])
+def test_a_plant_change_holds_until_the_tests_are_ready_on_new_samples_with_nothing_else(plant):
+    change = 'plant changed (sample 4001)'
+    ready = [True, True] if plant is not None else True
+    waiting = [True, False] if plant is not None else False
+    # a short-record verdict with no reason does not end the change: the tests are not ready
+    assert validity.decided_after_change([], change, ShortRecordMonitor(waiting), plant) == (
+        [change], change)
+    # another reason keeps it too, first among them
+    assert validity.decided_after_change(['unstable model'], change, ShortRecordMonitor(ready),
+                                         plant) == ([change, 'unstable model'], change)
+    # ready again and nothing else wrong: the change is done, and so is its reason
+    assert validity.decided_after_change([], change, ShortRecordMonitor(ready), plant) == (
+        [], '')
+    assert validity.decided_after_change(['unstable model'], '', ShortRecordMonitor(ready),
+                                         plant) == (['unstable model'], '')
