@@ -49,6 +49,10 @@ from bcid_ros.estimators.validity import Validity
 HUGE_SCREEN = 2.0 ** -450
 #: The same limit, for the sum of the magnitudes of a sample.
 HUGE_VALUE = 1.0 / HUGE_SCREEN
+#: A block of fewer rows goes row by row: the work done once per block (the size screen,
+#: rls's gather of the regressors) costs more than it saves on so few (measured: rls's gather
+#: of one row costs about ten pushes, and breaks even near eight rows).
+BLOCK_MIN_ROWS = 8
 
 
 def standard_deviations(covariance: np.ndarray | None) -> np.ndarray | None:
@@ -382,11 +386,12 @@ class RecursiveEstimator(SharedSettings, Validity, Operation, Transaction, abc.A
         (no value near 2^450: then no row needs the quiet path, and the rows go
         straight to the step), and so is the centring monitor's share (one
         row in ``CENTRING_STRIDE``, the same rows as sample by sample). With
-        an operating point or a held adaptation each row takes the whole
-        per-sample path. If a row's update raises, the monitor has already
-        seen the rows after it (it only ever gives a warning).
+        an operating point or a held adaptation, or in a block of fewer than
+        ``BLOCK_MIN_ROWS`` rows, each row takes the whole per-sample path. If
+        a row's update raises, the monitor has already seen the rows after it
+        (it only ever gives a warning).
         """
-        if self._means is not None or not self._adapting or not rows.size:
+        if self._means is not None or not self._adapting or rows.shape[0] < BLOCK_MIN_ROWS:
             return self._take_row
         if self._centring is not None:
             self._centring.take_rows(rows)
@@ -400,9 +405,12 @@ class RecursiveEstimator(SharedSettings, Validity, Operation, Transaction, abc.A
             self._quiet_left = self.order + 2
 
     def _take_row(self, y: float, u: np.ndarray) -> None:
-        """Take a checked row of a block with an operating point or a held adaptation."""
+        """Take a checked row of a block by the whole per-sample path (see :meth:`_block_step`)."""
         self._screen_size(y, u)
-        self._operate(y, u)
+        if self._operated:
+            self._operate(y, u)
+        else:
+            self._learn(y, u)
 
     def _learn_row(self, y: float, u: np.ndarray) -> None:
         """Learn from a checked row of a block with a huge value (the monitor has the block)."""

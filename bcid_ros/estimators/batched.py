@@ -36,7 +36,8 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import check_int, EstimatorState, HUGE_VALUE, parameter_names
 from bcid_ros.estimators.change_detection import ChangeDetector
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.plants import held_nbytes, PlantReasons, StackedRegressors
+from bcid_ros.estimators.plants import (held_nbytes, PlantReasons, StackedRegressors,
+                                        usable_samples)
 from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
                                            scale_dependents)
 from bcid_ros.estimators.regressor import phi_channels
@@ -360,11 +361,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     def _screen(self, y: np.ndarray, u: np.ndarray,
                 present: np.ndarray | None) -> np.ndarray | None:
         """Count the samples not used; return their plants (None if all are used)."""
-        usable = np.isfinite(y) & np.isfinite(u).all(axis=1)
+        usable = usable_samples(y, u, present)
         if present is not None:
             self.missing += ~present
             self.nonfinite += present & ~usable
-            usable &= present
         else:
             self.nonfinite += ~usable
         with np.errstate(invalid='ignore', over='ignore'):

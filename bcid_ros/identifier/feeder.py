@@ -11,11 +11,13 @@ message layouts and :func:`~bcid_ros.identifier.layouts.decode_samples` are
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from typing import Any
 
 import numpy as np
 
 from bcid_ros.estimators.blocks import BlockStopped, checked_rows, UpdateTimes
+from bcid_ros.estimators.plants import usable_samples
 from bcid_ros.estimators.transaction import all_finite
 from bcid_ros.identifier.layouts import decode_samples
 
@@ -117,23 +119,42 @@ def block_is_finite(rows: np.ndarray) -> bool:
 
 
 @dataclasses.dataclass(slots=True)
-class _Fed:
-    """What :meth:`SampleFeeder._feed` did with a block of rows."""
+class _Plan:
+    """
+    The per-sample rule's decisions for a block of rows, made at once, and how far it is fed.
 
+    :meth:`SampleFeeder._plan` makes it; :meth:`SampleFeeder._feed` feeds it
+    up to a row, as often as the caller needs to stop (to publish).
+    """
+
+    #: The finite rows of the block, which go to the estimator.
+    kept: np.ndarray
     #: Index of each finite row in the block (None: all are).
     positions: np.ndarray | None
-    #: Whether each finite row was unexcited (None: no excitation check).
-    quiet: np.ndarray | None
-    #: Finite rows the estimator took.
+    #: The unchanged-input run after each finite row (None: no excitation check).
+    runs: np.ndarray | list[int] | None
+    #: Unexcited finite rows before each finite row, and in all: ``[0, ..., total]``.
+    quiet_before: list[int] | None
+    #: Whether each finite row is taken with the adaptation held (None: never).
+    held: np.ndarray | None
+    #: ``(first, stop, gap)`` over the finite rows: see :func:`_stretches`.
+    stretches: list[tuple[int, int, bool]]
+    #: The next stretch to feed, and the finite rows the estimator took.
+    stretch: int = 0
     taken: int = 0
     #: What the estimator raised (None: nothing; the rows after it were not fed).
     error: Exception | None = None
 
-    def counts(self, end: int) -> tuple[int, int, int]:
-        """Return ``(used, nonfinite, unexcited)`` of the rows before row ``end``."""
-        used = end if self.positions is None else int(np.searchsorted(self.positions, end))
-        unexcited = 0 if self.quiet is None else int(np.count_nonzero(self.quiet[:used]))
-        return used, end - used, unexcited
+    def kept_before(self, end: int) -> int:
+        """Return how many of the finite rows come before row ``end`` of the block."""
+        return end if self.positions is None else int(np.searchsorted(self.positions, end))
+
+    def counts(self, begin: int, end: int) -> tuple[int, int, int]:
+        """Return ``(used, nonfinite, unexcited)`` of rows ``begin`` to ``end - 1``."""
+        first, stop = self.kept_before(begin), self.kept_before(end)
+        quiet = 0 if self.quiet_before is None else (self.quiet_before[stop]
+                                                     - self.quiet_before[first])
+        return stop - first, end - begin - (stop - first), quiet
 
     def failed_row(self) -> int:
         """Return the index in the block of the row whose update raised."""
@@ -247,10 +268,12 @@ class SampleFeeder:
         if result is None:
             result = FeedResult()
         rows = checked_rows(rows, self.estimator.num_inputs)
-        fed = self._feed(rows, self.times)
-        if fed.error is not None:
-            raise fed.error
-        self._count(fed.counts(rows.shape[0]), result)
+        plan = self._plan(rows)
+        self._feed(plan, rows.shape[0], self.times)
+        self._end(plan, rows.shape[0])
+        if plan.error is not None:
+            raise plan.error
+        self._count(plan.counts(0, rows.shape[0]), result)
         return result
 
     def _count(self, counts: tuple[int, int, int], result: FeedResult | BlockResult) -> None:
@@ -264,60 +287,88 @@ class SampleFeeder:
         result.nonfinite += nonfinite
         result.unexcited += unexcited
 
-    def _feed(self, rows: np.ndarray, times: UpdateTimes | None) -> _Fed:
+    def _plan(self, rows: np.ndarray) -> _Plan:
         """
-        Feed rows with the per-sample rule, in one loop over the estimator's update_block.
+        Decide the per-sample rule for a block of rows at once (vectorised).
 
         A row with NaN or Inf is skipped and restarts the regressor before the
-        next one; the excitation check runs on the rows used (vectorised) and,
-        with ``freeze_unexcited``, holds the adaptation from the row whose
-        run reaches the window. Each stretch of rows between those events is
-        one :meth:`update_block`, whose estimate is that of the rows one by
-        one. Stops at the first row whose update raises (``_Fed.error``).
-        ``times``: time the updates (None: count them only).
+        next one; the excitation check runs on the rows used and, with
+        ``freeze_unexcited``, holds the adaptation from the row whose run
+        reaches the window. The rows between those events are stretches,
+        each one :meth:`update_block` of the estimator (see :meth:`_feed`).
         """
-        estimator = self.estimator
-        finite = None if block_is_finite(rows) else np.isfinite(rows).all(axis=1)
+        finite = None if block_is_finite(rows) else usable_samples(rows[:, 0], rows[:, 1:])
         kept = rows if finite is None else rows[finite]
         positions = None if finite is None else np.flatnonzero(finite)
-        inputs = kept[:, 1:]
-        runs = self._constant_runs(inputs)
-        window = self.excitation_window
-        quiet = None if runs is None else runs >= window
-        held = quiet if self.freeze_unexcited else None
-        fed = _Fed(positions, quiet)
+        runs = self._constant_runs(kept[:, 1:])
+        quiet = held = quiet_before = None
+        if runs is not None:
+            window = self.excitation_window
+            if isinstance(runs, list):  # a few rows: in Python, cheaper than numpy's calls
+                quiet = [run >= window for run in runs]
+                quiet_before = list(itertools.accumulate(quiet, initial=0))
+            else:
+                quiet = runs >= window
+                quiet_before = [0, *np.cumsum(quiet).tolist()]
+            held = np.asarray(quiet) if self.freeze_unexcited else None
+        return _Plan(kept, positions, runs, quiet_before, held,
+                     _stretches(rows.shape[0], positions, held))
+
+    def _feed(self, plan: _Plan, end: int, times: UpdateTimes | None) -> bool:
+        """
+        Feed the planned rows before row ``end`` of the block; return False if one raised.
+
+        The one loop of the feeder: each stretch (or the part of one before
+        ``end``) is one :meth:`update_block` of the estimator, whose estimate
+        is that of the rows one by one. It stops at the first row whose
+        update raises (``plan.error``). ``times``: time the updates (None:
+        count them only).
+        """
+        estimator, kept, stretches = self.estimator, plan.kept, plan.stretches
+        stop_kept = plan.kept_before(end)
         try:
-            for first, stop, gap in _stretches(rows.shape[0], positions, held):
-                if gap:
-                    self._restart_pending = True
-                if held is not None:
-                    estimator.excitation_hold = bool(held[first])
+            while plan.stretch < len(stretches) and plan.taken < stop_kept:
+                first, stop, gap = stretches[plan.stretch]
+                if plan.taken == first:
+                    if gap:
+                        self._restart_pending = True
+                    if plan.held is not None:
+                        estimator.excitation_hold = bool(plan.held[first])
                 if self._restart_pending:
                     estimator.restart_regressor()
                     self._restart_pending = False
-                taken = estimator.update_block(kept[first:stop], times)
+                last = min(stop, stop_kept)
+                taken = estimator.update_block(kept[plan.taken:last], times)
                 if times is None:
                     self.times.add(taken)
-                fed.taken += taken
+                plan.taken += taken
+                if plan.taken == stop:
+                    plan.stretch += 1
         except BlockStopped as stopped:
-            fed.taken += stopped.taken
+            plan.taken += stopped.taken
             if times is None:
                 self.times.add(stopped.taken)
-            fed.error = stopped.error
-        if positions is not None and (not kept.shape[0] or positions[-1] < rows.shape[0] - 1):
-            self._restart_pending = True  # rows skipped at the end
-        if runs is not None and kept.shape[0]:  # a failing row's check came before its update
-            self._keep_run(runs, inputs, min(fed.taken, kept.shape[0] - 1))
-        return fed
+            plan.error = stopped.error
+            return False
+        return True
 
-    def _constant_runs(self, inputs: np.ndarray) -> np.ndarray | None:
+    def _end(self, plan: _Plan, rows: int) -> None:
+        """Keep the excitation state and a pending restart after a plan of ``rows`` rows."""
+        kept, positions = plan.kept.shape[0], plan.positions
+        if plan.error is None and positions is not None and (
+                not kept or positions[-1] < rows - 1):
+            self._restart_pending = True  # rows skipped at the end
+        if plan.runs is not None and kept:  # a failing row's check came before its update
+            self._keep_run(plan.runs, plan.kept[:, 1:], min(plan.taken, kept - 1))
+
+    def _constant_runs(self, inputs: np.ndarray) -> np.ndarray | list[int] | None:
         """
         Return the unchanged-input run after each of these samples (None without a window).
 
         The run grows by one for a sample whose input equals the previous one
         and is 0 otherwise; a sample is unexcited when its run reaches the
-        window. Sample by sample for a few samples (cheaper than the vectorised
-        form under ``VECTOR_CHECK_MIN``), vectorised for more.
+        window. Sample by sample for a few samples (a list: cheaper than the
+        vectorised form under ``VECTOR_CHECK_MIN``), vectorised for more.
         """
         if not self.excitation_window:
             return None
@@ -327,7 +378,7 @@ class SampleFeeder:
             for u in inputs.tolist():
                 run, last = (run + 1, last) if u == last else (0, u)
                 runs.append(run)
-            return np.array(runs, dtype=np.int64)
+            return runs
         first_same = self._last_u is not None and inputs[0].tolist() == self._last_u
         changes = inputs[1:] != inputs[:-1]
         if changes.all():  # every input differs from the one before: no run past sample 0
@@ -427,23 +478,31 @@ class SampleFeeder:
         times = self.times if timed else None
         first = 0
         while first < messages:
-            # up to the first message after which estimates may be due (samples skipped
-            # for NaN only put that later: the check after each span then says not yet)
-            stop = messages if not publish else min(messages, first + max(
-                1, -(-(self.publish_period - self.since_publish) // count)))
-            fed = self._feed(rows[first * count:stop * count], times)
-            if fed.error is None:
-                self._count(fed.counts((stop - first) * count), result)
+            # the rule for the messages from ``first`` on, decided at once (again after a
+            # failure: the rows it drops are not checked either)
+            plan = self._plan(rows[first * count:])
+            span = messages - first
+            done = 0
+            while done < span:
+                # up to the first message after which estimates may be due (samples
+                # skipped for NaN only put that later: the check then says not yet)
+                stop = span if not publish else min(span, done + max(
+                    1, -(-(self.publish_period - self.since_publish) // count)))
+                if not self._feed(plan, stop * count, times):
+                    break
+                self._count(plan.counts(done * count, stop * count), result)
                 if publish and self._due():
-                    self._collect(result, stop - 1)
-                first = stop
-                continue
+                    self._collect(result, first + stop - 1)
+                done = stop
+            self._end(plan, span * count)
+            if plan.error is None:
+                break
             # as in take_rows: the failing message is dropped, the regressor restarts
-            failed = first + fed.failed_row() // count
-            self._count(fed.counts((failed - first) * count), result)
+            failed = plan.failed_row() // count
+            self._count(plan.counts(done * count, failed * count), result)
             self.gap()
-            result.failures.append((failed, repr(fed.error)))
-            first = failed + 1
+            result.failures.append((first + failed, repr(plan.error)))
+            first += failed + 1
         return result
 
     def _collect(self, result: BlockResult, index: int) -> None:

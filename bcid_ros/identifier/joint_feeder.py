@@ -26,6 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.estimators.blocks import UpdateTimes
+from bcid_ros.estimators.plants import usable_samples
 from bcid_ros.identifier.interface import JOINT_STATES
 from bcid_ros.identifier.joint_demux import JointStateDemux
 
@@ -193,7 +194,7 @@ class JointFeeder:
         demux = self.demux
         samples = demux.take(message)
         present = samples.present
-        usable = present & np.isfinite(samples.y) & np.isfinite(samples.u)
+        usable = usable_samples(samples.y, samples.u, present)
         present_count, used = int(present.sum()), int(usable.sum())
         result = JointFeedResult(missing=len(self.joints) - present_count,
                                  nonfinite=present_count - used)

@@ -18,13 +18,13 @@ from mcap.writer import CompressionType, IndexType, Writer
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
+from recording_estimator import BlockRecorder
 
 from bcid_ros.bag.reader import BagReader
 from bcid_ros.bag.replay import replay
 from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.cli import main as bcid
-from bcid_ros.estimators.blocks import BlockStopped
 from bcid_ros.identifier.feeder import SampleFeeder, VECTOR_CHECK_MIN
 from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
@@ -286,7 +286,7 @@ def test_a_corrupt_message_index_is_a_clean_error(bag, tmp_path):
 
 
 # ------------------------------------------------------------------ take_messages
-class Recorder:
+class Recorder(BlockRecorder):
     """Records updates and restarts; raises on ``fail_on``; NaN estimates at ``nan_at``."""
 
     num_inputs = 1
@@ -315,18 +315,6 @@ class Recorder:
     def noise(self):
         """Return a constant."""
         return np.array([0.5])
-
-    def update_block(self, rows, times=None):
-        """Record an update per row (or stop at the chosen y, as the estimators do)."""
-        for taken, y in enumerate(rows[:, 0].tolist()):
-            if y in self.fail_on:
-                if times is not None:
-                    times.add(taken)
-                raise BlockStopped(taken, FloatingPointError('boom'))
-            self.log.append(y)
-        if times is not None:
-            times.add(len(rows))
-        return len(rows)
 
     def restart_regressor(self):
         """Record a restart."""

@@ -8,15 +8,15 @@ that feeding a block at once equals feeding it message by message.
 from types import SimpleNamespace
 
 import numpy as np
+from recording_estimator import BlockRecorder
 
-from bcid_ros.estimators.blocks import BlockStopped
 from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
 from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters
 from bcid_ros.simulation import make_scenario
 
 
-class RecordingEstimator:
+class RecordingEstimator(BlockRecorder):
     """Records updates and restarts; valid after ``valid_after`` updates."""
 
     num_inputs = 1
@@ -24,7 +24,7 @@ class RecordingEstimator:
     def __init__(self, valid_after=2, fail_on=None):
         self.log = []
         self.valid_after = valid_after
-        self.fail_on = fail_on
+        self.fail_on = set() if fail_on is None else {fail_on}
         self.theta = np.array([1.0, 2.0])
         self.theta_uncompensated = np.array([1.5, 2.5])
         self.noise = np.array([0.1])
@@ -35,18 +35,6 @@ class RecordingEstimator:
         return sum(1 for entry in self.log if entry != 'restart') >= self.valid_after
 
     valid = ready
-
-    def update_block(self, rows, times=None):
-        """Record an update per row (or stop at the chosen y, as the estimators do)."""
-        for taken, y in enumerate(rows[:, 0].tolist()):
-            if y == self.fail_on:
-                if times is not None:
-                    times.add(taken)
-                raise BlockStopped(taken, FloatingPointError('boom'))
-            self.log.append(y)
-        if times is not None:
-            times.add(len(rows))
-        return len(rows)
 
     def restart_regressor(self):
         """Record a restart."""
