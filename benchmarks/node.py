@@ -304,7 +304,7 @@ def callback_parts(values: dict, rows: np.ndarray, messages: list) -> tuple[floa
     Return the CPU µs a sample of a bare update loop and of SampleFeeder over ``messages``.
 
     The parts of the samples callback, measured in this thread: the bare
-    ``update_trusted`` loop over ``rows`` and ``SampleFeeder.take_message`` on
+    ``update`` loop over ``rows`` and ``SampleFeeder.take_message`` on
     each message (what the callback does before it publishes).
     """
     from bcid_ros.identifier.feeder import SampleFeeder
@@ -312,7 +312,7 @@ def callback_parts(values: dict, rows: np.ndarray, messages: list) -> tuple[floa
                                                 estimator_from_parameters)
 
     checked = check_identifier_parameters(values)
-    update = estimator_from_parameters(checked).update_trusted
+    update = estimator_from_parameters(checked).update
     outputs, inputs = rows[:, 0].tolist(), list(rows[:, 1:])
     start = time.thread_time()
     for k, value in enumerate(outputs):

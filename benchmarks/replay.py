@@ -15,7 +15,7 @@ ever makes a run slower):
 The package is byte-compiled first, as an installed one is: where `PYTHONDONTWRITEBYTECODE`
 is set, every process would otherwise compile our modules from source (about 40 ms).
 Throughput is samples / wall time of the process. The note gives the process's CPU time (user +
-system) and the estimator's bare update rate (a Python loop of `update_trusted` over the same
+system) and the estimator's bare update rate (a Python loop of `update` over the same
 samples in this process, in the same run); a replay of rls or bcrls can beat it, because its
 blocks take the estimator's block path (the regressors of a block formed at once). The CPU
 figure shows what the wall time hides.
@@ -57,7 +57,7 @@ def timed(command: list[str], repeats: int) -> tuple[float, float, subprocess.Co
 
 
 def bare_update_rate(estimator: str, samples: int = 100_000) -> float:
-    """Return the samples/s of a bare ``update_trusted`` loop over Ding MISO samples."""
+    """Return the samples/s of a bare ``update`` loop over Ding MISO samples."""
     import numpy as np
 
     from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
@@ -67,7 +67,7 @@ def bare_update_rate(estimator: str, samples: int = 100_000) -> float:
     values = {**load_yaml_parameters(CONFIG), 'estimator': estimator}
     best = float('inf')
     for _ in range(3):
-        update = estimator_from_parameters(values).update_trusted
+        update = estimator_from_parameters(values).update
         outputs, inputs = y.tolist(), list(np.asarray(u, dtype=float))
         start = time.perf_counter()
         for k, value in enumerate(outputs):

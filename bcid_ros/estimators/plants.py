@@ -1,6 +1,9 @@
 """
 What the batched estimators keep per plant besides the estimates: histories, reasons, size.
 
+And the sample policy per plant, which the single-plant feeder, the many-joint feeder and
+the batched estimators share: :func:`usable_samples`.
+
 The K plants of one structure share one array per quantity (a leading plant
 axis); these classes hold the bookkeeping around the estimates, so that the
 batched estimators (:mod:`~bcid_ros.estimators.batched`) hold only their
@@ -12,6 +15,19 @@ from __future__ import annotations
 from typing import Any, Iterable
 
 import numpy as np
+
+
+def usable_samples(y: np.ndarray, u: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
+    """
+    Return which samples are used: those present, with a finite output and finite inputs.
+
+    The sample policy per plant (docs/nodes.md): the others are counted and
+    restart their plant's regressor, and no other plant is touched. ``y``
+    shape ``(K,)``, ``u`` ``(K,)`` or ``(K, r)``, ``present`` ``(K,)`` (None:
+    all); K plants at one time, or one plant's K samples in a row.
+    """
+    usable = np.isfinite(y) & np.isfinite(u).reshape(y.shape[0], -1).all(axis=1)
+    return usable if present is None else usable & present
 
 
 class StackedRegressors:
@@ -159,4 +175,4 @@ def held_nbytes(holder: Any) -> int:
     return sum(array.nbytes for array in arrays.values())
 
 
-__all__ = ['PlantReasons', 'StackedRegressors', 'held_nbytes']
+__all__ = ['PlantReasons', 'StackedRegressors', 'held_nbytes', 'usable_samples']

@@ -107,7 +107,7 @@ def _bcrls() -> Any:
 
 
 def _batched_bcrls() -> Any:
-    from bcid_ros.estimators.batched import BatchedBcrls
+    from bcid_ros.estimators.batched_bcrls import BatchedBcrls
     return BatchedBcrls
 
 

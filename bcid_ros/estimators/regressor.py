@@ -99,9 +99,9 @@ class ArxRegressor:
         """
         Add samples ``rows`` (``[y, u1, ..., ur]`` each, oldest first); return phi(t) of each.
 
-        The same as :meth:`push` on each row in turn, with one gather for the
-        block: the history in time order and the new rows are laid end to end,
-        where every phi(t) sits at the same offsets from its sample's row.
+        The same as :meth:`push` on each row in turn, ring included, with one
+        gather for the block: the history in time order and the new rows are laid
+        end to end, where every phi(t) sits at the same offsets from its sample's row.
 
         Returns
         -------
@@ -120,8 +120,12 @@ class ArxRegressor:
         offsets = self._gather_index(self.span) - self.span * width
         starts = np.arange(rows_kept, laid.shape[0]) * width
         phis = laid.reshape(-1)[starts[:, None] + offsets]
-        self.history[:] = laid[laid.shape[0] - rows_kept:]
-        self.position = 0
+        # the ring as push would leave it: the oldest row kept where the next one goes
+        newest = laid[laid.shape[0] - rows_kept:]
+        position = (position + rows.shape[0]) % rows_kept
+        self.history[position:] = newest[:rows_kept - position]
+        self.history[:position] = newest[rows_kept - position:]
+        self.position = position
         self.filled = min(self.filled + rows.shape[0], rows_kept)
         return phis
 

@@ -178,9 +178,9 @@ class Rls(LsAccessors, RecursiveEstimator):
     #: _ls_step checks before it commits: the cheap form of the transaction.
     _guarded_update = _update
 
-    def trusted_block_update(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
+    def _block_step(self, rows: np.ndarray) -> Callable[[float, np.ndarray], None]:
         """
-        Return the update for each row of a checked block (see the base class).
+        Return the function that takes each row of a checked block (see the base class).
 
         When the rows would go straight to the step with a filled regressor
         and chosen scales, their regressors are formed for the block at once
@@ -193,7 +193,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         before it, so a block that starts after one goes sample by sample. A
         row that raises ends the block, and its caller restarts the regressor.
         """
-        update = super().trusted_block_update(rows)
+        update = super()._block_step(rows)
         regressor = self._regressor
         if (update != self._guarded_update or self._scales_pending or not regressor.ready
                 or self._undone_in_row):
@@ -415,15 +415,8 @@ class Rls(LsAccessors, RecursiveEstimator):
             power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
             own = rules.unstable_models(self._theta()[None, :self.order], power,
                                         np.array([self._last_power]))[0]
-        note = [self._change_note] if self._change_note else []
-        self._decide_validity(note + own + list(more))
-        if (self._change_note and self._reasons == (self._change_note,)
-                and np.all(self._monitor.ready)):
-            # the new estimate passed its checks on a full window of the new plant's
-            # samples (not the short-record verdict on the samples replayed at the
-            # restart): the change is done
-            self._change_note = ''
-            self._decide_validity(own + list(more))
+        # a plant change's reason holds until the new estimate passes its checks
+        self._change_note = self._decide_validity(own + list(more), self._change_note)
         self._last_power = float(power[0])
 
     # --------------------------------------------------------- the accessors

@@ -11,12 +11,14 @@ message layouts and :func:`~bcid_ros.identifier.layouts.decode_samples` are
 from __future__ import annotations
 
 import dataclasses
-import time
-from typing import Any, Callable
+import itertools
+from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.base import all_finite
+from bcid_ros.estimators.blocks import BlockStopped, checked_rows, UpdateTimes
+from bcid_ros.estimators.plants import usable_samples
+from bcid_ros.estimators.transaction import all_finite
 from bcid_ros.identifier.layouts import decode_samples
 
 #: Fewest samples for which the vectorised excitation check beats the sample loop (measured:
@@ -116,6 +118,76 @@ def block_is_finite(rows: np.ndarray) -> bool:
     return all_finite(rows.reshape(-1))
 
 
+@dataclasses.dataclass(slots=True)
+class _Plan:
+    """
+    The per-sample rule's decisions for a block of rows, made at once, and how far it is fed.
+
+    :meth:`SampleFeeder._plan` makes it; :meth:`SampleFeeder._feed` feeds it
+    up to a row, as often as the caller needs to stop (to publish).
+    """
+
+    #: The finite rows of the block, which go to the estimator.
+    kept: np.ndarray
+    #: Index of each finite row in the block (None: all are).
+    positions: np.ndarray | None
+    #: The unchanged-input run after each finite row (None: no excitation check).
+    runs: np.ndarray | list[int] | None
+    #: Unexcited finite rows before each finite row, and in all: ``[0, ..., total]``.
+    quiet_before: list[int] | None
+    #: Whether each finite row is taken with the adaptation held (None: never).
+    held: np.ndarray | None
+    #: ``(first, stop, gap)`` over the finite rows: see :func:`_stretches`.
+    stretches: list[tuple[int, int, bool]]
+    #: The next stretch to feed, and the finite rows the estimator took.
+    stretch: int = 0
+    taken: int = 0
+    #: What the estimator raised (None: nothing; the rows after it were not fed).
+    error: Exception | None = None
+
+    def kept_before(self, end: int) -> int:
+        """Return how many of the finite rows come before row ``end`` of the block."""
+        return end if self.positions is None else int(np.searchsorted(self.positions, end))
+
+    def counts(self, begin: int, end: int) -> tuple[int, int, int]:
+        """Return ``(used, nonfinite, unexcited)`` of rows ``begin`` to ``end - 1``."""
+        first, stop = self.kept_before(begin), self.kept_before(end)
+        quiet = 0 if self.quiet_before is None else (self.quiet_before[stop]
+                                                     - self.quiet_before[first])
+        return stop - first, end - begin - (stop - first), quiet
+
+    def failed_row(self) -> int:
+        """Return the index in the block of the row whose update raised."""
+        return self.taken if self.positions is None else int(self.positions[self.taken])
+
+
+def _stretches(count: int, positions: np.ndarray | None,
+               held: np.ndarray | None) -> list[tuple[int, int, bool]]:
+    """
+    Return the stretches of the finite rows that go to the estimator in one block each.
+
+    ``count`` rows, of which those at ``positions`` are finite (None: all);
+    ``held``: whether each finite row is taken with the adaptation held (None:
+    never). A stretch ends before a skipped row and where ``held`` changes.
+    Each is ``(first, stop, gap)`` over the finite rows; ``gap``: rows were
+    skipped right before it.
+    """
+    kept = count if positions is None else positions.shape[0]
+    if not kept:
+        return []
+    if positions is None and held is None:
+        return [(0, kept, False)]
+    gaps = (np.zeros(kept, dtype=bool) if positions is None
+            else np.diff(positions, prepend=-1) > 1)
+    starts = gaps.copy()
+    starts[0] = True
+    if held is not None:
+        starts[1:] |= held[1:] != held[:-1]
+    firsts = np.flatnonzero(starts).tolist()
+    return [(first, stop, bool(gaps[first]))
+            for first, stop in zip(firsts, firsts[1:] + [kept])]
+
+
 class SampleFeeder:
     """
     Feed samples to an estimator with the identifier node's bad-sample policy.
@@ -163,9 +235,8 @@ class SampleFeeder:
         self.used = 0
         self.nonfinite = 0
         self.unexcited = 0
-        self.update_count = 0
-        self.update_ns_total = 0
-        self.update_ns_max = 0
+        #: The estimator's update times since the diagnostics last took them.
+        self.times = UpdateTimes()
         self._last_u: list[float] | None = None
         self._constant_run = 0
         self._restart_pending = False
@@ -190,24 +261,24 @@ class SampleFeeder:
         ------
         ValueError
             If a row does not have 1 + r values (nothing is fed then).
+        Exception
+            What the estimator raised (the rows after it are not fed, nothing is counted).
 
         """
         if result is None:
             result = FeedResult()
-        estimator = self.estimator
-        rows = np.asarray(rows, dtype=float)
-        if rows.ndim != 2 or rows.shape[1] != 1 + estimator.num_inputs:
-            raise ValueError(f'rows must have 1 + num_inputs = {1 + estimator.num_inputs} '
-                             f'columns, got shape {rows.shape}')
-        # The checks of estimator.update, done once for the block: the shape
-        # above, finiteness here; then each sample goes in unchecked.
-        short = self.excitation_window and rows.shape[0] < VECTOR_CHECK_MIN
-        # freeze_unexcited sets the hold sample by sample: only the checked loop does that
-        if not short and not self.freeze_unexcited and block_is_finite(rows):
-            (used, unexcited), nonfinite = self._feed_finite(rows), 0
-        else:
-            finite = np.isfinite(rows).all(axis=1).tolist()
-            used, nonfinite, unexcited = self._feed_checked(rows, finite)
+        rows = checked_rows(rows, self.estimator.num_inputs)
+        plan = self._plan(rows)
+        self._feed(plan, rows.shape[0], self.times)
+        self._end(plan, rows.shape[0])
+        if plan.error is not None:
+            raise plan.error
+        self._count(plan.counts(0, rows.shape[0]), result)
+        return result
+
+    def _count(self, counts: tuple[int, int, int], result: FeedResult | BlockResult) -> None:
+        """Add ``(used, nonfinite, unexcited)`` to the totals and to ``result``."""
+        used, nonfinite, unexcited = counts
         self.used += used
         self.nonfinite += nonfinite
         self.unexcited += unexcited
@@ -215,52 +286,99 @@ class SampleFeeder:
         result.used += used
         result.nonfinite += nonfinite
         result.unexcited += unexcited
-        return result
 
-    def _feed_finite(self, rows: np.ndarray) -> tuple[int, int]:
-        """Feed rows known to be finite; return (used, unexcited)."""
-        total_rows = rows.shape[0]
-        if not total_rows:
-            return 0, 0
-        inputs = rows[:, 1:]
-        runs = self._constant_runs(inputs)
-        estimator = self.estimator
-        clock = time.perf_counter_ns
-        count = total = 0
-        largest = self.update_ns_max
-        try:
-            if self._restart_pending:
-                estimator.restart_regressor()
-                self._restart_pending = False
-            update = estimator.trusted_block_update(rows)
-            for y, u in zip(rows[:, 0].tolist(), inputs):
-                start = clock()
-                update(y, u)
-                elapsed = clock() - start
-                count += 1
-                total += elapsed
-                if elapsed > largest:
-                    largest = elapsed
-        finally:
-            self.update_count += count
-            self.update_ns_total += total
-            self.update_ns_max = largest
-            if runs is not None:  # the check of a failing sample came before its update
-                self._keep_run(runs, inputs, min(count, total_rows - 1))
-        unexcited = 0 if runs is None else int(np.count_nonzero(runs >= self.excitation_window))
-        return count, unexcited
-
-    def _constant_runs(self, inputs: np.ndarray) -> np.ndarray | None:
+    def _plan(self, rows: np.ndarray) -> _Plan:
         """
-        Return the unchanged-input run after each of these finite samples (None without a window).
+        Decide the per-sample rule for a block of rows at once (vectorised).
 
-        The excitation check of :meth:`_feed_checked` for a whole block: the
-        run grows by one for a sample whose input equals the previous one and
-        is 0 otherwise; a sample is unexcited when its run reaches the window.
+        A row with NaN or Inf is skipped and restarts the regressor before the
+        next one; the excitation check runs on the rows used and, with
+        ``freeze_unexcited``, holds the adaptation from the row whose run
+        reaches the window. The rows between those events are stretches,
+        each one :meth:`update_block` of the estimator (see :meth:`_feed`).
+        """
+        finite = None if block_is_finite(rows) else usable_samples(rows[:, 0], rows[:, 1:])
+        kept = rows if finite is None else rows[finite]
+        positions = None if finite is None else np.flatnonzero(finite)
+        runs = self._constant_runs(kept[:, 1:])
+        quiet = held = quiet_before = None
+        if runs is not None:
+            window = self.excitation_window
+            if isinstance(runs, list):  # a few rows: in Python, cheaper than numpy's calls
+                quiet = [run >= window for run in runs]
+                quiet_before = list(itertools.accumulate(quiet, initial=0))
+            else:
+                quiet = runs >= window
+                quiet_before = [0, *np.cumsum(quiet).tolist()]
+            held = np.asarray(quiet) if self.freeze_unexcited else None
+        return _Plan(kept, positions, runs, quiet_before, held,
+                     _stretches(rows.shape[0], positions, held))
+
+    def _feed(self, plan: _Plan, end: int, times: UpdateTimes | None) -> bool:
+        """
+        Feed the planned rows before row ``end`` of the block; return False if one raised.
+
+        The one loop of the feeder: each stretch (or the part of one before
+        ``end``) is one :meth:`update_block` of the estimator, whose estimate
+        is that of the rows one by one. It stops at the first row whose
+        update raises (``plan.error``). ``times``: time the updates (None:
+        count them only).
+        """
+        estimator, kept, stretches = self.estimator, plan.kept, plan.stretches
+        stop_kept = plan.kept_before(end)
+        try:
+            while plan.stretch < len(stretches) and plan.taken < stop_kept:
+                first, stop, gap = stretches[plan.stretch]
+                if plan.taken == first:
+                    if gap:
+                        self._restart_pending = True
+                    if plan.held is not None:
+                        estimator.excitation_hold = bool(plan.held[first])
+                if self._restart_pending:
+                    estimator.restart_regressor()
+                    self._restart_pending = False
+                last = min(stop, stop_kept)
+                taken = estimator.update_block(kept[plan.taken:last], times)
+                if times is None:
+                    self.times.add(taken)
+                plan.taken += taken
+                if plan.taken == stop:
+                    plan.stretch += 1
+        except BlockStopped as stopped:
+            plan.taken += stopped.taken
+            if times is None:
+                self.times.add(stopped.taken)
+            plan.error = stopped.error
+            return False
+        return True
+
+    def _end(self, plan: _Plan, rows: int) -> None:
+        """Keep the excitation state and a pending restart after a plan of ``rows`` rows."""
+        kept, positions = plan.kept.shape[0], plan.positions
+        if plan.error is None and positions is not None and (
+                not kept or positions[-1] < rows - 1):
+            self._restart_pending = True  # rows skipped at the end
+        if plan.runs is not None and kept:  # a failing row's check came before its update
+            self._keep_run(plan.runs, plan.kept[:, 1:], min(plan.taken, kept - 1))
+
+    def _constant_runs(self, inputs: np.ndarray) -> np.ndarray | list[int] | None:
+        """
+        Return the unchanged-input run after each of these samples (None without a window).
+
+        The run grows by one for a sample whose input equals the previous one
+        and is 0 otherwise; a sample is unexcited when its run reaches the
+        window. Sample by sample for a few samples (a list: cheaper than the
+        vectorised form under ``VECTOR_CHECK_MIN``), vectorised for more.
         """
         if not self.excitation_window:
             return None
         count = inputs.shape[0]
+        if count < VECTOR_CHECK_MIN:
+            last, run, runs = self._last_u, self._constant_run, []
+            for u in inputs.tolist():
+                run, last = (run + 1, last) if u == last else (0, u)
+                runs.append(run)
+            return runs
         first_same = self._last_u is not None and inputs[0].tolist() == self._last_u
         changes = inputs[1:] != inputs[:-1]
         if changes.all():  # every input differs from the one before: no run past sample 0
@@ -278,46 +396,6 @@ class SampleFeeder:
         """Keep the excitation state after sample ``last`` of a block (see _constant_runs)."""
         self._constant_run = int(runs[last])
         self._last_u = inputs[last].tolist()
-
-    def _feed_checked(self, rows: np.ndarray, finite: list[bool]) -> tuple[int, int, int]:
-        """Feed rows with NaN/Inf skipping and the excitation check; return the counts."""
-        estimator = self.estimator
-        used = nonfinite = unexcited = 0
-        clock = time.perf_counter_ns
-        window = self.excitation_window
-        outputs = rows[:, 0].tolist()
-        inputs = rows[:, 1:]
-        input_lists = inputs.tolist() if window else None
-        update = estimator.update_trusted
-        for k, y in enumerate(outputs):
-            if not finite[k]:
-                nonfinite += 1
-                self._restart_pending = True
-                continue
-            if window:
-                u = input_lists[k]
-                if u == self._last_u:
-                    self._constant_run += 1
-                    if self._constant_run >= window:
-                        unexcited += 1
-                else:
-                    self._constant_run = 0
-                    self._last_u = u
-                # --- freeze_unexcited: hold the adaptation while the input is constant
-                if self.freeze_unexcited:
-                    estimator.excitation_hold = self._constant_run >= window
-            if self._restart_pending:
-                estimator.restart_regressor()
-                self._restart_pending = False
-            start = clock()
-            update(y, inputs[k])
-            elapsed = clock() - start
-            self.update_count += 1
-            self.update_ns_total += elapsed
-            if elapsed > self.update_ns_max:
-                self.update_ns_max = elapsed
-            used += 1
-        return used, nonfinite, unexcited
 
     def take_message(self, message: Any) -> FeedResult:
         """
@@ -396,143 +474,36 @@ class SampleFeeder:
             raise ValueError(f'rows must be whole messages of count = {count} samples of '
                              f'1 + num_inputs = {width} values, got shape {rows.shape}')
         result = BlockResult()
-        if not self.freeze_unexcited and block_is_finite(rows):
-            self._take_finite(rows, count, publish, result, timed)
-        else:
-            self._take_each(rows, count, publish, result)
-        return result
-
-    def _take_each(self, rows: np.ndarray, count: int, publish: bool,
-                   result: BlockResult) -> None:
-        """Feed message by message through :meth:`feed` (for blocks with samples to skip)."""
-        for index in range(rows.shape[0] // count):
-            fed = FeedResult()
-            try:
-                self.feed(rows[index * count:(index + 1) * count], fed)
-            except Exception as error:  # as in take_rows
-                self.gap()
-                result.failures.append((index, repr(error)))
-                continue
-            result.used += fed.used
-            result.nonfinite += fed.nonfinite
-            result.unexcited += fed.unexcited
-            if publish and self._due():
-                self._collect(result, index)
-
-    def _take_finite(self, rows: np.ndarray, count: int, publish: bool,
-                     result: BlockResult, timed: bool = True) -> None:
-        """Feed finite samples: one loop over the samples, the excitation check vectorised."""
         messages = rows.shape[0] // count
-        updates = total = 0
-        largest = self.update_ns_max
+        times = self.times if timed else None
         first = 0
-        try:
-            while first < messages:
-                # Until an update fails, from message ``first`` on; then again after it.
-                first, done, elapsed = self._take_finite_from(rows, count, first, publish,
-                                                              result, largest, timed)
-                updates += done
-                total += elapsed[0]
-                largest = elapsed[1]
-        finally:
-            self.update_count += updates
-            self.update_ns_total += total
-            self.update_ns_max = largest
-
-    def _take_finite_from(self, rows: np.ndarray, count: int, first: int, publish: bool,
-                          result: BlockResult, largest: int, timed: bool = True
-                          ) -> tuple[int, int, tuple[int, int]]:
-        """
-        Feed messages from ``first`` on until one fails or all are done.
-
-        Without ``publish`` nothing happens between messages, so the samples
-        of all go through one loop. Returns the message to go on from, the
-        updates made and their ``(total, largest)`` time in ns.
-        """
-        estimator = self.estimator
-        period = self.publish_period
-        window = self.excitation_window
-        inputs = rows[first * count:, 1:]
-        runs = self._constant_runs(inputs)
-        unexcited = (None if runs is None else
-                     np.count_nonzero((runs >= window).reshape(-1, count), axis=1).tolist())
-        outputs = rows[first * count:, 0].tolist()
-        input_rows = list(inputs)
-        messages = len(outputs) // count
-        if self._restart_pending:  # only a failure sets it, and a failure ends this call
-            estimator.restart_regressor()
-            self._restart_pending = False
-        update = estimator.trusted_block_update(rows[first * count:])
-        updates = total = sample = 0
-        failed = None
-        for index in range(messages if publish else 1):
-            stop = sample + count if publish else len(outputs)
-            done, elapsed, largest, error = self._run_updates(update, outputs, input_rows, sample,
-                                                              stop, timed, largest)
-            updates += done
-            total += elapsed
-            sample += done
-            if publish:
-                whole, start = (1 if error is None else 0), index
-            else:
-                whole, start = (messages if error is None else sample // count), 0
-            self._count_messages(whole, count, unexcited, start, result)
-            if error is not None:  # as in take_rows: drop the rest, restart
-                failed = sample // count
-                self._restart_pending = True
-                result.failures.append((first + failed, repr(error)))
+        while first < messages:
+            # the rule for the messages from ``first`` on, decided at once (again after a
+            # failure: the rows it drops are not checked either)
+            plan = self._plan(rows[first * count:])
+            span = messages - first
+            done = 0
+            while done < span:
+                # up to the first message after which estimates may be due (samples
+                # skipped for NaN only put that later: the check then says not yet)
+                stop = span if not publish else min(span, done + max(
+                    1, -(-(self.publish_period - self.since_publish) // count)))
+                if not self._feed(plan, stop * count, times):
+                    break
+                self._count(plan.counts(done * count, stop * count), result)
+                if publish and self._due():
+                    self._collect(result, first + stop - 1)
+                done = stop
+            self._end(plan, span * count)
+            if plan.error is None:
                 break
-            if publish and self.since_publish >= period and estimator.ready:
-                self._collect(result, first + index)
-        if runs is not None:
-            self._keep_run(runs, inputs, min(sample, len(outputs) - 1))
-        following = first + messages if failed is None else first + failed + 1
-        return following, updates, (total, largest)
-
-    def _count_messages(self, messages: int, count: int, unexcited: list[int] | None,
-                        start: int, result: BlockResult) -> None:
-        """Count ``messages`` whole messages of ``count`` samples from ``start`` on as used."""
-        if messages <= 0:
-            return
-        used = messages * count
-        self.used += used
-        self.since_publish += used
-        result.used += used
-        if unexcited is not None:
-            quiet = sum(unexcited[start:start + messages])
-            self.unexcited += quiet
-            result.unexcited += quiet
-
-    @staticmethod
-    def _run_updates(update: Callable[[float, np.ndarray], None], outputs: list[float],
-                     inputs: list[np.ndarray], begin: int, end: int, timed: bool,
-                     largest: int) -> tuple[int, int, int, Exception | None]:
-        """
-        Update on samples ``begin`` to ``end - 1`` with ``update``; stop at the first that raises.
-
-        ``update`` is the estimator's ``trusted_block_update`` of the block.
-        Returns the updates made, their total and largest time in ns (0 and
-        ``largest`` unless ``timed``), and the exception (None if none).
-        """
-        sample, total = begin, 0
-        try:
-            if timed:
-                clock = time.perf_counter_ns
-                while sample < end:
-                    start = clock()
-                    update(outputs[sample], inputs[sample])
-                    elapsed = clock() - start
-                    total += elapsed
-                    if elapsed > largest:
-                        largest = elapsed
-                    sample += 1
-            else:
-                for sample in range(begin, end):
-                    update(outputs[sample], inputs[sample])
-                sample = end
-        except Exception as error:  # the caller drops the rest and restarts
-            return sample - begin, total, largest, error
-        return sample - begin, total, largest, None
+            # as in take_rows: the failing message is dropped, the regressor restarts
+            failed = plan.failed_row() // count
+            self._count(plan.counts(done * count, failed * count), result)
+            self.gap()
+            result.failures.append((first + failed, repr(plan.error)))
+            first += failed + 1
+        return result
 
     def _collect(self, result: BlockResult, index: int) -> None:
         """Add the estimates due after message ``index`` to ``result`` (or count them withheld)."""
@@ -589,13 +560,7 @@ class SampleFeeder:
 
     def take_update_times(self) -> tuple[int, float, float]:
         """Return ``(updates, mean µs, max µs)`` since the last call, and start over."""
-        count = self.update_count
-        mean = self.update_ns_total / count / 1e3 if count else 0.0
-        largest = self.update_ns_max / 1e3
-        self.update_count = 0
-        self.update_ns_total = 0
-        self.update_ns_max = 0
-        return count, mean, largest
+        return self.times.take()
 
     @property
     def excitation_lost(self) -> bool:

@@ -25,6 +25,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from bcid_ros.estimators.blocks import UpdateTimes
+from bcid_ros.estimators.plants import usable_samples
 from bcid_ros.identifier.interface import JOINT_STATES
 from bcid_ros.identifier.joint_demux import JointStateDemux
 
@@ -167,9 +169,8 @@ class JointFeeder:
         #: Totals over all joints since construction (a reset keeps them).
         self.used = 0
         self.estimator_errors = 0
-        self.update_count = 0
-        self.update_ns_total = 0
-        self.update_ns_max = 0
+        #: The batched update's times since the diagnostics last took them.
+        self.times = UpdateTimes()
         self._valid = np.zeros(count, dtype=bool)
         self._last_u = np.full(count, np.nan)
         self._constant_run = np.zeros(count, dtype=np.int64)
@@ -193,7 +194,7 @@ class JointFeeder:
         demux = self.demux
         samples = demux.take(message)
         present = samples.present
-        usable = present & np.isfinite(samples.y) & np.isfinite(samples.u)
+        usable = usable_samples(samples.y, samples.u, present)
         present_count, used = int(present.sum()), int(usable.sum())
         result = JointFeedResult(missing=len(self.joints) - present_count,
                                  nonfinite=present_count - used)
@@ -213,9 +214,7 @@ class JointFeeder:
             result.dropped, result.reason = 'estimator_errors', repr(error)
             return result
         elapsed = time.perf_counter_ns() - start
-        self.update_count += 1
-        self.update_ns_total += elapsed
-        self.update_ns_max = max(self.update_ns_max, elapsed)
+        self.times.add(1, elapsed, elapsed)
         self.used += used
         result.used = used
         self.since_publish += usable
@@ -277,11 +276,7 @@ class JointFeeder:
 
     def take_update_times(self) -> tuple[int, float, float]:
         """Return ``(updates, mean µs, max µs)`` of the batched update since the last call."""
-        count = self.update_count
-        mean = self.update_ns_total / count / 1e3 if count else 0.0
-        largest = self.update_ns_max / 1e3
-        self.update_count = self.update_ns_total = self.update_ns_max = 0
-        return count, mean, largest
+        return self.times.take()
 
     @property
     def valid(self) -> np.ndarray:

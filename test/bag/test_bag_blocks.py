@@ -18,13 +18,14 @@ from mcap.writer import CompressionType, IndexType, Writer
 from mcap_ros2.decoder import DecoderFactory
 import numpy as np
 import pytest
+from recording_estimator import BlockRecorder
 
 from bcid_ros.bag.reader import BagReader
 from bcid_ros.bag.replay import replay
 from bcid_ros.bag.simulate import simulate_bag
 from bcid_ros.bag.writer import BagWriter, float64_multi_array
 from bcid_ros.cli import main as bcid
-from bcid_ros.identifier.feeder import SampleFeeder
+from bcid_ros.identifier.feeder import SampleFeeder, VECTOR_CHECK_MIN
 from bcid_ros.identifier.layouts import samples_layout
 from bcid_ros.identifier.parameters import estimator_from_parameters, load_yaml_parameters
 from bcid_ros.simulation import make_scenario
@@ -285,7 +286,7 @@ def test_a_corrupt_message_index_is_a_clean_error(bag, tmp_path):
 
 
 # ------------------------------------------------------------------ take_messages
-class Recorder:
+class Recorder(BlockRecorder):
     """Records updates and restarts; raises on ``fail_on``; NaN estimates at ``nan_at``."""
 
     num_inputs = 1
@@ -314,16 +315,6 @@ class Recorder:
     def noise(self):
         """Return a constant."""
         return np.array([0.5])
-
-    def update_trusted(self, y, u):
-        """Record an update (or raise on the chosen y)."""
-        if y in self.fail_on:
-            raise FloatingPointError('boom')
-        self.log.append(y)
-
-    def trusted_block_update(self, rows):
-        """Return the per-row update of a checked block."""
-        return self.update_trusted
 
     def restart_regressor(self):
         """Record a restart."""
@@ -362,8 +353,9 @@ def test_take_messages_equals_take_rows_message_by_message(count, period, window
     assert result.withheld == expected[1]
     assert [index for index, _ in result.failures] == expected[2]
     assert all('boom' in reason for _, reason in result.failures)
-    for name in ('used', 'nonfinite', 'unexcited', 'since_publish', 'update_count'):
+    for name in ('used', 'nonfinite', 'unexcited', 'since_publish'):
         assert getattr(block, name) == getattr(one, name), name
+    assert block.times.count == one.times.count
     assert result.used == one.used and result.nonfinite == one.nonfinite
 
 
@@ -382,12 +374,13 @@ def test_take_messages_without_publishing_feeds_as_message_by_message(count, win
     assert block.estimator.log == one.estimator.log
     assert result.published == [] and result.estimates == []
     assert [index for index, _ in result.failures] == expected[2] and result.failures
-    for name in ('used', 'nonfinite', 'unexcited', 'update_count'):
+    for name in ('used', 'nonfinite', 'unexcited'):
         assert getattr(block, name) == getattr(one, name), name
+    assert block.times.count == one.times.count
     assert result.used == one.used and result.unexcited == one.unexcited
     assert block.since_publish == block.used  # nothing was published
     if nan_row is None:  # a block with NaN goes message by message, timed
-        assert block.update_ns_total == 0  # counted, not timed
+        assert block.times.total_ns == 0  # counted, not timed
 
 
 def test_take_messages_checks_the_shape():
@@ -415,31 +408,39 @@ def test_take_messages_is_bit_equal_to_the_node_path(estimator):
                                       np.array(thetas))
 
 
+def excitation_by_the_rule(parts, window):
+    """Return (run, last input, unexcited) after each part, by the rule sample by sample."""
+    run, last, states = 0, None, []
+    for part in parts:
+        unexcited = 0
+        for u in part[:, 1:].tolist():
+            run, last = (run + 1, last) if u == last else (0, u)
+            unexcited += run >= window
+        states.append((run, last, unexcited))
+    return states
+
+
 @pytest.mark.parametrize('window', [1, 3, 8])
-def test_vectorised_excitation_check_equals_the_sample_loop(window):
-    # Inputs that stay constant for runs of random length, fed in blocks of random size.
+def test_the_excitation_check_of_a_block_follows_the_sample_rule(window):
+    # Inputs that stay constant for runs of random length, fed in blocks of random size
+    # (under VECTOR_CHECK_MIN rows sample by sample, from it vectorised).
     generator = np.random.default_rng(4)
     inputs = np.repeat(generator.normal(size=40), generator.integers(1, 12, size=40))
     rows = np.column_stack([np.arange(inputs.shape[0], dtype=float), inputs])
     cuts = np.sort(generator.choice(np.arange(1, rows.shape[0]), 15, replace=False))
-    vectorised = SampleFeeder(Recorder(fail_on={30.0, 31.0, 100.0}), window)
-    looped = SampleFeeder(Recorder(fail_on={30.0, 31.0, 100.0}), window)
-    for part in np.split(rows, cuts):
+    parts = np.split(rows, cuts)
+    assert min(map(len, parts)) < VECTOR_CHECK_MIN <= max(map(len, parts))
+    feeder = SampleFeeder(Recorder(), window)
+    fed = [(feeder.feed(part).unexcited, feeder._constant_run, feeder._last_u)
+           for part in parts]
+    expected = excitation_by_the_rule(parts, window)
+    assert fed == [(unexcited, run, last) for run, last, unexcited in expected]
+    assert sum(unexcited for unexcited, _, _ in fed) > 0
+    # a failing row's check comes before its update: the state after it is kept
+    failing = SampleFeeder(Recorder(fail_on={30.0, 31.0, 100.0}), window)
+    for part in parts:
         try:
-            vectorised.feed(part)
+            failing.feed(part)
         except FloatingPointError:
             pass
-        try:
-            looped._feed_checked(part, [True] * part.shape[0])
-        except FloatingPointError:
-            pass
-        assert (vectorised._constant_run, vectorised._last_u) == (
-            looped._constant_run, looped._last_u)
-        assert vectorised.excitation_lost == looped.excitation_lost
-    assert vectorised.estimator.log == looped.estimator.log
-    again_vectorised = SampleFeeder(Recorder(), window)
-    again_looped = SampleFeeder(Recorder(), window)
-    counted = [again_vectorised.feed(part).unexcited for part in np.split(rows, cuts)]
-    looped_counts = [again_looped._feed_checked(part, [True] * part.shape[0])[2]
-                     for part in np.split(rows, cuts)]
-    assert counted == looped_counts and sum(counted) > 0
+    assert (failing._constant_run, failing._last_u) == expected[-1][:2]

@@ -6,7 +6,8 @@ from scipy import signal
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators import make_batched_estimator
-from bcid_ros.estimators.batched import BatchedBcrls, BatchedRls
+from bcid_ros.estimators.batched import BatchedRls
+from bcid_ros.estimators.batched_bcrls import BatchedBcrls
 from equivalence import assert_paths_agree, rounding_spread
 
 # Stable second-order plants (a1, a2, b1, b2), one per row: different poles and gains.

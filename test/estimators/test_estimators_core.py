@@ -10,6 +10,7 @@ from scipy import signal
 from bcid_ros.estimators import estimator_class, make_estimator, parameter_names, rules
 from bcid_ros.estimators.adequacy import SHORT_MINIMUM
 from bcid_ros.estimators.bcrls import bcls_fixed_point
+from bcid_ros.estimators.blocks import BlockStopped
 from bcid_ros.estimators.recursion import innovation, ls_step, repair_covariance
 from bcid_ros.estimators.regressor import ArxRegressor
 from bcid_ros.estimators.rls import ls_batch
@@ -429,15 +430,53 @@ def test_repr_is_one_line():
 
 
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
-def test_update_trusted_equals_update(name):
+def test_update_block_equals_update(name):
     y, u, _ = ding_data(500)
+    rows = np.column_stack([y, u])
     checked = make_estimator(name, order=2, num_inputs=2)
-    trusted = make_estimator(name, order=2, num_inputs=2)
+    blocks = make_estimator(name, order=2, num_inputs=2)
     for t in range(500):
         checked.update(y[t], u[t])
-        trusted.update_trusted(float(y[t]), u[t])
-    np.testing.assert_array_equal(checked.theta, trusted.theta)
-    np.testing.assert_array_equal(checked.noise, trusted.noise)
+    taken = [blocks.update_block(rows[first:first + 37]) for first in range(0, 500, 37)]
+    assert sum(taken) == 500
+    np.testing.assert_array_equal(checked.theta, blocks.theta)
+    np.testing.assert_array_equal(checked.noise, blocks.noise)
+
+
+@pytest.mark.parametrize('bad', [np.nan, np.inf])
+def test_update_block_refuses_a_block_with_nan_or_inf_and_takes_nothing(bad):
+    y, u, _ = ding_data(50)
+    rows = np.column_stack([y, u])
+    est = make_estimator('rls', order=2, num_inputs=2)
+    est.update_block(rows[:20])
+    before = est.get_state()
+    spoiled = rows[20:].copy()
+    spoiled[7, 1] = bad
+    with pytest.raises(ValueError, match='NaN or Inf'):
+        est.update_block(spoiled)
+    with pytest.raises(ValueError, match='1 \\+ num_inputs = 3'):
+        est.update_block(rows[20:, :2])
+    after = est.get_state()
+    for key, value in before.arrays.items():
+        np.testing.assert_array_equal(value, after.arrays[key])
+
+
+def test_a_row_that_raises_ends_the_block_and_says_how_many_were_taken():
+    y, u, _ = ding_data(50)
+    est = make_estimator('rls', order=2, num_inputs=2)
+    calls = []
+
+    def failing(y, u):
+        calls.append(y)
+        if len(calls) == 8:
+            raise RuntimeError('broken')
+
+    est._block_step = lambda rows: failing
+    with pytest.raises(BlockStopped) as stopped:
+        est.update_block(np.column_stack([y, u]))
+    assert stopped.value.taken == 7
+    assert isinstance(stopped.value.error, RuntimeError)
+    assert stopped.value.__cause__ is stopped.value.error
 
 
 def test_the_rls_step_functions_are_the_textbook_step():

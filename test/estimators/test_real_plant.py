@@ -212,14 +212,14 @@ def test_not_centred_data_are_reported():
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
 def test_blocks_fed_with_the_monitor_equal_sample_by_sample(name):
     # SampleFeeder hands the centring monitor a block's rows at once
-    # (trusted_block_update): the same monitor state and estimate as sample by sample.
+    # (update_block): the same monitor state and estimate as sample by sample.
     y, u = offset_plant(1).simulate(3000, 7)
     rows = np.column_stack([y, u])
     single, fed = make_estimator(name, order=2), make_estimator(name, order=2)
     single.monitor_centring()
     fed.monitor_centring()
     for k in range(len(y)):
-        single.update_trusted(float(y[k]), rows[k, 1:])
+        single.update(float(y[k]), rows[k, 1:])
     feeder, start = SampleFeeder(fed), 0
     for size in [1, 5, 15, 16, 17, 31, 33, 100, 7] * 20:
         feeder.feed(rows[start:start + size])
@@ -253,7 +253,7 @@ def test_blocks_with_refused_samples_equal_sample_by_sample(name, case, block):
     single, fed = (make_estimator(name, order=2, num_inputs=2, outlier_threshold=5.0)
                    for _ in range(2))
     for k in range(len(y)):
-        single.update_trusted(float(y[k]), rows[k, 1:])
+        single.update(float(y[k]), rows[k, 1:])
     feeder, start = SampleFeeder(fed), 0
     while start < len(y):
         feeder.feed(rows[start:start + block])

@@ -1,5 +1,5 @@
 """
-The simulation check wired through base.py: rls, bcrls and rpem (and the batched forms).
+The simulation check wired through validity.py: rls, bcrls and rpem (and the batched forms).
 
 Each estimator keeps a window and the base class judges it (docs/trust.md). A model left
 behind by a plant whose gain drifts by half over the record (lambda = 1: the estimate

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.base import all_finite
+from bcid_ros.estimators.transaction import all_finite
 from bcid_ros.estimators.bciv import Bciv
 from bcid_ros.estimators.cl_bcls import running_ls, update_is_safe
 from bcid_ros.simulation import make_scenario

@@ -1,4 +1,4 @@
-"""`valid` has one home (base.py): every registered estimator, one plant and K, decides there."""
+"""`valid` has one home (validity.py): every registered estimator, one plant and K, decides it."""
 
 import inspect
 
@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from registry_cases import BATCHED_NAMES, data, make, NAMES
 
-from bcid_ros.estimators import base, make_batched_estimator
-from bcid_ros.estimators.base import decided_reasons
+from bcid_ros.estimators import make_batched_estimator, validity
 from bcid_ros.estimators.registry import batched_class, estimator_class
 
 
@@ -21,9 +20,9 @@ def registered_classes():
 def test_no_estimator_decides_valid_itself():
     for cls in registered_classes():
         for owner in inspect.getmro(cls):
-            if owner.__module__ == base.__name__ or owner is object:
+            if owner.__module__ == validity.__name__ or owner is object:
                 continue
-            # the decision and its reasons live in base.py; an estimator gives its own reasons
+            # the decision and its reasons live in validity.py; an estimator gives its own reasons
             assert not {'valid', 'validity_reasons', '_validity_reasons'} & set(vars(owner)), (
                 f'{owner.__module__}.{owner.__name__} decides valid itself')
 
@@ -56,7 +55,7 @@ def test_the_decision_joins_the_estimators_reasons_to_the_shared_ones(name):
     before = est.get_state()
     est._decide_validity(['an own reason'])
     # its reasons first, then the residual tests' (for an estimator that keeps them)
-    expected = tuple(decided_reasons(['an own reason'], est._monitor))
+    expected = tuple(validity.decided_reasons(['an own reason'], est._monitor))
     assert est.validity_reasons[:len(expected)] == expected
     assert not est.valid
     after = est.get_state()
@@ -80,3 +79,35 @@ def test_many_plants_decide_as_one(name):
     np.testing.assert_array_equal(batched.valid, batched.ready & [
         not batched.plant_validity_reasons(k) for k in range(2)])
     assert not batched.valid[1]
+
+
+class ShortRecordMonitor:
+    """The residual tests of one plant or K, ready or judging a short record with no reason."""
+
+    def __init__(self, ready):
+        self.ready = ready
+        self.reasons = []
+
+    def short_reasons(self, plant=None):
+        return ()
+
+    def reasons_of(self, plant):
+        return []
+
+
+@pytest.mark.parametrize('plant', [None, 1])
+def test_a_plant_change_holds_until_the_tests_are_ready_on_new_samples_with_nothing_else(plant):
+    change = 'plant changed (sample 4001)'
+    ready = [True, True] if plant is not None else True
+    waiting = [True, False] if plant is not None else False
+    # a short-record verdict with no reason does not end the change: the tests are not ready
+    assert validity.decided_after_change([], change, ShortRecordMonitor(waiting), plant) == (
+        [change], change)
+    # another reason keeps it too, first among them
+    assert validity.decided_after_change(['unstable model'], change, ShortRecordMonitor(ready),
+                                         plant) == ([change, 'unstable model'], change)
+    # ready again and nothing else wrong: the change is done, and so is its reason
+    assert validity.decided_after_change([], change, ShortRecordMonitor(ready), plant) == (
+        [], '')
+    assert validity.decided_after_change(['unstable model'], '', ShortRecordMonitor(ready),
+                                         plant) == (['unstable model'], '')

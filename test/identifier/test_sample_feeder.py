@@ -8,6 +8,7 @@ that feeding a block at once equals feeding it message by message.
 from types import SimpleNamespace
 
 import numpy as np
+from recording_estimator import BlockRecorder
 
 from bcid_ros.identifier.feeder import FeedResult, SampleFeeder
 from bcid_ros.identifier.layouts import samples_layout
@@ -15,7 +16,7 @@ from bcid_ros.identifier.parameters import estimator_from_parameters
 from bcid_ros.simulation import make_scenario
 
 
-class RecordingEstimator:
+class RecordingEstimator(BlockRecorder):
     """Records updates and restarts; valid after ``valid_after`` updates."""
 
     num_inputs = 1
@@ -23,7 +24,7 @@ class RecordingEstimator:
     def __init__(self, valid_after=2, fail_on=None):
         self.log = []
         self.valid_after = valid_after
-        self.fail_on = fail_on
+        self.fail_on = set() if fail_on is None else {fail_on}
         self.theta = np.array([1.0, 2.0])
         self.theta_uncompensated = np.array([1.5, 2.5])
         self.noise = np.array([0.1])
@@ -34,16 +35,6 @@ class RecordingEstimator:
         return sum(1 for entry in self.log if entry != 'restart') >= self.valid_after
 
     valid = ready
-
-    def update_trusted(self, y, u):
-        """Record an update (or raise on the chosen y)."""
-        if y == self.fail_on:
-            raise FloatingPointError('boom')
-        self.log.append(y)
-
-    def trusted_block_update(self, rows):
-        """Return the per-row update of a checked block."""
-        return self.update_trusted
 
     def restart_regressor(self):
         """Record a restart."""

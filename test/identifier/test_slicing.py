@@ -107,10 +107,9 @@ def test_an_estimator_error_drops_the_rest_of_the_frame_as_take_rows_does():
 
     for item in (whole, sliced_feeder):
         calls['count'] = 0
-        item.estimator.update_trusted = failing(item.estimator.update_trusted)
-        original_block = item.estimator.trusted_block_update
-        item.estimator.trusted_block_update = \
-            lambda rows, original_block=original_block: failing(original_block(rows))
+        original_step = item.estimator._block_step  # the function update_block calls per row
+        item.estimator._block_step = \
+            lambda rows, original_step=original_step: failing(original_step(rows))
         if item is whole:
             expected = item.take_message(frame(rows))
         else:

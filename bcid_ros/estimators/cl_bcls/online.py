@@ -16,7 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.base import all_finite, check_forgetting_factor, RecursiveEstimator
+from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.cl_bcls.batch import DEFAULT_TOLERANCE
 from bcid_ros.estimators.cl_bcls.compensation import (Compensation, MIN_DISCRIMINANT_RATIO,
                                                       MIN_EXCITATION_RATIO, model_reasons)
@@ -30,6 +30,8 @@ from bcid_ros.estimators.cl_bcls.window import window_lengths, WindowMemory
 from bcid_ros.estimators.lti import make_controller
 from bcid_ros.estimators.moment_covariance import MomentBlocks
 from bcid_ros.estimators.settings import CL_BCLS_OPTIONS, option
+from bcid_ros.estimators.shared_settings import check_forgetting_factor
+from bcid_ros.estimators.transaction import all_finite
 
 #: Default ``window``: 0, every sample since the last controller change (recursive moments).
 DEFAULT_WINDOW = 0

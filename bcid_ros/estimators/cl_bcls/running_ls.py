@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.base import all_finite
 from bcid_ros.estimators.lti import controller_canonical
 from bcid_ros.estimators.recursion import (Forgetting, ls_step, repair_covariance,
                                            VARIANCE_FLOOR)
+from bcid_ros.estimators.transaction import all_finite
 
 #: The all-data memory forgets without anti-windup: its P is bounded by the redesigns.
 FORGETTING = Forgetting(math.inf)

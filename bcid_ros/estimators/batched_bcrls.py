@@ -1,0 +1,171 @@
+"""
+BCRLS over many plants of one structure: the batched LS part and the compensation per plant.
+
+The LS part, the sample policy and the per-plant bookkeeping are
+:class:`~bcid_ros.estimators.batched.BatchedRls`'s; this adds the bias
+compensation of :class:`~bcid_ros.estimators.bcrls.Bcrls` by its batched twin
+:func:`~bcid_ros.estimators.bcrls.compensate_rows`, with the same safeguards,
+validity and sandwich covariance per plant.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from bcid_ros.estimators.adequacy import AdequacyMonitor
+from bcid_ros.estimators.base import weighted_square_ratio
+from bcid_ros.estimators.batched import BatchedRls, Rows
+from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
+                                       gradient_covariances, LaggedMoments,
+                                       output_error_rows, output_gradient)
+
+
+class BatchedBcrls(BatchedRls):
+    r"""
+    K independent BCRLS estimators of one structure, updated together.
+
+    The LS part is :class:`BatchedRls`; after each plant's LS step comes the
+    compensation of :class:`~bcid_ros.estimators.bcrls.Bcrls`, eqs. (51) and
+    (46) with :math:`\Lambda = \mathrm{diag}(I_n, 0)`, by its batched twin
+    :func:`~bcid_ros.estimators.bcrls.compensate_rows`, with the same
+    safeguards (``sigma2_denominator``, ``compensation_reset``), the same
+    validity (:func:`~bcid_ros.estimators.bcrls.compensation_problems`) and
+    the same sandwich covariance (:class:`~bcid_ros.estimators.bcrls.LaggedMoments`),
+    per plant. See :class:`BatchedRls` for the parameters and the sample policy.
+    """
+
+    name: ClassVar[str] = 'bcrls'
+    noise_names: ClassVar[tuple[str, ...]] = ('sigma2',)
+    _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c', 'output_errors',
+                                                      'output_gradients')
+    _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int}
+    adequacy_model = Bcrls.adequacy_model
+    hac_std = Bcrls.hac_std
+
+    @property
+    def sigma2(self) -> np.ndarray:
+        """Return the noise variance estimates of eq. (51), shape ``(K,)`` (a copy)."""
+        return self._sigma2.copy()
+
+    @property
+    def noise(self) -> np.ndarray:
+        """Return the noise estimates ``sigma2``, shape ``(K, 1)``."""
+        return self._sigma2[:, None].copy()
+
+    def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
+        """Apply eqs. (51) and (46) to the plants ``rows``; keep z = [phi; y] for the moments."""
+        self._record_moments(rows, y, phi)
+        sigma2, compensated, low, reset = compensate_rows(
+            self._theta_ls[rows], self._p[rows], self._loss[rows], self._tau[rows],
+            self._lambda_theta_c[rows], self._sigma2[rows])
+        if low.any():
+            self._flag('sigma2_denominator', rows, low)
+        if reset.any():
+            self._flag('compensation_reset', rows, reset)
+        self._sigma2[rows] = sigma2
+        self._theta_c[rows] = compensated
+        self._lambda_theta_c[rows] = compensated * self._lambda_diagonal
+
+    def _check_validity(self, plants: np.ndarray, more: Any = None) -> None:
+        """Add the compensation's reasons (Bcrls._check_validity); restart diverging ones."""
+        resets = self.flags.get('compensation_reset', np.zeros(self.num_plants, np.int64))[plants]
+        with np.errstate(all='ignore'):
+            found, diverging = compensation_problems(
+                self._tau[plants], self._sigma2[plants], self._p[plants], self._theta_c[plants],
+                self._theta_ls[plants], self._component_scale[plants],
+                resets > self._resets_checked[plants], self.order,
+                lambda rows: self._covariances(plants[rows]))
+        self._resets_checked[plants] = resets
+        super()._check_validity(plants, found)
+        if diverging.any():
+            # (46) does not contract: restart it from theta_LS rather than follow it away
+            restart = plants[diverging]
+            self._flag('compensation_reset', restart)
+            self._resets_checked[restart] += 1
+            self._theta_c[restart] = self._theta_ls[restart]
+            self._lambda_theta_c[restart] = self._theta_c[restart] * self._lambda_diagonal
+
+    def _covariances(self, plants: np.ndarray) -> np.ndarray:
+        """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""
+        return self.parameter_covariance[plants]
+
+    def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
+                          u: np.ndarray, errors: np.ndarray) -> None:
+        """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
+        past = self._output_gradients[rows]
+        psi = output_gradient(self._theta_c[rows], phi, self._output_errors[rows], past)
+        error, bounded, self._output_errors[rows] = output_error_rows(
+            self._theta_c[rows], self._output_errors[rows], y, phi, self._signal_scale[rows, 0])
+        past[~bounded] = 0.0
+        self._output_gradients[rows] = past
+        if bounded.any():
+            self._monitor.record_rows(rows[bounded], error[bounded], u[bounded], psi[bounded])
+
+    def _theta(self) -> np.ndarray:
+        return self._theta_c
+
+    # ------------------------------------------------------- the uncertainty
+    def _record_moments(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
+        """Keep z = [phi; y] of the plants ``rows``; sum a plant's block when it is full."""
+        full = self._moments.record(rows, y, phi)
+        if full.size:
+            self._moments.flush(full, self._forgetting_factor, self._theta_c[full],
+                                self._sigma2[full], self._component_scale[full],
+                                self._signal_scale[full, 0])
+
+    def _parameter_covariance(self) -> np.ndarray:
+        """Return each plant's sandwich covariance (``Bcrls._parameter_covariance``)."""
+        known = (self._updates >= self.num_parameters) & (self._moments.weight > 0.0)
+        tau = self._tau
+        factor = np.full(self.num_plants, np.nan)
+        factor[known] = weighted_square_ratio(tau[known], self._forgetting_factor) / tau[known]
+        return factor[:, None, None] * self._moments.sandwiches(known)
+
+    def _allocate(self) -> None:
+        super()._allocate()
+        plants, p = self.num_plants, self.num_parameters
+        # the diagonal of Lambda = diag(I_n, 0)
+        self._lambda_diagonal = np.zeros(p)
+        self._lambda_diagonal[:self.order] = 1.0
+        self._theta_c = np.zeros((plants, p))
+        self._lambda_theta_c = np.zeros((plants, p))
+        self._sigma2 = np.zeros(plants)
+        self._resets_checked = np.zeros(plants, dtype=np.int64)
+        self._moments = LaggedMoments(plants, self.order, p)
+        # e_oe(t-1) ... e_oe(t-n) and psi(t-1) ... psi(t-n), newest first (Bcrls._record_residual)
+        self._output_errors = np.zeros((plants, self.order))
+        self._output_gradients = np.zeros((plants, self.order, p))
+        # the output error's tests with the estimate's own error (Bcrls._forget_residuals)
+        self._monitor = AdequacyMonitor(
+            num_inputs=self.num_inputs, model=self.adequacy_model,
+            forgetting_factor=self._forgetting_factor, plants=plants, num_parameters=p,
+            parameter_covariance=lambda plants: gradient_covariances(
+                self._covariances(plants), self._theta_c[plants], self.order))
+
+    def _reset_learning(self, rows: Rows) -> None:
+        super()._reset_learning(rows)
+        self._theta_c[rows] = 0.0
+        self._lambda_theta_c[rows] = 0.0
+        self._sigma2[rows] = 0.0
+        self._resets_checked[rows] = 0
+        self._moments.clear(rows)
+        self._output_errors[rows] = 0.0
+        self._output_gradients[rows] = 0.0
+
+    def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays, scalars = super()._plant_items(plant)
+        moment_arrays, moment_scalars = self._moments.plant_items(plant)
+        return {**arrays, **moment_arrays}, {**scalars, **moment_scalars}
+
+    def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
+                    scalars: dict[str, Any]) -> None:
+        # a snapshot from before the output error's gradient: its filter starts from zero
+        arrays = {'output_gradients': np.zeros(self._output_gradients.shape[1:]), **arrays}
+        super()._load_plant(plant, arrays, scalars)
+        self._lambda_theta_c[plant] = self._theta_c[plant] * self._lambda_diagonal
+        self._moments.load_plant(plant, arrays, scalars)
+
+
+__all__ = ['BatchedBcrls']

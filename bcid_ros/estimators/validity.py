@@ -1,0 +1,200 @@
+"""
+Where ``valid`` is decided, for one plant and for K: the one home of the decision.
+
+An estimate is valid when its estimator is ready and there is no reason to
+distrust it. The reasons are the estimator's own (from its equations: an
+unstable model, a compensation that does not converge, ...) and the ones every
+estimator shares: the residual tests' and the simulation check's; a detected
+plant change adds its own, which holds until the residual tests are ready on a
+full window of the new plant's samples (docs/trust.md, docs/tracking.md). A
+check changes nothing but the reasons: what it finds that needs action is done
+by the estimator's update.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Sequence
+
+import numpy as np
+
+from bcid_ros.estimators.residual_state import residual_reasons
+from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationWindow
+
+
+def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
+                    simulation: SimulationWindow | None = None,
+                    theta: np.ndarray | None = None, order: int = 0) -> list[str]:
+    """
+    Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
+
+    ``own`` are the estimator's (from its own equations: an unstable model, a
+    compensation that does not converge, ...); the shared ones are the residual
+    tests' (:func:`~bcid_ros.estimators.residual_state.residual_reasons`) when the
+    estimator keeps an :class:`~bcid_ros.estimators.adequacy.AdequacyMonitor`
+    (``monitor`` None: none), of ``plant`` of a many-plant monitor, then the
+    simulation check's of the model ``theta`` of order ``order`` on ``simulation``
+    (:func:`~bcid_ros.estimators.simulation_check.simulation_reasons`; None: the
+    estimator keeps no window). The one place that decides which reasons count,
+    for one plant and for K.
+    """
+    reasons = list(own)
+    if monitor is not None:
+        reasons += residual_reasons(monitor, plant)
+    if simulation is not None:
+        reasons += simulation_reasons(simulation, theta, order)
+    return reasons
+
+
+def decided_after_change(own: Sequence[str], change: str, monitor: Any,
+                         plant: int | None = None, simulation: SimulationWindow | None = None,
+                         theta: np.ndarray | None = None,
+                         order: int = 0) -> tuple[list[str], str]:
+    """
+    Return the reasons of :func:`decided_reasons` with a plant change's, and the change's.
+
+    ``change`` is the reason a detected plant change gave (``''``: none); it
+    comes first, and holds until the residual tests of ``monitor`` (of
+    ``plant`` of a many-plant monitor) are ready again, on a full window of the
+    new plant's samples, with no other reason left: a short-record verdict on
+    the samples replayed at the restart does not end it. Returns the reasons
+    and the change's reason that still holds (``''`` once the change is done).
+    """
+    found = (monitor, plant, simulation, theta, order)
+    reasons = decided_reasons([change, *own] if change else own, *found)
+    if change and reasons == [change] and _ready_again(monitor, plant):
+        return decided_reasons(own, *found), ''
+    return reasons, change
+
+
+def _ready_again(monitor: Any, plant: int | None) -> bool:
+    """Whether the residual tests (of ``plant``) are ready (no tests: ready)."""
+    if monitor is None:
+        return True
+    return bool(np.all(monitor.ready if plant is None else monitor.ready[plant]))
+
+
+class Validity:
+    """
+    :attr:`valid` of one plant: readiness and no reason to distrust the estimate.
+
+    A mixin of :class:`~bcid_ros.estimators.base.RecursiveEstimator`. The
+    estimators hand their own reasons to :meth:`_decide_validity` on their
+    schedule; the shared ones join them there (:func:`decided_reasons`), and
+    a plant change's reason holds as :func:`decided_after_change` says.
+    """
+
+    #: Whether the estimator has reasons that change with every sample (:meth:`_live_reasons`).
+    _LIVE_REASONS: ClassVar[bool] = False
+    #: The residual tests whose reasons join the estimator's own (None: it keeps none).
+    _monitor: Any = None
+    #: The simulation check's window, whose reason joins them too (None: it keeps none;
+    #: :meth:`_start_simulation_check`).
+    _simulation: SimulationWindow | None = None
+
+    @property
+    def valid(self) -> bool:
+        """
+        Whether the estimate can be trusted: :attr:`ready` and no :attr:`validity_reasons`.
+
+        A controller may act on the estimate while this is true; when it turns
+        false, :attr:`validity_reasons` says why. Decided here for every
+        estimator (none overrides it): the reasons of the last
+        :meth:`_decide_validity` and, where they change with every sample,
+        :meth:`_live_reasons`.
+        """
+        return self.ready and not (self._reasons or self._LIVE_REASONS and self._live_reasons())
+
+    @property
+    def validity_reasons(self) -> tuple[str, ...]:
+        """Return why the estimate is not trustworthy now (empty when it is, or not ready)."""
+        if self._LIVE_REASONS:
+            return self._reasons + tuple(self._live_reasons())
+        return self._reasons
+
+    def _decide_validity(self, own: Sequence[str], change: str = '') -> str:
+        """
+        Decide the reasons not to trust the estimate from the estimator's ``own`` reasons.
+
+        The estimators call this on their schedule (every ``VALIDITY_PERIOD``
+        updates), with the reasons their own equations give; the shared ones
+        join them here (:func:`decided_reasons`), and a detected plant
+        change's reason ``change`` holds as :func:`decided_after_change`
+        says. Returns the change's reason that still holds (``''``: done or
+        none). It changes nothing but the reasons: what a check finds that
+        needs action (a diverging compensation, a restart) is done by the
+        estimator's update.
+        """
+        with np.errstate(all='ignore'):
+            reasons, change = decided_after_change(
+                own, change, self._monitor, simulation=self._simulation,
+                theta=None if self._simulation is None else self._theta(), order=self.order)
+        self._reasons = tuple(reasons)
+        return change
+
+    def _start_simulation_check(self) -> None:
+        """
+        Start the simulation check's window afresh (a reset, a plant change, a restart).
+
+        An estimator whose model predicts a simulated output from the measured inputs
+        keeps one and records the samples it learns from in it (as the model sees them:
+        deviations with ``detrend: mean``), clearing it at a gap; the base class judges
+        it in :meth:`_decide_validity` and keeps it in the state (docs/trust.md).
+        """
+        self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
+                                            self.input_delay, self._forgetting_factor)
+
+    def _live_reasons(self) -> list[str] | tuple[str, ...]:
+        """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""
+        return ()
+
+
+class PlantsValidity:
+    """
+    :attr:`valid` of K plants (the batched estimators): decided as one plant's, per plant.
+
+    Each plant is valid when :attr:`ready` with no reasons; the reasons are
+    its own and the shared ones (:func:`decided_reasons`), kept in
+    ``_reasons`` (a :class:`~bcid_ros.estimators.plants.PlantReasons`).
+    """
+
+    _monitor: Any = None
+    #: One simulation check's window per plant (None: none kept).
+    _simulations: Any = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Whether each plant is :attr:`ready` with no validity reasons, shape ``(K,)``."""
+        return self.ready & ~self._reasons.any
+
+    @property
+    def validity_reasons(self) -> tuple[tuple[str, ...], ...]:
+        """Return the reasons not to trust each plant's estimate, one tuple per plant."""
+        return tuple(self._reasons.of(plant) for plant in range(self.num_plants))
+
+    def plant_validity_reasons(self, plant: int) -> tuple[str, ...]:
+        """Return why plant k's estimate is not trustworthy now (empty when it is)."""
+        return self._reasons.of(range(self.num_plants)[plant])
+
+    def _decide_validity(self, plants: np.ndarray, own: Sequence[Sequence[str]],
+                         changes: list[str] | None = None) -> None:
+        """
+        Decide the reasons of ``plants`` from their ``own``, as one plant's decision.
+
+        ``changes``: each plant's plant-change reason (``''``: none), which
+        holds as :func:`decided_after_change` says; cleared in place where a
+        change is done. None: no plant changes.
+        """
+        windows = self._simulations
+        theta = None if windows is None else self._theta()
+        with np.errstate(all='ignore'):
+            for plant, mine in zip(plants.tolist(), own):
+                reasons, change = decided_after_change(
+                    mine, '' if changes is None else changes[plant], self._monitor, plant,
+                    None if windows is None else windows[plant],
+                    None if theta is None else theta[plant], self.order)
+                self._reasons.set(plant, tuple(reasons))
+                if changes is not None:
+                    changes[plant] = change
+
+
+__all__ = ['PlantsValidity', 'Validity', 'decided_after_change', 'decided_reasons']
