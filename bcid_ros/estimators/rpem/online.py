@@ -36,13 +36,10 @@ from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.store import SampleStore, Segment
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
-from bcid_ros.estimators.rpem.watch import RestartWatch
+from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
-#: Share of a validity period's steps refused by the stability projection beyond which the
-#: estimate is not valid: most of them (:meth:`Rpem._projection_reasons`).
-PROJECTION_MOST = 0.5
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -145,9 +142,10 @@ class Rpem(RecursiveEstimator):
       and restarts the fit schedule on the samples after the change;
     * restart (``restarted``, and a validity reason until the next check):
       a new fit of the stored samples when ``PROJECTION_RESTART`` steps in a
-      row left D_M, when ``UNDONE_RESTART`` steps in a row were undone, or
-      when the mean square prediction error over about ``DRIFT_MEMORY``
-      updates exceeds ``DRIFT_FACTOR`` times the variance of the last fit;
+      row left D_M (unless the fit is itself on the boundary, or the
+      samples are those of the last restart: :mod:`.watch`), or when
+      ``UNDONE_RESTART`` steps in a row were undone; a plant that changes
+      or drifts is the change detector's;
     * anti-windup as in Rls (no division by :math:`\lambda` while
       :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
       ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
@@ -267,7 +265,7 @@ class Rpem(RecursiveEstimator):
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
         self._predictor.advance(yn, phi, psi, theta)
-        self._watch.stepped(e * e, taken)
+        self._watch.stepped(taken)
         self._lambda_t = self._forgetting_factor - LAMBDA_RATE * (
             self._forgetting_factor - lam)
         self._updates += 1
@@ -369,8 +367,8 @@ class Rpem(RecursiveEstimator):
         if self._store.add(y, u, None if self._means is None else self._means.mean, excluded):
             self._fit()
 
-    def _fit(self) -> bool:
-        """Fit the stored samples and continue the recursion from the fit (False: no fit)."""
+    def _fit(self, fresh: bool = True) -> bool:
+        """Fit the stored samples and continue from the fit (False: none); fresh: no restart's."""
         fitted = self._store.fit(None if self._means is None else self._means.mean,
                                  self._signal_scale,
                                  self._theta_n[:self.num_parameters] if self._fitted else None,
@@ -379,12 +377,13 @@ class Rpem(RecursiveEstimator):
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
         if fitted.result is None or not self._take_fit(fitted.result, fitted.segments,
-                                                       fitted.scale):
+                                                       fitted.scale, fresh):
             return False
         self._fits += 1
         return True
 
-    def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray) -> bool:
+    def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
+                  fresh: bool) -> bool:
         """Continue from the fit: theta, P, J, tau, the lags and psi; False if unsound."""
         p = result.covariance(self.initial_covariance)
         if p is None:
@@ -402,7 +401,9 @@ class Rpem(RecursiveEstimator):
         self._arx = result.arx * self._unscale
         # the predictor's lags: those of the last segment's newest samples
         self._predictor.load(result.tail_x, segments[-1][1], result.tail_e, result.tail_psi)
-        self._watch.fitted(result.loss / result.weight)
+        theta = self._theta_n
+        self._watch.fitted(on_boundary([theta[:self.order]] + (
+            [theta[self._filter_slice]] if self._armax else [])), fresh)
         # the scores recorded so far are of the estimates before the fit, whose errors
         # would swell the HAC (hundreds of times on a fit that moved far): the fit's own
         self._hac.reset()
@@ -426,8 +427,7 @@ class Rpem(RecursiveEstimator):
         self._watch.restarting(reason)
         # the residuals so far are of the model that drifted
         self._forget_residuals()
-        self._fit()
-        self._watch.restarted()
+        self._fit(fresh=False)
         self._decide_now()
 
     def _accept_change(self) -> None:
@@ -459,8 +459,6 @@ class Rpem(RecursiveEstimator):
         loss, tau = np.array([self._loss]), np.array([self._tau])
         rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
         self._loss, self._tau = float(loss[0]), float(tau[0])
-        # the drift watch measures from the errors now, not from the old plant's fit
-        self._watch.fitted(max(self._watch.recent, self._watch.sigma2_fit))
         if self._store.restart_schedule(age):
             self._fit()
         self._decide_now()
@@ -484,8 +482,7 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        named = watch.reasons(steps)
-        self._period_reasons = named + self._projection_reasons(steps, named)
+        self._period_reasons = watch.reasons(steps)
         self._decide_now()
 
     def _decide_now(self) -> None:
@@ -506,22 +503,6 @@ class Rpem(RecursiveEstimator):
             self._change_note = ''  # a fit of the new samples passed its checks: done
             self._decide_validity(self._period_reasons)
         self._settled = self._settled or not self._reasons
-
-    def _projection_reasons(self, steps: int, named: list[str]) -> list[str]:
-        """
-        Return the reason of a stability projection active on most steps of the period.
-
-        Counted from the flag, apart from the drift watch (which names it too): the model
-        keeps pushing against the stability boundary, so it is not the model the data want
-        (a heated plate's record: 77 of the last 100 updates). Not repeated when the watch
-        has named it.
-        """
-        total = self.flags.get('stability_projection', 0)
-        projected, self._projections_checked = total - self._projections_checked, total
-        if (steps <= 0 or projected <= PROJECTION_MOST * steps
-                or any(reason.startswith('stability projection') for reason in named)):
-            return []
-        return [f'stability projection active ({projected} of the last {steps} updates)']
 
     # --------------------------------------------------------- the accessors
     @property
@@ -644,8 +625,6 @@ class Rpem(RecursiveEstimator):
         # whether the estimate has been valid since the last change (the detector runs)
         self._settled = False
         self._detector.clear()
-        # (the flags may outlive a reset)
-        self._projections_checked = getattr(self, 'flags', {}).get('stability_projection', 0)
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -695,8 +674,7 @@ class Rpem(RecursiveEstimator):
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
                    **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
                    'period_reasons': list(self._period_reasons),
-                   'change_note': self._change_note, 'settled': self._settled,
-                   'projections_checked': self._projections_checked}
+                   'change_note': self._change_note, 'settled': self._settled}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
         return ({**arrays, **residual_arrays, **self._detector.get_state()},
@@ -727,7 +705,6 @@ class Rpem(RecursiveEstimator):
         self._change_note = str(scalars.get('change_note', ''))
         self._settled = bool(scalars.get('settled', False))
         self._detector.set_state(arrays)
-        self._projections_checked = int(scalars.get('projections_checked', 0))
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
