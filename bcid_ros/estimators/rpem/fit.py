@@ -74,6 +74,14 @@ class FitResult:
         self.offset = offset
         self.scores = scores
 
+    def residuals(self, segment: tuple[np.ndarray, np.ndarray, np.ndarray],
+                  armax: bool) -> np.ndarray:
+        """Return the one-step errors of the last segment ``(y, u, weights)``, weighted ones."""
+        y, _, weights = segment
+        # OE: the output minus the simulated output and the offset
+        residuals = self.tail_e if armax else y - self.tail_x - self.offset
+        return residuals[weights > 0.0]
+
     def covariance(self, initial_covariance: float) -> np.ndarray | None:
         """
         Return the P to continue the recursion with: (information + I / p0)^-1, C-ordered.

@@ -141,11 +141,9 @@ class Rpem(RecursiveEstimator):
       memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
       and restarts the fit schedule on the samples after the change;
     * restart (``restarted``, and a validity reason until the next check):
-      a new fit of the stored samples when ``PROJECTION_RESTART`` steps in a
-      row left D_M (unless the fit is itself on the boundary, or the
-      samples are those of the last restart: :mod:`.watch`), or when
-      ``UNDONE_RESTART`` steps in a row were undone; a plant that changes
-      or drifts is the change detector's;
+      a new fit of the stored samples when the projection is stuck where a
+      refit can move it, or steps are undone in a row (:mod:`.watch`); a
+      plant that changes or drifts is the change detector's;
     * anti-windup as in Rls (no division by :math:`\lambda` while
       :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
       ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
@@ -389,7 +387,7 @@ class Rpem(RecursiveEstimator):
         if p is None:
             return False
         # the errors to come are judged against this fit's residuals (its own model's)
-        self._detector.prime(self._fit_residuals(result, segments[-1]))
+        self._detector.prime(result.residuals(segments[-1], self._armax))
         self._p = p
         self._theta_n[:self.num_parameters] = result.theta
         if self._offset:
@@ -411,15 +409,6 @@ class Rpem(RecursiveEstimator):
         self._lambda_t = min(self._forgetting_factor, LAMBDA_START)
         self._fitted = True
         return True
-
-    def _fit_residuals(self, result: FitResult, segment: Segment) -> np.ndarray:
-        """Return the fit's one-step errors of its last segment (the weighted samples)."""
-        y, _, weights = segment
-        if self._armax:
-            residuals = result.tail_e
-        else:  # OE: the output minus the simulated output and the offset
-            residuals = y - result.tail_x - result.offset
-        return residuals[weights > 0.0]
 
     def _restart(self, reason: str) -> None:
         """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
