@@ -454,6 +454,28 @@ class BatchFit:
         loss, information, _ = self._gradient(theta, usable, 0.0, concentrated=False,
                                               scores=scores)
         weight = float(sum(w[self.span:].sum() for _, _, w, _ in usable))
+        x, e, tail_psi, offset = self._tails(theta, segments, usable)
+        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset,
+                         np.concatenate(scores) if scores else np.zeros((0, information.shape[0])))
+
+    def continued(self, result: FitResult, segments: list) -> FitResult:
+        """
+        Return ``result`` with the predictor state at the end of ``segments`` instead.
+
+        For a fit taken some samples after the ones it fitted (a fit spread
+        over updates, :class:`~bcid_ros.estimators.rpem.store.FitJob`): the
+        same estimate, information, loss and scores; the lags, psi and offset
+        those of its predictor run at its estimate over the samples stored now.
+        """
+        usable = [(y, u, w, self._predictor.input_columns(u)) for y, u, w in segments
+                  if y.shape[0] > self.span]
+        tail_x, tail_e, tail_psi, offset = self._tails(result.theta, segments, usable)
+        return FitResult(result.theta, result.information, result.loss, result.weight,
+                         result.arx, tail_x, tail_e, tail_psi, offset, result.scores)
+
+    def _tails(self, theta: np.ndarray, segments: list,
+               usable: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Return the predictor's x, e, psi lags and offset at theta at the end of the segments."""
         n, p = self.order, self.num_parameters
         y, u, weights = segments[-1]
         tail_psi = np.zeros((n, p + self.offset))
@@ -470,5 +492,4 @@ class BatchFit:
             x, e = y, np.zeros(y.shape[0])
             if usable:  # the offset of the newest usable segment
                 offset = self._predictor.predict(theta, *usable[-1][:3], gradient=False).offset
-        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset,
-                         np.concatenate(scores) if scores else np.zeros((0, information.shape[0])))
+        return x, e, tail_psi, offset

@@ -34,7 +34,7 @@ from bcid_ros.estimators.residual_state import (residual_items, residual_states,
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
-from bcid_ros.estimators.rpem.store import SampleStore, Segment
+from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 
@@ -360,25 +360,42 @@ class Rpem(RecursiveEstimator):
 
     # ------------------------------------------------------------- the fits
     def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
-        """Store the sample for the fits (:meth:`SampleStore.add`); fit when one is due."""
+        """Store the sample (:meth:`SampleStore.add`); a slice of the fit on its way; fit if due."""
         self._samples += 1
-        if self._store.add(y, u, None if self._means is None else self._means.mean, excluded):
+        due = self._store.add(y, u, None if self._means is None else self._means.mean, excluded)
+        job = self._store.advance()
+        if job is not None:  # its last pass ended: the predictor run on to this sample
+            segments = self._store.segments_now(job, job.fitted.scale)
+            self._fitted_now(job.fitted, self._store.fitter().continued, segments, job.fresh)
+        if due:
             self._fit()
 
-    def _fit(self, fresh: bool = True) -> bool:
-        """Fit the stored samples and continue from the fit (False: none); fresh: no restart's."""
-        fitted = self._store.fit(None if self._means is None else self._means.mean,
-                                 self._signal_scale,
-                                 self._theta_n[:self.num_parameters] if self._fitted else None,
-                                 self._forgetting_factor, 1.0 / self.initial_covariance,
-                                 math.sqrt(self._gate_limit2))
+    def _fit(self, fresh: bool = True) -> None:
+        """
+        Fit the stored samples; ``fresh``: not a restart's refit of the same ones (.watch).
+
+        The first fit at once (nothing is estimated before it); any later one
+        spread over the next updates, SLICE work each, and taken at the
+        update where it ends (:class:`~bcid_ros.estimators.rpem.store.FitJob`).
+        """
+        arguments = (None if self._means is None else self._means.mean, self._signal_scale,
+                     self._theta_n[:self.num_parameters] if self._fitted else None,
+                     self._forgetting_factor, 1.0 / self.initial_covariance,
+                     math.sqrt(self._gate_limit2))
+        if self._fitted:
+            self._store.start(*arguments, fresh)
+            return
+        fitted = self._store.fit(*arguments)
+        self._fitted_now(fitted, lambda result, _: result, fitted.segments, fresh)
+
+    def _fitted_now(self, fitted: StoredFit, continued: Callable, segments: list[Segment],
+                    fresh: bool) -> None:
+        """Continue from a fit (``continued``: its predictor run on over ``segments``)."""
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
-        if fitted.result is None or not self._take_fit(fitted.result, fitted.segments,
-                                                       fitted.scale, fresh):
-            return False
-        self._fits += 1
-        return True
+        if fitted.result is not None and self._take_fit(continued(fitted.result, segments),
+                                                        segments, fitted.scale, fresh):
+            self._fits += 1
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
                   fresh: bool) -> bool:
@@ -678,7 +695,8 @@ class Rpem(RecursiveEstimator):
         """
         own, _ = self._state_items()
         arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
-        super().set_state(dataclasses.replace(state, arrays=arrays))
+        arrays, scalars = self._store.with_job_items(arrays, state.scalars)
+        super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
