@@ -104,30 +104,27 @@ class Rpem(RecursiveEstimator):
     samples the gate would refuse are then excluded) and the recursion
     continues from it with :math:`P = (\sum_t w_t\psi\psi^T + I/p_0)^{-1}`, its
     :math:`J`, :math:`\tau`, w and psi: what the recursion would hold had it
-    run over the same samples at that estimate. Beyond ``BATCH_LIMIT`` samples
-    it is the plain recursion; the last ``BATCH_LIMIT`` samples stay stored for
-    a restart. The estimator is not :attr:`ready` before the first fit. With
-    forgetting, sample t weighs :math:`\lambda^{T-t}` in a fit.
+    run over the same samples at that estimate. The first fit is made at once;
+    a later one is spread over the next updates, a bounded amount of work
+    each, and taken where its work ends, tens of samples later, its predictor
+    run on over them (:class:`~bcid_ros.estimators.rpem.store.FitJob`): no
+    update waits on a whole fit. Beyond ``BATCH_LIMIT`` samples it is the
+    plain recursion (with forgetting, fits on a sliding schedule). Not
+    :attr:`ready` before the first fit; with forgetting, sample t weighs
+    :math:`\lambda^{T-t}` in a fit.
 
-    **Units.** Each fit takes per channel (y, each u_i) the smallest power of
-    two at or above a robust size of the stored samples
-    (:func:`~bcid_ros.estimators.rpem.store.signal_size`) as its scale, and the
-    recursion runs on the scaled signals: the estimates do not depend on the
-    units of y and u (bit for bit for power-of-two units), and
-    ``initial_covariance`` p0 is the prior variance of the parameters of
-    signals of unit size (the fits add :math:`I/p_0` to the information).
+    **Units.** Each fit scales each channel by a power of two at or above its
+    robust size (:mod:`.store`): the estimates do not depend on the units of
+    y and u, and p0 is the prior variance for signals of unit size.
 
-    **Offset** (``detrend: mean``). A fit re-centres the stored samples on
-    the current means; the model carries an offset c, the last internal
-    parameter (OE: y - m_y = G (u - m_u) + c + v; ARMAX: an equation offset
-    d, c = d / A(1)), regressed on a constant 1 in phi, not published;
-    :attr:`operating_point` is (m_y + c, m_u).
+    **Offset** (``detrend: mean``): the model carries an offset c, the last
+    internal parameter, not published; :attr:`operating_point` is
+    (m_y + c, m_u) (OE: y - m_y = G (u - m_u) + c + v; ARMAX: c = d / A(1)).
 
     **Annealed forgetting.** After each fit :math:`\lambda(t)` starts at
-    :math:`\min(\lambda, \text{LAMBDA\_START})` and tends to the user's
-    :math:`\lambda` by :math:`\lambda(t) \leftarrow \lambda - \text{LAMBDA\_RATE}
-    (\lambda - \lambda(t-1))` (the forgetting profile of L&S). Measured after a
-    batch start it only loses information, so LAMBDA_START = 1 (off).
+    min(lambda, LAMBDA_START) and tends to the user's by lambda(t) <- lambda -
+    LAMBDA_RATE (lambda - lambda(t-1)) (L&S); LAMBDA_START = 1 (off: after a
+    batch start it only loses information); it smooths a live change.
 
     **Safeguards**, each counted in :attr:`flags`:
 
@@ -140,18 +137,12 @@ class Rpem(RecursiveEstimator):
       place of y (OE: it is stored with weight 0); a plant change cuts the
       memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
       and restarts the fit schedule on the samples after the change;
-    * restart (``restarted``, and a validity reason until the next check):
-      a new fit of the stored samples when the projection is stuck where a
-      refit can move it, or steps are undone in a row (:mod:`.watch`); a
-      plant that changes or drifts is the change detector's;
+    * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
+      :mod:`.watch` (a stuck projection a refit can move, undone steps; a
+      projection active on many steps); a changing plant is the detector's;
     * anti-windup as in Rls (no division by :math:`\lambda` while
       :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
       ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
-
-    **Validity**, every ``VALIDITY_PERIOD`` updates: not valid after a
-    restart, or when the projection refused more than ``PROJECTION_SHARE``
-    of the steps (the data push the model to the stability boundary: a
-    wrong order, an integrator, a plant in feedback).
 
     ``theta_uncompensated`` is the ARX least-squares estimate of the samples
     of the last fit (c = 0 for ARMAX), the start of its IV iterations.
@@ -360,24 +351,17 @@ class Rpem(RecursiveEstimator):
 
     # ------------------------------------------------------------- the fits
     def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
-        """Store the sample (:meth:`SampleStore.add`); a slice of the fit on its way; fit if due."""
+        """Store the sample, do a slice of the fit on its way; start a fit if one is due."""
         self._samples += 1
         due = self._store.add(y, u, None if self._means is None else self._means.mean, excluded)
-        job = self._store.advance()
-        if job is not None:  # its last pass ended: the predictor run on to this sample
-            segments = self._store.segments_now(job, job.fitted.scale)
-            self._fitted_now(job.fitted, self._store.fitter().continued, segments, job.fresh)
+        ended = self._store.advance()
+        if ended is not None:  # its last pass ended: the predictor run on to this sample
+            self._fitted_now(*ended)
         if due:
             self._fit()
 
     def _fit(self, fresh: bool = True) -> None:
-        """
-        Fit the stored samples; ``fresh``: not a restart's refit of the same ones (.watch).
-
-        The first fit at once (nothing is estimated before it); any later one
-        spread over the next updates, SLICE work each, and taken at the
-        update where it ends (:class:`~bcid_ros.estimators.rpem.store.FitJob`).
-        """
+        """Fit the stored samples (the first now, later ones spread); fresh: no restart's."""
         arguments = (None if self._means is None else self._means.mean, self._signal_scale,
                      self._theta_n[:self.num_parameters] if self._fitted else None,
                      self._forgetting_factor, 1.0 / self.initial_covariance,
@@ -385,16 +369,14 @@ class Rpem(RecursiveEstimator):
         if self._fitted:
             self._store.start(*arguments, fresh)
             return
-        fitted = self._store.fit(*arguments)
-        self._fitted_now(fitted, lambda result, _: result, fitted.segments, fresh)
+        self._fitted_now(self._store.fit(*arguments), fresh)
 
-    def _fitted_now(self, fitted: StoredFit, continued: Callable, segments: list[Segment],
-                    fresh: bool) -> None:
-        """Continue from a fit (``continued``: its predictor run on over ``segments``)."""
+    def _fitted_now(self, fitted: StoredFit, fresh: bool) -> None:
+        """Continue the recursion from a fit (if it is sound)."""
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
-        if fitted.result is not None and self._take_fit(continued(fitted.result, segments),
-                                                        segments, fitted.scale, fresh):
+        if fitted.result is not None and self._take_fit(fitted.result, fitted.segments,
+                                                        fitted.scale, fresh):
             self._fits += 1
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
@@ -451,9 +433,8 @@ class Rpem(RecursiveEstimator):
 
         The memory cut (rules.cut_memory) lets the recursion move at once; the
         stored samples before the change point leave the fits, and a fit of
-        the ones after it is made as soon as there are enough (now, if there
-        are). Not valid from this sample on, with the reason, until a fit of
-        the new samples has passed the checks (docs/tracking.md).
+        the ones after it starts once there are enough. Not valid from this
+        sample on, until a fit of the new samples passed the checks.
         """
         self._changes += 1
         first = self._samples - age + 1 if age else self._samples + 1

@@ -388,14 +388,26 @@ class SampleStore:
         self.job = self.prepare(mean, scale, theta, forgetting_factor, prior, limit)
         self.job.fresh = fresh
 
-    def advance(self) -> FitJob | None:
-        """Do a SLICE of the fit on its way; return the job if it ended (marks taken)."""
+    def advance(self) -> tuple[StoredFit, bool] | None:
+        """
+        Do a SLICE of the fit on its way; if it ended, return it and whether it was fresh.
+
+        The fit is returned with its predictor run on over the samples stored
+        now (:meth:`BatchFit.continued`), its outliers marked in the store.
+        """
         job = self.job
         if job is None or not job.advance(self.fitter(), SLICE):
             return None
         self.job = None
         self.take_marks(job)
-        return job
+        fitted = job.fitted
+        rows, breaks, excluded = self._rows()
+        if job.mean is not None:
+            rows = rows - job.mean
+        segments = self._segments(rows, breaks, excluded, fitted.scale, job.forgetting_factor)
+        result = None if fitted.result is None else self.fitter().continued(fitted.result,
+                                                                            segments)
+        return StoredFit(result, segments, fitted.scale, fitted.outliers), job.fresh
 
     def take_marks(self, job: FitJob) -> None:
         """Mark the outliers ``job`` found in the store (those of its rows still stored)."""
@@ -408,13 +420,6 @@ class SampleStore:
         self.excluded[index] |= job.excluded[first:]
         if job.break_after and written == 0:
             self.break_pending = True
-
-    def segments_now(self, job: FitJob, scale: np.ndarray) -> list[Segment]:
-        """Return the stored samples' segments as ``job`` normalises them (its mean, scale)."""
-        rows, breaks, excluded = self._rows()
-        if job.mean is not None:
-            rows = rows - job.mean
-        return self._segments(rows, breaks, excluded, scale, job.forgetting_factor)
 
     def fitter(self) -> BatchFit:
         """Return the batch fit of the structure (made once)."""
