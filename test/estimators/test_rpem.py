@@ -408,7 +408,10 @@ def test_not_ready_before_the_first_fit_then_fits_as_samples_grow():
     estimator = make_estimator('rpem', order=2)
     first = max(50, 10 * 4)
     trajectory = estimator.run(y, u)
-    assert not trajectory.ready[:first - 1].any() and trajectory.ready[first - 1:].all()
+    # the first fit is due at sample `first` and taken a few samples later (spread over
+    # the updates, test_rpem_spread_fit.py); ready from there on
+    taken = int(np.argmax(trajectory.ready))
+    assert first - 1 < taken <= first + 16 and trajectory.ready[taken:].all()
     assert estimator.fits == len(fit_schedule(first, 1000))
     assert estimator.parameter_std is not None
     fresh = make_estimator('rpem', order=2)

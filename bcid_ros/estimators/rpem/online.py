@@ -104,9 +104,9 @@ class Rpem(RecursiveEstimator):
     samples the gate would refuse are then excluded) and the recursion
     continues from it with :math:`P = (\sum_t w_t\psi\psi^T + I/p_0)^{-1}`, its
     :math:`J`, :math:`\tau`, w and psi: what the recursion would hold had it
-    run over the same samples at that estimate. The first fit is made at once;
-    a later one is spread over the next updates, a bounded amount of work
-    each, and taken where its work ends, tens of samples later, its predictor
+    run over the same samples at that estimate. Each fit is spread over the
+    next updates, a bounded amount of work each, and taken after its work
+    ends, a few to tens of samples later, its predictor
     run on over them (:class:`~bcid_ros.estimators.rpem.store.FitJob`): no
     update waits on a whole fit. Beyond ``BATCH_LIMIT`` samples it is the
     plain recursion (with forgetting, fits on a sliding schedule). Not
@@ -361,15 +361,12 @@ class Rpem(RecursiveEstimator):
             self._fit()
 
     def _fit(self, fresh: bool = True) -> None:
-        """Fit the stored samples (the first now, later ones spread); fresh: no restart's."""
+        """Fit the stored samples, spread over the next updates; fresh: no restart's refit."""
         arguments = (None if self._means is None else self._means.mean, self._signal_scale,
                      self._theta_n[:self.num_parameters] if self._fitted else None,
                      self._forgetting_factor, 1.0 / self.initial_covariance,
                      math.sqrt(self._gate_limit2))
-        if self._fitted:
-            self._store.start(*arguments, fresh)
-            return
-        self._fitted_now(self._store.fit(*arguments), fresh)
+        self._store.start(*arguments, fresh)
 
     def _fitted_now(self, fitted: StoredFit, fresh: bool) -> None:
         """Continue the recursion from a fit (if it is sound)."""

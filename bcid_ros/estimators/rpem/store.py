@@ -10,7 +10,7 @@ no fit may weigh (an output the gate refused, an outlier a fit found). After
 time their count has grown by ``FIT_GROWTH`` up to ``BATCH_LIMIT`` (then, with
 forgetting, every ``SLIDE`` samples on the last ``BATCH_LIMIT``; after a plant
 change only the samples after its change point count),
-:meth:`SampleStore.fit` fits them with
+:meth:`SampleStore.start` fits them with
 :class:`~bcid_ros.estimators.rpem.fit.BatchFit` (Ljung, *System
 Identification*, 2nd ed., 1999, ch. 10): centred on the current means, in
 the units of one power of two per channel at or above its robust size
@@ -37,7 +37,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.rpem.fit import BatchFit, finish, FitResult, Steps
+from bcid_ros.estimators.rpem.fit import BatchFit, FitResult, Steps
 
 #: The first batch fit waits for this many usable samples (at least) ...
 FIRST_FIT_SAMPLES = 50
@@ -81,7 +81,7 @@ def signal_size(values: np.ndarray) -> float:
 
 class StoredFit(NamedTuple):
     """
-    A fit of the stored samples (see :meth:`SampleStore.fit`).
+    A fit of the stored samples (see :meth:`SampleStore.start`).
 
     Attributes
     ----------
@@ -135,7 +135,7 @@ class FitJob:
         self._steps: Steps | None = None
 
     def steps(self, batch: BatchFit) -> Steps:
-        """Fit the job's rows with ``batch`` (see :meth:`SampleStore.fit`), a pass at a time."""
+        """Fit the job's rows with ``batch`` (see :meth:`SampleStore.start`), a pass at a time."""
         rows = self.rows if self.mean is None else self.rows - self.mean
         lam = self.forgetting_factor
         new_scale = SampleStore._scales(rows, self.scale)
@@ -186,6 +186,7 @@ class FitJob:
                   'job_scale': self.scale,
                   'job_theta': np.zeros(size) if self.theta is None else self.theta}
         scalars = {'job_count': count, 'job_done': self.done, 'job_fresh': self.fresh,
+                   'job_ended': self.fitted is not None,
                    'job_position': self.position, 'job_has_mean': self.mean is not None,
                    'job_has_theta': self.theta is not None,
                    'job_forgetting_factor': self.forgetting_factor, 'job_prior': self.prior,
@@ -200,7 +201,8 @@ class FitJob:
                   'job_excluded': np.zeros(BATCH_LIMIT, dtype=bool),
                   'job_mean': np.zeros(channels), 'job_scale': np.ones(channels),
                   'job_theta': np.zeros(size)}
-        scalars = {'job_count': 0, 'job_done': 0, 'job_fresh': True, 'job_position': 0,
+        scalars = {'job_count': 0, 'job_done': 0, 'job_fresh': True, 'job_ended': False,
+                   'job_position': 0,
                    'job_has_mean': False,
                    'job_has_theta': False, 'job_forgetting_factor': 1.0, 'job_prior': 0.0,
                    'job_limit': 0.0}
@@ -224,6 +226,8 @@ class FitJob:
         done = int(scalars['job_done'])
         while job.done < done:  # the same passes, to the same point
             job.advance(batch, done - job.done)
+        if scalars['job_ended']:
+            job.advance(batch, math.inf)
         return job
 
     def _exclude_outliers(self, batch: BatchFit, theta: np.ndarray,
@@ -343,10 +347,12 @@ class SampleStore:
         return keep >= self.first_fit
 
     # ------------------------------------------------------------- the fit
-    def fit(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
-            forgetting_factor: float, prior: float, limit: float) -> StoredFit:
+    def start(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
+              forgetting_factor: float, prior: float, limit: float, fresh: bool) -> None:
         """
-        Fit the stored samples and schedule the next fit.
+        Start a fit of the stored samples, spread over the next updates; schedule the next.
+
+        The job replaces any fit on its way (:meth:`advance` does its work).
 
         Parameters
         ----------
@@ -363,40 +369,29 @@ class SampleStore:
             1 / p0, the information added to the fit's diagonal.
         limit : float
             The gate's limit of a prediction error, in robust scales.
-
-        Returns
-        -------
-        StoredFit
+        fresh : bool
+            Whether it fits new samples (not a restart's refit of the same ones).
 
         """
-        job = self.prepare(mean, scale, theta, forgetting_factor, prior, limit)
-        fitted = finish(job.steps(self.fitter()))
-        self.take_marks(job)
-        return fitted
-
-    def prepare(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
-                forgetting_factor: float, prior: float, limit: float) -> FitJob:
-        """Return the fit of the stored samples as a job (:meth:`fit`'s arguments); schedule."""
         self.next_fit = self._after(self.since_start, forgetting_factor)
         rows, breaks, excluded = self._rows()
-        return FitJob(rows, breaks, excluded, mean, scale, theta, forgetting_factor, prior,
-                      limit, self.position, self._channel, self._armax)
-
-    def start(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
-              forgetting_factor: float, prior: float, limit: float, fresh: bool) -> None:
-        """Start a fit of the stored samples spread over the next updates (:meth:`advance`)."""
-        self.job = self.prepare(mean, scale, theta, forgetting_factor, prior, limit)
+        self.job = FitJob(rows, breaks, excluded, mean, scale, theta, forgetting_factor, prior,
+                          limit, self.position, self._channel, self._armax)
         self.job.fresh = fresh
 
     def advance(self) -> tuple[StoredFit, bool] | None:
         """
-        Do a SLICE of the fit on its way; if it ended, return it and whether it was fresh.
+        Do a SLICE of the fit on its way; if it ended before, return it and whether it was fresh.
 
-        The fit is returned with its predictor run on over the samples stored
-        now (:meth:`BatchFit.continued`), its outliers marked in the store.
+        The fit is returned at the update after its last pass (that update
+        does the hand-off's work only), with its predictor run on over the
+        samples stored now (:meth:`BatchFit.continued`), its outliers marked
+        in the store.
         """
         job = self.job
-        if job is None or not job.advance(self.fitter(), SLICE):
+        if job is None or job.fitted is None:
+            if job is not None:
+                job.advance(self.fitter(), SLICE)
             return None
         self.job = None
         self.take_marks(job)
