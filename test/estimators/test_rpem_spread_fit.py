@@ -1,11 +1,11 @@
 """
-rpem's fits after the first are spread over the updates (rpem/store.py, FitJob).
+rpem's fits are spread over the updates (rpem/store.py, FitJob).
 
 Each update does at most a slice of a fit's work (store.SLICE sample-columns of its passes,
-counted, not timed); the fit is taken at the update after its last pass, its predictor run
-on over the samples stored since. So the hand-off comes tens of samples after the fit
-was due, the same in every run, and a snapshot taken while a fit is on its way continues
-bit for bit.
+counted, not timed); the fit is taken at the update where its last pass ends, its
+predictor run on over the samples stored since. So the hand-off comes a few to tens of
+samples after the fit was due, the same in every run, and a snapshot taken while a fit is
+on its way continues bit for bit.
 """
 
 from __future__ import annotations

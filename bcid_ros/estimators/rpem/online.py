@@ -25,7 +25,7 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
+from bcid_ros.estimators.change_detection import ChangeDetector, WARMUP, with_detector_arrays
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
                                            RandomWalk, repair_covariance, VARIANCE_FLOOR)
@@ -105,7 +105,7 @@ class Rpem(RecursiveEstimator):
     continues from it with :math:`P = (\sum_t w_t\psi\psi^T + I/p_0)^{-1}`, its
     :math:`J`, :math:`\tau`, w and psi: what the recursion would hold had it
     run over the same samples at that estimate. Each fit is spread over the
-    next updates, a bounded amount of work each, and taken after its work
+    next updates, a bounded amount of work each, and taken where its work
     ends, a few to tens of samples later, its predictor
     run on over them (:class:`~bcid_ros.estimators.rpem.store.FitJob`): no
     update waits on a whole fit. Beyond ``BATCH_LIMIT`` samples it is the
@@ -384,6 +384,9 @@ class Rpem(RecursiveEstimator):
             return False
         # the errors to come are judged against this fit's residuals (its own model's)
         self._detector.prime(result.residuals(segments[-1], self._armax))
+        # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
+        # goes on after its detection, and a model that blends it may never pass the tests
+        self._settled = self._settled or (self._changes > 0 and result.weight >= WARMUP)
         self._p = p
         self._theta_n[:self.num_parameters] = result.theta
         if self._offset:

@@ -381,17 +381,13 @@ class SampleStore:
 
     def advance(self) -> tuple[StoredFit, bool] | None:
         """
-        Do a SLICE of the fit on its way; if it ended before, return it and whether it was fresh.
+        Do a SLICE of the fit on its way; if it ended, return it and whether it was fresh.
 
-        The fit is returned at the update after its last pass (that update
-        does the hand-off's work only), with its predictor run on over the
-        samples stored now (:meth:`BatchFit.continued`), its outliers marked
-        in the store.
+        The fit is returned with its predictor run on over the samples stored
+        now (:meth:`BatchFit.continued`), its outliers marked in the store.
         """
         job = self.job
-        if job is None or job.fitted is None:
-            if job is not None:
-                job.advance(self.fitter(), SLICE)
+        if job is None or not job.advance(self.fitter(), SLICE):
             return None
         self.job = None
         self.take_marks(job)
