@@ -375,6 +375,7 @@ class Rpem(RecursiveEstimator):
         if fitted.result is not None and self._take_fit(fitted.result, fitted.segments,
                                                         fitted.scale, fresh):
             self._fits += 1
+            self._decide_now()  # a new estimate: judged now, not at the period's end
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
                   fresh: bool) -> bool:
