@@ -198,22 +198,21 @@ def test_batch_and_recursion_keep_roots_inside():
     assert inside(pulled)
 
 
-def test_a_drift_restarts_from_a_fit_and_says_so():
-    # without change detection, forgetting or the gate, a plant change is only seen as
-    # drift; the refit of the stored samples mixes both plants, and the residual tests see it
+def test_without_change_detection_a_change_is_not_restarted_from_but_not_valid():
+    # the watch has no test of the size of the errors (a plant that changes is the
+    # detector's): switched off, a change restarts nothing, the recursion and the fits
+    # blend both plants, and the residual tests see it
     y, u = hostile_cases()['plant change']
     estimator = make_estimator('rpem', order=2, change_detection=False)
     reasons = []
     for t in range(y.shape[0]):
         estimator.update(y[t], u[t])
         reasons.append(estimator.validity_reasons)
-    assert estimator.flags.get('restarted', 0) >= 1
-    restarted = [t for t, why in enumerate(reasons) if any('restarted (drift' in r for r in why)]
-    assert restarted and restarted[0] > 1500
+    assert 'restarted' not in estimator.flags and 'plant_change' not in estimator.flags
     after = np.array([-0.6, 0.2, -0.5, 0.3])
     wrong = np.linalg.norm(estimator.theta - after) > 0.1 * np.linalg.norm(after)
-    assert not (wrong and estimator.valid)
-    assert wrong and any(r.startswith('residual correlated with u1') for r in reasons[-1])
+    assert wrong and not estimator.valid
+    assert any(r.startswith('residual correlated with u1') for r in reasons[-1])
 
 
 def test_a_plant_change_is_detected_and_the_fits_restart_after_it():
@@ -409,7 +408,10 @@ def test_not_ready_before_the_first_fit_then_fits_as_samples_grow():
     estimator = make_estimator('rpem', order=2)
     first = max(50, 10 * 4)
     trajectory = estimator.run(y, u)
-    assert not trajectory.ready[:first - 1].any() and trajectory.ready[first - 1:].all()
+    # the first fit is due at sample `first` and taken a few samples later (spread over
+    # the updates, test_rpem_spread_fit.py); ready from there on
+    taken = int(np.argmax(trajectory.ready))
+    assert first - 1 < taken <= first + 16 and trajectory.ready[taken:].all()
     assert estimator.fits == len(fit_schedule(first, 1000))
     assert estimator.parameter_std is not None
     fresh = make_estimator('rpem', order=2)

@@ -50,11 +50,10 @@ from bcid_ros.estimators.rpem.store import (BATCH_LIMIT, FIRST_FIT_PER_PARAMETER
                                             FIRST_FIT_SAMPLES, FIT_GROWTH, OUTLIER_SHARE,
                                             SampleStore, Segment, signal_size, StoredFit)
 from bcid_ros.estimators.rpem.uncertainty import parameter_covariance
-from bcid_ros.estimators.rpem.watch import (DRIFT_FACTOR, DRIFT_MEMORY, PROJECTION_RESTART,
-                                            PROJECTION_SHARE, RestartWatch, UNDONE_RESTART,
-                                            VARIANCE_FLOOR)
+from bcid_ros.estimators.rpem.watch import (on_boundary, PROJECTION_RESTART, PROJECTION_SHARE,
+                                            RestartWatch, UNDONE_RESTART)
 
-__all__ = ['BATCH_LIMIT', 'BatchFit', 'DRIFT_FACTOR', 'DRIFT_MEMORY', 'FIRST_FIT_PER_PARAMETER',
+__all__ = ['BATCH_LIMIT', 'BatchFit', 'FIRST_FIT_PER_PARAMETER',
            'FIRST_FIT_SAMPLES', 'FIT_GROWTH', 'FitResult', 'HALVINGS', 'INITIAL_PRIOR',
            'IV_ITERATIONS', 'LAMBDA_RATE', 'LAMBDA_START', 'LM_ITERATIONS', 'LM_TOLERANCE',
            'MODELS', 'OUTLIER_SHARE', 'OUTLIER_WEIGHT', 'parameter_covariance', 'Prediction',
@@ -62,4 +61,4 @@ __all__ = ['BATCH_LIMIT', 'BatchFit', 'DRIFT_FACTOR', 'DRIFT_MEMORY', 'FIRST_FIT
            'REGION_MARGIN',
            'RecursivePredictor', 'RestartWatch', 'Rpem', 'SampleStore', 'Segment',
            'SegmentPredictor', 'signal_size', 'solve_regularised', 'STABILITY_RADIUS',
-           'StoredFit', 'UNDONE_RESTART', 'VARIANCE_FLOOR']
+           'StoredFit', 'UNDONE_RESTART', 'on_boundary']

@@ -16,6 +16,7 @@ carries what the recursion continues with.
 from __future__ import annotations
 
 import math
+from typing import Any, Generator
 
 import numpy as np
 
@@ -31,6 +32,21 @@ LM_ITERATIONS = 20
 OUTLIER_WEIGHT = 0.01
 #: Relative loss decrease below which the Gauss-Newton search stops.
 LM_TOLERANCE = 1e-10
+
+
+#: The fixed cost of a pass in sample-columns (its calls: about 0.05 ms, as 2000 columns).
+PASS_COST = 4096
+#: A fit spread over passes: yields each pass's cost, returns its value (see BatchFit.steps).
+Steps = Generator[int, None, Any]
+
+
+def finish(steps: Steps) -> Any:
+    """Run the passes of ``steps`` to the end; return its value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
 
 
 class FitResult:
@@ -73,6 +89,14 @@ class FitResult:
         self.tail_psi = tail_psi
         self.offset = offset
         self.scores = scores
+
+    def residuals(self, segment: tuple[np.ndarray, np.ndarray, np.ndarray],
+                  armax: bool) -> np.ndarray:
+        """Return the one-step errors of the last segment ``(y, u, weights)``, weighted ones."""
+        y, _, weights = segment
+        # OE: the output minus the simulated output and the offset
+        residuals = self.tail_e if armax else y - self.tail_x - self.offset
+        return residuals[weights > 0.0]
 
     def covariance(self, initial_covariance: float) -> np.ndarray | None:
         """
@@ -139,26 +163,49 @@ class BatchFit:
         """
         Fit the segments ``(y, u, weights)`` (normalised); None if none is usable.
 
-        ``prior`` is the information 1/p0 added to every diagonal entry.
+        ``prior`` is the information 1/p0 added to every diagonal entry. The
+        whole of :meth:`steps` at once.
+        """
+        return finish(self.steps(segments, candidates, prior))
+
+    def steps(self, segments: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+              candidates: list[np.ndarray], prior: float) -> Steps:
+        """
+        Fit as :meth:`fit` does, one pass over the samples at a time; return the fit.
+
+        A generator: after each pass of the predictor (or a regression) over
+        the segments it yields the pass's cost, the samples times the
+        columns it computed (:meth:`_cost`), so that a caller can spread the
+        fit over updates by a deterministic amount of work each
+        (:class:`~bcid_ros.estimators.rpem.store.FitJob`).
         """
         usable = [(y, u, w, self._predictor.input_columns(u)) for y, u, w in segments
                   if y.shape[0] > self.span]
         if not usable:
             return None
         arx = self._arx(usable)
+        yield self._cost(usable, arx.shape[0])
         # two starts: the best given candidate, and the best of ARX and its IV iterates
-        starts = [self._best([theta for theta in candidates if np.isfinite(theta).all()],
-                             usable), self._best(self._iv_path(arx, usable), usable)]
+        path = yield from self._iv_path(arx, usable)
+        starts = [(yield from self._best([theta for theta in candidates
+                                          if np.isfinite(theta).all()], usable)),
+                  (yield from self._best(path, usable))]
         best_theta, best_loss = None, math.inf
         for theta, loss in starts:
             if theta is None:
                 continue
-            theta, loss = self._search(theta, loss, usable, prior)
+            theta, loss = yield from self._search(theta, loss, usable, prior)
             if loss < best_loss:
                 best_theta, best_loss = theta, loss
         if best_theta is None:
             return None
-        return self._result(best_theta, segments, usable, arx)
+        result = self._result(best_theta, segments, usable, arx)
+        yield self._cost(usable, 2 * (self.num_parameters + 1))
+        return result
+
+    def _cost(self, usable: list, columns: int) -> int:
+        """Return the cost of a pass: samples times columns, and PASS_COST for its calls."""
+        return sum(y.shape[0] for y, _, _, _ in usable) * columns + PASS_COST
 
     def outliers(self, theta: np.ndarray, segments: list, limit: float) -> np.ndarray:
         """
@@ -189,22 +236,22 @@ class BatchFit:
             return np.zeros(0, dtype=np.intp)
         return np.concatenate(rows)[~(error <= limit * scale)]
 
-    def _best(self, thetas: list[np.ndarray],
-              usable: list) -> tuple[np.ndarray | None, float]:
+    def _best(self, thetas: list[np.ndarray], usable: list) -> Steps:
         """Return the one of ``thetas`` (stabilised) with the smallest loss, and its loss."""
         best_theta, best_loss = None, math.inf
         for theta in thetas:
             theta = self._stabilised(theta)
-            loss = self._loss(theta, usable)
+            loss = yield from self._loss_steps(theta, usable)
             if loss < best_loss:
                 best_theta, best_loss = theta, loss
         return best_theta, best_loss
 
-    def _iv_path(self, arx: np.ndarray, usable: list) -> list[np.ndarray]:
+    def _iv_path(self, arx: np.ndarray, usable: list) -> Steps:
         """Return the ARX estimate and its IV_ITERATIONS IV iterates (each stabilised)."""
         path = [self._stabilised(arx)]
         for _ in range(IV_ITERATIONS):
             theta = self._iv_step(path[-1], usable)
+            yield self._cost(usable, 2 * (self.num_parameters + 1))
             if theta is None:
                 break
             path.append(self._stabilised(theta))
@@ -243,6 +290,12 @@ class BatchFit:
         if solution is not None:
             theta[:p_ab] = solution[:p_ab]
         return theta
+
+    def _loss_steps(self, theta: np.ndarray, usable: list) -> Steps:
+        """Return :meth:`_loss`, a pass yielded."""
+        loss = self._loss(theta, usable)
+        yield self._cost(usable, 1)
+        return loss
 
     def _loss(self, theta: np.ndarray, usable: list) -> float:
         total = 0.0
@@ -336,8 +389,7 @@ class BatchFit:
         coefficients = solve_regularised(weighted.T.dot(nuisance), weighted.T.dot(psi))
         return psi if coefficients is None else psi - nuisance.dot(coefficients)
 
-    def _search(self, theta: np.ndarray, loss: float, usable: list,
-                prior: float) -> tuple[np.ndarray, float]:
+    def _search(self, theta: np.ndarray, loss: float, usable: list, prior: float) -> Steps:
         """
         Refine theta by Gauss-Newton steps that keep it stable and lower the loss.
 
@@ -351,13 +403,14 @@ class BatchFit:
         """
         for _ in range(LM_ITERATIONS):
             loss, information, gradient = self._gradient(theta, usable, prior)
+            yield self._cost(usable, 2 * (self.num_parameters + 1))
             step = solve_regularised(information, gradient)
             if step is None:
                 break
-            candidate, new_loss = self._line_search(theta, step, loss, usable)
+            candidate, new_loss = yield from self._line_search(theta, step, loss, usable)
             if candidate is None:
-                candidate, new_loss = self._damped_step(theta, loss, information, gradient,
-                                                        usable)
+                candidate, new_loss = yield from self._damped_step(theta, loss, information,
+                                                                   gradient, usable)
             if candidate is None:
                 break
             improvement = loss - new_loss
@@ -367,20 +420,20 @@ class BatchFit:
         return theta, loss
 
     def _line_search(self, theta: np.ndarray, step: np.ndarray, loss: float,
-                     usable: list) -> tuple[np.ndarray | None, float]:
+                     usable: list) -> Steps:
         """Return theta + mu step, mu = 1, 1/2, ..., the first stable one with a lower loss."""
         scale = 1.0
         for _ in range(HALVINGS + 1):
             candidate = theta + scale * step
             if self._is_inside(candidate):
-                new_loss = self._loss(candidate, usable)
+                new_loss = yield from self._loss_steps(candidate, usable)
                 if new_loss < loss:
                     return candidate, new_loss
             scale *= 0.5
         return None, loss
 
     def _damped_step(self, theta: np.ndarray, loss: float, information: np.ndarray,
-                     gradient: np.ndarray, usable: list) -> tuple[np.ndarray | None, float]:
+                     gradient: np.ndarray, usable: list) -> Steps:
         """Return a Levenberg-Marquardt step (H + mu diag H) that lowers the loss, or None."""
         diagonal = np.diag(information).copy()
         damping = 1e-3
@@ -390,7 +443,7 @@ class BatchFit:
                 break
             candidate = theta + step
             if self._is_inside(candidate):
-                new_loss = self._loss(candidate, usable)
+                new_loss = yield from self._loss_steps(candidate, usable)
                 if new_loss < loss:
                     return candidate, new_loss
             damping *= 10.0
@@ -403,6 +456,28 @@ class BatchFit:
         loss, information, _ = self._gradient(theta, usable, 0.0, concentrated=False,
                                               scores=scores)
         weight = float(sum(w[self.span:].sum() for _, _, w, _ in usable))
+        x, e, tail_psi, offset = self._tails(theta, segments, usable)
+        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset,
+                         np.concatenate(scores) if scores else np.zeros((0, information.shape[0])))
+
+    def continued(self, result: FitResult, segments: list) -> FitResult:
+        """
+        Return ``result`` with the predictor state at the end of ``segments`` instead.
+
+        For a fit taken some samples after the ones it fitted (a fit spread
+        over updates, :class:`~bcid_ros.estimators.rpem.store.FitJob`): the
+        same estimate, information, loss and scores; the lags, psi and offset
+        those of its predictor run at its estimate over the samples stored now.
+        """
+        usable = [(y, u, w, self._predictor.input_columns(u)) for y, u, w in segments
+                  if y.shape[0] > self.span]
+        tail_x, tail_e, tail_psi, offset = self._tails(result.theta, segments, usable)
+        return FitResult(result.theta, result.information, result.loss, result.weight,
+                         result.arx, tail_x, tail_e, tail_psi, offset, result.scores)
+
+    def _tails(self, theta: np.ndarray, segments: list,
+               usable: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Return the predictor's x, e, psi lags and offset at theta at the end of the segments."""
         n, p = self.order, self.num_parameters
         y, u, weights = segments[-1]
         tail_psi = np.zeros((n, p + self.offset))
@@ -419,5 +494,4 @@ class BatchFit:
             x, e = y, np.zeros(y.shape[0])
             if usable:  # the offset of the newest usable segment
                 offset = self._predictor.predict(theta, *usable[-1][:3], gradient=False).offset
-        return FitResult(theta, information, loss, weight, arx, x, e, tail_psi, offset,
-                         np.concatenate(scores) if scores else np.zeros((0, information.shape[0])))
+        return x, e, tail_psi, offset

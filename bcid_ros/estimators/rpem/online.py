@@ -25,7 +25,7 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
+from bcid_ros.estimators.change_detection import ChangeDetector, WARMUP, with_detector_arrays
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
                                            RandomWalk, repair_covariance, VARIANCE_FLOOR)
@@ -34,15 +34,12 @@ from bcid_ros.estimators.residual_state import (residual_items, residual_states,
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
-from bcid_ros.estimators.rpem.store import SampleStore, Segment
+from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
-from bcid_ros.estimators.rpem.watch import RestartWatch
+from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
-#: Share of a validity period's steps refused by the stability projection beyond which the
-#: estimate is not valid: most of them (:meth:`Rpem._projection_reasons`).
-PROJECTION_MOST = 0.5
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -107,30 +104,27 @@ class Rpem(RecursiveEstimator):
     samples the gate would refuse are then excluded) and the recursion
     continues from it with :math:`P = (\sum_t w_t\psi\psi^T + I/p_0)^{-1}`, its
     :math:`J`, :math:`\tau`, w and psi: what the recursion would hold had it
-    run over the same samples at that estimate. Beyond ``BATCH_LIMIT`` samples
-    it is the plain recursion; the last ``BATCH_LIMIT`` samples stay stored for
-    a restart. The estimator is not :attr:`ready` before the first fit. With
-    forgetting, sample t weighs :math:`\lambda^{T-t}` in a fit.
+    run over the same samples at that estimate. Each fit is spread over the
+    next updates, a bounded amount of work each, and taken where its work
+    ends, a few to tens of samples later, its predictor
+    run on over them (:class:`~bcid_ros.estimators.rpem.store.FitJob`): no
+    update waits on a whole fit. Beyond ``BATCH_LIMIT`` samples it is the
+    plain recursion (with forgetting, fits on a sliding schedule). Not
+    :attr:`ready` before the first fit; with forgetting, sample t weighs
+    :math:`\lambda^{T-t}` in a fit.
 
-    **Units.** Each fit takes per channel (y, each u_i) the smallest power of
-    two at or above a robust size of the stored samples
-    (:func:`~bcid_ros.estimators.rpem.store.signal_size`) as its scale, and the
-    recursion runs on the scaled signals: the estimates do not depend on the
-    units of y and u (bit for bit for power-of-two units), and
-    ``initial_covariance`` p0 is the prior variance of the parameters of
-    signals of unit size (the fits add :math:`I/p_0` to the information).
+    **Units.** Each fit scales each channel by a power of two at or above its
+    robust size (:mod:`.store`): the estimates do not depend on the units of
+    y and u, and p0 is the prior variance for signals of unit size.
 
-    **Offset** (``detrend: mean``). A fit re-centres the stored samples on
-    the current means; the model carries an offset c, the last internal
-    parameter (OE: y - m_y = G (u - m_u) + c + v; ARMAX: an equation offset
-    d, c = d / A(1)), regressed on a constant 1 in phi, not published;
-    :attr:`operating_point` is (m_y + c, m_u).
+    **Offset** (``detrend: mean``): the model carries an offset c, the last
+    internal parameter, not published; :attr:`operating_point` is
+    (m_y + c, m_u) (OE: y - m_y = G (u - m_u) + c + v; ARMAX: c = d / A(1)).
 
     **Annealed forgetting.** After each fit :math:`\lambda(t)` starts at
-    :math:`\min(\lambda, \text{LAMBDA\_START})` and tends to the user's
-    :math:`\lambda` by :math:`\lambda(t) \leftarrow \lambda - \text{LAMBDA\_RATE}
-    (\lambda - \lambda(t-1))` (the forgetting profile of L&S). Measured after a
-    batch start it only loses information, so LAMBDA_START = 1 (off).
+    min(lambda, LAMBDA_START) and tends to the user's by lambda(t) <- lambda -
+    LAMBDA_RATE (lambda - lambda(t-1)) (L&S); LAMBDA_START = 1 (off: after a
+    batch start it only loses information); it smooths a live change.
 
     **Safeguards**, each counted in :attr:`flags`:
 
@@ -143,19 +137,12 @@ class Rpem(RecursiveEstimator):
       place of y (OE: it is stored with weight 0); a plant change cuts the
       memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
       and restarts the fit schedule on the samples after the change;
-    * restart (``restarted``, and a validity reason until the next check):
-      a new fit of the stored samples when ``PROJECTION_RESTART`` steps in a
-      row left D_M, when ``UNDONE_RESTART`` steps in a row were undone, or
-      when the mean square prediction error over about ``DRIFT_MEMORY``
-      updates exceeds ``DRIFT_FACTOR`` times the variance of the last fit;
+    * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
+      :mod:`.watch` (a stuck projection a refit can move, undone steps; a
+      projection active on many steps); a changing plant is the detector's;
     * anti-windup as in Rls (no division by :math:`\lambda` while
       :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
       ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
-
-    **Validity**, every ``VALIDITY_PERIOD`` updates: not valid after a
-    restart, or when the projection refused more than ``PROJECTION_SHARE``
-    of the steps (the data push the model to the stability boundary: a
-    wrong order, an integrator, a plant in feedback).
 
     ``theta_uncompensated`` is the ARX least-squares estimate of the samples
     of the last fit (c = 0 for ARMAX), the start of its IV iterations.
@@ -267,7 +254,7 @@ class Rpem(RecursiveEstimator):
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
         self._predictor.advance(yn, phi, psi, theta)
-        self._watch.stepped(e * e, taken)
+        self._watch.stepped(taken)
         self._lambda_t = self._forgetting_factor - LAMBDA_RATE * (
             self._forgetting_factor - lam)
         self._updates += 1
@@ -364,33 +351,43 @@ class Rpem(RecursiveEstimator):
 
     # ------------------------------------------------------------- the fits
     def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
-        """Store the sample for the fits (:meth:`SampleStore.add`); fit when one is due."""
+        """Store the sample, do a slice of the fit on its way; start a fit if one is due."""
         self._samples += 1
-        if self._store.add(y, u, None if self._means is None else self._means.mean, excluded):
+        due = self._store.add(y, u, None if self._means is None else self._means.mean, excluded)
+        ended = self._store.advance()
+        if ended is not None:  # its last pass ended: the predictor run on to this sample
+            self._fitted_now(*ended)
+        if due:
             self._fit()
 
-    def _fit(self) -> bool:
-        """Fit the stored samples and continue the recursion from the fit (False: no fit)."""
-        fitted = self._store.fit(None if self._means is None else self._means.mean,
-                                 self._signal_scale,
-                                 self._theta_n[:self.num_parameters] if self._fitted else None,
-                                 self._forgetting_factor, 1.0 / self.initial_covariance,
-                                 math.sqrt(self._gate_limit2))
+    def _fit(self, fresh: bool = True) -> None:
+        """Fit the stored samples, spread over the next updates; fresh: no restart's refit."""
+        arguments = (None if self._means is None else self._means.mean, self._signal_scale,
+                     self._theta_n[:self.num_parameters] if self._fitted else None,
+                     self._forgetting_factor, 1.0 / self.initial_covariance,
+                     math.sqrt(self._gate_limit2))
+        self._store.start(*arguments, fresh)
+
+    def _fitted_now(self, fitted: StoredFit, fresh: bool) -> None:
+        """Continue the recursion from a fit (if it is sound)."""
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
-        if fitted.result is None or not self._take_fit(fitted.result, fitted.segments,
-                                                       fitted.scale):
-            return False
-        self._fits += 1
-        return True
+        if fitted.result is not None and self._take_fit(fitted.result, fitted.segments,
+                                                        fitted.scale, fresh):
+            self._fits += 1
+            self._decide_now()  # a new estimate: judged now, not at the period's end
 
-    def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray) -> bool:
+    def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
+                  fresh: bool) -> bool:
         """Continue from the fit: theta, P, J, tau, the lags and psi; False if unsound."""
         p = result.covariance(self.initial_covariance)
         if p is None:
             return False
         # the errors to come are judged against this fit's residuals (its own model's)
-        self._detector.prime(self._fit_residuals(result, segments[-1]))
+        self._detector.prime(result.residuals(segments[-1], self._armax))
+        # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
+        # goes on after its detection, and a model that blends it may never pass the tests
+        self._settled = self._settled or (self._changes > 0 and result.weight >= WARMUP)
         self._p = p
         self._theta_n[:self.num_parameters] = result.theta
         if self._offset:
@@ -402,7 +399,9 @@ class Rpem(RecursiveEstimator):
         self._arx = result.arx * self._unscale
         # the predictor's lags: those of the last segment's newest samples
         self._predictor.load(result.tail_x, segments[-1][1], result.tail_e, result.tail_psi)
-        self._watch.fitted(result.loss / result.weight)
+        theta = self._theta_n
+        self._watch.fitted(on_boundary([theta[:self.order]] + (
+            [theta[self._filter_slice]] if self._armax else [])), fresh)
         # the scores recorded so far are of the estimates before the fit, whose errors
         # would swell the HAC (hundreds of times on a fit that moved far): the fit's own
         self._hac.reset()
@@ -411,23 +410,13 @@ class Rpem(RecursiveEstimator):
         self._fitted = True
         return True
 
-    def _fit_residuals(self, result: FitResult, segment: Segment) -> np.ndarray:
-        """Return the fit's one-step errors of its last segment (the weighted samples)."""
-        y, _, weights = segment
-        if self._armax:
-            residuals = result.tail_e
-        else:  # OE: the output minus the simulated output and the offset
-            residuals = y - result.tail_x - result.offset
-        return residuals[weights > 0.0]
-
     def _restart(self, reason: str) -> None:
         """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
         self._flag('restarted')
         self._watch.restarting(reason)
         # the residuals so far are of the model that drifted
         self._forget_residuals()
-        self._fit()
-        self._watch.restarted()
+        self._fit(fresh=False)
         self._decide_now()
 
     def _accept_change(self) -> None:
@@ -445,9 +434,8 @@ class Rpem(RecursiveEstimator):
 
         The memory cut (rules.cut_memory) lets the recursion move at once; the
         stored samples before the change point leave the fits, and a fit of
-        the ones after it is made as soon as there are enough (now, if there
-        are). Not valid from this sample on, with the reason, until a fit of
-        the new samples has passed the checks (docs/tracking.md).
+        the ones after it starts once there are enough. Not valid from this
+        sample on, until a fit of the new samples passed the checks.
         """
         self._changes += 1
         first = self._samples - age + 1 if age else self._samples + 1
@@ -459,8 +447,6 @@ class Rpem(RecursiveEstimator):
         loss, tau = np.array([self._loss]), np.array([self._tau])
         rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
         self._loss, self._tau = float(loss[0]), float(tau[0])
-        # the drift watch measures from the errors now, not from the old plant's fit
-        self._watch.fitted(max(self._watch.recent, self._watch.sigma2_fit))
         if self._store.restart_schedule(age):
             self._fit()
         self._decide_now()
@@ -484,8 +470,7 @@ class Rpem(RecursiveEstimator):
         reason = watch.restart_reason()
         if reason:
             self._restart(reason)
-        named = watch.reasons(steps)
-        self._period_reasons = named + self._projection_reasons(steps, named)
+        self._period_reasons = watch.reasons(steps)
         self._decide_now()
 
     def _decide_now(self) -> None:
@@ -506,22 +491,6 @@ class Rpem(RecursiveEstimator):
             self._change_note = ''  # a fit of the new samples passed its checks: done
             self._decide_validity(self._period_reasons)
         self._settled = self._settled or not self._reasons
-
-    def _projection_reasons(self, steps: int, named: list[str]) -> list[str]:
-        """
-        Return the reason of a stability projection active on most steps of the period.
-
-        Counted from the flag, apart from the drift watch (which names it too): the model
-        keeps pushing against the stability boundary, so it is not the model the data want
-        (a heated plate's record: 77 of the last 100 updates). Not repeated when the watch
-        has named it.
-        """
-        total = self.flags.get('stability_projection', 0)
-        projected, self._projections_checked = total - self._projections_checked, total
-        if (steps <= 0 or projected <= PROJECTION_MOST * steps
-                or any(reason.startswith('stability projection') for reason in named)):
-            return []
-        return [f'stability projection active ({projected} of the last {steps} updates)']
 
     # --------------------------------------------------------- the accessors
     @property
@@ -644,8 +613,6 @@ class Rpem(RecursiveEstimator):
         # whether the estimate has been valid since the last change (the detector runs)
         self._settled = False
         self._detector.clear()
-        # (the flags may outlive a reset)
-        self._projections_checked = getattr(self, 'flags', {}).get('stability_projection', 0)
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -695,8 +662,7 @@ class Rpem(RecursiveEstimator):
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
                    **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
                    'period_reasons': list(self._period_reasons),
-                   'change_note': self._change_note, 'settled': self._settled,
-                   'projections_checked': self._projections_checked}
+                   'change_note': self._change_note, 'settled': self._settled}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
         return ({**arrays, **residual_arrays, **self._detector.get_state()},
@@ -711,7 +677,8 @@ class Rpem(RecursiveEstimator):
         """
         own, _ = self._state_items()
         arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
-        super().set_state(dataclasses.replace(state, arrays=arrays))
+        arrays, scalars = self._store.with_job_items(arrays, state.scalars)
+        super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
@@ -727,7 +694,6 @@ class Rpem(RecursiveEstimator):
         self._change_note = str(scalars.get('change_note', ''))
         self._settled = bool(scalars.get('settled', False))
         self._detector.set_state(arrays)
-        self._projections_checked = int(scalars.get('projections_checked', 0))
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)

@@ -10,13 +10,23 @@ no fit may weigh (an output the gate refused, an outlier a fit found). After
 time their count has grown by ``FIT_GROWTH`` up to ``BATCH_LIMIT`` (then, with
 forgetting, every ``SLIDE`` samples on the last ``BATCH_LIMIT``; after a plant
 change only the samples after its change point count),
-:meth:`SampleStore.fit` fits them with
+:meth:`SampleStore.start` fits them with
 :class:`~bcid_ros.estimators.rpem.fit.BatchFit` (Ljung, *System
 Identification*, 2nd ed., 1999, ch. 10): centred on the current means, in
 the units of one power of two per channel at or above its robust size
 (:func:`signal_size`, :func:`~bcid_ros.estimators.rules.powers_of_two_at_least`),
 sample t of T weighing :math:`\lambda^{T-1-t}`; the samples the fit's
 prediction errors mark as outliers are then taken out and the fit repeated.
+
+**A fit spread over updates.** A :class:`FitJob` holds a copy of what one
+fit needs (the rows as stored when it was due, the current estimate, the
+means and scales) and runs the fit's passes (:meth:`BatchFit.steps`) a
+bounded amount of work at a time (:meth:`FitJob.advance`): ``SLICE``
+sample-columns per update, so that no update waits on a whole fit. Its
+result is taken at the update where its last pass ends, with the predictor
+run on over the samples stored since (:meth:`BatchFit.continued`). The work
+is counted, not timed: the same samples give the same hand-off, bit for bit,
+in a node and in a replay.
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.rpem.fit import BatchFit, FitResult
+from bcid_ros.estimators.rpem.fit import BatchFit, FitResult, Steps
 
 #: The first batch fit waits for this many usable samples (at least) ...
 FIRST_FIT_SAMPLES = 50
@@ -44,6 +54,12 @@ SLIDE = BATCH_LIMIT // 2
 #: A fit excludes the samples whose prediction error exceeds the gate's limit
 #: (robust scale) when they are at most this share of the stored samples.
 OUTLIER_SHARE = 0.05
+
+#: The work of a fit done per update (sample-columns of its passes, BatchFit.steps): about
+#: 2 ms on one core of the development machine; a pass may overrun it by one pass (at most
+#: BATCH_LIMIT samples of a gradient, about 1.5 ms). A fit of 8192 samples of a second-order
+#: plant is about 40 updates of work.
+SLICE = 1 << 16
 
 #: A gap-free run of stored samples, normalised: (y, u, weights).
 Segment = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -65,7 +81,7 @@ def signal_size(values: np.ndarray) -> float:
 
 class StoredFit(NamedTuple):
     """
-    A fit of the stored samples (see :meth:`SampleStore.fit`).
+    A fit of the stored samples (see :meth:`SampleStore.start`).
 
     Attributes
     ----------
@@ -84,6 +100,162 @@ class StoredFit(NamedTuple):
     segments: list[Segment]
     scale: np.ndarray
     outliers: int
+
+
+class FitJob:
+    """
+    A fit of the stored samples as they were at one update, done a slice of work at a time.
+
+    :meth:`steps` fits copies of the rows (centred on ``mean``, in the
+    scales the rows give), with the outliers it finds marked in its own
+    ``breaks`` / ``excluded`` (``break_after``: a break after the last row);
+    :meth:`SampleStore.take_marks` copies them into the store. The result
+    depends on the job's arrays and numbers only; ``done`` counts the work
+    done (a snapshot keeps it, and a restored job runs the same passes
+    again up to it).
+    """
+
+    def __init__(self, rows: np.ndarray, breaks: np.ndarray, excluded: np.ndarray,
+                 mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
+                 forgetting_factor: float, prior: float, limit: float, position: int,
+                 channel: np.ndarray, armax: bool) -> None:
+        self.rows, self.breaks, self.excluded = rows, breaks, excluded
+        self._marks = (breaks.copy(), excluded.copy())
+        self.mean = None if mean is None else np.array(mean, dtype=float)
+        self.scale = np.array(scale, dtype=float)
+        self.theta = None if theta is None else np.array(theta, dtype=float)
+        self.forgetting_factor, self.prior, self.limit = forgetting_factor, prior, limit
+        self.position = int(position)
+        self.break_after = False
+        #: Whether it fits new samples (not a restart's refit of the same: rpem.watch)
+        self.fresh = True
+        self.done = 0
+        self.fitted: StoredFit | None = None
+        self._channel, self._armax = channel, armax
+        self._steps: Steps | None = None
+
+    def steps(self, batch: BatchFit) -> Steps:
+        """Fit the job's rows with ``batch`` (see :meth:`SampleStore.start`), a pass at a time."""
+        rows = self.rows if self.mean is None else self.rows - self.mean
+        lam = self.forgetting_factor
+        new_scale = SampleStore._scales(rows, self.scale)
+        segments = SampleStore._segments(rows, self.breaks, self.excluded, new_scale, lam)
+        candidates = []
+        if self.theta is not None:
+            # theta in the new scales: the b's scale with s_u / s_y
+            channel = self._channel
+            ratio = (self.scale[channel] / new_scale[channel]) * (new_scale[0] / self.scale[0])
+            candidates.append(self.theta * ratio)
+        outliers = 0
+        with np.errstate(all='ignore'):
+            result = yield from batch.steps(segments, candidates, self.prior)
+            if result is not None:
+                outliers = self._exclude_outliers(batch, result.theta, segments)
+                yield self.rows.shape[0]
+            if outliers:
+                segments = SampleStore._segments(rows, self.breaks, self.excluded, new_scale,
+                                                 lam)
+                result = yield from batch.steps(segments, [result.theta], self.prior)
+        return StoredFit(result, segments, new_scale, outliers)
+
+    def advance(self, batch: BatchFit, work: float) -> bool:
+        """Do passes until ``work`` more is done or the fit ends; return whether it ended."""
+        if self._steps is None:
+            self._steps = self.steps(batch)
+        goal = self.done + work
+        with np.errstate(all='ignore'):
+            while self.done < goal:
+                try:
+                    self.done += next(self._steps)
+                except StopIteration as end:
+                    self.fitted = end.value
+                    return True
+        return False
+
+    def state_items(self, channels: int, size: int) -> tuple[dict[str, np.ndarray],
+                                                             dict[str, Any]]:
+        """Return (arrays, scalars) of the job under ``job_`` names (padded to BATCH_LIMIT)."""
+        count = self.breaks.shape[0]
+        rows = np.zeros((BATCH_LIMIT, channels))
+        rows[:count] = self.rows
+        breaks, excluded = np.zeros(BATCH_LIMIT, dtype=bool), np.zeros(BATCH_LIMIT, dtype=bool)
+        # the marks as the job started (its passes mark them again when it runs anew)
+        breaks[:count], excluded[:count] = self._marks
+        arrays = {'job_rows': rows, 'job_breaks': breaks, 'job_excluded': excluded,
+                  'job_mean': np.zeros(channels) if self.mean is None else self.mean,
+                  'job_scale': self.scale,
+                  'job_theta': np.zeros(size) if self.theta is None else self.theta}
+        scalars = {'job_count': count, 'job_done': self.done, 'job_fresh': self.fresh,
+                   'job_ended': self.fitted is not None,
+                   'job_position': self.position, 'job_has_mean': self.mean is not None,
+                   'job_has_theta': self.theta is not None,
+                   'job_forgetting_factor': self.forgetting_factor, 'job_prior': self.prior,
+                   'job_limit': self.limit}
+        return arrays, scalars
+
+    @staticmethod
+    def empty_items(channels: int, size: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return the ``job_`` state of no job (job_count 0)."""
+        arrays = {'job_rows': np.zeros((BATCH_LIMIT, channels)),
+                  'job_breaks': np.zeros(BATCH_LIMIT, dtype=bool),
+                  'job_excluded': np.zeros(BATCH_LIMIT, dtype=bool),
+                  'job_mean': np.zeros(channels), 'job_scale': np.ones(channels),
+                  'job_theta': np.zeros(size)}
+        scalars = {'job_count': 0, 'job_done': 0, 'job_fresh': True, 'job_ended': False,
+                   'job_position': 0,
+                   'job_has_mean': False,
+                   'job_has_theta': False, 'job_forgetting_factor': 1.0, 'job_prior': 0.0,
+                   'job_limit': 0.0}
+        return arrays, scalars
+
+    @classmethod
+    def from_state(cls, arrays: dict[str, np.ndarray], scalars: dict[str, Any],
+                   channel: np.ndarray, armax: bool, batch: BatchFit) -> FitJob | None:
+        """Return the job of a :meth:`state_items` snapshot, run again to its work done."""
+        count = int(scalars.get('job_count', 0))
+        if not count:
+            return None
+        job = cls(np.array(arrays['job_rows'][:count], dtype=float),
+                  np.array(arrays['job_breaks'][:count], dtype=bool),
+                  np.array(arrays['job_excluded'][:count], dtype=bool),
+                  arrays['job_mean'] if scalars['job_has_mean'] else None, arrays['job_scale'],
+                  arrays['job_theta'] if scalars['job_has_theta'] else None,
+                  float(scalars['job_forgetting_factor']), float(scalars['job_prior']),
+                  float(scalars['job_limit']), int(scalars['job_position']), channel, armax)
+        job.fresh = bool(scalars['job_fresh'])
+        done = int(scalars['job_done'])
+        while job.done < done:  # the same passes, to the same point
+            job.advance(batch, done - job.done)
+        if scalars['job_ended']:
+            job.advance(batch, math.inf)
+        return job
+
+    def _exclude_outliers(self, batch: BatchFit, theta: np.ndarray,
+                          segments: list[Segment]) -> int:
+        """
+        Take the samples that the gate would refuse at theta out of the fits; return how many.
+
+        OE: each such sample weighs 0 from then on (its output enters nothing
+        else); ARMAX: it becomes a segment of its own (a break before and
+        after it: its output is a lag of the next ones). Marked in the job's
+        ``breaks`` / ``excluded`` (and by :meth:`SampleStore.take_marks` in
+        the store, so that no fit uses it again); 0 if there are none or more
+        than OUTLIER_SHARE of the samples (then it is the model, not outliers).
+        """
+        bad = batch.outliers(theta, segments, self.limit)
+        count = self.breaks.shape[0]
+        if not 0 < bad.shape[0] <= OUTLIER_SHARE * count:
+            return 0
+        for row in bad:
+            if not self._armax:
+                self.excluded[row] = True
+                continue
+            self.breaks[row] = True
+            if row + 1 < count:
+                self.breaks[row + 1] = True
+            else:
+                self.break_after = True
+        return bad.shape[0]
 
 
 class SampleStore:
@@ -125,6 +297,8 @@ class SampleStore:
         self.since_start = 0
         self.next_fit = self.first_fit
         self.break_pending = False
+        #: The fit on its way (spread over the updates), or None
+        self.job: FitJob | None = None
 
     def add(self, y: float, u: np.ndarray, mean: np.ndarray | None,
             excluded: bool = False) -> bool:
@@ -162,6 +336,7 @@ class SampleStore:
         With ``keep`` 0 the next stored sample starts a segment.
         """
         keep = min(max(int(keep), 0), self.stored)
+        self.job = None  # a fit on its way blends the old plant in
         self.stored = keep
         self.since_start = keep
         self.next_fit = max(self.first_fit, keep)
@@ -172,10 +347,12 @@ class SampleStore:
         return keep >= self.first_fit
 
     # ------------------------------------------------------------- the fit
-    def fit(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
-            forgetting_factor: float, prior: float, limit: float) -> StoredFit:
+    def start(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
+              forgetting_factor: float, prior: float, limit: float, fresh: bool) -> None:
         """
-        Fit the stored samples and schedule the next fit.
+        Start a fit of the stored samples, spread over the next updates; schedule the next.
+
+        The job replaces any fit on its way (:meth:`advance` does its work).
 
         Parameters
         ----------
@@ -192,36 +369,54 @@ class SampleStore:
             1 / p0, the information added to the fit's diagonal.
         limit : float
             The gate's limit of a prediction error, in robust scales.
-
-        Returns
-        -------
-        StoredFit
+        fresh : bool
+            Whether it fits new samples (not a restart's refit of the same ones).
 
         """
         self.next_fit = self._after(self.since_start, forgetting_factor)
         rows, breaks, excluded = self._rows()
-        if mean is not None:
-            rows = rows - mean
-        new_scale = self._scales(rows, scale)
-        segments = self._segments(rows, breaks, excluded, new_scale, forgetting_factor)
+        self.job = FitJob(rows, breaks, excluded, mean, scale, theta, forgetting_factor, prior,
+                          limit, self.position, self._channel, self._armax)
+        self.job.fresh = fresh
+
+    def advance(self) -> tuple[StoredFit, bool] | None:
+        """
+        Do a SLICE of the fit on its way; if it ended, return it and whether it was fresh.
+
+        The fit is returned with its predictor run on over the samples stored
+        now (:meth:`BatchFit.continued`), its outliers marked in the store.
+        """
+        job = self.job
+        if job is None or not job.advance(self.fitter(), SLICE):
+            return None
+        self.job = None
+        self.take_marks(job)
+        fitted = job.fitted
+        rows, breaks, excluded = self._rows()
+        if job.mean is not None:
+            rows = rows - job.mean
+        segments = self._segments(rows, breaks, excluded, fitted.scale, job.forgetting_factor)
+        result = None if fitted.result is None else self.fitter().continued(fitted.result,
+                                                                            segments)
+        return StoredFit(result, segments, fitted.scale, fitted.outliers), job.fresh
+
+    def take_marks(self, job: FitJob) -> None:
+        """Mark the outliers ``job`` found in the store (those of its rows still stored)."""
+        count = job.breaks.shape[0]
+        # ring slot of job row k: job.position - count + k; overwritten since, the oldest
+        written = (self.position - job.position) % BATCH_LIMIT
+        first = max(written - (BATCH_LIMIT - count), 0)
+        index = (np.arange(first, count) + job.position - count) % BATCH_LIMIT
+        self.breaks[index] |= job.breaks[first:]
+        self.excluded[index] |= job.excluded[first:]
+        if job.break_after and written == 0:
+            self.break_pending = True
+
+    def fitter(self) -> BatchFit:
+        """Return the batch fit of the structure (made once)."""
         if self._batch is None:
             self._batch = BatchFit(*self._structure)
-        candidates = []
-        if theta is not None:
-            # theta in the new scales: the b's scale with s_u / s_y
-            channel = self._channel
-            ratio = (scale[channel] / new_scale[channel]) * (new_scale[0] / scale[0])
-            candidates.append(theta * ratio)
-        outliers = 0
-        with np.errstate(all='ignore'):
-            result = self._batch.fit(segments, candidates, prior)
-            if result is not None:
-                outliers = self._exclude_outliers(result.theta, segments, breaks, excluded,
-                                                  limit)
-            if outliers:
-                segments = self._segments(rows, breaks, excluded, new_scale, forgetting_factor)
-                result = self._batch.fit(segments, [result.theta], prior)
-        return StoredFit(result, segments, new_scale, outliers)
+        return self._batch
 
     @staticmethod
     def _after(since_start: int, forgetting_factor: float) -> int:
@@ -270,37 +465,6 @@ class SampleStore:
         return [(normalised[a:b, 0], normalised[a:b, 1:], weights[a:b])
                 for a, b in zip(starts[:-1], starts[1:]) if b > a]
 
-    def _exclude_outliers(self, theta: np.ndarray, segments: list[Segment], breaks: np.ndarray,
-                          excluded: np.ndarray, limit: float) -> int:
-        """
-        Take the samples that the gate would refuse at theta out of the fits; return how many.
-
-        OE: each such sample weighs 0 from then on (its output enters nothing
-        else); ARMAX: it becomes a segment of its own (a break before and
-        after it: its output is a lag of the next ones). Marked in
-        ``breaks`` / ``excluded`` and in the store, so that no fit uses it
-        again; 0 if there are none or more than OUTLIER_SHARE of the samples
-        (then it is the model, not outliers).
-        """
-        bad = self._batch.outliers(theta, segments, limit)
-        count = breaks.shape[0]
-        if not 0 < bad.shape[0] <= OUTLIER_SHARE * count:
-            return 0
-        first = self.position - count
-        for row in bad:
-            if not self._armax:
-                excluded[row] = True
-                self.excluded[(first + row) % BATCH_LIMIT] = True
-                continue
-            breaks[row] = True
-            self.breaks[(first + row) % BATCH_LIMIT] = True
-            if row + 1 < count:
-                breaks[row + 1] = True
-                self.breaks[(first + row + 1) % BATCH_LIMIT] = True
-            else:
-                self.break_pending = True
-        return bad.shape[0]
-
     # ------------------------------------------------------------ the state
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the store under the estimator's state names."""
@@ -308,7 +472,16 @@ class SampleStore:
         scalars = {'buffer_position': self.position, 'stored': self.stored,
                    'since_start': self.since_start, 'next_fit': self.next_fit,
                    'break_pending': self.break_pending}
-        return arrays, scalars
+        size = self._channel.shape[0]
+        job_arrays, job_scalars = (FitJob.empty_items(self._channels, size) if self.job is None
+                                   else self.job.state_items(self._channels, size))
+        return {**arrays, **job_arrays}, {**scalars, **job_scalars}
+
+    def with_job_items(self, arrays: dict[str, np.ndarray],
+                       scalars: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return a snapshot's arrays and scalars with those of no job where it has none."""
+        empty_arrays, empty_scalars = FitJob.empty_items(self._channels, self._channel.shape[0])
+        return {**empty_arrays, **arrays}, {**empty_scalars, **scalars}
 
     def load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over what :meth:`state_items` made (the arrays are not copied)."""
@@ -319,3 +492,5 @@ class SampleStore:
         self.since_start = int(scalars['since_start'])
         self.next_fit = int(scalars['next_fit'])
         self.break_pending = bool(scalars['break_pending'])
+        # the fit that was on its way runs its passes again, to the work it had done
+        self.job = FitJob.from_state(arrays, scalars, self._channel, self._armax, self.fitter())
