@@ -12,6 +12,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupted_after(delay: float) -> subprocess.CompletedProcess:
     # the delay counts from the call of the entry point, where the console script hands
     # over: a delay from the process's start landed, on a loaded machine, in the
@@ -20,9 +24,13 @@ def _interrupted_after(delay: float) -> subprocess.CompletedProcess:
     code = 'import sys; from bcid_ros.entry_points import identifier_node; ' \
            'print("running", flush=True); sys.exit(identifier_node())'
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    # a shell without job control starts a background job with SIGINT ignored, and the
+    # child inherits that: Python then installs no handler until rclpy.init, so a SIGINT
+    # during the imports was lost and the node spun on (a test run in the background hung
+    # 60 s); a user's terminal or ros2 launch gives the default, which the child gets here
     process = subprocess.Popen([sys.executable, '-c', code, '--ros-args', '-p', 'order:=1'],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               cwd=ROOT, env=env)
+                               cwd=ROOT, env=env, preexec_fn=_default_sigint)
     assert process.stdout.readline() == 'running\n'
     time.sleep(delay)
     process.send_signal(signal.SIGINT)
