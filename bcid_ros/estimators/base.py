@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import functools
 import math
 import operator
 from typing import Any, Callable, ClassVar, Sequence
@@ -145,7 +146,8 @@ def check_delays(value: Any, num_inputs: int) -> tuple[int, ...]:
 
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
                     simulation: SimulationWindow | None = None,
-                    theta: np.ndarray | None = None, order: int = 0) -> list[str]:
+                    theta: np.ndarray | None = None, order: int = 0,
+                    covariance: Callable[[], np.ndarray | None] | None = None) -> list[str]:
     """
     Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
 
@@ -156,14 +158,15 @@ def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
     (``monitor`` None: none), of ``plant`` of a many-plant monitor, then the
     simulation check's of the model ``theta`` of order ``order`` on ``simulation``
     (:func:`~bcid_ros.estimators.simulation_check.simulation_reasons`; None: the
-    estimator keeps no window). The one place that decides which reasons count,
-    for one plant and for K.
+    estimator keeps no window), counting the estimate's own error from ``covariance``
+    (a function giving theta's covariance, asked only when the check runs). The one
+    place that decides which reasons count, for one plant and for K.
     """
     reasons = list(own)
     if monitor is not None:
         reasons += residual_reasons(monitor, plant)
     if simulation is not None:
-        reasons += simulation_reasons(simulation, theta, order)
+        reasons += simulation_reasons(simulation, theta, order, covariance)
     return reasons
 
 
@@ -347,7 +350,12 @@ class PlantsValidity:
             for plant, mine in zip(plants.tolist(), own):
                 self._reasons.set(plant, tuple(decided_reasons(
                     mine, self._monitor, plant, None if windows is None else windows[plant],
-                    None if theta is None else theta[plant], self.order)))
+                    None if theta is None else theta[plant], self.order,
+                    functools.partial(self._plant_covariance, plant))))
+
+    def _plant_covariance(self, plant: int) -> np.ndarray:
+        """Return plant k's parameter covariance (NaN where none: see ``check``)."""
+        return self.parameter_covariance[plant]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1022,7 +1030,8 @@ class RecursiveEstimator(SharedSettings, abc.ABC):
         with np.errstate(all='ignore'):
             self._reasons = tuple(decided_reasons(
                 own, self._monitor, simulation=self._simulation,
-                theta=None if self._simulation is None else self._theta(), order=self.order))
+                theta=None if self._simulation is None else self._theta(), order=self.order,
+                covariance=lambda: self.parameter_covariance))
 
     def _start_simulation_check(self) -> None:
         """
