@@ -221,8 +221,11 @@ def settled_statistic(gradient: np.ndarray, nuisance: np.ndarray, error: np.ndar
     :math:`\kappa\hat\sigma^2` and ``covariance`` P the estimate's, in the order of ψ's
     columns. With ψ̃ the gradient with N projected out, g = ψ̃ᵀε and M = ψ̃ᵀψ̃:
     ε ≈ ψ̃δ + ṽ for an estimate off by δ, so Cov(g) = κσ²M + M Cov(δ) M, and with
-    Cov(δ) = 0 this is the :func:`check`'s (S_0 - S_1)/(κσ²). Columns scaled to unit norm for
-    the solve; a singular form (a gradient without a direction) judges nothing (NaN).
+    Cov(δ) = 0 this is the :func:`check`'s (S_0 - S_1)/(κσ²). P counts at most as much as
+    κσ²M⁻¹, the covariance of a fit of the window alone (the estimate has learnt from at least
+    those samples): so T is at least half the exact estimate's, and a misfit that grows T
+    with the window's length is still seen. Columns scaled to unit norm for the solve; a
+    singular form (a gradient without a direction) judges nothing (NaN).
     """
     scale = np.linalg.norm(nuisance, axis=0)
     scale[scale == 0.0] = 1.0
@@ -235,6 +238,12 @@ def settled_statistic(gradient: np.ndarray, nuisance: np.ndarray, error: np.ndar
     score = projected.T @ error
     information = projected.T @ projected
     scaled_covariance = norms[:, None] * covariance * norms[None, :]  # of δ in ψ's units
+    # an estimate that has learnt from the window's samples is no less certain than a fit
+    # of the window alone (P <= κσ²M⁻¹): a larger P (a sandwich inflated by noise outside
+    # the estimator's model) would excuse any misfit, so it counts at most that much
+    excess = float(np.max(np.linalg.eigvals(scaled_covariance @ information).real)) / noise
+    if excess > 1.0:
+        scaled_covariance = scaled_covariance / excess
     form = noise * information + information @ scaled_covariance @ information
     try:
         return float(score @ np.linalg.solve(form, score))
