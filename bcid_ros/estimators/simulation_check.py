@@ -57,7 +57,7 @@ Everything is over a leading plant axis where it can be (:func:`simulate`,
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -75,6 +75,9 @@ FALSE_ALARM = 0.01
 #: only: 100 made an exact rls estimate under equation noise through a pole at 0.992, whose
 #: kappa is (1 + 0.992)/(1 - 0.992) = 249, fail the check on the realistic family).
 MAX_COLOUR = 1e6
+#: The most of the estimate's own error the check excuses, in covariances of a fit of the
+#: window alone (:func:`settled_statistic`): an error of twice that fit's.
+SETTLING_EXCUSE = 4.0
 #: Largest order of the AR model of the error whose spectrum gives kappa (and of the AR
 #: noise models of bcid_ros.analysis, which take theirs from here).
 MAX_NOISE_ORDER = 30
@@ -212,6 +215,47 @@ def _stable(a: np.ndarray) -> bool:
     return a.size == 0 or bool(np.all(np.abs(np.roots(np.concatenate(([1.0], a)))) < 1.0))
 
 
+def settled_statistic(gradient: np.ndarray, nuisance: np.ndarray, error: np.ndarray,
+                      noise: float, covariance: np.ndarray) -> float:
+    r"""
+    Return T with the estimate's own error counted: :math:`g^T(\kappa\sigma^2 M + M P M)^{-1}g`.
+
+    ``gradient`` is ψ, ``nuisance`` N, ``error`` ε (N already projected out), ``noise``
+    :math:`\kappa\hat\sigma^2` and ``covariance`` P the estimate's, in the order of ψ's
+    columns. With ψ̃ the gradient with N projected out, g = ψ̃ᵀε and M = ψ̃ᵀψ̃:
+    ε ≈ ψ̃δ + ṽ for an estimate off by δ, so Cov(g) = κσ²M + M Cov(δ) M, and with
+    Cov(δ) = 0 this is the :func:`check`'s (S_0 - S_1)/(κσ²). P counts at most as much as
+    :data:`SETTLING_EXCUSE` κσ²M⁻¹, four times the covariance of a fit of the window alone
+    (an error up to twice that fit's: what docs/accuracy.md calls accurate; bcrls is less
+    efficient than the output-error fit): so T is at least a fifth of the exact estimate's,
+    and a misfit that grows T with the window's length is still seen. Columns scaled to unit
+    norm for the solve; a singular form (a gradient without a direction) judges nothing (NaN).
+    """
+    scale = np.linalg.norm(nuisance, axis=0)
+    scale[scale == 0.0] = 1.0
+    basis = nuisance / scale
+    projected = gradient - basis @ np.linalg.lstsq(basis, gradient, rcond=None)[0]
+    norms = np.linalg.norm(projected, axis=0)
+    if not (norms > 0.0).all():
+        return math.nan
+    projected = projected / norms
+    score = projected.T @ error
+    information = projected.T @ projected
+    scaled_covariance = norms[:, None] * covariance * norms[None, :]  # of δ in ψ's units
+    # the estimate is excused at most twice the error of a fit of the window alone, the
+    # accuracy the benchmarks call accurate (P <= SETTLING_EXCUSE κσ²M⁻¹): a larger P (a
+    # sandwich inflated by noise outside the estimator's model) would excuse any misfit
+    excess = float(np.max(np.linalg.eigvals(scaled_covariance @ information).real)) / (
+        SETTLING_EXCUSE * noise)
+    if excess > 1.0:
+        scaled_covariance = scaled_covariance / excess
+    form = noise * information + information @ scaled_covariance @ information
+    try:
+        return float(score @ np.linalg.solve(form, score))
+    except np.linalg.LinAlgError:
+        return math.nan
+
+
 def refit(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
           lags: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray]:
     """
@@ -223,13 +267,23 @@ def refit(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
     linear solve instead of an iterated refit (a refit of 5 steps cost 10 to 30 times more
     and changed no verdict on the cases of test/estimators/test_simulation_check.py).
     """
+    s0, s1, error, refitted, _, _ = _refit_columns(y, u, a, b, lags)
+    return s0, s1, error, refitted
+
+
+def _refit_columns(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
+                   lags: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray,
+                                              np.ndarray, np.ndarray]:
+    """Return :func:`refit`'s values and the gradient ψ and nuisance columns N it used."""
     error, simulated, nuisance = _simulation_error(y, u, a, b, lags)
-    columns = np.hstack([_gradient(a, simulated, u, lags), nuisance])
+    gradient = _gradient(a, simulated, u, lags)
+    columns = np.hstack([gradient, nuisance])
     scale = np.linalg.norm(columns, axis=0)
     scale[scale == 0.0] = 1.0
     step = np.linalg.lstsq(columns / scale, error, rcond=None)[0]
     refitted = error - (columns / scale) @ step
-    return float(error @ error), float(refitted @ refitted), error, refitted
+    return (float(error @ error), float(refitted @ refitted), error, refitted, gradient,
+            nuisance)
 
 
 def autocorrelation(residual: np.ndarray, lags: int) -> np.ndarray:
@@ -319,8 +373,8 @@ def colour(error: np.ndarray, resonances: bool = True) -> float:
 
 
 def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.ndarray,
-          false_alarm: float = FALSE_ALARM) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                     np.ndarray]:
+          false_alarm: float = FALSE_ALARM, covariance: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     r"""
     Return T, its limit, S_0/S_1 and whether each plant's simulation is contradicted.
 
@@ -336,6 +390,11 @@ def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.n
         The numerators ``(K, r, m)`` and their true lags ``(r, m)``.
     false_alarm : float
         alpha.
+    covariance : numpy.ndarray, shape ``(K, p, p)``, optional
+        The covariance of each estimate's [a, b] (its own error while it settles): T is then
+        :func:`settled_statistic`, the score's quadratic form under the noise and that error
+        together (a plant whose row is not finite is judged without it). None: the estimate
+        is taken as exact (its error small beside the window's).
 
     Returns
     -------
@@ -356,14 +415,19 @@ def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.n
         if kept <= 0 or not (_stable(a[k]) and np.isfinite(y[k]).all()
                              and np.isfinite(u[k]).all() and np.isfinite(b[k]).all()):
             continue
-        s0, s1, error, refitted = refit(y[k], u[k], a[k], b[k], lags)
+        s0, s1, error, refitted, gradient, nuisance = _refit_columns(y[k], u[k], a[k], b[k],
+                                                                     lags)
         if not (s1 > 0.0 and math.isfinite(s0)):
             continue
         # the slow colour from both errors (the refit absorbs part of a slow noise);
         # resonances from the refitted one only (before the refit, a far-off model's own
         # error, an input filtered, has peaks of its own that would hide it)
         kappa = max(colour(error, resonances=False), colour(refitted))
-        statistic[k] = (s0 - s1) / (kappa * s1 / kept)
+        noise = kappa * s1 / kept
+        if covariance is not None and np.isfinite(covariance[k]).all():
+            statistic[k] = settled_statistic(gradient, nuisance, error, noise, covariance[k])
+        else:
+            statistic[k] = (s0 - s1) / noise
         ratio[k] = s0 / s1
     with np.errstate(invalid='ignore'):
         return statistic, limit, ratio, statistic > limit
@@ -468,17 +532,26 @@ class SimulationWindow:
         """
         return self._since >= CHECK_PERIOD or (self._since > 0 and self._filled < self.window)
 
-    def reasons(self, a: np.ndarray, b: np.ndarray) -> list[str]:
-        """Return the check's reason (``[]`` when the simulation agrees or is not judged yet)."""
+    def judging(self) -> bool:
+        """Return whether the next :meth:`reasons` runs the check (rather than keep a verdict)."""
+        return self._filled >= self.minimum and (self._due() or not self._judged)
+
+    def reasons(self, a: np.ndarray, b: np.ndarray,
+                covariance: np.ndarray | None = None) -> list[str]:
+        """
+        Return the check's reason (``[]`` when the simulation agrees or is not judged yet).
+
+        ``covariance`` is that of [a, b] (None: the estimate taken as exact; see :func:`check`).
+        """
         if self._filled < self.minimum:
             return []
-        if self._due() or not self._judged:
+        if self.judging():
             self._since = 0
             self._judged = True
             rows = self._rows[self._end - self._filled:self._end]
             statistic, limit, ratio, contradicted = check(
                 rows[None, :, 0], rows[None, :, 1:], a[None], b.reshape(1, *self.lags.shape),
-                self.lags)
+                self.lags, covariance=None if covariance is None else covariance[None])
             self.statistic = float(statistic[0])
             self.reason = (f'simulated output off: a refit on the last {self._filled} samples '
                            f'lowers its squared error {ratio[0]:.3g} times (statistic '
@@ -510,22 +583,30 @@ class SimulationWindow:
         self.statistic = float(scalars['simulation_statistic'])
 
 
-def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray,
-                       order: int) -> list[str]:
+def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order: int,
+                       covariance: Callable[[], np.ndarray | None] | None = None
+                       ) -> list[str]:
     """
     Return the check's reason for a model ``theta`` laid out [a, b, ...] (``[]``: none kept).
 
     The a's (A, or F of an output-error model) are its first ``order`` entries and the b's
     follow, input by input; what comes after them (the C of an ARMAX model) is the noise
-    model, which the simulated output does not use.
+    model, which the simulated output does not use. ``covariance`` gives theta's (None: not
+    known), of which the [a, b] block counts the estimate's own error (:func:`check`); it is
+    asked for only when the check runs (a sandwich or HAC covariance costs a solve).
     """
     if window is None:
         return []
-    return window.reasons(theta[:order], theta[order:order + window.lags.size])
+    count = order + window.lags.size
+    known = None
+    if covariance is not None and window.judging():
+        known = covariance()
+        known = None if known is None else known[:count, :count]
+    return window.reasons(theta[:order], theta[order:count], known)
 
 
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'MAX_COLOUR', 'MAX_NOISE_ORDER',
-           'SAMPLES_PER_PARAMETER', 'SPECTRUM_POINTS', 'WINDOW', 'SimulationWindow',
-           'ar_models', 'ar_noise_model', 'autocorrelation', 'check', 'colour', 'input_drive',
-           'numerator_lags', 'state_count',
-           'refit', 'simulate', 'simulation_reasons', 'window_length']
+           'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE', 'SPECTRUM_POINTS', 'WINDOW',
+           'SimulationWindow', 'ar_models', 'ar_noise_model', 'autocorrelation', 'check',
+           'colour', 'input_drive', 'numerator_lags', 'refit', 'settled_statistic', 'simulate',
+           'simulation_reasons', 'state_count', 'window_length']

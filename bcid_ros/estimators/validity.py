@@ -13,7 +13,8 @@ by the estimator's update.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Sequence
+import functools
+from typing import Any, Callable, ClassVar, Sequence
 
 import numpy as np
 
@@ -23,7 +24,8 @@ from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationW
 
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
                     simulation: SimulationWindow | None = None,
-                    theta: np.ndarray | None = None, order: int = 0) -> list[str]:
+                    theta: np.ndarray | None = None, order: int = 0,
+                    covariance: Callable[[], np.ndarray | None] | None = None) -> list[str]:
     """
     Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
 
@@ -34,21 +36,23 @@ def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
     (``monitor`` None: none), of ``plant`` of a many-plant monitor, then the
     simulation check's of the model ``theta`` of order ``order`` on ``simulation``
     (:func:`~bcid_ros.estimators.simulation_check.simulation_reasons`; None: the
-    estimator keeps no window). The one place that decides which reasons count,
-    for one plant and for K.
+    estimator keeps no window), counting the estimate's own error from ``covariance``
+    (a function giving theta's covariance, asked only when the check runs). The one
+    place that decides which reasons count, for one plant and for K.
     """
     reasons = list(own)
     if monitor is not None:
         reasons += residual_reasons(monitor, plant)
     if simulation is not None:
-        reasons += simulation_reasons(simulation, theta, order)
+        reasons += simulation_reasons(simulation, theta, order, covariance)
     return reasons
 
 
 def decided_after_change(own: Sequence[str], change: str, monitor: Any,
                          plant: int | None = None, simulation: SimulationWindow | None = None,
-                         theta: np.ndarray | None = None,
-                         order: int = 0) -> tuple[list[str], str]:
+                         theta: np.ndarray | None = None, order: int = 0,
+                         covariance: Callable[[], np.ndarray | None] | None = None
+                         ) -> tuple[list[str], str]:
     """
     Return the reasons of :func:`decided_reasons` with a plant change's, and the change's.
 
@@ -59,11 +63,16 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     the samples replayed at the restart does not end it. Returns the reasons
     and the change's reason that still holds (``''`` once the change is done).
     """
-    found = (monitor, plant, simulation, theta, order)
+    found = (monitor, plant, simulation, theta, order, covariance)
     reasons = decided_reasons([change, *own] if change else own, *found)
     if change and reasons == [change] and _ready_again(monitor, plant):
         return decided_reasons(own, *found), ''
     return reasons, change
+
+
+def _row(rows: Callable[[], np.ndarray], plant: int) -> np.ndarray:
+    """Return ``rows()[plant]``: one plant's parameter covariance (NaN: judged as exact)."""
+    return rows()[plant]
 
 
 def _ready_again(monitor: Any, plant: int | None) -> bool:
@@ -127,7 +136,8 @@ class Validity:
         with np.errstate(all='ignore'):
             reasons, change = decided_after_change(
                 own, change, self._monitor, simulation=self._simulation,
-                theta=None if self._simulation is None else self._theta(), order=self.order)
+                theta=None if self._simulation is None else self._theta(), order=self.order,
+                covariance=lambda: self.parameter_covariance)
         self._reasons = tuple(reasons)
         return change
 
@@ -186,12 +196,15 @@ class PlantsValidity:
         """
         windows = self._simulations
         theta = None if windows is None else self._theta()
+        # every plant's covariance at most once per decision, and only if a check runs
+        covariances = functools.cache(lambda: self.parameter_covariance)
         with np.errstate(all='ignore'):
             for plant, mine in zip(plants.tolist(), own):
                 reasons, change = decided_after_change(
                     mine, '' if changes is None else changes[plant], self._monitor, plant,
                     None if windows is None else windows[plant],
-                    None if theta is None else theta[plant], self.order)
+                    None if theta is None else theta[plant], self.order,
+                    functools.partial(_row, covariances, plant))
                 self._reasons.set(plant, tuple(reasons))
                 if changes is not None:
                     changes[plant] = change
