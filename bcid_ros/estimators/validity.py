@@ -51,8 +51,8 @@ def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
 def decided_after_change(own: Sequence[str], change: str, monitor: Any,
                          plant: int | None = None, simulation: SimulationWindow | None = None,
                          theta: np.ndarray | None = None, order: int = 0,
-                         covariance: Callable[[], np.ndarray | None] | None = None
-                         ) -> tuple[list[str], str]:
+                         covariance: Callable[[], np.ndarray | None] | None = None,
+                         ready_again: bool | None = None) -> tuple[list[str], str]:
     """
     Return the reasons of :func:`decided_reasons` with a plant change's, and the change's.
 
@@ -60,12 +60,17 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     comes first, and holds until the residual tests of ``monitor`` (of
     ``plant`` of a many-plant monitor) are ready again, on a full window of the
     new plant's samples, with no other reason left: a short-record verdict on
-    the samples replayed at the restart does not end it. Returns the reasons
-    and the change's reason that still holds (``''`` once the change is done).
+    the samples replayed at the restart does not end it. ``ready_again``, where
+    given, is the estimator's own word that its estimate now rests on the new
+    plant's samples alone (rpem: a fit of only those) and replaces the residual
+    tests' readiness. Returns the reasons and the change's reason that still
+    holds (``''`` once the change is done).
     """
     found = (monitor, plant, simulation, theta, order, covariance)
     reasons = decided_reasons([change, *own] if change else own, *found)
-    if change and reasons == [change] and _ready_again(monitor, plant):
+    if ready_again is None:
+        ready_again = _ready_again(monitor, plant)
+    if change and reasons == [change] and ready_again:
         return decided_reasons(own, *found), ''
     return reasons, change
 
@@ -120,7 +125,8 @@ class Validity:
             return self._reasons + tuple(self._live_reasons())
         return self._reasons
 
-    def _decide_validity(self, own: Sequence[str], change: str = '') -> str:
+    def _decide_validity(self, own: Sequence[str], change: str = '',
+                         ready_again: bool | None = None) -> str:
         """
         Decide the reasons not to trust the estimate from the estimator's ``own`` reasons.
 
@@ -128,7 +134,8 @@ class Validity:
         updates), with the reasons their own equations give; the shared ones
         join them here (:func:`decided_reasons`), and a detected plant
         change's reason ``change`` holds as :func:`decided_after_change`
-        says. Returns the change's reason that still holds (``''``: done or
+        says (``ready_again``: the estimator's word that the new plant's
+        samples are in, where the residual tests' readiness is not it). Returns the change's reason that still holds (``''``: done or
         none). It changes nothing but the reasons: what a check finds that
         needs action (a diverging compensation, a restart) is done by the
         estimator's update.
@@ -137,7 +144,7 @@ class Validity:
             reasons, change = decided_after_change(
                 own, change, self._monitor, simulation=self._simulation,
                 theta=None if self._simulation is None else self._theta(), order=self.order,
-                covariance=lambda: self.parameter_covariance)
+                covariance=lambda: self.parameter_covariance, ready_again=ready_again)
         self._reasons = tuple(reasons)
         return change
 

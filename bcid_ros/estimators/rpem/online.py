@@ -482,14 +482,13 @@ class Rpem(RecursiveEstimator):
         The change's reason stays until a fit of the samples after it passes
         the residual tests.
         """
-        notes = [self._change_note] if self._change_note else []
+        notes = []
         if self._watch.restart_note:  # a restart since the last period (reported there too)
             notes.append(f'restarted ({self._watch.restart_note})')
-        self._decide_validity(notes + self._period_reasons)
-        if (self._change_note and self._reasons == (self._change_note,)
-                and self._store.since_start < self._samples):
-            self._change_note = ''  # a fit of the new samples passed its checks: done
-            self._decide_validity(self._period_reasons)
+        # the change is done once a fit of the samples after it passes the checks
+        self._change_note = self._decide_validity(
+            notes + self._period_reasons, self._change_note,
+            ready_again=self._store.since_start < self._samples)
         self._settled = self._settled or not self._reasons
 
     # --------------------------------------------------------- the accessors
