@@ -135,7 +135,8 @@ class Validity:
         join them here (:func:`decided_reasons`), and a detected plant
         change's reason ``change`` holds as :func:`decided_after_change`
         says (``ready_again``: the estimator's word that the new plant's
-        samples are in, where the residual tests' readiness is not it). Returns the change's reason that still holds (``''``: done or
+        samples are in, where the residual tests' readiness is not it).
+        Returns the change's reason that still holds (``''``: done or
         none). It changes nothing but the reasons: what a check finds that
         needs action (a diverging compensation, a restart) is done by the
         estimator's update.
