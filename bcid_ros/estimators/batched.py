@@ -34,12 +34,12 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import check_int, EstimatorState, HUGE_VALUE, parameter_names
-from bcid_ros.estimators.change_detection import ChangeDetector
+from bcid_ros.estimators.change_detection import ChangeDetector, with_detector_arrays
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import (held_nbytes, PlantReasons, StackedRegressors,
                                         usable_samples)
 from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
-                                           scale_dependents)
+                                           RandomWalk, scale_dependents)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
@@ -68,11 +68,24 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     restarts, so no later update regresses across the gap, exactly as the
     identifier does for one plant. The other plants go on undisturbed.
 
+    **Plant changes** (``change_detection``, docs/tracking.md): each plant's
+    normalised one-step error goes to one
+    :class:`~bcid_ros.estimators.change_detection.ChangeDetector` over the
+    plant axis (one vectorised record per update); a detection on plant k
+    restarts plant k alone, as its single-plant estimator does
+    (:meth:`~bcid_ros.estimators.rls.Rls._plant_changed`, run on plant k's
+    snapshot: one implementation of the restart), from plant k's kept samples
+    after the change point. ``adaptation: kalman`` propagates P by the same
+    random walk as the single plant (:class:`~bcid_ros.estimators.recursion.RandomWalk`).
+
     Parameters
     ----------
     num_plants : int
         K >= 1.
     order, num_inputs, feedthrough, initial_covariance, forgetting_factor, outlier_threshold
+        As for :class:`~bcid_ros.estimators.base.RecursiveEstimator`, shared
+        by all plants.
+    change_detection, adaptation, parameter_drift
         As for :class:`~bcid_ros.estimators.base.RecursiveEstimator`, shared
         by all plants.
 
@@ -94,17 +107,24 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         'last_power': float}
     adequacy_model: ClassVar[str] = Rls.adequacy_model
     hac_std: ClassVar[bool] = Rls.hac_std
+    tracks: ClassVar[bool] = Rls.tracks
+    #: The single-plant estimator, whose restart after a detected change each plant takes.
+    _single: ClassVar[type] = Rls
 
     def __init__(self, num_plants: int, *, order: int, num_inputs: int = 1,
                  feedthrough: bool = False, initial_covariance: float = 1e6,
-                 forgetting_factor: float = 1.0, outlier_threshold: float = 0.0) -> None:
+                 forgetting_factor: float = 1.0, outlier_threshold: float = 0.0,
+                 change_detection: bool = True, adaptation: str = 'forgetting',
+                 parameter_drift: float = 0.0) -> None:
         self.num_plants = check_int('num_plants', num_plants, 1)
         self._check_settings(order, num_inputs, feedthrough, initial_covariance,
                              forgetting_factor, outlier_threshold)
-        self._check_tracking(False, 'forgetting', 0.0)  # no detector here (yet)
+        self._check_tracking(change_detection, adaptation, parameter_drift)
         self.parameter_names = parameter_names(self.order, self.num_inputs, self.feedthrough)
         self.num_parameters = len(self.parameter_names)
-        self._propagation = Forgetting(self.initial_covariance * self.num_parameters)
+        # what happens to P between samples, as Rls's: P / lambda or P + q S^-2
+        self._propagation = (RandomWalk(self._parameter_drift) if self.adaptation == 'kalman'
+                             else Forgetting(self.initial_covariance * self.num_parameters))
         self._gate_from = rules.GATE_WARMUP * self.num_parameters
         self._regressors = StackedRegressors(self.num_plants, self.order, self.num_inputs,
                                              self.feedthrough)
@@ -114,6 +134,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         #: Samples of each plant that were missing / not finite (not used).
         self.missing = np.zeros(self.num_plants, dtype=np.int64)
         self.nonfinite = np.zeros(self.num_plants, dtype=np.int64)
+        self._all_plants = np.arange(self.num_plants)
         self.reset()
 
     # ----------------------------------------------------------------- API
@@ -149,6 +170,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             skipped = None
         else:
             skipped = self._screen(y, u, present)
+        if self._change_detection:
+            self._remember(y, u, skipped)
         regressors = self._regressors
         regressors.push(y, u)
         if skipped is not None:
@@ -316,12 +339,15 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         plant = range(self.num_plants)[plant]
         arrays, _ = self._plant_items(plant)
         arrays['history'] = self._regressors.history[plant]
+        # a snapshot from before the detector loads too, its detector started afresh (Rls's)
+        state_arrays = with_detector_arrays(state.arrays, arrays)
+        state_arrays.setdefault('recent', np.zeros_like(arrays['recent']))
         # (the simulation check's window may be absent or of another lambda: it loads what fits)
         arrays.pop('simulation_rows')
         for key, value in arrays.items():
-            if key not in state.arrays or np.shape(state.arrays[key]) != np.shape(value):
+            if key not in state_arrays or np.shape(state_arrays[key]) != np.shape(value):
                 raise ValueError(f'state array {key!r} does not match this configuration')
-        self._load_plant(plant, state.arrays, state.scalars)
+        self._load_plant(plant, state_arrays, state.scalars)
         for counts in self.flags.values():
             counts[plant] = 0
         for key, count in dict(state.scalars.get('flags', {})).items():
@@ -377,6 +403,19 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._quiet[huge] = self.order + 2
         return None if usable.all() else np.flatnonzero(~usable)
 
+    def _remember(self, y: np.ndarray, u: np.ndarray, skipped: np.ndarray | None) -> None:
+        """Keep each used sample among its plant's last RESTART_SPAN (Rls._remember)."""
+        rows = self._all_plants
+        if skipped is not None:
+            used = np.ones(self.num_plants, dtype=bool)
+            used[skipped] = False
+            rows = np.flatnonzero(used)
+            y, u = y[rows], u[rows]
+        slots = self._seen[rows] % RESTART_SPAN
+        self._recent[rows, slots, 0] = y
+        self._recent[rows, slots, 1:] = u
+        self._seen[rows] += 1
+
     # ------------------------------------------------------------- the step
     def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray, u: np.ndarray) -> None:
         """Do one step of the plants ``rows``, whose regressors ``phi`` are filled."""
@@ -391,8 +430,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         changed = outcome.events.get('plant_change', np.zeros(rows.shape[0], dtype=bool))
         if changed.any():
             self._forget_residuals(rows[changed])
-            for plant in rows[changed].tolist():  # as Rls._rare_step (no detector here)
-                self._change_notes[plant] = f'plant changed (sample {self._updates[plant]})'
+            # as Rls._rare_step: the samples given are counted while detection runs
+            count = self._seen if self._change_detection else self._updates
+            for plant in rows[changed].tolist():
+                self._change_notes[plant] = f'plant changed (sample {count[plant]})'
         if outcome.restart.any():
             self._regressors.clear(rows[outcome.restart])
             self._clear_simulations(rows[outcome.restart])
@@ -414,9 +455,46 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                     self._simulations[row].record(output, inputs)
                 self._record_residuals(rows[tested], y[stepped][tested], phi[stepped][tested],
                                        u[stepped][tested], outcome.errors[stepped][tested])
+                if self._change_detection:
+                    self._detect(rows[tested], outcome.errors[stepped][tested],
+                                 outcome.gains[stepped][tested])
             due = rows[self._updates[rows] >= self._next_check[rows]]
             if due.size:
                 self._check_validity(due)
+
+    def _detect(self, rows: np.ndarray, errors: np.ndarray, gains: np.ndarray) -> None:
+        """
+        Give the detector the normalised errors e / sqrt(s) of ``rows``; restart changed plants.
+
+        As Rls._record_residual: only the steps of the plain path (``gains`` > 0)
+        are recorded, all plants' in one vectorised record.
+        """
+        plain = gains > 0.0
+        if not plain.any():
+            return
+        rows = rows[plain]
+        ages = self._detector.record_rows(rows, errors[plain] / np.sqrt(gains[plain]))
+        for plant, age in zip(rows[ages > 0].tolist(), ages[ages > 0].tolist()):
+            self._plant_changed(plant, age)
+
+    def _plant_changed(self, plant: int, age: int) -> None:
+        """
+        Restart plant k from its ``age`` samples after the change point, as its single plant.
+
+        Plant k's snapshot goes into a single-plant estimator of the same
+        settings, which takes the restart (:meth:`Rls._plant_changed`: the
+        memory cut, the replay of plant k's kept samples, the change's reason)
+        and comes back: the other plants are not touched.
+        """
+        single = self._single(
+            order=self.order, num_inputs=self.num_inputs, feedthrough=self.feedthrough,
+            initial_covariance=self.initial_covariance,
+            forgetting_factor=self._forgetting_factor,
+            outlier_threshold=self.outlier_threshold, change_detection=True,
+            adaptation=self.adaptation, parameter_drift=self._parameter_drift)
+        single.set_state(self.plant_state(plant))
+        single._plant_changed(age)
+        self.set_plant_state(plant, single.get_state())
 
     def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Extend the LS step of ``rows`` on (y, phi) (the compensation of subclasses)."""
@@ -528,6 +606,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._next_check = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
         self._reasons = PlantReasons(plants)
+        # the change detector and each plant's last RESTART_SPAN samples (Rls._remember)
+        self._detector = ChangeDetector(plants)
+        self._recent = np.zeros((plants, RESTART_SPAN, 1 + self.num_inputs))
+        self._seen = np.zeros(plants, dtype=np.int64)
         # the reason of a change the gate found, until the new estimate passes its checks
         self._change_notes = [''] * plants
         # the LS state as the step function sees it (the same arrays)
@@ -555,6 +637,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._reasons.clear(self._indices(rows))
         for plant in self._indices(rows).tolist():
             self._change_notes[plant] = ''
+        # (Rls._reset: the kept samples and the detector start afresh too)
+        self._recent[rows] = 0.0
+        self._seen[rows] = 0
+        self._detector.clear(rows)
         self._forget_residuals(self._indices(rows))
 
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -566,13 +652,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         residual_arrays, residual_scalars = residual_items(
             self._monitor.plant_state(plant),
             None if self._hac is None else self._hac.plant_state(plant))
-        # the change detector does not run in the batched forms: each plant is the single
-        # estimator with change_detection false (its detector and kept samples empty)
-        idle = {**ChangeDetector().get_state(),
-                'recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs))}
+        detector = self._detector.get_state([plant])
         window_arrays, window_scalars = self._simulations[plant].state_items()
-        return ({**arrays, **residual_arrays, **idle, **window_arrays},
-                {**scalars, **residual_scalars, 'seen': 0,
+        return ({**arrays, **residual_arrays, **detector, 'recent': self._recent[plant],
+                 **window_arrays},
+                {**scalars, **residual_scalars, 'seen': int(self._seen[plant]),
                  'change_note': self._change_notes[plant], **window_scalars})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
@@ -590,6 +674,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._hac.load_plant(plant, hac)
         self._reasons.set(plant, scalars['reasons'])
         self._change_notes[plant] = str(scalars.get('change_note', ''))
+        self._recent[plant] = arrays['recent']
+        self._seen[plant] = int(scalars.get('seen', 0))
+        self._detector.set_state(arrays, [plant])
 
 
 __all__ = ['BatchedRls']

@@ -43,6 +43,7 @@ class BatchedBcrls(BatchedRls):
     _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int}
     adequacy_model = Bcrls.adequacy_model
     hac_std = Bcrls.hac_std
+    _single = Bcrls
 
     @property
     def sigma2(self) -> np.ndarray:

@@ -374,20 +374,25 @@ class ChangeDetector:
         """Return each plant's CUSUM over the threshold, ``(K,)`` (1: a detection)."""
         return self.state.statistic / self.threshold
 
-    def get_state(self) -> dict[str, np.ndarray]:
-        """Return copies of the state's arrays under ``change_<name>`` keys."""
-        return {f'change_{field.name}': getattr(self.state, field.name).copy()
+    def get_state(self, rows: Any = slice(None)) -> dict[str, np.ndarray]:
+        """
+        Return copies of the state's arrays (of plants ``rows``) under ``change_<name>`` keys.
+
+        ``rows`` a list of one index gives one plant's arrays as a one-plant
+        detector holds them: what a single-plant estimator's snapshot keeps.
+        """
+        return {f'change_{field.name}': getattr(self.state, field.name)[rows].copy()
                 for field in dataclasses.fields(DetectorState)}
 
-    def set_state(self, arrays: dict[str, np.ndarray]) -> None:
-        """Take over what :meth:`get_state` made (missing keys: start afresh)."""
+    def set_state(self, arrays: dict[str, np.ndarray], rows: Any = slice(None)) -> None:
+        """Take over what :meth:`get_state` made (into plants ``rows``; missing keys: afresh)."""
         for field in dataclasses.fields(DetectorState):
             value = arrays.get(f'change_{field.name}')
             target = getattr(self.state, field.name)
-            target[:] = 0.0 if value is None else np.asarray(value, dtype=float)
+            target[rows] = 0.0 if value is None else np.asarray(value, dtype=float)
         if any(f'change_{field.name}' not in arrays
                for field in dataclasses.fields(DetectorState)):
-            self.clear()
+            self.clear(rows)
 
 
 def with_detector_arrays(arrays: dict[str, np.ndarray], own: dict[str, np.ndarray],

@@ -290,7 +290,10 @@ class StepOutcome:
     ``stepped``: the LS step was made; ``events``: flag name -> where it
     occurred; ``restart``: the regressor must restart (a step undone or a
     sample refused); ``relearn``: the plant starts afresh with new scales;
-    ``errors``: the a-priori prediction errors (the equation errors).
+    ``errors``: the a-priori prediction errors (the equation errors);
+    ``gains``: s(t) of the steps made with no safeguard and the gate quiet
+    (those the single plant takes on its plain path, whose normalised error
+    e / sqrt(s) goes to the change detector), 0 elsewhere.
     """
 
     stepped: np.ndarray
@@ -298,6 +301,7 @@ class StepOutcome:
     restart: np.ndarray
     relearn: np.ndarray
     errors: np.ndarray
+    gains: np.ndarray
 
 
 def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
@@ -332,11 +336,14 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
         broken = careful & ~repair & ~((s < math.inf) & (e2 < math.inf))
     refused = np.zeros(count, dtype=bool)
     tested = ~(repair | broken) & (tau >= settings.gate_from)
+    plain = ~careful
     if tested.any():
         # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)]: the error over its variance
         z2 = e2[tested] / ((loss[tested] / tau[tested] + plants.variance_floor[rows[tested]])
                            * (s[tested] + 1.0 - lam))
         at = rows[tested]
+        # the gate's quiet case (rules.gate_is_quiet): no score pending, within the limit
+        plain[tested] &= (plants.score[at] == 0.0) & (z2 <= settings.gate_limit2)
         used, plants.score[at], plants.tail[at], change = rules.gate(
             z2, settings.gate_limit2, plants.score[at], plants.tail[at])
         refused[tested] = ~used
@@ -376,7 +383,8 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
         events['update_undone'] = undone
     if refused.any():
         events['outlier_rejected'] = refused
-    return StepOutcome(stepped, events, undone | refused, relearn, e)
+    gains = np.where(plain & stepped, s, 0.0)
+    return StepOutcome(stepped, events, undone | refused, relearn, e, gains)
 
 
 def _mask(count: int, where: np.ndarray) -> np.ndarray:

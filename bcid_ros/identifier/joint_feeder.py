@@ -319,7 +319,9 @@ def joint_feeder_from_parameters(values: dict[str, Any]) -> JointFeeder:
     estimator = make_batched_estimator(
         values['estimator'], len(joints), order=values['order'], num_inputs=1,
         feedthrough=values['feedthrough'], initial_covariance=values['initial_covariance'],
-        forgetting_factor=values['forgetting_factor'])
+        forgetting_factor=values['forgetting_factor'],
+        change_detection=values['change_detection'], adaptation=values['adaptation'],
+        parameter_drift=values['parameter_drift'])
     return JointFeeder(joints, estimator, values['input_field'], values['output_field'],
                        values['excitation_window'], values['publish_period'])
 

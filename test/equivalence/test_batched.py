@@ -1,5 +1,7 @@
 """Batched RLS/BCRLS: each plant equals its single-plant estimator run on the same samples."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -42,8 +44,7 @@ def spoil(y, u, seed, rate=0.02):
 
 def single_runs(name, y, u, present, **settings):
     """Run one single-plant estimator per plant with the identifier's per-sample policy."""
-    # the batched forms run no change detector: each plant is a single one without it
-    singles = [make_estimator(name, change_detection=False, **settings)
+    singles = [make_estimator(name, **settings)
                for _ in range(y.shape[1])]
     for t in range(y.shape[0]):
         for k, single in enumerate(singles):
@@ -144,6 +145,10 @@ CASES = [
     ('bcrls', {'order': 2, 'forgetting_factor': 0.98, 'initial_covariance': 100.0}),
     ('bcrls', {'order': 3, 'num_inputs': 2, 'feedthrough': True}),
     ('rls', {'order': 1, 'num_inputs': 2}),
+    # without the detector, and with the random walk in place of forgetting
+    ('bcrls', {'order': 2, 'change_detection': False}),
+    ('rls', {'order': 2, 'adaptation': 'kalman', 'parameter_drift': 1e-4}),
+    ('bcrls', {'order': 2, 'adaptation': 'kalman', 'parameter_drift': 1e-5}),
 ]
 
 
@@ -185,7 +190,7 @@ def test_equal_after_every_sample_through_the_start_and_gaps():
                                                       present[:t + 1], order=2), y, u)
                for t in range(steps)]
     batched = BatchedBcrls(len(PLANTS), order=2)
-    singles = [make_estimator('bcrls', order=2, change_detection=False) for _ in PLANTS]
+    singles = [make_estimator('bcrls', order=2) for _ in PLANTS]
     for t in range(steps):
         batched.update(y[t], u[t, :, 0], present[t])
         for k, single in enumerate(singles):
@@ -243,7 +248,7 @@ def spoil_states(states):
 
 def spoilt_singles(y, u, steps, spoil_at=50):
     """Return single bcrls plants run to ``spoil_at``, spoilt there, then run to ``steps``."""
-    singles = [make_estimator('bcrls', order=2, change_detection=False) for _ in PLANTS]
+    singles = [make_estimator('bcrls', order=2) for _ in PLANTS]
     for t in range(steps):
         if t == spoil_at:
             states = [single.get_state() for single in singles]
@@ -287,7 +292,7 @@ def test_safeguards_fire_per_plant_as_in_the_single_plant_estimator():
 
 def reset_single(y, u):
     """Return plant 0's single bcrls whose compensation is run away at sample 40 (one plant)."""
-    single = make_estimator('bcrls', order=2, change_detection=False)
+    single = make_estimator('bcrls', order=2)
     for t in range(y.shape[0]):
         if t == 40:
             state = single.get_state()
@@ -314,27 +319,27 @@ def test_compensation_reset_per_plant():
     assert_plants_equal(batched, [single], spread)
 
 
-def round_trip(y, u):
+def round_trip(y, u, at=200):
     """
-    Run batched bcrls to 201, move every plant into a single plant and a new batched one.
+    Run batched bcrls to ``at`` + 1, move every plant into a single plant and a new batched one.
 
     Return the three after the rest of the samples: the batched run, the moved one and
     the singles.
     """
     batched = BatchedBcrls(len(PLANTS), order=2)
-    for t in range(200):
+    for t in range(at):
         batched.update(y[t], u[t])
     batched.restart_regressor(3)
-    batched.update(y[200], u[200])
+    batched.update(y[at], u[at])
     singles = []
     for k in range(len(PLANTS)):
-        single = make_estimator('bcrls', order=2, change_detection=False)
+        single = make_estimator('bcrls', order=2)
         single.set_state(batched.plant_state(k))
         singles.append(single)
     moved = BatchedBcrls(len(PLANTS), order=2)
     for k, single in enumerate(singles):
         moved.set_plant_state(k, single.get_state())
-    for t in range(201, y.shape[0]):
+    for t in range(at + 1, y.shape[0]):
         batched.update(y[t], u[t])
         moved.update(y[t], u[t])
         for k, single in enumerate(singles):
@@ -559,3 +564,79 @@ def test_the_hot_step_written_twice_agrees_within_rounding():
     with pytest.raises(AssertionError, match='the paths differ by'):
         assert_paths_agree({'step': hot_steps(theta, p, phi, changed, 0.98)[1]},
                            {'step': single}, spread, 1, 'hot step')
+
+
+def changed_data(samples, seed, changed=(1, 3), at=2000):
+    """Return :func:`plant_data` whose plants ``changed`` double their gain at ``at``."""
+    y, u = plant_data(samples, seed)
+    for k in changed:
+        a1, a2, b1, b2 = PLANTS[k]
+        y[at:, k] += signal.lfilter([0.0, b1, b2], [1.0, a1, a2], u[:, k, 0])[at:]
+    return y, u
+
+
+def first_detections(name, y, u):
+    """Run the batched estimator; return it and each plant's (t, valid, reasons) at a change."""
+    batched = make_batched_estimator(name, y.shape[1], order=2)
+    first = {}
+    for t in range(y.shape[0]):
+        valid = batched.update(y[t], u[t])
+        for k in np.flatnonzero(batched.flags.get('plant_change', np.zeros(1))).tolist():
+            first.setdefault(k, (t, bool(valid[k]), batched.plant_validity_reasons(k)))
+    return batched, first
+
+
+@pytest.mark.parametrize('name, seed', [('rls', 3), ('bcrls', 4), ('rls', 5)])
+def test_a_detected_change_restarts_that_plant_as_its_single_plant(name, seed):
+    # plants 1 and 3 double their gain at 2000; the CUSUM (the gate is off at threshold 0)
+    # detects it within 8-40 samples over seeds 3-5, on those plants only
+    y, u = changed_data(2600, seed)
+    present = np.ones(y.shape, dtype=bool)
+    batched, first = first_detections(name, y, u)
+    assert sorted(first) == [1, 3]
+    for k, (sample, valid, reasons) in first.items():
+        assert 2000 <= sample < 2100
+        # not valid at the detecting sample, with the single plant's reason first
+        assert not valid
+        assert reasons[0].startswith('plant changed (sample ')
+        assert batched.plant_flags(k)['plant_change'] == 1
+    # the memory was cut and the restart replayed the samples after the change point:
+    # each plant is its single-plant estimator on its own samples (decisions exactly)
+    assert_plants_follow_their_singles(name, y, u, present, batched, order=2)
+    # the plants that did not change went through the same arithmetic as in a run
+    # where none changed
+    clean, _ = first_detections(name, *plant_data(2600, seed))
+    assert_same_bits(batched, clean, [0, 2, 4])
+
+
+def test_the_detector_round_trips_per_plant_through_a_single_plant_estimator():
+    # moved at 2010, while the evidence of the change at 2000 is building on plants 1
+    # and 3: the detection after the move is the same in the moved plant and the single
+    y, u = changed_data(2400, 6)
+    early = BatchedBcrls(len(PLANTS), order=2)
+    for t in range(2011):
+        early.update(y[t], u[t])
+    assert (early.plant_state(1).arrays['change_statistic'] > 0.0).all()
+    batched, moved, singles = round_trip(y, u, at=2010)
+    for k in (1, 3):
+        assert singles[k].flags['plant_change'] == 1
+    spreads = plant_spreads(lambda y, u: round_trip(y, u, at=2010)[2], y, u)
+    assert_plants_equal(batched, singles, spreads)
+    assert_plants_equal(moved, singles, spreads)
+    assert_same_bits(moved, batched, range(len(PLANTS)))
+
+
+def test_a_snapshot_from_before_the_detector_loads_with_the_detector_afresh():
+    y, u = plant_data(800, 7)
+    batched = BatchedRls(len(PLANTS), order=2)
+    for t in range(800):
+        batched.update(y[t], u[t])
+    state = batched.plant_state(2)
+    old = {key: value for key, value in state.arrays.items()
+           if not key.startswith('change_') and key != 'recent'}
+    other = BatchedRls(len(PLANTS), order=2)
+    other.set_plant_state(2, dataclasses.replace(state, arrays=old))
+    loaded = other.plant_state(2)
+    np.testing.assert_array_equal(loaded.arrays['theta_ls'], state.arrays['theta_ls'])
+    assert not loaded.arrays['change_armed'].any() and not loaded.arrays['recent'].any()
+    assert state.arrays['change_armed'].all()
