@@ -141,7 +141,7 @@ def recommend_estimator(results: Sequence[OnlineResult], batch_fit: float,
     with a finite fit. In this order of preference, the highest validation
     fit among the usable ones that are (1) valid and close; (2) close but not
     valid at the end of the estimation part (its reasons say why: a
-    nonlinear plant, a drift watch that restarted it; the accuracy is there,
+    nonlinear plant, a false change detection that restarted it; the accuracy is there,
     and its ``valid`` will say when to trust it); (3) valid but not close.
     A valid estimate far from the batch model is thus not preferred to an
     accurate one that is not valid (a glass furnace record: rls valid at 64.7 % was
