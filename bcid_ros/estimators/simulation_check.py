@@ -49,6 +49,12 @@ batch model's 74.0 %: T 12.9 with that peak among κ's, 145 without, against 16.
 α = ``FALSE_ALARM``. A model far off simulates much worse than the refit: :math:`S_0/S_1`
 large, T of the order of the window's length.
 
+**A settling estimate.** Early in a run or after a restart the estimate's own error is not
+small beside the window's; where the estimator gives its covariance P, the score's
+quadratic form counts it (:func:`settled_statistic`), with P capped at
+:data:`SETTLING_EXCUSE` times a fit of the window alone so that no inflated P excuses a
+misfit.
+
 Everything is over a leading plant axis where it can be (:func:`simulate`,
 :func:`input_drive`); the refit is per plant. Pure numpy (the estimators import no scipy;
 :func:`simulate` runs the recursions in blocks).
