@@ -68,9 +68,8 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     """
     found = (monitor, plant, simulation, theta, order, covariance)
     reasons = decided_reasons([change, *own] if change else own, *found)
-    if ready_again is None:
-        ready_again = _ready_again(monitor, plant)
-    if change and reasons == [change] and ready_again:
+    if change and reasons == [change] and (
+            _ready_again(monitor, plant) if ready_again is None else ready_again):
         return decided_reasons(own, *found), ''
     return reasons, change
 
