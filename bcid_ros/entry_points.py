@@ -6,38 +6,62 @@ busy machine) would otherwise end in a traceback from the import machinery; here
 it ends quietly, as a SIGINT while the node spins does.
 """
 
+from types import TracebackType
+
+
+def _interrupted(error: BaseException | None) -> bool:
+    """Return whether ``error`` is, or was caused by, a KeyboardInterrupt."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+class _Loading:
+    """
+    A ``with`` block around a node's import that ends quietly on a SIGINT.
+
+    :attr:`done` says whether the import finished. A SIGINT inside a C
+    extension's initialisation (rclpy's pybind11 module) comes out as
+    ``ImportError: initialization failed`` with the interrupt as its cause:
+    that is taken as the interrupt too; any other error goes on.
+    """
+
+    done = False
+
+    def __enter__(self) -> '_Loading':
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 traceback: TracebackType | None) -> bool:
+        self.done = error is None
+        return _interrupted(error)
+
 
 def identifier_node() -> int:
     """Run ``identifier_node``."""
-    try:
+    with _Loading() as loading:
         from bcid_ros.nodes.identifier_node import main
-    except KeyboardInterrupt:
-        return 0
-    return main()
+    return main() if loading.done else 0
 
 
 def identifier_lifecycle_node() -> int:
     """Run ``identifier_lifecycle_node``."""
-    try:
+    with _Loading() as loading:
         from bcid_ros.nodes.identifier_lifecycle_node import main
-    except KeyboardInterrupt:
-        return 0
-    return main()
+    return main() if loading.done else 0
 
 
 def simulator_node() -> int:
     """Run ``simulator_node``."""
-    try:
+    with _Loading() as loading:
         from bcid_ros.nodes.simulator_node import main
-    except KeyboardInterrupt:
-        return 0
-    return main()
+    return main() if loading.done else 0
 
 
 def adaptive_controller_node() -> int:
     """Run ``adaptive_controller_node``."""
-    try:
+    with _Loading() as loading:
         from bcid_ros.nodes.adaptive_controller_node import main
-    except KeyboardInterrupt:
-        return 0
-    return main()
+    return main() if loading.done else 0
