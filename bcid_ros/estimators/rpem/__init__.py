@@ -18,9 +18,9 @@ The modules, each importing only those below it:
 * :mod:`~bcid_ros.estimators.rpem.online`: :class:`Rpem`, the recursive
   estimator (the recursion, the gate, the hand-over from a fit, validity,
   state);
-* :mod:`~bcid_ros.estimators.rpem.watch`: :class:`RestartWatch`, the drift,
-  projection and undone-step monitors that restart it, and their validity
-  reasons;
+* :mod:`~bcid_ros.estimators.rpem.watch`: :class:`RestartWatch`, the
+  projection and undone-step monitors that restart it (a plant that changes
+  or drifts is the change detector's), and their validity reasons;
 * :mod:`~bcid_ros.estimators.rpem.uncertainty`: the HAC sandwich covariance
   of the estimate;
 * :mod:`~bcid_ros.estimators.rpem.store`: :class:`SampleStore`, the stored
