@@ -3,6 +3,8 @@
 import itertools
 import os
 from pathlib import Path
+import subprocess
+import sys
 import time
 
 import pytest
@@ -93,6 +95,15 @@ def pytest_collection_modifyitems(config, items):
                                     'its module to test/ros/')
         if item.path.resolve().relative_to(TEST_DIR).as_posix() in RECORDED_DATA_MODULES:
             item.add_marker(pytest.mark.recorded_data)
+
+
+def run_demo(arguments, out_dir, timeout):
+    """Run ``bcid demo`` with ``arguments`` on a fresh domain, its files in ``out_dir``."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    return subprocess.run([sys.executable, '-m', 'bcid_ros.cli', 'demo', *arguments,
+                           '--out-dir', str(out_dir)],
+                          capture_output=True, text=True, env=env, timeout=timeout)
 
 
 def fresh_domain_id():

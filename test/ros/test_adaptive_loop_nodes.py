@@ -207,17 +207,10 @@ def test_the_controller_survives_an_identifier_restart(ros_context, executor):
 
 @pytest.mark.slow
 def test_demo_runs_the_three_processes_and_places_the_poles(tmp_path):
-    import os
-    import subprocess
-    import sys
+    from conftest import run_demo
 
-    from conftest import fresh_domain_id
-
-    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([sys.executable, '-m', 'bcid_ros.cli', 'demo', '--scenario',
-                             'adaptive_loop', '--samples', '8000', '--out-dir', str(tmp_path)],
-                            capture_output=True, text=True, env=env, timeout=600)
+    result = run_demo(['--scenario', 'adaptive_loop', '--samples', '8000'], tmp_path,
+                      timeout=600)
     assert result.returncode == 0, result.stderr + result.stdout
     assert (tmp_path / 'demo_adaptive_loop_cl_bcls.png').stat().st_size > 10000
     rows = {line.split('|')[1].strip(): [cell.strip() for cell in line.split('|')[2:-1]]

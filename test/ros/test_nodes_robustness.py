@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import fresh_domain_id, spin_until
+from conftest import fresh_domain_id, run_demo, spin_until
 
 rclpy = pytest.importorskip('rclpy')
 
@@ -269,11 +269,7 @@ def test_process_refuses_bad_parameter_and_stops_cleanly():
 
 @pytest.mark.slow
 def test_demo_runs_two_processes_and_converges(tmp_path):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([sys.executable, '-m', 'bcid_ros.cli', 'demo', '--samples', '2000',
-                             '--rate', '1000', '--out-dir', str(tmp_path)],
-                            capture_output=True, text=True, env=env, timeout=120)
+    result = run_demo(['--samples', '2000', '--rate', '1000'], tmp_path, timeout=120)
     assert result.returncode == 0, result.stderr + result.stdout
     assert (tmp_path / 'demo_ding_miso.png').stat().st_size > 10000
     final = [line for line in result.stdout.splitlines() if line.startswith('wall time')]
@@ -289,11 +285,8 @@ def test_demo_payload_change_flags_the_change_and_follows_the_new_plant(tmp_path
     # estimate is 25 % off the new plant; rpem detects the change within a few samples
     # (the error variance grows some 20-fold) and converges again within ~150 samples
     # (replay of the same data: delta 0.16 % at 3000)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id()),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([sys.executable, '-m', 'bcid_ros.cli', 'demo', '--scenario',
-                             'payload_change', '--samples', '3000', '--out-dir', str(tmp_path)],
-                            capture_output=True, text=True, env=env, timeout=120)
+    result = run_demo(['--scenario', 'payload_change', '--samples', '3000'], tmp_path,
+                      timeout=120)
     assert result.returncode == 0, result.stderr + result.stdout
     out = result.stdout
     assert (tmp_path / 'demo_payload_change.png').stat().st_size > 10000
