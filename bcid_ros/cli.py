@@ -20,6 +20,7 @@ from typing import Callable
 
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import ESTIMATOR_NAMES
+from bcid_ros.interrupts import handle_interrupts_in_finalizers
 from bcid_ros.simulation import SCENARIOS
 
 
@@ -249,6 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(argv)
     module, function = COMMANDS[args.command].handler.split(':')
+    handle_interrupts_in_finalizers(deliver_again=True)
     try:
         handler = getattr(importlib.import_module(module), function)
         return int(handler(args) or 0)

@@ -8,14 +8,7 @@ it ends quietly, as a SIGINT while the node spins does.
 
 from types import TracebackType
 
-
-def _interrupted(error: BaseException | None) -> bool:
-    """Return whether ``error`` is, or was caused by, a KeyboardInterrupt."""
-    while error is not None:
-        if isinstance(error, KeyboardInterrupt):
-            return True
-        error = error.__cause__ or error.__context__
-    return False
+from bcid_ros.interrupts import handle_interrupts_in_finalizers, interrupted
 
 
 class _Loading:
@@ -31,12 +24,13 @@ class _Loading:
     done = False
 
     def __enter__(self) -> '_Loading':
+        handle_interrupts_in_finalizers(deliver_again=True)   # no rclpy handler yet
         return self
 
     def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
                  traceback: TracebackType | None) -> bool:
         self.done = error is None
-        return _interrupted(error)
+        return interrupted(error)
 
 
 def identifier_node() -> int:

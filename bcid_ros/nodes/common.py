@@ -23,6 +23,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
+from bcid_ros.interrupts import handle_interrupts_in_finalizers
 from bcid_ros.parameter_spec import ParameterSpec
 
 #: Sample topics: reliable and volatile, deep enough for bursts of 1 kHz data.
@@ -334,6 +335,8 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
     except KeyboardInterrupt:  # SIGINT while starting: stop quietly, as while spinning
         rclpy.try_shutdown()
         return 0
+    # from here rclpy's signal handler shuts the context down on SIGINT
+    handle_interrupts_in_finalizers(deliver_again=False)
     executor = SingleThreadedExecutor()
     node = None
     try:

@@ -1,0 +1,72 @@
+"""
+Ctrl-C that ends a run quietly, wherever it lands.
+
+Python raises the KeyboardInterrupt of a SIGINT in whatever the main thread runs
+next. When that is a finalizer (rclpy's ``Task.__del__`` while the collector
+runs), Python prints "Exception ignored in ..." with a traceback and goes on as
+if no signal had come. A node still stops, since rclpy's own signal handler has
+shut its context down; a ``bcid`` command, whose contexts have no rclpy handler,
+would not. :func:`handle_interrupts_in_finalizers` prints nothing in both cases
+and, for the second, raises the interrupt again in the main thread.
+"""
+
+from __future__ import annotations
+
+import _thread
+import sys
+import time
+from typing import Any
+
+#: Seconds before an interrupt caught in a finalizer is raised again: enough for the
+#: hook to return (microseconds), so that it lands after the finalizer.
+REDELIVERY_DELAY = 0.01
+
+
+def interrupted(error: BaseException | None) -> bool:
+    """Return whether ``error`` is, or was caused by, a KeyboardInterrupt."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+_deliver_again = True
+_previous_hook = sys.unraisablehook
+
+
+def _on_unraisable(unraisable: Any) -> None:
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _previous_hook(unraisable)
+    elif _deliver_again:
+        # From another thread, a moment later: raised from here it would land inside
+        # this hook and be ignored again (a threading.Thread's start() waits, too long).
+        try:
+            _thread.start_new_thread(_interrupt_main_later, ())
+        except RuntimeError:    # no new thread while the interpreter shuts down
+            pass
+
+
+def _interrupt_main_later() -> None:
+    time.sleep(REDELIVERY_DELAY)
+    _thread.interrupt_main()    # does nothing if SIGINT is no longer Python's to handle
+
+
+def handle_interrupts_in_finalizers(*, deliver_again: bool) -> None:
+    """
+    Print nothing for a KeyboardInterrupt raised inside a finalizer; raise it again if asked.
+
+    Parameters
+    ----------
+    deliver_again : bool
+        True where the interrupt is how the run learns of Ctrl-C (rclpy initialised
+        without signal handlers). False in a node, where rclpy's handler shuts the
+        context down: raised again, the interrupt could land in the node's own
+        shutdown, while its state is being saved.
+
+    """
+    global _deliver_again, _previous_hook
+    _deliver_again = deliver_again
+    if sys.unraisablehook is not _on_unraisable:
+        _previous_hook = sys.unraisablehook
+        sys.unraisablehook = _on_unraisable
