@@ -1,6 +1,7 @@
 """A Ctrl-C that lands in a finalizer prints nothing, and still ends a ``bcid`` command."""
 
 from pathlib import Path
+import signal
 import subprocess
 import sys
 
@@ -32,10 +33,16 @@ except KeyboardInterrupt:
 '''
 
 
+def _default_sigint() -> None:
+    # a background job (nohup ... &) starts with SIGINT ignored, and then there is no
+    # interrupt to deliver; a terminal or ros2 launch gives the default
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _run(mode: bool | None, error: str, wait: float) -> subprocess.CompletedProcess:
     script = SCRIPT.format(mode=mode, error=error, wait=wait)
     return subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
-                          cwd=ROOT, timeout=60)
+                          cwd=ROOT, timeout=60, preexec_fn=_default_sigint)
 
 
 def test_python_alone_loses_an_interrupt_in_a_finalizer_with_a_traceback():
