@@ -58,7 +58,7 @@ def test_the_errors_fed_at_an_operating_point_are_centred_like_the_fits_residual
     assert windows.shape[0] >= 9
     # each window's mean in standard errors: N(0, 1) for white errors of mean 0 (the
     # model is right, the noise white); the mean square of 9-10 of them is chi2 over its
-    # degrees of freedom, above 4 with probability < 1e-4 (the running frame: 100-600)
+    # degrees of freedom, above 4 with probability < 1e-4 (the running frame: 397 and 325)
     z = windows.mean(axis=1) / windows.std(axis=1) * np.sqrt(WINDOW)
     assert np.mean(z * z) < 4.0
     # the running frame flagged a change on both seeds (1 and 3 times); the detector's
