@@ -118,8 +118,10 @@ class Rpem(RecursiveEstimator):
     y and u, and p0 is the prior variance for signals of unit size.
 
     **Offset** (``detrend: mean``): the model carries an offset c, the last
-    internal parameter, not published; :attr:`operating_point` is
-    (m_y + c, m_u) (OE: y - m_y = G (u - m_u) + c + v; ARMAX: c = d / A(1)).
+    internal parameter, not published; m are the means each fit centres its
+    samples on, and the recursion goes on in that frame until the next fit
+    (:meth:`_on_fit_means`); :attr:`operating_point` is (m_y + c, m_u)
+    (OE: y - m_y = G (u - m_u) + c + v; ARMAX: c = d / A(1)).
 
     **Annealed forgetting.** After each fit :math:`\lambda(t)` starts at
     min(lambda, LAMBDA_START) and tends to the user's by lambda(t) <- lambda -
@@ -216,10 +218,11 @@ class Rpem(RecursiveEstimator):
     def _step(self, y: float, u: np.ndarray) -> None:
         """Make one recursion step on a checked sample (the class docstring's equations)."""
         scale = self._inverse_scale
-        yn = y * scale[0]
+        y_fit, u_fit = self._on_fit_means(y, u)
+        yn = y_fit * scale[0]
         theta = self._theta_n
         # phi(t) and psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
-        regressors = self._predictor.regressors(yn, u * scale[1:], theta)
+        regressors = self._predictor.regressors(yn, u_fit * scale[1:], theta)
         if regressors is None:  # refilling the lags after a restart
             self._keep(y, u)
             return
@@ -261,9 +264,10 @@ class Rpem(RecursiveEstimator):
         self._keep(y, u)
         if self._change_detection and self._settled:
             # the normalised one-step error e / sqrt(s) (docs/tracking.md), against the
-            # reference of the last fit's residuals, once the estimate has been valid
-            # since the last change: before, the errors are those of a model still
-            # converging, and a detection would only restart it from fewer samples
+            # reference of the last fit's residuals (both on the fit's means), once the
+            # estimate has been valid since the last change: before, the errors are those
+            # of a model still converging, and a detection would only restart it from
+            # fewer samples
             age = self._detector.record(e / math.sqrt(s))
             if age:
                 self._plant_changed(age)
@@ -343,20 +347,41 @@ class Rpem(RecursiveEstimator):
             self._predictor.fill(y, u)
             return
         scale = self._inverse_scale
-        yn = y * scale[0]
+        y_fit, u_fit = self._on_fit_means(y, u)
+        yn = y_fit * scale[0]
         theta = self._theta_n
-        regressors = self._predictor.regressors(yn, u * scale[1:], theta)
+        regressors = self._predictor.regressors(yn, u_fit * scale[1:], theta)
         if regressors is not None:
             self._predictor.advance(yn, *regressors, theta)
+
+    def _on_fit_means(self, y: float, u: np.ndarray) -> tuple[float, np.ndarray]:
+        """
+        Return a sample centred on the running means as centred on the last fit's means.
+
+        With ``detrend: mean`` the base class centres each sample on the
+        running means of its time; the last fit centred all its samples on
+        the means when it started, and its offset c is of that frame. The
+        recursion goes on in the fit's frame: its errors are then those of
+        the fitted model (the detector's reference is the fit's residuals),
+        where in the running frame they would carry
+        -(m_y(t) - m_y') + G (m_u(t) - m_u'), an offset that grows as the
+        means move early in a record and that c follows only slowly. A
+        constant centring is no loss to a model with an offset.
+        """
+        if self._means is None:
+            return y, u
+        shift = self._means.mean - self._fit_mean
+        return y + float(shift[0]), u + shift[1:]
 
     # ------------------------------------------------------------- the fits
     def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
         """Store the sample, do a slice of the fit on its way; start a fit if one is due."""
         self._samples += 1
         due = self._store.add(y, u, None if self._means is None else self._means.mean, excluded)
+        job = self._store.job
         ended = self._store.advance()
         if ended is not None:  # its last pass ended: the predictor run on to this sample
-            self._fitted_now(*ended)
+            self._fitted_now(*ended, job.mean)
         if due:
             self._fit()
 
@@ -368,21 +393,23 @@ class Rpem(RecursiveEstimator):
                      math.sqrt(self._gate_limit2))
         self._store.start(*arguments, fresh)
 
-    def _fitted_now(self, fitted: StoredFit, fresh: bool) -> None:
-        """Continue the recursion from a fit (if it is sound)."""
+    def _fitted_now(self, fitted: StoredFit, fresh: bool, mean: np.ndarray | None) -> None:
+        """Continue the recursion from a fit (if it is sound) centred on ``mean``."""
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
         if fitted.result is not None and self._take_fit(fitted.result, fitted.segments,
-                                                        fitted.scale, fresh):
+                                                        fitted.scale, fresh, mean):
             self._fits += 1
             self._decide_now()  # a new estimate: judged now, not at the period's end
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
-                  fresh: bool) -> bool:
-        """Continue from the fit: theta, P, J, tau, the lags and psi; False if unsound."""
+                  fresh: bool, mean: np.ndarray | None) -> bool:
+        """Continue from the fit: theta, P, J, tau, its lags, psi and means; False if unsound."""
         p = result.covariance(self.initial_covariance)
         if p is None:
             return False
+        if mean is not None:  # the frame of the fit's samples, its offset and its lags
+            self._fit_mean[:] = mean
         # the errors to come are judged against this fit's residuals (its own model's)
         self._detector.prime(result.residuals(segments[-1], self._armax))
         # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
@@ -555,15 +582,18 @@ class Rpem(RecursiveEstimator):
     @property
     def operating_point(self) -> np.ndarray | None:
         """
-        Return ``[y0, u1, ..., ur]``: the recursive means, y0 moved by the model's offset.
+        Return ``[y0, u1, ..., ur]``: the last fit's means, y0 moved by the model's offset.
 
         With ``detrend: mean`` the model is y - m_y = G(q)(u - m_u) + c (OE;
-        ARMAX: the equation offset d, c = d / A(1)), so the operating point of
-        the estimate is (m_y + c, m_u): the point to simulate the model around.
+        ARMAX: the equation offset d, c = d / A(1)), m the means the last fit
+        centred on (the recursion's frame), so the operating point of the
+        estimate is (m_y + c, m_u): the point to simulate the model around.
+        Before the first fit, the running means.
         """
         point = super().operating_point
         if point is None or not self._fitted:
             return point
+        point[:] = self._fit_mean
         offset = float(self._theta_n[-1]) * self._signal_scale[0]
         if self._armax:  # A(1) > 0 for a stable A
             offset /= 1.0 + float(self._theta_n[:self.order].sum())
@@ -591,6 +621,8 @@ class Rpem(RecursiveEstimator):
         self._p = self.initial_covariance * np.eye(size)
         self._arx = np.zeros(p)
         self._signal_scale = np.ones(1 + self.num_inputs)
+        # the means the last fit centred its samples on (detrend: mean; _on_fit_means)
+        self._fit_mean = np.zeros(1 + self.num_inputs)
         self._set_scale_dependents()
         #: What happens to P between samples: recursion.Forgetting (P / lambda, anti-windup)
         #: or, with adaptation: kalman, recursion.RandomWalk (P + q I in normalised units)
@@ -655,7 +687,8 @@ class Rpem(RecursiveEstimator):
         stored_arrays, stored_scalars = self._store.state_items()
         arrays = {'theta_n': self._theta_n, 'p': self._p,
                   'psi_history': lag_arrays['psi_history'], 'arx': self._arx,
-                  'signal_scale': self._signal_scale, **stored_arrays,
+                  'signal_scale': self._signal_scale, 'fit_mean': self._fit_mean,
+                  **stored_arrays,
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
@@ -676,12 +709,15 @@ class Rpem(RecursiveEstimator):
         """
         own, _ = self._state_items()
         arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
+        if 'fit_mean' not in arrays:  # a snapshot from before: its running means
+            arrays['fit_mean'] = np.array(arrays.get('operating_point', own['fit_mean']))
         arrays, scalars = self._store.with_job_items(arrays, state.scalars)
         super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
         self._signal_scale = arrays['signal_scale']
+        self._fit_mean = arrays['fit_mean']
         self._p = np.ascontiguousarray(arrays['p'])
         self._predictor.load_state(arrays, scalars)
         self._store.load_state(arrays, scalars)
