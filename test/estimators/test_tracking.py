@@ -162,3 +162,45 @@ def test_state_and_reset_carry_a_detected_change(name, equation):
     np.testing.assert_array_equal(estimator.theta, restored.theta)
     estimator.reset()
     same_state(make_estimator(name, order=2).get_state(), estimator.get_state())
+
+
+def kept_samples(estimator):
+    """Return rpem's kept samples' exclusion marks (oldest first) from its state."""
+    state = estimator.get_state()
+    excluded = state.arrays['excluded']
+    position, stored = state.scalars['buffer_position'], state.scalars['stored']
+    return excluded[np.arange(position - stored, position) % excluded.shape[0]]
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_rpem_restart_after_a_gate_found_change_keeps_the_outputs_it_refused(seed):
+    # the gate (5 sigma) refuses the new plant's first outputs, two or three, then takes the
+    # change: those outputs are the new plant's, and the restart's fits start from the
+    # first of them (the change note names it) with every one weighing
+    y, u, _ = changing_plant(seed, noise=0.1)
+    estimator = make_estimator('rpem', order=2, outlier_threshold=5.0)
+    for t in range(y.shape[0]):
+        estimator.update(y[t], u[t])
+        if estimator.flags.get('plant_change', 0):
+            break
+    assert estimator.flags['plant_change'] == 1 and estimator.flags['outlier_rejected'] >= 2
+    assert estimator.validity_reasons[0] == 'plant changed (sample 3001)'
+    kept = kept_samples(estimator)
+    assert kept.shape[0] == t - 2999 and not kept.any()
+
+
+def test_rpem_restart_weighs_again_the_kept_outputs_the_gate_refused():
+    # a smaller change, found by the detector 24 samples on, after the gate refused two of
+    # the new plant's outputs (beyond 5 sigma of the old model, not three in a row): they
+    # are kept after the change point and weigh in the new plant's fits
+    after = ([1.0, -1.4, 0.6], [0.0, 1.4, 0.6])
+    y, u, _ = changing_plant(1, noise=0.3, after=after)
+    estimator = make_estimator('rpem', order=2, outlier_threshold=5.0)
+    for t in range(y.shape[0]):
+        estimator.update(y[t], u[t])
+        if estimator.flags.get('plant_change', 0):
+            break
+    assert estimator.flags['outlier_rejected'] == 2
+    point = int(estimator.validity_reasons[0].split('sample ')[1].rstrip(')'))
+    kept = kept_samples(estimator)
+    assert 3001 <= point and kept.shape[0] == t + 2 - point and not kept.any()
