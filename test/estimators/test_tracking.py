@@ -144,15 +144,17 @@ def test_change_detection_off_keeps_the_old_behaviour_and_is_live():
     assert math.isfinite(estimator.theta.sum())
 
 
-@pytest.mark.parametrize('name, equation', [('rls', True), ('bcrls', False), ('rpem', False)])
-def test_state_and_reset_carry_a_detected_change(name, equation):
+@pytest.mark.parametrize('name, equation, settings', [
+    ('rls', True, {}), ('bcrls', False, {}), ('rpem', False, {}),
+    ('rpem', False, {'outlier_threshold': 5.0})])  # the change the gate takes
+def test_state_and_reset_carry_a_detected_change(name, equation, settings):
     # the detector's statistics and the kept samples a restart replays are state: a run
     # saved after the detection goes on bit for bit, and a reset forgets both
     y, u, _ = changing_plant(1, samples=4000, equation=equation)
-    estimator = make_estimator(name, order=2)
+    estimator = make_estimator(name, order=2, **settings)
     run(estimator, y[:3400], u[:3400])
     assert estimator.flags.get('plant_change', 0) >= 1
-    restored = make_estimator(name, order=2)
+    restored = make_estimator(name, order=2, **settings)
     restored.set_state(estimator.get_state())
     same_state(estimator.get_state(), restored.get_state())
     valid, reasons = run(estimator, y[3400:], u[3400:])
@@ -161,4 +163,59 @@ def test_state_and_reset_carry_a_detected_change(name, equation):
     assert reasons == reasons_restored
     np.testing.assert_array_equal(estimator.theta, restored.theta)
     estimator.reset()
-    same_state(make_estimator(name, order=2).get_state(), estimator.get_state())
+    same_state(make_estimator(name, order=2, **settings).get_state(), estimator.get_state())
+
+
+def kept_samples(estimator):
+    """Return rpem's kept samples' exclusion marks (oldest first) from its state."""
+    state = estimator.get_state()
+    excluded = state.arrays['excluded']
+    position, stored = state.scalars['buffer_position'], state.scalars['stored']
+    return excluded[np.arange(position - stored, position) % excluded.shape[0]]
+
+
+@pytest.mark.parametrize('seed', range(4))
+def test_rpem_restart_after_a_gate_found_change_keeps_the_outputs_it_refused(seed):
+    # the gate (5 sigma) refuses the new plant's first outputs, two or three, then takes the
+    # change: those outputs are the new plant's, and the restart's fits start from the
+    # first of them (the change note names it) with every one weighing
+    y, u, after = changing_plant(seed, noise=0.1)
+    estimator = make_estimator('rpem', order=2, outlier_threshold=5.0)
+    for t in range(y.shape[0]):
+        estimator.update(y[t], u[t])
+        if estimator.flags.get('plant_change', 0):
+            break
+    assert estimator.flags['plant_change'] == 1 and estimator.flags['outlier_rejected'] >= 2
+    assert estimator.validity_reasons[0] == 'plant changed (sample 3001)'
+    kept = kept_samples(estimator)
+    assert kept.shape[0] == t - 2999 and not kept.any()
+    # saved at the detection, a run goes on bit for bit through the restart's fits
+    restored = make_estimator('rpem', order=2, outlier_threshold=5.0)
+    restored.set_state(estimator.get_state())
+    end = t + 400
+    valid, reasons = run(estimator, y[t + 1:end], u[t + 1:end])
+    valid_restored, reasons_restored = run(restored, y[t + 1:end], u[t + 1:end])
+    np.testing.assert_array_equal(valid, valid_restored)
+    assert reasons == reasons_restored
+    np.testing.assert_array_equal(estimator.theta, restored.theta)
+    # and it has learnt the new plant: its error within three times its own std (in norm,
+    # whose square is the expected squared error)
+    assert np.linalg.norm(estimator.theta - after) < 3.0 * np.linalg.norm(
+        estimator.parameter_std)
+
+
+def test_rpem_restart_weighs_again_the_kept_outputs_the_gate_refused():
+    # a smaller change, found by the detector 24 samples on, after the gate refused two of
+    # the new plant's outputs (beyond 5 sigma of the old model, not three in a row): they
+    # are kept after the change point and weigh in the new plant's fits
+    after = ([1.0, -1.4, 0.6], [0.0, 1.4, 0.6])
+    y, u, _ = changing_plant(1, noise=0.3, after=after)
+    estimator = make_estimator('rpem', order=2, outlier_threshold=5.0)
+    for t in range(y.shape[0]):
+        estimator.update(y[t], u[t])
+        if estimator.flags.get('plant_change', 0):
+            break
+    assert estimator.flags['outlier_rejected'] == 2
+    point = int(estimator.validity_reasons[0].split('sample ')[1].rstrip(')'))
+    kept = kept_samples(estimator)
+    assert 3001 <= point and kept.shape[0] == t + 2 - point and not kept.any()

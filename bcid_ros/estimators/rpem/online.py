@@ -447,8 +447,13 @@ class Rpem(RecursiveEstimator):
         self._decide_now()
 
     def _accept_change(self) -> None:
-        """Restart from this sample after a plant change the gate found (three refusals)."""
-        self._restart_after_change(0)
+        """
+        Restart after a plant change the gate found (three refusals): from its first refusal.
+
+        The outputs it refused in a row before this one are the new plant's
+        first (OE stores them, weighing 0; ARMAX none): they start the fits.
+        """
+        self._restart_after_change(self._store.refused_run())
 
     def _plant_changed(self, age: int) -> None:
         """Flag a plant change the detector found ``age`` samples ago, and restart."""

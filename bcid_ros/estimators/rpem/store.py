@@ -331,9 +331,11 @@ class SampleStore:
         Keep only the last ``keep`` samples for the fits (a plant change at that point).
 
         The samples before the change point are of the old plant: no fit may
-        blend them in. The schedule starts again from the kept ones; returns
-        whether they are already enough for a fit (the caller then fits now).
-        With ``keep`` 0 the next stored sample starts a segment.
+        blend them in. The kept ones weigh again where they were excluded
+        (OE: an output refused against the old plant). The schedule starts
+        again from them; returns whether they are already enough for a fit
+        (the caller then fits now). With ``keep`` 0 the next stored sample
+        starts a segment.
         """
         keep = min(max(int(keep), 0), self.stored)
         self.job = None  # a fit on its way blends the old plant in
@@ -341,10 +343,21 @@ class SampleStore:
         self.since_start = keep
         self.next_fit = max(self.first_fit, keep)
         if keep:
-            self.breaks[(self.position - keep) % BATCH_LIMIT] = True
+            kept = np.arange(self.position - keep, self.position) % BATCH_LIMIT
+            self.breaks[kept[0]] = True
+            # the outputs the gate (or a fit's outlier test) refused among them were judged
+            # against the old plant: the first errors of the new one are large, not wrong.
+            # They weigh again; the new plant's fits take out its own outliers
+            self.excluded[kept] = False
         else:
             self.break_pending = True
         return keep >= self.first_fit
+
+    def refused_run(self) -> int:
+        """Count the newest stored samples that weigh 0 in a row (the gate's last refusals)."""
+        index = (self.position - 1 - np.arange(self.stored)) % BATCH_LIMIT
+        weighed = np.flatnonzero(~self.excluded[index])
+        return int(weighed[0]) if weighed.size else self.stored
 
     # ------------------------------------------------------------- the fit
     def start(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
