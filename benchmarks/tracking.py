@@ -28,7 +28,9 @@ unless named): delta(t) = ||theta_hat(t) - theta(t)|| / ||theta(t)||; its band i
 median delta over the 1000 samples before the change (at least 1 %); its recovery is the
 number of samples after the change (after the drift's end for a drift) from which delta stays
 within the band to the end of the record. Reported: abrupt changes recovered within 5 times
-the reference's recovery, the median recovery, changes flagged (``plant_change`` after the
+the reference's recovery (over all abrupt changes, where a change the reference itself does
+not recover from within its grid is a miss, and over those it recovers from), the median
+recovery, changes flagged (``plant_change`` after the
 change), drifts never recovered, the share of the 2000 samples after the change that are
 ``valid`` while delta > 10 %, and false detections (``plant_change`` before the change or on
 the ``none`` plants) per 100,000 samples.
@@ -309,6 +311,9 @@ def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]
             recoveries.append(math.inf if ours is None else ours)
             if ours is not None and ref is not None and ours <= WITHIN * max(ref, 1):
                 within += 1
+        # a change the reference itself does not recover from within its grid counts as
+        # missed above whatever the estimator does; this row leaves those out
+        measurable = sum(references[k]['recovery'] is not None for k in abrupt)
         never_drift = sum(results[k]['recovery'] is None for k in drift)
         flagged = sum(results[k]['flagged'] for k in abrupt)
         far = np.mean([results[k]['far_valid_share'] for k in changing]) if changing else 0.0
@@ -316,13 +321,15 @@ def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]
         samples = sum(case.change_at for case in cases) + sum(
             case.samples - case.change_at for case in cases if case.kind == 'none')
         median = float(np.median(recoveries)) if recoveries else math.nan
-        return [f'{within} / {len(abrupt)}',
+        return [f'{within} / {len(abrupt)}', f'{within} / {measurable}',
                 'never' if math.isinf(median) else f'{median:.0f}',
                 f'{flagged} / {len(abrupt)}', f'{never_drift} / {len(drift)}',
                 f'{100.0 * far:.1f} %', f'{1e5 * false / samples:.2f} ({false})',
                 f'{max(r["worst_update_ms"] for r in results):.0f} ms']
 
-    labels = ['abrupt within 5x the reference', 'abrupt, median recovery (samples)',
+    labels = ['abrupt within 5x the reference',
+              'the same, of the changes the reference recovers from within its grid',
+              'abrupt, median recovery (samples)',
               'abrupt change flagged', 'drift: never recovered',
               f'valid while > 10 % off, first {AFTER} samples after the change',
               'false detections per 100,000 samples (count)', 'slowest update (CPU)']
