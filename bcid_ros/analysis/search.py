@@ -20,7 +20,7 @@ from bcid_ros.analysis.batch import (Candidate, finite, Record, search_structure
                                      TEST_LEVEL)
 from bcid_ros.analysis.model import complex_list
 from bcid_ros.analysis.online import compare_online, OnlineResult, recommend_estimator
-from bcid_ros.analysis.threads import single_threaded_blas
+from bcid_ros.blas_threads import single_threaded_blas
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import names_where
 from bcid_ros.identifier.parameters import check_identifier_parameters

@@ -23,6 +23,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
+from bcid_ros.blas_threads import set_one_blas_thread
 from bcid_ros.interrupts import handle_interrupts_in_finalizers
 from bcid_ros.parameter_spec import ParameterSpec
 
@@ -341,6 +342,10 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
     node = None
     try:
         node = factory()
+        # one BLAS thread (the libraries the node has loaded by now): its matrices are
+        # small, and OpenBLAS's threads, waiting for each other on busy cores, made one
+        # update take up to 38 ms of CPU instead of 7 (docs/nodes.md, "One BLAS thread")
+        set_one_blas_thread()
         executor.add_node(node)
         if until is None:
             executor.spin()

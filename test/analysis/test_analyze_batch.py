@@ -9,7 +9,7 @@ from bcid_ros.analysis.batch import (Candidate, fit_candidate, FULL_GRID_INPUTS,
                                      redundancy, search_structures)
 from bcid_ros.analysis.pem import fit_oe, Structure
 from bcid_ros.analysis.search import FIT_MARGIN, recommend
-from bcid_ros.analysis.threads import _controls, openblas_libraries, single_threaded_blas
+from bcid_ros.blas_threads import _controls, openblas_libraries, single_threaded_blas
 
 
 def _held_binary(rng, count, hold):

@@ -18,7 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[2] / 'bcid_ros'
 
 #: The layers, lowest first. A package imports only from layers below its own.
 LAYERS = (
-    ('errors', 'interrupts', 'markdown', 'resources'),
+    ('blas_threads', 'errors', 'interrupts', 'markdown', 'resources'),
     ('parameter_spec',),
     ('estimators',),
     ('simulation',),
@@ -31,8 +31,8 @@ LAYERS = (
 LAYER_OF = {name: rank for rank, names in enumerate(LAYERS) for name in names}
 
 #: The layers that run without ROS: no rclpy, no message package, not even lazily.
-ROS_FREE = ('errors', 'interrupts', 'markdown', 'resources', 'parameter_spec', 'estimators',
-            'simulation', 'identifier')
+ROS_FREE = ('blas_threads', 'errors', 'interrupts', 'markdown', 'resources', 'parameter_spec',
+            'estimators', 'simulation', 'identifier')
 ROS_MODULES = ('rclpy', 'std_msgs', 'sensor_msgs', 'diagnostic_msgs', 'std_srvs',
                'builtin_interfaces', 'rosidl_runtime_py', 'rosbag2_py')
 

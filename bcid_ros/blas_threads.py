@@ -1,21 +1,22 @@
 """
-One BLAS thread for the batch fits, without threadpoolctl.
+One BLAS thread for the batch fits and the nodes, without threadpoolctl.
 
-The batch fits factor tall, narrow matrices (thousands of rows, a few tens of
-columns) hundreds of times. OpenBLAS splits each such call over its threads,
-and on a machine whose cores are busy the threads wait for each other: one
-SVD of 7000 x 25 took 3.3 ms of CPU with one thread and 284 ms with the
-default threads on this project's loaded 2-core machine (docs/analyze.md,
-*Speed*). :func:`single_threaded_blas` sets every OpenBLAS library loaded in
-the process (numpy's and scipy's wheels each bring one) to one thread for
-the duration of a ``with`` block and restores the previous counts after it,
-through the libraries' own ``*openblas_set_num_threads`` functions, which is
-what threadpoolctl does. Where no OpenBLAS is found (another BLAS, another
-operating system), it does nothing: the environment variable
+The batch fits of ``bcid analyze`` factor tall, narrow matrices (thousands of
+rows, a few tens of columns) hundreds of times; the estimators' checks in a
+node factor a few such every few hundred samples. OpenBLAS splits each such
+call over its threads, and on a machine whose cores are busy the threads wait
+for each other: one SVD of 7000 x 25 took 3.3 ms of CPU with one thread and
+284 ms with the default threads on this project's loaded 2-core machine
+(docs/analyze.md, *Speed*). :func:`single_threaded_blas` sets every OpenBLAS
+library loaded in the process (numpy's and scipy's wheels each bring one) to
+one thread for the duration of a ``with`` block and restores the previous
+counts after it; :func:`set_one_blas_thread` sets them for good (a node).
+Both go through the libraries' own ``*openblas_set_num_threads`` functions,
+which is what threadpoolctl does. Where no OpenBLAS is found (another BLAS,
+another operating system), they do nothing: the environment variable
 ``OPENBLAS_NUM_THREADS=1`` (or ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``) set
 before Python starts does the same for every library.
 """
-
 from __future__ import annotations
 
 import contextlib
@@ -60,6 +61,18 @@ def _controls(path: str) -> tuple[Callable[[int], None], Callable[[], int]] | No
     return None
 
 
+def _loaded_controls() -> list[tuple[Callable[[int], None], Callable[[], int]]]:
+    return [found for found in map(_controls, openblas_libraries()) if found is not None]
+
+
+def set_one_blas_thread() -> int:
+    """Set every OpenBLAS library loaded in this process to one thread; return how many."""
+    controls = _loaded_controls()
+    for setter, _ in controls:
+        setter(1)
+    return len(controls)
+
+
 @contextlib.contextmanager
 def single_threaded_blas() -> Iterator[int]:
     """
@@ -68,8 +81,7 @@ def single_threaded_blas() -> Iterator[int]:
     The previous thread count of each library is restored on exit, also
     when the block raises.
     """
-    controls = [found for found in map(_controls, openblas_libraries()) if found is not None]
-    previous = [(setter, getter()) for setter, getter in controls]
+    previous = [(setter, getter()) for setter, getter in _loaded_controls()]
     for setter, _ in previous:
         setter(1)
     try:
@@ -79,4 +91,4 @@ def single_threaded_blas() -> Iterator[int]:
             setter(count)
 
 
-__all__ = ['openblas_libraries', 'single_threaded_blas']
+__all__ = ['openblas_libraries', 'set_one_blas_thread', 'single_threaded_blas']
