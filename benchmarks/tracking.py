@@ -59,6 +59,7 @@ from scipy import signal
 from bcid_ros.analysis.pem import fit_arx, fit_oe, Structure
 from bcid_ros.analysis.realistic import (_draw_numerators, _draw_poles, _predicted_error,
                                          MAX_PREDICTED_ERROR)
+from bcid_ros.blas_threads import single_threaded_blas
 from bcid_ros.estimators import make_estimator
 from bcid_ros.markdown import markdown_table
 
@@ -266,17 +267,18 @@ def run_estimator(case: TrackingCase, config: str) -> dict[str, Any]:
     changes = np.zeros(count, dtype=bool)
     worst_ms = 0.0
     before = 0
-    for t in range(count):
-        # CPU time of this thread: on a shared machine the wall time of an update also
-        # counts the time other processes held the core
-        start = time.thread_time()
-        valid[t] = estimator.update(float(case.y[t]), case.u[t])
-        if t >= 10:  # the first updates load modules
-            worst_ms = max(worst_ms, 1e3 * (time.thread_time() - start))
-        theta[t] = estimator.theta
-        flagged = estimator.flags.get('plant_change', 0)
-        changes[t] = flagged > before
-        before = flagged
+    with single_threaded_blas():  # as in a node (docs/nodes.md, "One BLAS thread")
+        for t in range(count):
+            # CPU time of this thread: on a shared machine the wall time of an update also
+            # counts the time other processes held the core
+            start = time.thread_time()
+            valid[t] = estimator.update(float(case.y[t]), case.u[t])
+            if t >= 10:  # the first updates load modules
+                worst_ms = max(worst_ms, 1e3 * (time.thread_time() - start))
+            theta[t] = estimator.theta
+            flagged = estimator.flags.get('plant_change', 0)
+            changes[t] = flagged > before
+            before = flagged
     deltas = delta(theta, case.theta)
     pre = deltas[case.change_at - 1000:case.change_at]
     band = max(2.0 * float(np.median(pre)), 0.01)
