@@ -466,7 +466,9 @@ class SimulationWindow:
     The last :data:`WINDOW` samples of one plant, and the check of a model on them.
 
     :meth:`record` keeps a sample (as the model sees it: deviations when the estimator
-    detrends), :meth:`clear` forgets them (a gap, a restart), and :meth:`reasons` runs
+    detrends), :meth:`gap` forgets them at a sample the estimator does not record (the
+    verdict holds), :meth:`clear` forgets them and the verdict (a restart), and
+    :meth:`reasons` runs
     :func:`check` on them every :data:`CHECK_PERIOD` recorded samples once there are enough
     (at every call while the window fills), keeping its reason in between.
 
@@ -503,12 +505,24 @@ class SimulationWindow:
         self._judged = False
 
     def clear(self) -> None:
-        """Forget the samples and the last verdict."""
+        """Forget the samples and the last verdict (a restart: a new model, new data)."""
+        self.gap()
+        self.reason = ''
+        self.statistic = math.nan
+
+    def gap(self) -> None:
+        """
+        Forget the samples, keep the last verdict: a sample the estimator did not record.
+
+        The check simulates the window as one stretch of consecutive samples: one left out
+        (a refused outlier, a held or quiet sample) would splice two stretches, whose
+        junction the model cannot simulate (on a slow plant a jump that raised kappa 15
+        times and hid every misfit, docs/trust.md). A gap is no evidence about the model,
+        so its verdict holds until the samples after the gap are enough to judge again.
+        """
         self._end = 0
         self._filled = 0
         self._since = 0
-        self.reason = ''
-        self.statistic = math.nan
         self._judged = False
 
     def record(self, y: float, u: Any) -> None:
@@ -549,8 +563,8 @@ class SimulationWindow:
 
         ``covariance`` is that of [a, b] (None: the estimate taken as exact; see :func:`check`).
         """
-        if self._filled < self.minimum:
-            return []
+        if self._filled < self.minimum:  # the verdict from before a gap, if any
+            return [self.reason] if self.reason else []
         if self.judging():
             self._since = 0
             self._judged = True

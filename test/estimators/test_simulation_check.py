@@ -139,6 +139,27 @@ def test_a_short_window_is_not_judged():
     assert window.reasons(np.array([-0.5, 0.1]), np.ones(6)) == []
 
 
+def test_a_gap_keeps_the_verdict_until_the_window_judges_again():
+    # a sample the estimator does not record empties the window (it is no stretch of
+    # consecutive samples any more) but is no evidence about the model: a model off by half
+    # its gain stays contradicted until the samples after the gap are enough to judge it
+    rng = np.random.default_rng(3)
+    u = np.repeat(np.sign(rng.standard_normal(200)), 5)
+    y = signal.lfilter([0.0, 0.5], [1.0, -0.9], u) + 0.01 * rng.standard_normal(u.size)
+    window = SimulationWindow(1, 1, False, (0,))
+    model = np.array([-0.9]), np.array([0.25])
+    for k in range(600):
+        window.record(y[k], u[k:k + 1])
+    assert window.reasons(*model)
+    window.gap()
+    assert window.reasons(*model)
+    for k in range(600, 600 + window.minimum - 1):
+        window.record(y[k], u[k:k + 1])
+    assert window.reasons(*model)
+    window.clear()  # a restart: a new model, no verdict
+    assert window.reasons(*model) == []
+
+
 def _information(y, u, a, b, lags):
     """Return psi^T psi / sigma^2 of the window at the model (the batch estimate's inverse)."""
     from bcid_ros.estimators.simulation_check import _refit_columns

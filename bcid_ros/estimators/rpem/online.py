@@ -273,6 +273,8 @@ class Rpem(RecursiveEstimator):
             self._monitor.record(e, u, psi)
             self._hac.record_product(psi, e)
             self._simulation.record(y, u)
+        else:  # a sample the window does not take is a gap in it (docs/trust.md)
+            self._simulation.gap()
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
         if self._updates >= self._watch.next_check:
@@ -335,10 +337,12 @@ class Rpem(RecursiveEstimator):
             self._store.break_pending = True  # y(t) is a lag of the next samples
         else:
             self._keep(y, u, excluded=True)  # u(t) drives the simulation on
+        self._simulation.gap()  # the refused sample is not recorded
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the predictor on with theta held: w (or the residual) and psi keep running."""
         self._store.break_pending = True
+        self._simulation.gap()  # the held samples are not recorded
         if not self._fitted:
             self._predictor.fill(y, u)
             return
