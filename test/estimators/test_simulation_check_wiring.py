@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.estimators import make_batched_estimator, make_estimator
 from bcid_ros.estimators.simulation_check import FALSE_ALARM, window_length
 from bcid_ros.simulation import make_scenario
@@ -140,3 +141,18 @@ def test_rpem_catches_a_model_left_behind_through_refused_samples():
     estimator.run(with_spikes(y), u)
     assert estimator.flags.get('outlier_rejected', 0) >= SAMPLES // 400 - 1
     assert simulation_reasons(estimator), estimator.validity_reasons
+
+
+def test_rpem_is_not_valid_with_its_estimate_far_outside_its_std():
+    # realistic plant (0, 29): third order, poles 0.986, 0.919 and 0.492, a low-pass input
+    # at an operating point, 21 dB. rpem's estimate is as good as the record allows (2.9 %
+    # off, the batch fit 5.6 %), but its std of the a's came out some 20 times below the
+    # batch fit's (0.0065 against 0.126 for a1) and the a's lay 6 of those std off: it was
+    # valid. Its window's information names that std too small. An honest std puts all six
+    # parameters within 4.5 std but with probability 6 x 6.8e-6
+    case = realistic_case((0, 29))
+    estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs,
+                               input_delay=case.input_delay, detrend=case.detrend)
+    estimator.run(case.y, case.u)
+    z = np.abs(estimator.theta - case.theta) / estimator.parameter_std
+    assert not (estimator.valid and z.max() > 4.5), (z, estimator.validity_reasons)

@@ -37,6 +37,7 @@ from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
+from bcid_ros.estimators.simulation_check import UNDERSTATED
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
@@ -493,7 +494,10 @@ class Rpem(RecursiveEstimator):
         self._change_note = self._decide_validity(
             notes + self._period_reasons, self._change_note,
             ready_again=self._store.since_start < self._samples)
-        self._settled = self._settled or not self._reasons
+        # the detector runs once the model passed its checks; a std judged too small is the
+        # covariance's fault, not the model's, and holds no detection back
+        self._settled = self._settled or all(
+            reason.startswith(UNDERSTATED) for reason in self._reasons)
 
     # --------------------------------------------------------- the accessors
     @property
@@ -538,6 +542,10 @@ class Rpem(RecursiveEstimator):
             return None
         return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
                                     self.num_parameters, self._unscale)
+
+    def _covariance_count(self) -> float | None:
+        """Return tau, the samples the estimate rests on (``oe``: an output-error covariance)."""
+        return None if self._armax else self._tau
 
     def _internal_covariance(self, plants: np.ndarray) -> np.ndarray | None:
         """Return the HAC covariance of theta_n, offset included, for the residual tests."""
