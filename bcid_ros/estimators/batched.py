@@ -449,6 +449,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._after_ls_step(rows, y[stepped], phi[stepped])
             # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
             tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
+            for row in rows[~tested].tolist():  # a sample a window does not take: a gap
+                self._simulations[row].gap()
             if tested.any():
                 for row, output, inputs in zip(rows[tested].tolist(), y[stepped][tested].tolist(),
                                                u[stepped][tested]):

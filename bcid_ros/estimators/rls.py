@@ -172,6 +172,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         if self._tau >= self._gate_from and not self._quiet_left:
             self._simulation.record(y, u)
             self._record_residual(y, phi, u)
+        else:  # a sample the window does not take is a gap in it (docs/trust.md)
+            self._simulation.gap()
         if self._updates >= self._next_check:
             self._check_validity()
 
@@ -217,6 +219,7 @@ class Rls(LsAccessors, RecursiveEstimator):
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the regressor on without a step: theta, P, J and tau stay as they are."""
         self._regressor.push(y, u)
+        self._simulation.gap()  # the held samples are not recorded
 
     def _after_ls_step(self, y: float, phi: np.ndarray) -> None:
         """Extend the LS step on (y, phi) (the bias compensation of subclasses); nothing here."""

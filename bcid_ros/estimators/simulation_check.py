@@ -84,6 +84,15 @@ MAX_COLOUR = 1e6
 #: The most of the estimate's own error the check excuses, in covariances of a fit of the
 #: window alone (:func:`settled_statistic`): an error of twice that fit's.
 SETTLING_EXCUSE = 4.0
+#: The most the reported variance of a parameter of [a, b] may understate the one that the
+#: window's own information implies for an estimate of the estimator's sample count
+#: (:func:`understatement`; a std 10 times too small). Gross by design: the window holds the
+#: last L samples only, and an input richer before it legitimately determines the estimate
+#: better than the window does (the first 40 realistic plants, rpem, every 1000 samples: at
+#: most 4.0, but for one plant whose std was 20 times the batch fit's, 410).
+UNDERSTATEMENT_LIMIT = 100.0
+#: How the reason of an understated covariance begins (it names the std, not the model).
+UNDERSTATED = 'parameter std too small'
 #: Largest order of the AR model of the error whose spectrum gives kappa (and of the AR
 #: noise models of bcid_ros.analysis, which take theirs from here).
 MAX_NOISE_ORDER = 30
@@ -221,8 +230,23 @@ def _stable(a: np.ndarray) -> bool:
     return a.size == 0 or bool(np.all(np.abs(np.roots(np.concatenate(([1.0], a)))) < 1.0))
 
 
+def _projected(gradient: np.ndarray, nuisance: np.ndarray
+               ) -> tuple[np.ndarray | None, np.ndarray]:
+    """Return ψ̃ (ψ with N projected out) over its column norms, and the norms (None: a zero)."""
+    scale = np.linalg.norm(nuisance, axis=0)
+    scale[scale == 0.0] = 1.0
+    basis = nuisance / scale
+    projected = gradient - basis @ np.linalg.lstsq(basis, gradient, rcond=None)[0]
+    norms = np.linalg.norm(projected, axis=0)
+    if not (norms > 0.0).all():
+        return None, norms
+    return projected / norms, norms
+
+
 def settled_statistic(gradient: np.ndarray, nuisance: np.ndarray, error: np.ndarray,
-                      noise: float, covariance: np.ndarray) -> float:
+                      noise: float, covariance: np.ndarray,
+                      projection: tuple[np.ndarray | None, np.ndarray] | None = None
+                      ) -> float:
     r"""
     Return T with the estimate's own error counted: :math:`g^T(\kappa\sigma^2 M + M P M)^{-1}g`.
 
@@ -236,15 +260,11 @@ def settled_statistic(gradient: np.ndarray, nuisance: np.ndarray, error: np.ndar
     efficient than the output-error fit): so T is at least a fifth of the exact estimate's,
     and a misfit that grows T with the window's length is still seen. Columns scaled to unit
     norm for the solve; a singular form (a gradient without a direction) judges nothing (NaN).
+    ``projection``: ψ̃ over its column norms and the norms, where already computed.
     """
-    scale = np.linalg.norm(nuisance, axis=0)
-    scale[scale == 0.0] = 1.0
-    basis = nuisance / scale
-    projected = gradient - basis @ np.linalg.lstsq(basis, gradient, rcond=None)[0]
-    norms = np.linalg.norm(projected, axis=0)
-    if not (norms > 0.0).all():
+    projected, norms = projection or _projected(gradient, nuisance)
+    if projected is None:
         return math.nan
-    projected = projected / norms
     score = projected.T @ error
     information = projected.T @ projected
     scaled_covariance = norms[:, None] * covariance * norms[None, :]  # of δ in ψ's units
@@ -260,6 +280,42 @@ def settled_statistic(gradient: np.ndarray, nuisance: np.ndarray, error: np.ndar
         return float(score @ np.linalg.solve(form, score))
     except np.linalg.LinAlgError:
         return math.nan
+
+
+def understatement(gradient: np.ndarray, nuisance: np.ndarray, noise: float,
+                   covariance: np.ndarray, length: int, count: float,
+                   projection: tuple[np.ndarray | None, np.ndarray] | None = None) -> float:
+    r"""
+    Return how many times the window implies a larger variance than ``covariance``, at most.
+
+    The largest ratio, over the parameters, of the diagonals of
+    :math:`\hat\sigma^2 M^{-1} L/N` and C (the variances behind the std the estimator
+    publishes): M = ψ̃ᵀψ̃ the
+    information of the window's L samples about [a, b] (the nuisance columns projected
+    out), :math:`\hat\sigma^2` the white-noise level of the refitted error (the smallest
+    variance the noise allows: a coloured noise's is larger, Ljung 1999, sec. 9.3), N =
+    ``count`` the samples the estimate rests on and C the covariance the estimator reports
+    for [a, b]. An estimate of N samples of the same plant and input has about N/L times the
+    window's information, so the ratio is about 1 where C is honest; a C collapsed far below
+    what any N samples could give makes it large. Per parameter, not in the worst direction:
+    the weakest combination of an oversampled plant's parameters is determined so poorly by
+    L samples that its ratio moved by hundreds where the std of every parameter agreed with
+    the batch fit's (a third-order plant with poles near 0.96, two inputs: 250-650 against
+    1.5-2 per parameter). NaN where the forms are singular. ``projection`` as for
+    :func:`settled_statistic`.
+    """
+    unit, norms = projection or _projected(gradient, nuisance)
+    if unit is None or not count > 0.0:
+        return math.nan
+    # in the columns' unit-norm coordinates: C' = D C D, M' = unit' unit (D the norms)
+    information = unit.T @ unit
+    reported = norms[:, None] * covariance * norms[None, :]
+    try:
+        implied = noise * length / count * np.diagonal(np.linalg.inv(information))
+    except np.linalg.LinAlgError:
+        return math.nan
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return float(np.max(implied / np.diagonal(reported)))
 
 
 def refit(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
@@ -381,6 +437,14 @@ def colour(error: np.ndarray, resonances: bool = True) -> float:
 def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.ndarray,
           false_alarm: float = FALSE_ALARM, covariance: np.ndarray | None = None
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return :func:`judge`'s T, limit, S_0/S_1 and verdict (no count: no understatement)."""
+    return judge(y, u, a, b, lags, false_alarm, covariance)[:4]
+
+
+def judge(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.ndarray,
+          false_alarm: float = FALSE_ALARM, covariance: np.ndarray | None = None,
+          count: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     r"""
     Return T, its limit, S_0/S_1 and whether each plant's simulation is contradicted.
 
@@ -401,23 +465,28 @@ def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.n
         :func:`settled_statistic`, the score's quadratic form under the noise and that error
         together (a plant whose row is not finite is judged without it). None: the estimate
         is taken as exact (its error small beside the window's).
+    count : numpy.ndarray, shape ``(K,)``, optional
+        The samples each estimate rests on: with ``covariance``, the understatement of that
+        covariance is computed too (:func:`understatement`; NaN without).
 
     Returns
     -------
-    statistic, limit, ratio, contradicted : numpy.ndarray, shape ``(K,)``
-        T, :math:`\chi^2_{p,1-\alpha}`, S_0/S_1 and ``statistic > limit``. A plant whose
+    statistic, limit, ratio, contradicted, understated : numpy.ndarray, shape ``(K,)``
+        T, :math:`\chi^2_{p,1-\alpha}`, S_0/S_1, ``statistic > limit`` and the
+        understatement. A plant whose
         model is unstable, or whose window is not finite, has T NaN and is not judged (the
         stability checks name an unstable model).
 
     """
-    count, length = y.shape
+    plants, length = y.shape
     order = a.shape[1]
     p = order + lags.size
-    limit = np.full(count, chi2_quantile(false_alarm, p))
-    statistic = np.full(count, np.nan)
-    ratio = np.full(count, np.nan)
+    limit = np.full(plants, chi2_quantile(false_alarm, p))
+    statistic = np.full(plants, np.nan)
+    ratio = np.full(plants, np.nan)
+    understated = np.full(plants, np.nan)
     kept = length - (state_count(order, lags) + 1) - p
-    for k in range(count):
+    for k in range(plants):
         if kept <= 0 or not (_stable(a[k]) and np.isfinite(y[k]).all()
                              and np.isfinite(u[k]).all() and np.isfinite(b[k]).all()):
             continue
@@ -430,13 +499,20 @@ def check(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray, lags: np.n
         # error, an input filtered, has peaks of its own that would hide it)
         kappa = max(colour(error, resonances=False), colour(refitted))
         noise = kappa * s1 / kept
-        if covariance is not None and np.isfinite(covariance[k]).all():
-            statistic[k] = settled_statistic(gradient, nuisance, error, noise, covariance[k])
+        known = covariance is not None and np.isfinite(covariance[k]).all()
+        # psi with the nuisance projected out, once for both uses of the covariance
+        projection = _projected(gradient, nuisance) if known else None
+        if known:
+            statistic[k] = settled_statistic(gradient, nuisance, error, noise, covariance[k],
+                                             projection)
         else:
             statistic[k] = (s0 - s1) / noise
         ratio[k] = s0 / s1
+        if known and count is not None:
+            understated[k] = understatement(gradient, nuisance, s1 / kept, covariance[k],
+                                            length, float(count[k]), projection)
     with np.errstate(invalid='ignore'):
-        return statistic, limit, ratio, statistic > limit
+        return statistic, limit, ratio, statistic > limit, understated
 
 
 def window_length(forgetting_factor: float) -> int:
@@ -466,7 +542,9 @@ class SimulationWindow:
     The last :data:`WINDOW` samples of one plant, and the check of a model on them.
 
     :meth:`record` keeps a sample (as the model sees it: deviations when the estimator
-    detrends), :meth:`clear` forgets them (a gap, a restart), and :meth:`reasons` runs
+    detrends), :meth:`gap` forgets them at a sample the estimator does not record (the
+    verdict holds), :meth:`clear` forgets them and the verdict (a restart), and
+    :meth:`reasons` runs
     :func:`check` on them every :data:`CHECK_PERIOD` recorded samples once there are enough
     (at every call while the window fills), keeping its reason in between.
 
@@ -503,12 +581,25 @@ class SimulationWindow:
         self._judged = False
 
     def clear(self) -> None:
-        """Forget the samples and the last verdict."""
+        """Forget the samples and the last verdict (a restart: a new model, new data)."""
+        self.gap()
+        self.reason = ''
+        self.coverage_reason = ''
+        self.statistic = math.nan
+
+    def gap(self) -> None:
+        """
+        Forget the samples, keep the last verdict: a sample the estimator did not record.
+
+        The check simulates the window as one stretch of consecutive samples: one left out
+        (a refused outlier, a held or quiet sample) would splice two stretches, whose
+        junction the model cannot simulate (on a slow plant a jump that raised kappa 15
+        times and hid every misfit, docs/trust.md). A gap is no evidence about the model,
+        so its verdict holds until the samples after the gap are enough to judge again.
+        """
         self._end = 0
         self._filled = 0
         self._since = 0
-        self.reason = ''
-        self.statistic = math.nan
         self._judged = False
 
     def record(self, y: float, u: Any) -> None:
@@ -542,27 +633,33 @@ class SimulationWindow:
         """Return whether the next :meth:`reasons` runs the check (rather than keep a verdict)."""
         return self._filled >= self.minimum and (self._due() or not self._judged)
 
-    def reasons(self, a: np.ndarray, b: np.ndarray,
-                covariance: np.ndarray | None = None) -> list[str]:
+    def reasons(self, a: np.ndarray, b: np.ndarray, covariance: np.ndarray | None = None,
+                count: float | None = None) -> list[str]:
         """
-        Return the check's reason (``[]`` when the simulation agrees or is not judged yet).
+        Return the check's verdicts: none when the simulation agrees or is not judged yet.
 
-        ``covariance`` is that of [a, b] (None: the estimate taken as exact; see :func:`check`).
+        ``covariance`` is that of [a, b] (None: the estimate taken as exact; see :func:`check`);
+        with ``count``, the samples the estimate rests on, the covariance is also judged
+        against the window's information (:func:`understatement`).
         """
-        if self._filled < self.minimum:
-            return []
-        if self.judging():
+        if self._filled >= self.minimum and self.judging():
             self._since = 0
             self._judged = True
             rows = self._rows[self._end - self._filled:self._end]
-            statistic, limit, ratio, contradicted = check(
+            statistic, limit, ratio, contradicted, understated = judge(
                 rows[None, :, 0], rows[None, :, 1:], a[None], b.reshape(1, *self.lags.shape),
-                self.lags, covariance=None if covariance is None else covariance[None])
+                self.lags, covariance=None if covariance is None else covariance[None],
+                count=None if count is None else np.array([count]))
             self.statistic = float(statistic[0])
             self.reason = (f'simulated output off: a refit on the last {self._filled} samples '
                            f'lowers its squared error {ratio[0]:.3g} times (statistic '
                            f'{statistic[0]:.3g} > {limit[0]:.3g})' if contradicted[0] else '')
-        return [self.reason] if self.reason else []
+            self.coverage_reason = (
+                f'{UNDERSTATED}: the last {self._filled} samples determine the '
+                f'parameters up to {math.sqrt(understated[0]):.3g} times less well than it says'
+                if understated[0] > UNDERSTATEMENT_LIMIT else '')
+        # below the minimum: the verdict from before a gap, if any
+        return [reason for reason in (self.reason, self.coverage_reason) if reason]
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the window for a snapshot (fixed shapes)."""
@@ -571,7 +668,9 @@ class SimulationWindow:
             rows[:self._filled] = self._rows[self._end - self._filled:self._end]
         return ({'simulation_rows': rows},
                 {'simulation_filled': self._filled, 'simulation_since': self._since,
-                 'simulation_reason': self.reason, 'simulation_judged': self._judged,
+                 'simulation_reason': self.reason,
+                 'simulation_coverage_reason': self.coverage_reason,
+                 'simulation_judged': self._judged,
                  'simulation_statistic': self.statistic})
 
     def load(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -585,13 +684,14 @@ class SimulationWindow:
         self._end = self._filled = filled
         self._since = int(scalars['simulation_since'])
         self.reason = str(scalars['simulation_reason'])
+        self.coverage_reason = str(scalars.get('simulation_coverage_reason', ''))
         self._judged = bool(scalars['simulation_judged'])
         self.statistic = float(scalars['simulation_statistic'])
 
 
 def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order: int,
-                       covariance: Callable[[], np.ndarray | None] | None = None
-                       ) -> list[str]:
+                       covariance: Callable[[], np.ndarray | None] | None = None,
+                       count: Callable[[], float | None] | None = None) -> list[str]:
     """
     Return the check's reason for a model ``theta`` laid out [a, b, ...] (``[]``: none kept).
 
@@ -600,19 +700,24 @@ def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order
     model, which the simulated output does not use. ``covariance`` gives theta's (None: not
     known), of which the [a, b] block counts the estimate's own error (:func:`check`); it is
     asked for only when the check runs (a sandwich or HAC covariance costs a solve).
+    ``count`` gives the samples the estimate rests on, where the covariance is of the
+    output-error criterion the check's gradient is of (rpem's ``oe``): that covariance is
+    then judged against the window's information too (None: not judged).
     """
     if window is None:
         return []
-    count = order + window.lags.size
-    known = None
+    size = order + window.lags.size
+    known = samples = None
     if covariance is not None and window.judging():
         known = covariance()
-        known = None if known is None else known[:count, :count]
-    return window.reasons(theta[:order], theta[order:count], known)
+        known = None if known is None else known[:size, :size]
+        samples = None if count is None else count()
+    return window.reasons(theta[:order], theta[order:size], known, samples)
 
 
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'MAX_COLOUR', 'MAX_NOISE_ORDER',
-           'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE', 'SPECTRUM_POINTS', 'WINDOW',
-           'SimulationWindow', 'ar_models', 'ar_noise_model', 'autocorrelation', 'check',
-           'colour', 'input_drive', 'numerator_lags', 'refit', 'settled_statistic', 'simulate',
-           'simulation_reasons', 'state_count', 'window_length']
+           'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE', 'SPECTRUM_POINTS', 'UNDERSTATED',
+           'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'ar_models', 'ar_noise_model',
+           'autocorrelation', 'check', 'colour', 'input_drive', 'judge', 'numerator_lags',
+           'refit', 'settled_statistic', 'simulate', 'simulation_reasons', 'state_count',
+           'understatement', 'window_length']

@@ -25,7 +25,8 @@ from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationW
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
                     simulation: SimulationWindow | None = None,
                     theta: np.ndarray | None = None, order: int = 0,
-                    covariance: Callable[[], np.ndarray | None] | None = None) -> list[str]:
+                    covariance: Callable[[], np.ndarray | None] | None = None,
+                    count: Callable[[], float | None] | None = None) -> list[str]:
     """
     Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
 
@@ -37,14 +38,16 @@ def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
     simulation check's of the model ``theta`` of order ``order`` on ``simulation``
     (:func:`~bcid_ros.estimators.simulation_check.simulation_reasons`; None: the
     estimator keeps no window), counting the estimate's own error from ``covariance``
-    (a function giving theta's covariance, asked only when the check runs). The one
-    place that decides which reasons count, for one plant and for K.
+    (a function giving theta's covariance, asked only when the check runs), and that
+    covariance against the window's information where ``count`` gives the samples the
+    estimate rests on. The one place that decides which reasons count, for one plant and
+    for K.
     """
     reasons = list(own)
     if monitor is not None:
         reasons += residual_reasons(monitor, plant)
     if simulation is not None:
-        reasons += simulation_reasons(simulation, theta, order, covariance)
+        reasons += simulation_reasons(simulation, theta, order, covariance, count)
     return reasons
 
 
@@ -52,7 +55,9 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
                          plant: int | None = None, simulation: SimulationWindow | None = None,
                          theta: np.ndarray | None = None, order: int = 0,
                          covariance: Callable[[], np.ndarray | None] | None = None,
-                         ready_again: bool | None = None) -> tuple[list[str], str]:
+                         ready_again: bool | None = None,
+                         count: Callable[[], float | None] | None = None
+                         ) -> tuple[list[str], str]:
     """
     Return the reasons of :func:`decided_reasons` with a plant change's, and the change's.
 
@@ -66,7 +71,7 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     tests' readiness. Returns the reasons and the change's reason that still
     holds (``''`` once the change is done).
     """
-    found = (monitor, plant, simulation, theta, order, covariance)
+    found = (monitor, plant, simulation, theta, order, covariance, count)
     reasons = decided_reasons([change, *own] if change else own, *found)
     if change and reasons == [change] and (
             _ready_again(monitor, plant) if ready_again is None else ready_again):
@@ -144,9 +149,21 @@ class Validity:
             reasons, change = decided_after_change(
                 own, change, self._monitor, simulation=self._simulation,
                 theta=None if self._simulation is None else self._theta(), order=self.order,
-                covariance=lambda: self.parameter_covariance, ready_again=ready_again)
+                covariance=lambda: self.parameter_covariance, ready_again=ready_again,
+                count=self._covariance_count)
         self._reasons = tuple(reasons)
         return change
+
+    def _covariance_count(self) -> float | None:
+        """
+        Return the samples the estimate rests on, to judge its covariance by (None: not judged).
+
+        An estimator whose reported covariance of [a, b] is that of the output-error
+        criterion, the simulation check's (rpem's ``oe``), gives it: the check then names a
+        covariance far smaller than the window's own information allows
+        (:func:`~bcid_ros.estimators.simulation_check.understatement`).
+        """
+        return None
 
     def _start_simulation_check(self) -> None:
         """

@@ -281,7 +281,9 @@ def test_frozen_estimator_holds_theta_and_p_and_continues(name):
     assert frozen.held_samples == 20000
     np.testing.assert_array_equal(frozen.theta, theta)
     for key, value in state.arrays.items():
-        if key not in ('history', 'delay_line'):
+        # the sample history, and the simulation check's window of recent samples, which a
+        # hold leaves (its samples are not recorded: a gap, docs/trust.md)
+        if key not in ('history', 'delay_line', 'simulation_rows'):
             np.testing.assert_array_equal(frozen.get_state().arrays[key], value, err_msg=key)
     assert 'windup_limited' not in frozen.flags
     used = frozen.samples

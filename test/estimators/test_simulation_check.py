@@ -16,8 +16,9 @@ import pytest
 from scipy import signal
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.simulation_check import (check, FALSE_ALARM, numerator_lags, refit,
-                                                  SimulationWindow)
+from bcid_ros.estimators.simulation_check import (check, FALSE_ALARM, judge, numerator_lags,
+                                                  refit, SimulationWindow, UNDERSTATED,
+                                                  UNDERSTATEMENT_LIMIT)
 from equivalence import assert_paths_agree, two_path_spread
 
 #: Denominator poles and the three inputs' numerators (b_i1, b_i2) of the generated plant.
@@ -137,6 +138,75 @@ def test_a_short_window_is_not_judged():
     for k in range(window.minimum - 1):
         window.record(float(k), np.zeros(3))
     assert window.reasons(np.array([-0.5, 0.1]), np.ones(6)) == []
+
+
+def test_a_gap_keeps_the_verdict_until_the_window_judges_again():
+    # a sample the estimator does not record empties the window (it is no stretch of
+    # consecutive samples any more) but is no evidence about the model: a model off by half
+    # its gain stays contradicted until the samples after the gap are enough to judge it
+    rng = np.random.default_rng(3)
+    u = np.repeat(np.sign(rng.standard_normal(200)), 5)
+    y = signal.lfilter([0.0, 0.5], [1.0, -0.9], u) + 0.01 * rng.standard_normal(u.size)
+    window = SimulationWindow(1, 1, False, (0,))
+    model = np.array([-0.9]), np.array([0.25])
+    for k in range(600):
+        window.record(y[k], u[k:k + 1])
+    assert window.reasons(*model)
+    window.gap()
+    assert window.reasons(*model)
+    for k in range(600, 600 + window.minimum - 1):
+        window.record(y[k], u[k:k + 1])
+    assert window.reasons(*model)
+    window.clear()  # a restart: a new model, no verdict
+    assert window.reasons(*model) == []
+
+
+def _oe_record(seed, count):
+    """Return y, u of a second-order OE plant, white input and noise (sd 0.1), and [a, b]."""
+    rng = np.random.default_rng(seed)
+    a, b = np.array([-1.5, 0.7]), np.array([1.0, 0.5])
+    u = rng.standard_normal(count)
+    y = signal.lfilter(np.r_[0.0, b], np.r_[1.0, a], u) + 0.1 * rng.standard_normal(count)
+    return y, u, a, b
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_an_honest_covariance_is_not_understated(seed):
+    # the true model's covariance over N = 4000 samples, sigma^2 (sum psi psi')^-1, against
+    # the window of the last 1000: the ratio is 1 up to the sampling error of the two
+    # informations and of sigma^2 (a few per cent at these sizes); a factor 2 either way is
+    # many of those, and far inside the limit of 100 a collapsed covariance crosses
+    y, u, a, b = _oe_record(seed, 4000)
+    lags = numerator_lags(2, 1, False, (0,))
+    psi = _information(y, u[:, None], a, b[None], lags)
+    honest = 0.01 * np.linalg.inv(psi)
+    window = slice(3000, 4000)
+    ratio = judge(y[None, window], u[None, window, None], a[None], b[None, None], lags,
+                  covariance=honest[None], count=np.array([4000.0]))[4][0]
+    assert 0.5 < ratio < 2.0
+    collapsed = judge(y[None, window], u[None, window, None], a[None], b[None, None], lags,
+                      covariance=honest[None] / 400.0, count=np.array([4000.0]))[4][0]
+    assert collapsed > UNDERSTATEMENT_LIMIT
+    np.testing.assert_allclose(collapsed, 400.0 * ratio, rtol=1e-9)
+
+
+def test_an_understated_covariance_is_named_and_the_model_is_not():
+    y, u, a, b = _oe_record(7, 4000)
+    lags = numerator_lags(2, 1, False, (0,))
+    honest = 0.01 * np.linalg.inv(_information(y, u[:, None], a, b[None], lags))
+    window = SimulationWindow(2, 1, False, (0,))
+    for k in range(3000, 4000):
+        window.record(y[k], u[k:k + 1])
+    assert window.reasons(a, b, honest, 4000.0) == []
+    window.clear()
+    for k in range(3000, 4000):
+        window.record(y[k], u[k:k + 1])
+    reasons = window.reasons(a, b, honest / 400.0, 4000.0)
+    assert len(reasons) == 1 and reasons[0].startswith(UNDERSTATED), reasons
+    window.clear()
+    for k in range(3000, 4000):
+        window.record(y[k], u[k:k + 1])
+    assert window.reasons(a, b, honest / 400.0) == []  # no count: the covariance not judged
 
 
 def _information(y, u, a, b, lags):

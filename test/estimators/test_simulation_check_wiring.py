@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.estimators import make_batched_estimator, make_estimator
 from bcid_ros.estimators.simulation_check import FALSE_ALARM, window_length
 from bcid_ros.simulation import make_scenario
@@ -98,3 +99,60 @@ def test_a_plant_state_without_a_window_loads_into_the_batched_form():
     assert batched.plant_state(1).scalars['simulation_filled'] == 0
     single.set_state(type(state)(state.estimator, arrays, scalars))
     assert single.get_state().scalars['simulation_filled'] == 0
+
+
+def with_spikes(y, every=400, size=50.0):
+    """Return y with a spike of ``size`` times its standard deviation every ``every`` samples."""
+    spiked = y.copy()
+    spiked[every::every] += size * y.std()
+    return spiked
+
+
+def window_is_one_stretch(window, y, u):
+    """Whether the window's samples are consecutive samples of (y, u), in order."""
+    rows = window._rows[window._end - window._filled:window._end]
+    first = int(np.flatnonzero(y == rows[0, 0])[0])
+    stretch = slice(first, first + rows.shape[0])
+    return (np.array_equal(rows[:, 0], y[stretch])
+            and np.array_equal(rows[:, 1:], u[stretch]))
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls', 'rpem'])
+def test_a_refused_sample_splices_no_window(name):
+    # a sample the gate refuses is not recorded: the window restarts after it rather than
+    # join the samples on either side (a junction the model cannot simulate; rpem's window
+    # did, as its predictor runs on through a refused sample)
+    y, u = ding_miso(0)
+    y = with_spikes(y)
+    estimator = make_estimator(name, order=2, num_inputs=2, change_detection=False,
+                               outlier_threshold=5.0)
+    for t in range(SAMPLES):
+        estimator.update(y[t], u[t])
+        if t % 400 == 50 and t > 400:  # 50 samples after a spike
+            assert window_is_one_stretch(estimator._simulation, y, u), t
+    assert estimator.flags.get('outlier_rejected', 0) >= SAMPLES // 400 - 1
+
+
+def test_rpem_catches_a_model_left_behind_through_refused_samples():
+    # the window refills after each refused sample, the verdict holding across the gap
+    y, u = ding_miso(0, drift=0.5)
+    estimator = make_estimator('rpem', order=2, num_inputs=2, change_detection=False,
+                               outlier_threshold=5.0)
+    estimator.run(with_spikes(y), u)
+    assert estimator.flags.get('outlier_rejected', 0) >= SAMPLES // 400 - 1
+    assert simulation_reasons(estimator), estimator.validity_reasons
+
+
+def test_rpem_is_not_valid_with_its_estimate_far_outside_its_std():
+    # realistic plant (0, 29): third order, poles 0.986, 0.919 and 0.492, a low-pass input
+    # at an operating point, 21 dB. rpem's estimate is as good as the record allows (2.9 %
+    # off, the batch fit 5.6 %), but its std of the a's came out some 20 times below the
+    # batch fit's (0.0065 against 0.126 for a1) and the a's lay 6 of those std off: it was
+    # valid. Its window's information names that std too small. An honest std puts all six
+    # parameters within 4.5 std but with probability 6 x 6.8e-6
+    case = realistic_case((0, 29))
+    estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs,
+                               input_delay=case.input_delay, detrend=case.detrend)
+    estimator.run(case.y, case.u)
+    z = np.abs(estimator.theta - case.theta) / estimator.parameter_std
+    assert not (estimator.valid and z.max() > 4.5), (z, estimator.validity_reasons)

@@ -37,6 +37,7 @@ from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
+from bcid_ros.estimators.simulation_check import UNDERSTATED
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
@@ -277,6 +278,8 @@ class Rpem(RecursiveEstimator):
             self._monitor.record(e, u, psi)
             self._hac.record_product(psi, e)
             self._simulation.record(y, u)
+        else:  # a sample the window does not take is a gap in it (docs/trust.md)
+            self._simulation.gap()
         if self._updates % HEALTH_CHECK_PERIOD == 0:
             self._check_covariance()
         if self._updates >= self._watch.next_check:
@@ -339,10 +342,12 @@ class Rpem(RecursiveEstimator):
             self._store.break_pending = True  # y(t) is a lag of the next samples
         else:
             self._keep(y, u, excluded=True)  # u(t) drives the simulation on
+        self._simulation.gap()  # the refused sample is not recorded
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the predictor on with theta held: w (or the residual) and psi keep running."""
         self._store.break_pending = True
+        self._simulation.gap()  # the held samples are not recorded
         if not self._fitted:
             self._predictor.fill(y, u)
             return
@@ -521,7 +526,10 @@ class Rpem(RecursiveEstimator):
         self._change_note = self._decide_validity(
             notes + self._period_reasons, self._change_note,
             ready_again=self._store.since_start < self._samples)
-        self._settled = self._settled or not self._reasons
+        # the detector runs once the model passed its checks; a std judged too small is the
+        # covariance's fault, not the model's, and holds no detection back
+        self._settled = self._settled or all(
+            reason.startswith(UNDERSTATED) for reason in self._reasons)
 
     # --------------------------------------------------------- the accessors
     @property
@@ -566,6 +574,10 @@ class Rpem(RecursiveEstimator):
             return None
         return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
                                     self.num_parameters, self._unscale)
+
+    def _covariance_count(self) -> float | None:
+        """Return tau, the samples the estimate rests on (``oe``: an output-error covariance)."""
+        return None if self._armax else self._tau
 
     def _internal_covariance(self, plants: np.ndarray) -> np.ndarray | None:
         """Return the HAC covariance of theta_n, offset included, for the residual tests."""
