@@ -15,8 +15,7 @@ import numpy as np
 from scipy import linalg, signal, stats
 
 # one AR noise model for analysis and the estimators' simulation check (layer 2)
-from bcid_ros.estimators.simulation_check import (ar_noise_model, autocorrelation,
-                                                  MAX_NOISE_ORDER)
+from bcid_ros.estimators.noise_colour import ar_noise_model, autocorrelation, MAX_NOISE_ORDER
 #: Directions of the test's covariance below this fraction of its largest eigenvalue
 #: are left out (inputs that do not excite them: a held or narrow-band signal).
 EIGENVALUE_FLOOR = 1e-10
