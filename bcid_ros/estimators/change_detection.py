@@ -198,6 +198,7 @@ class ChangeDetector:
         # row: a record reads and writes them in one operation, not one per field
         self._values = np.zeros((fields - 1, count))
         self._all = np.arange(count)
+        self._lagged = np.empty((3, count))
         self.state = DetectorState(*self._values, np.zeros((count, RING)))
         self.clear()
 
@@ -264,55 +265,70 @@ class ChangeDetector:
         # every plant in order (the common case): the fields' own rows, in place
         every = rows.shape[0] == values.shape[1] and bool((rows == self._all).all())
         block = values if every else values[:, rows]
-        (weight, mean, r0, r1, r2, lag1, lag2, f1, f2, inverse_std, statistic, run, seen,
+        (weight, mean, _, _, _, lag1, lag2, f1, f2, inverse_std, statistic, run, seen,
          armed, mean_weight) = block
         age = np.zeros(rows.shape[0], dtype=np.int64)
         x = error - mean
         tested = armed > 0.0
         if tested.all():
             z = (x - f1 * lag1 - f2 * lag2) * inverse_std
-            self._test(rows, z, seen, statistic, run, age)
+            detected = self._test(rows, z, seen, statistic, run, age)
         elif tested.any():
             z = (x[tested] - f1[tested] * lag1[tested] - f2[tested] * lag2[tested]) \
                 * inverse_std[tested]
             kept, lengths = statistic[tested], run[tested]
             found = np.zeros(z.shape[0], dtype=np.int64)
-            self._test(rows[tested], z, seen[tested], kept, lengths, found)
+            detected = self._test(rows[tested], z, seen[tested], kept, lengths, found)
             statistic[tested], run[tested], age[tested] = kept, lengths, found
-        # learn: the reference takes the sample (each is tested before it joins)
-        mu = self._mu
-        weight[:] = mu * weight + 1.0
-        mean_weight[:] = self._mu_mean * mean_weight + 1.0
-        mean += x / mean_weight
-        r0[:] = mu * r0 + x * x
-        r1[:] = mu * r1 + x * lag1
-        r2[:] = mu * r2 + x * lag2
-        lag2[:] = lag1
-        lag1[:] = x
-        seen += 1.0
+        else:
+            detected = False
+        self._learn(block, x)
         if not every:
             values[:, rows] = block
-        due = (seen >= WARMUP) & (np.fmod(seen, BLOCK) == 0.0)
-        if due.any():
-            self._whiten(rows[due])
-        changed = rows[age > 0]
-        if changed.size:
-            self.clear(changed)
+        whole = np.fmod(seen, BLOCK) == 0.0
+        if whole.any():
+            due = whole & (seen >= WARMUP)
+            if due.any():
+                self._whiten(rows[due])
+        if detected:
+            self.clear(rows[age > 0])
         return age
 
     def _test(self, rows: np.ndarray, z: np.ndarray, seen: np.ndarray, statistic: np.ndarray,
-              run: np.ndarray, age: np.ndarray) -> None:
-        """Clip z, keep it in the ring and step the CUSUMs of ``rows``, in place."""
-        z = np.minimum(np.maximum(z, -CLIP), CLIP)
+              run: np.ndarray, age: np.ndarray) -> bool:
+        """Clip z, keep it in the ring and step the CUSUMs of ``rows`` in place; any detected?"""
+        np.maximum(z, -CLIP, out=z)
+        np.minimum(z, CLIP, out=z)
         self.state.ring[rows, seen.astype(np.intp) % RING] = z
         value = statistic + (_VAR_GAIN * (z * z) - _VAR_COST)
         positive = value > 0.0
         statistic[:] = np.where(positive, value, 0.0)
-        run[:] = np.where(positive, run + 1.0, 0.0)
-        for k in np.flatnonzero(statistic >= self.threshold).tolist():
+        # run + 1 where the sum is positive, 0 elsewhere (the run is finite and >= 0)
+        run += 1.0
+        run *= positive
+        detected = np.flatnonzero(statistic >= self.threshold)
+        for k in detected.tolist():
             age[k] = change_age(self._run(int(rows[k]), int(run[k])))
+        return detected.size > 0
 
-    # ------------------------------------------------------- the statistics
+    def _learn(self, block: np.ndarray, x: np.ndarray) -> None:
+        """Add the samples x to the reference held in ``block`` (the fields' rows), in place."""
+        weight, mean, mean_weight, seen = block[0], block[1], block[14], block[12]
+        weight *= self._mu
+        weight += 1.0
+        mean_weight *= self._mu_mean
+        mean_weight += 1.0
+        mean += x / mean_weight
+        # r_k = mu r_k + x x(t-k), k = 0, 1, 2, on the rows [x; lag1; lag2]; then the lags move
+        lagged = self._lagged if block is self._values else np.empty((3, x.shape[0]))
+        lagged[0] = x
+        lagged[1:] = block[5:7]
+        correlations = block[2:5]
+        correlations *= self._mu
+        correlations += x * lagged
+        block[5:7] = lagged[:2]
+        seen += 1.0
+
     def _run(self, row: int, length: int) -> np.ndarray:
         """Return plant ``row``'s last ``length`` statistics z (at most RING), oldest first."""
         st = self.state
