@@ -141,7 +141,12 @@ def change_age(run: np.ndarray) -> int:
 
 @dataclasses.dataclass
 class DetectorState:
-    """The arrays of a :class:`ChangeDetector`, each ``(K,)`` (see its docstring)."""
+    """
+    The arrays of a :class:`ChangeDetector`, each ``(K,)`` (see its docstring).
+
+    All but the ring are the rows of one block, in this order (r0-r2 and the
+    two lags next to each other: a record updates each group in one operation).
+    """
 
     weight: np.ndarray
     mean: np.ndarray
@@ -159,6 +164,13 @@ class DetectorState:
     armed: np.ndarray
     mean_weight: np.ndarray
     ring: np.ndarray
+
+
+#: The row of each of DetectorState's per-plant numbers in the detector's block.
+_ROW = {field.name: row for row, field in enumerate(dataclasses.fields(DetectorState))}
+#: The rows of R_0, R_1, R_2 and of the two lags (each group adjacent, see DetectorState).
+_CORRELATIONS = slice(_ROW['r0'], _ROW['r2'] + 1)
+_LAGS = slice(_ROW['lag1'], _ROW['lag2'] + 1)
 
 
 class ChangeDetector:
@@ -313,7 +325,8 @@ class ChangeDetector:
 
     def _learn(self, block: np.ndarray, x: np.ndarray) -> None:
         """Add the samples x to the reference held in ``block`` (the fields' rows), in place."""
-        weight, mean, mean_weight, seen = block[0], block[1], block[14], block[12]
+        weight, mean = block[_ROW['weight']], block[_ROW['mean']]
+        mean_weight, seen = block[_ROW['mean_weight']], block[_ROW['seen']]
         weight *= self._mu
         weight += 1.0
         mean_weight *= self._mu_mean
@@ -322,11 +335,11 @@ class ChangeDetector:
         # r_k = mu r_k + x x(t-k), k = 0, 1, 2, on the rows [x; lag1; lag2]; then the lags move
         lagged = self._lagged if block is self._values else np.empty((3, x.shape[0]))
         lagged[0] = x
-        lagged[1:] = block[5:7]
-        correlations = block[2:5]
+        lagged[1:] = block[_LAGS]
+        correlations = block[_CORRELATIONS]
         correlations *= self._mu
         correlations += x * lagged
-        block[5:7] = lagged[:2]
+        block[_LAGS] = lagged[:2]
         seen += 1.0
 
     def _run(self, row: int, length: int) -> np.ndarray:
