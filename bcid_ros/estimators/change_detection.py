@@ -308,7 +308,7 @@ class ChangeDetector:
 
     def _test(self, rows: np.ndarray, z: np.ndarray, seen: np.ndarray, statistic: np.ndarray,
               run: np.ndarray, age: np.ndarray) -> bool:
-        """Clip z, keep it in the ring and step the CUSUMs of ``rows`` in place; any detected?"""
+        """Clip z, keep it in the ring, step the CUSUMs of ``rows`` in place; return any found."""
         np.maximum(z, -CLIP, out=z)
         np.minimum(z, CLIP, out=z)
         self.state.ring[rows, seen.astype(np.intp) % RING] = z
