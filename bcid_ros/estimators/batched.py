@@ -411,10 +411,14 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             used[skipped] = False
             rows = np.flatnonzero(used)
             y, u = y[rows], u[rows]
-        slots = self._seen[rows] % RESTART_SPAN
+        seen = self._seen if skipped is None else self._seen[rows]
+        slots = seen % RESTART_SPAN
         self._recent[rows, slots, 0] = y
         self._recent[rows, slots, 1:] = u
-        self._seen[rows] += 1
+        if skipped is None:
+            seen += 1
+        else:
+            self._seen[rows] += 1
 
     # ------------------------------------------------------------- the step
     def _step(self, rows: Rows, y: np.ndarray, phi: np.ndarray, u: np.ndarray) -> None:
@@ -445,21 +449,20 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._check_validity(rows[events])
         stepped = outcome.stepped
         if stepped.any():
-            rows = rows[stepped]
-            self._after_ls_step(rows, y[stepped], phi[stepped])
+            rows, y, phi, u, errors, gains = _where(stepped, rows, y, phi, u, outcome.errors,
+                                                    outcome.gains)
+            self._after_ls_step(rows, y, phi)
             # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
             tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
             for row in rows[~tested].tolist():  # a sample a window does not take: a gap
                 self._simulations[row].gap()
             if tested.any():
-                for row, output, inputs in zip(rows[tested].tolist(), y[stepped][tested].tolist(),
-                                               u[stepped][tested]):
+                at, y, phi, u, errors, gains = _where(tested, rows, y, phi, u, errors, gains)
+                for row, output, inputs in zip(at.tolist(), y.tolist(), u):
                     self._simulations[row].record(output, inputs)
-                self._record_residuals(rows[tested], y[stepped][tested], phi[stepped][tested],
-                                       u[stepped][tested], outcome.errors[stepped][tested])
+                self._record_residuals(at, y, phi, u, errors)
                 if self._change_detection:
-                    self._detect(rows[tested], outcome.errors[stepped][tested],
-                                 outcome.gains[stepped][tested])
+                    self._detect(at, errors, gains)
             due = rows[self._updates[rows] >= self._next_check[rows]]
             if due.size:
                 self._check_validity(due)
@@ -474,10 +477,12 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         plain = gains > 0.0
         if not plain.any():
             return
-        rows = rows[plain]
-        ages = self._detector.record_rows(rows, errors[plain] / np.sqrt(gains[plain]))
-        for plant, age in zip(rows[ages > 0].tolist(), ages[ages > 0].tolist()):
-            self._plant_changed(plant, age)
+        rows, errors, gains = _where(plain, rows, errors, gains)
+        ages = self._detector.record_rows(rows, errors / np.sqrt(gains))
+        changed = ages > 0
+        if changed.any():
+            for plant, age in zip(rows[changed].tolist(), ages[changed].tolist()):
+                self._plant_changed(plant, age)
 
     def _plant_changed(self, plant: int, age: int) -> None:
         """
@@ -679,6 +684,13 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._recent[plant] = arrays['recent']
         self._seen[plant] = int(scalars.get('seen', 0))
         self._detector.set_state(arrays, [plant])
+
+
+def _where(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Return the rows of ``arrays`` where ``mask``: the arrays themselves where it is all true."""
+    if mask.all():
+        return arrays
+    return tuple(array[mask] for array in arrays)
 
 
 __all__ = ['BatchedRls']

@@ -541,10 +541,15 @@ def output_gradient(theta: np.ndarray, phi: np.ndarray, past_errors: np.ndarray,
     """
     order = past.shape[-2]
     # psi(t) = phi_hat(t) - a_1 psi(t-1) - ... - a_n psi(t-n)
-    if theta.ndim == 1:  # one plant: a vector-matrix product
+    if theta.ndim == 1:  # one plant, each sample: a vector-matrix product, plain indexing
         psi = phi - theta[:order] @ past
-    else:
-        psi = phi - np.einsum('ki,kij->kj', theta[:, :order], past)
+        for i, error in enumerate(past_errors):  # a list of n floats: no array made of it
+            psi[i] += error
+        if order > 1:
+            past[1:] = past[:-1]  # overlapping: numpy copies first
+        past[0] = psi
+        return psi
+    psi = phi - np.einsum('ki,kij->kj', theta[:, :order], past)
     psi[..., :order] += past_errors
     if order > 1:
         past[..., 1:, :] = past[..., :-1, :]  # overlapping: numpy copies first

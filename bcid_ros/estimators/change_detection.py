@@ -141,7 +141,12 @@ def change_age(run: np.ndarray) -> int:
 
 @dataclasses.dataclass
 class DetectorState:
-    """The arrays of a :class:`ChangeDetector`, each ``(K,)`` (see its docstring)."""
+    """
+    The arrays of a :class:`ChangeDetector`, each ``(K,)`` (see its docstring).
+
+    All but the ring are the rows of one block, in this order (r0-r2 and the
+    two lags next to each other: a record updates each group in one operation).
+    """
 
     weight: np.ndarray
     mean: np.ndarray
@@ -159,6 +164,13 @@ class DetectorState:
     armed: np.ndarray
     mean_weight: np.ndarray
     ring: np.ndarray
+
+
+#: The row of each of DetectorState's per-plant numbers in the detector's block.
+_ROW = {field.name: row for row, field in enumerate(dataclasses.fields(DetectorState))}
+#: The rows of R_0, R_1, R_2 and of the two lags (each group adjacent, see DetectorState).
+_CORRELATIONS = slice(_ROW['r0'], _ROW['r2'] + 1)
+_LAGS = slice(_ROW['lag1'], _ROW['lag2'] + 1)
 
 
 class ChangeDetector:
@@ -194,8 +206,12 @@ class ChangeDetector:
         self._mu_mean = 1.0 - 1.0 / MEAN_MEMORY
         count = 1 if plants is None else int(plants)
         fields = len(dataclasses.fields(DetectorState))
-        self.state = DetectorState(*[np.zeros(count) for _ in range(fields - 1)],
-                                   np.zeros((count, RING)))
+        # the per-plant numbers as the rows of one block (F, K), each field a view of its
+        # row: a record reads and writes them in one operation, not one per field
+        self._values = np.zeros((fields - 1, count))
+        self._all = np.arange(count)
+        self._lagged = np.empty((3, count))
+        self.state = DetectorState(*self._values, np.zeros((count, RING)))
         self.clear()
 
     # ------------------------------------------------------------- the API
@@ -255,38 +271,76 @@ class ChangeDetector:
 
     def record_rows(self, rows: np.ndarray, error: np.ndarray) -> np.ndarray:
         """Record ``error`` ``(R,)`` of plants ``rows`` (indices); return their ages (int)."""
-        st = self.state
         rows = np.asarray(rows, dtype=np.intp)
         error = np.asarray(error, dtype=float)
+        values = self._values
+        # every plant in order (the common case): the fields' own rows, in place
+        every = rows.shape[0] == values.shape[1] and bool((rows == self._all).all())
+        block = values if every else values[:, rows]
+        (weight, mean, _, _, _, lag1, lag2, f1, f2, inverse_std, statistic, run, seen,
+         armed, mean_weight) = block
         age = np.zeros(rows.shape[0], dtype=np.int64)
-        x = error - st.mean[rows]
-        armed = st.armed[rows] > 0.0
-        if armed.any():
-            at = rows[armed]
-            z = (x[armed] - st.f1[at] * st.lag1[at] - st.f2[at] * st.lag2[at]) \
-                * st.inverse_std[at]
-            z = np.minimum(np.maximum(z, -CLIP), CLIP)
-            st.ring[at, st.seen[at].astype(np.intp) % RING] = z
-            age[armed] = self._cusums(at, z)
-        self._learn(rows, x, error)
-        changed = rows[age > 0]
-        if changed.size:
-            self.clear(changed)
+        x = error - mean
+        tested = armed > 0.0
+        if tested.all():
+            z = (x - f1 * lag1 - f2 * lag2) * inverse_std
+            detected = self._test(rows, z, seen, statistic, run, age)
+        elif tested.any():
+            z = (x[tested] - f1[tested] * lag1[tested] - f2[tested] * lag2[tested]) \
+                * inverse_std[tested]
+            kept, lengths = statistic[tested], run[tested]
+            found = np.zeros(z.shape[0], dtype=np.int64)
+            detected = self._test(rows[tested], z, seen[tested], kept, lengths, found)
+            statistic[tested], run[tested], age[tested] = kept, lengths, found
+        else:
+            detected = False
+        self._learn(block, x)
+        if not every:
+            values[:, rows] = block
+        whole = np.fmod(seen, BLOCK) == 0.0
+        if whole.any():
+            due = whole & (seen >= WARMUP)
+            if due.any():
+                self._whiten(rows[due])
+        if detected:
+            self.clear(rows[age > 0])
         return age
 
-    # ------------------------------------------------------- the statistics
-    def _cusums(self, rows: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Step the CUSUM of ``rows``; return the ages of the detections (0: none)."""
-        st = self.state
-        value = st.statistic[rows] + (_VAR_GAIN * (z * z) - _VAR_COST)
+    def _test(self, rows: np.ndarray, z: np.ndarray, seen: np.ndarray, statistic: np.ndarray,
+              run: np.ndarray, age: np.ndarray) -> bool:
+        """Clip z, keep it in the ring, step the CUSUMs of ``rows`` in place; return any found."""
+        np.maximum(z, -CLIP, out=z)
+        np.minimum(z, CLIP, out=z)
+        self.state.ring[rows, seen.astype(np.intp) % RING] = z
+        value = statistic + (_VAR_GAIN * (z * z) - _VAR_COST)
         positive = value > 0.0
-        value = np.where(positive, value, 0.0)
-        length = np.where(positive, st.run[rows] + 1.0, 0.0)
-        st.statistic[rows], st.run[rows] = value, length
-        ages = np.zeros(rows.shape[0], dtype=np.int64)
-        for k in np.flatnonzero(value >= self.threshold).tolist():
-            ages[k] = change_age(self._run(rows[k], int(length[k])))
-        return ages
+        statistic[:] = np.where(positive, value, 0.0)
+        # run + 1 where the sum is positive, 0 elsewhere (the run is finite and >= 0)
+        run += 1.0
+        run *= positive
+        detected = np.flatnonzero(statistic >= self.threshold)
+        for k in detected.tolist():
+            age[k] = change_age(self._run(int(rows[k]), int(run[k])))
+        return detected.size > 0
+
+    def _learn(self, block: np.ndarray, x: np.ndarray) -> None:
+        """Add the samples x to the reference held in ``block`` (the fields' rows), in place."""
+        weight, mean = block[_ROW['weight']], block[_ROW['mean']]
+        mean_weight, seen = block[_ROW['mean_weight']], block[_ROW['seen']]
+        weight *= self._mu
+        weight += 1.0
+        mean_weight *= self._mu_mean
+        mean_weight += 1.0
+        mean += x / mean_weight
+        # r_k = mu r_k + x x(t-k), k = 0, 1, 2, on the rows [x; lag1; lag2]; then the lags move
+        lagged = self._lagged if block is self._values else np.empty((3, x.shape[0]))
+        lagged[0] = x
+        lagged[1:] = block[_LAGS]
+        correlations = block[_CORRELATIONS]
+        correlations *= self._mu
+        correlations += x * lagged
+        block[_LAGS] = lagged[:2]
+        seen += 1.0
 
     def _run(self, row: int, length: int) -> np.ndarray:
         """Return plant ``row``'s last ``length`` statistics z (at most RING), oldest first."""
@@ -294,25 +348,6 @@ class ChangeDetector:
         end = int(st.seen[row]) + 1
         index = np.arange(end - min(length, RING), end) % RING
         return st.ring[row, index]
-
-    def _learn(self, rows: np.ndarray, x: np.ndarray, error: np.ndarray) -> None:
-        """Add the samples to the reference of ``rows``; refit the whitening when due."""
-        st = self.state
-        mu = self._mu
-        st.weight[rows] = mu * st.weight[rows] + 1.0
-        mean_weight = self._mu_mean * st.mean_weight[rows] + 1.0
-        st.mean_weight[rows] = mean_weight
-        st.mean[rows] += x / mean_weight
-        lag1, lag2 = st.lag1[rows], st.lag2[rows]
-        st.r0[rows] = mu * st.r0[rows] + x * x
-        st.r1[rows] = mu * st.r1[rows] + x * lag1
-        st.r2[rows] = mu * st.r2[rows] + x * lag2
-        st.lag2[rows], st.lag1[rows] = lag1, x
-        seen = st.seen[rows] + 1.0
-        st.seen[rows] = seen
-        due = (seen >= WARMUP) & (np.fmod(seen, BLOCK) == 0.0)
-        if due.any():
-            self._whiten(rows[due])
 
     def _whiten(self, rows: np.ndarray) -> None:
         """Fit the AR(2) predictor of the errors' colour (Levinson-Durbin) and arm ``rows``."""
@@ -332,42 +367,38 @@ class ChangeDetector:
 
     def _record_one(self, error: float) -> int:
         """:meth:`record_rows` of one plant on Python floats (the same operations, same bits)."""
-        st = self.state
-        x = error - float(st.mean[0])
+        values = self._values
+        (weight, mean, r0, r1, r2, lag1, lag2, f1, f2, inverse_std, statistic, run, seen,
+         armed, mean_weight) = values[:, 0].tolist()
+        x = error - mean
         age = 0
-        if st.armed[0]:
-            z = (x - float(st.f1[0]) * float(st.lag1[0])
-                 - float(st.f2[0]) * float(st.lag2[0])) * float(st.inverse_std[0])
+        if armed:
+            z = (x - f1 * lag1 - f2 * lag2) * inverse_std
             z = -CLIP if z < -CLIP else (CLIP if z > CLIP else z)
-            st.ring[0, int(st.seen[0]) % RING] = z
-            age = self._cusums_one(z)
+            self.state.ring[0, int(seen) % RING] = z
+            statistic += _VAR_GAIN * (z * z) - _VAR_COST
+            if statistic > 0.0:
+                run += 1.0
+            else:
+                statistic, run = 0.0, 0.0
+            if statistic >= self.threshold:
+                age = change_age(self._run(0, int(run)))
         mu = self._mu
-        st.weight[0] = mu * float(st.weight[0]) + 1.0
-        mean_weight = self._mu_mean * float(st.mean_weight[0]) + 1.0
-        st.mean_weight[0] = mean_weight
-        st.mean[0] += x / mean_weight
-        lag1, lag2 = float(st.lag1[0]), float(st.lag2[0])
-        st.r0[0] = mu * float(st.r0[0]) + x * x
-        st.r1[0] = mu * float(st.r1[0]) + x * lag1
-        st.r2[0] = mu * float(st.r2[0]) + x * lag2
-        st.lag2[0], st.lag1[0] = lag1, x
-        seen = float(st.seen[0]) + 1.0
-        st.seen[0] = seen
+        weight = mu * weight + 1.0
+        mean_weight = self._mu_mean * mean_weight + 1.0
+        mean += x / mean_weight
+        r0 = mu * r0 + x * x
+        r1 = mu * r1 + x * lag1
+        r2 = mu * r2 + x * lag2
+        lag2, lag1 = lag1, x
+        seen += 1.0
+        values[:, 0] = (weight, mean, r0, r1, r2, lag1, lag2, f1, f2, inverse_std, statistic,
+                        run, seen, armed, mean_weight)
         if seen >= WARMUP and math.fmod(seen, BLOCK) == 0.0:
             self._whiten(np.zeros(1, dtype=np.intp))
         if age:
             self.clear()
         return age
-
-    def _cusums_one(self, z: float) -> int:
-        st = self.state
-        value = float(st.statistic[0]) + (_VAR_GAIN * (z * z) - _VAR_COST)
-        if value > 0.0:
-            length = float(st.run[0]) + 1.0
-        else:
-            value, length = 0.0, 0.0
-        st.statistic[0], st.run[0] = value, length
-        return change_age(self._run(0, int(length))) if value >= self.threshold else 0
 
     # ------------------------------------------------------------ the state
     def evidence(self) -> np.ndarray:
