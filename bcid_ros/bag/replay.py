@@ -31,6 +31,7 @@ import numpy as np
 from bcid_ros.bag.blocks import MessageBlock
 from bcid_ros.bag.csv_samples import CsvSamples, is_csv, read_csv_samples
 from bcid_ros.bag.reader import BagReader, BagTruth
+from bcid_ros.blas_threads import single_threaded_blas
 from bcid_ros.errors import BcidError
 from bcid_ros.identifier.feeder import SampleFeeder
 from bcid_ros.identifier.interface import (FLOAT64_MULTI_ARRAY, IDENTIFIER_NODE, NOISE_VARIANCE,
@@ -249,19 +250,20 @@ def replay(bag: str | Path | BagReader | CsvSamples, parameters: dict[str, Any],
     messages = failures = 0
     dropped = _Dropped()
     start = time.perf_counter()
-    for block in blocks:
-        messages += len(block)
-        rows, count = _block_rows(block, est.num_inputs)
-        if rows is None:
-            failures += _take_one_by_one(feeder, block, published, dropped)
-            continue
-        # The node's per-message rule, for the whole block in one loop.
-        result = feeder.take_messages(rows, count, publish=trajectory, timed=False)
-        failures += len(result.failures)
-        for index, used, estimates, valid, flags in zip(
-                result.published, result.used_totals, result.estimates, result.valid,
-                result.flags):
-            published.add(int(block.times_ns[index]), used, estimates, valid, flags)
+    with single_threaded_blas():  # one BLAS thread, as in the node (its arithmetic too)
+        for block in blocks:
+            messages += len(block)
+            rows, count = _block_rows(block, est.num_inputs)
+            if rows is None:
+                failures += _take_one_by_one(feeder, block, published, dropped)
+                continue
+            # The node's per-message rule, for the whole block in one loop.
+            result = feeder.take_messages(rows, count, publish=trajectory, timed=False)
+            failures += len(result.failures)
+            for index, used, estimates, valid, flags in zip(
+                    result.published, result.used_totals, result.estimates, result.valid,
+                    result.flags):
+                published.add(int(block.times_ns[index]), used, estimates, valid, flags)
     elapsed = time.perf_counter() - start
     if messages == 0:
         raise BcidError(f'{bag.path}: topic {topic} has no messages')
