@@ -121,7 +121,7 @@ class Rpem(RecursiveEstimator):
     **Offset** (``detrend: mean``): the model carries an offset c, the last
     internal parameter, not published; m are the means each fit centres its
     samples on, and the recursion goes on in that frame until the next fit
-    (:meth:`_on_fit_means`); :attr:`operating_point` is (m_y + c, m_u)
+    (:meth:`_normalised`); :attr:`operating_point` is (m_y + c, m_u)
     (OE: y - m_y = G (u - m_u) + c + v; ARMAX: c = d / A(1)).
 
     **Annealed forgetting.** After each fit :math:`\lambda(t)` starts at
@@ -218,12 +218,10 @@ class Rpem(RecursiveEstimator):
 
     def _step(self, y: float, u: np.ndarray) -> None:
         """Make one recursion step on a checked sample (the class docstring's equations)."""
-        scale = self._inverse_scale
-        y_fit, u_fit = self._on_fit_means(y, u)
-        yn = y_fit * scale[0]
+        yn, un = self._normalised(y, u)
         theta = self._theta_n
         # phi(t) and psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
-        regressors = self._predictor.regressors(yn, u_fit * scale[1:], theta)
+        regressors = self._predictor.regressors(yn, un, theta)
         if regressors is None:  # refilling the lags after a restart
             self._keep(y, u)
             return
@@ -351,17 +349,15 @@ class Rpem(RecursiveEstimator):
         if not self._fitted:
             self._predictor.fill(y, u)
             return
-        scale = self._inverse_scale
-        y_fit, u_fit = self._on_fit_means(y, u)
-        yn = y_fit * scale[0]
+        yn, un = self._normalised(y, u)
         theta = self._theta_n
-        regressors = self._predictor.regressors(yn, u_fit * scale[1:], theta)
+        regressors = self._predictor.regressors(yn, un, theta)
         if regressors is not None:
             self._predictor.advance(yn, *regressors, theta)
 
-    def _on_fit_means(self, y: float, u: np.ndarray) -> tuple[float, np.ndarray]:
+    def _normalised(self, y: float, u: np.ndarray) -> tuple[float, np.ndarray]:
         """
-        Return a sample centred on the running means as centred on the last fit's means.
+        Return a sample in the recursion's units: on the last fit's means, scaled.
 
         With ``detrend: mean`` the base class centres each sample on the
         running means of its time; the last fit centred all its samples on
@@ -373,10 +369,11 @@ class Rpem(RecursiveEstimator):
         means move early in a record and that c follows only slowly. A
         constant centring is no loss to a model with an offset.
         """
-        if self._means is None:
-            return y, u
-        shift = self._means.mean - self._fit_mean
-        return y + float(shift[0]), u + shift[1:]
+        scale = self._inverse_scale
+        if self._means is not None:
+            shift = self._means.mean - self._fit_mean
+            y, u = y + float(shift[0]), u + shift[1:]
+        return y * scale[0], u * scale[1:]
 
     # ------------------------------------------------------------- the fits
     def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
@@ -638,7 +635,7 @@ class Rpem(RecursiveEstimator):
         self._p = self.initial_covariance * np.eye(size)
         self._arx = np.zeros(p)
         self._signal_scale = np.ones(1 + self.num_inputs)
-        # the means the last fit centred its samples on (detrend: mean; _on_fit_means)
+        # the means the last fit centred its samples on (detrend: mean; _normalised)
         self._fit_mean = np.zeros(1 + self.num_inputs)
         self._set_scale_dependents()
         #: What happens to P between samples: recursion.Forgetting (P / lambda, anti-windup)
