@@ -405,23 +405,27 @@ class ChangeDetector:
         """Return each plant's CUSUM over the threshold, ``(K,)`` (1: a detection)."""
         return self.state.statistic / self.threshold
 
-    def get_state(self, rows: Any = slice(None)) -> dict[str, np.ndarray]:
+    def get_state(self, rows: Any = slice(None), prefix: str = 'change_',
+                  ) -> dict[str, np.ndarray]:
         """
-        Return copies of the state's arrays (of plants ``rows``) under ``change_<name>`` keys.
+        Return copies of the state's arrays (of plants ``rows``) under ``<prefix><name>`` keys.
 
         ``rows`` a list of one index gives one plant's arrays as a one-plant
         detector holds them: what a single-plant estimator's snapshot keeps.
+        ``prefix`` starts with ``change_`` (:func:`with_detector_arrays`); an
+        estimator with two detectors names them apart.
         """
-        return {f'change_{field.name}': getattr(self.state, field.name)[rows].copy()
+        return {f'{prefix}{field.name}': getattr(self.state, field.name)[rows].copy()
                 for field in dataclasses.fields(DetectorState)}
 
-    def set_state(self, arrays: dict[str, np.ndarray], rows: Any = slice(None)) -> None:
+    def set_state(self, arrays: dict[str, np.ndarray], rows: Any = slice(None),
+                  prefix: str = 'change_') -> None:
         """Take over what :meth:`get_state` made (into plants ``rows``; missing keys: afresh)."""
         for field in dataclasses.fields(DetectorState):
-            value = arrays.get(f'change_{field.name}')
+            value = arrays.get(f'{prefix}{field.name}')
             target = getattr(self.state, field.name)
             target[rows] = 0.0 if value is None else np.asarray(value, dtype=float)
-        if any(f'change_{field.name}' not in arrays
+        if any(f'{prefix}{field.name}' not in arrays
                for field in dataclasses.fields(DetectorState)):
             self.clear(rows)
 
