@@ -26,34 +26,43 @@ from typing import Any
 
 import numpy as np
 
-from bcid_ros.estimators.rpem.history import RecursivePredictor
+from bcid_ros.estimators.rpem.history import PredictorHistory
 
 
 class FitModelFeed:
     """
     The predictor of the last fit's model (theta held), giving its one-step errors.
 
+    The lags of :class:`~bcid_ros.estimators.rpem.history.PredictorHistory`
+    moved on as :class:`~bcid_ros.estimators.rpem.history.RecursivePredictor`
+    moves them, without the gradient filter (theta does not move).
+
     Parameters
     ----------
-    order, num_inputs, feedthrough, input_delay, armax, offset, size, filter_slice
-        As for :class:`~bcid_ros.estimators.rpem.history.RecursivePredictor`.
+    order, num_inputs, feedthrough, input_delay
+        As for :class:`~bcid_ros.estimators.rpem.history.PredictorHistory`.
+    armax : bool
+        The ARMAX predictor (else OE).
+    offset : bool
+        Whether theta ends with the offset.
+    size : int
+        The length of theta.
 
     """
 
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
-                 input_delay: tuple[int, ...], armax: bool, offset: bool, size: int,
-                 filter_slice: slice) -> None:
-        self._predictor = RecursivePredictor(order, num_inputs, feedthrough, input_delay,
-                                             armax, offset, size, filter_slice)
+                 input_delay: tuple[int, ...], armax: bool, offset: bool, size: int) -> None:
+        self._history = PredictorHistory(order, num_inputs, feedthrough, input_delay, armax,
+                                         offset)
         self._theta = np.zeros(size)
         self._armax = armax
-        self._step: tuple[np.ndarray, np.ndarray] | None = None
+        self._offset = offset
+        self._prediction: float | None = None
 
-    def load(self, theta: np.ndarray, x: np.ndarray, u: np.ndarray, e: np.ndarray,
-             psi: np.ndarray) -> None:
-        """Hold the fit's ``theta`` and continue from its lags (as the recursion does)."""
+    def load(self, theta: np.ndarray, x: np.ndarray, u: np.ndarray, e: np.ndarray) -> None:
+        """Hold the fit's ``theta`` and continue from its lags x, u, e (oldest first)."""
         self._theta[:] = theta
-        self._predictor.load(x, u, e, psi)
+        self._history.load_rows_oldest_first(np.column_stack((-x, u, e)))
 
     def error(self, yn: float, un: np.ndarray) -> float | None:
         """
@@ -61,26 +70,32 @@ class FitModelFeed:
 
         None while the lags refill (as the recursion's predictor).
         """
-        theta = self._theta
-        regressors = self._predictor.regressors(yn, un, theta)
-        self._step = regressors
-        if regressors is None:
+        history, theta = self._history, self._theta
+        refilled = history.filled == history.span
+        phi = history.push(yn, un)
+        if not history.ready:
+            self._prediction = None
             return None
-        phi, psi = regressors
-        self._predictor.advance(yn, phi, psi, theta)
-        return yn - float(phi.dot(theta))
+        if refilled and not self._armax:  # as the recursion's OE predictor after a restart
+            phi = history.level_output_lags()
+        prediction = float(phi.dot(theta))
+        self._prediction = prediction
+        if self._armax:
+            history.set_newest(yn, yn - prediction)  # the residual lag
+        else:  # the simulated output, without the offset
+            history.set_newest(prediction - theta[-1] if self._offset else prediction, 0.0)
+        return yn - prediction
 
     def refused(self) -> None:
         """Take the last sample as refused: ARMAX's residual lag becomes 0 (OE needs no y)."""
-        if self._armax and self._step is not None:
+        if self._armax and self._prediction is not None:
             # y(t) unknown: its prediction in its place, residual 0 (as the recursion's)
-            phi = self._step[0]
-            self._predictor.history.set_newest(float(phi.dot(self._theta)), 0.0)
+            self._history.set_newest(self._prediction, 0.0)
 
     def clear(self) -> None:
         """Forget the lags (a restart of the regressor); the model stays."""
-        self._predictor.clear()
-        self._step = None
+        self._history.clear()
+        self._prediction = None
 
     def reset(self) -> None:
         """Forget the model and the lags (no fit yet)."""
@@ -89,18 +104,18 @@ class FitModelFeed:
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) under ``feed_`` names."""
-        arrays, scalars = self._predictor.state_items()
-        return ({'feed_theta': self._theta, **{f'feed_{k}': v for k, v in arrays.items()}},
-                {f'feed_{k}': v for k, v in scalars.items()})
+        history = self._history
+        return ({'feed_theta': self._theta, 'feed_history': history.history},
+                {'feed_filled': history.filled, 'feed_position': history.position})
 
     def load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over what :meth:`state_items` made."""
         self._theta = np.array(arrays['feed_theta'], dtype=float)
-        self._predictor.load_state(
-            {'psi_history': np.array(arrays['feed_psi_history'], dtype=float),
-             'history': arrays['feed_history']},
-            {'filled': scalars['feed_filled'], 'position': scalars['feed_position']})
-        self._step = None
+        history = self._history
+        history.history[:] = arrays['feed_history']
+        history.filled = int(scalars['feed_filled'])
+        history.position = int(scalars['feed_position'])
+        self._prediction = None
 
 
 def with_feed_items(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
@@ -114,7 +129,6 @@ def with_feed_items(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
     if 'feed_theta' in arrays:
         return arrays, scalars
     return ({**arrays, 'feed_theta': np.array(arrays['theta_n'], dtype=float),
-             'feed_psi_history': np.array(arrays['psi_history'], dtype=float),
              'feed_history': np.array(arrays['history'], dtype=float)},
             {**scalars, 'feed_filled': scalars['filled'],
              'feed_position': scalars['position']})

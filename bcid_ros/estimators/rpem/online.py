@@ -208,7 +208,7 @@ class Rpem(RecursiveEstimator):
                                              self._filter_slice)
         # the detector's errors: those of the last fit's model (rpem/feed.py)
         self._feed = FitModelFeed(n, r, self.feedthrough, self.input_delay, self._armax,
-                                  self._offset, self._size, self._filter_slice)
+                                  self._offset, self._size)
         self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
                                   self._offset, self._channel)
         self._watch = RestartWatch()
@@ -450,8 +450,7 @@ class Rpem(RecursiveEstimator):
         self._arx = result.arx * self._unscale
         # the predictor's lags: those of the last segment's newest samples
         self._predictor.load(result.tail_x, segments[-1][1], result.tail_e, result.tail_psi)
-        self._feed.load(self._theta_n, result.tail_x, segments[-1][1], result.tail_e,
-                        result.tail_psi)
+        self._feed.load(self._theta_n, result.tail_x, segments[-1][1], result.tail_e)
         theta = self._theta_n
         self._watch.fitted(on_boundary([theta[:self.order]] + (
             [theta[self._filter_slice]] if self._armax else [])), fresh)
