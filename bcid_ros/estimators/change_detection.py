@@ -9,8 +9,10 @@ Basseville and Nikiforov, *Detection of Abrupt Changes*, 1993, sec. 2.2),
 so that a large change is seen within a few samples and a small persistent
 one once its evidence has added up.
 
-**The errors.** Each plant gives its normalised one-step error (the
-estimator's a-priori error over the square root of its gain term, e/sqrt(s)).
+**The errors.** Each plant gives its normalised one-step error (rls and
+bcrls: the a-priori error over the square root of the gain term, e/sqrt(s);
+rpem: the one-step error of its last fit's model, whose residuals prime the
+reference, :meth:`ChangeDetector.prime`).
 The detector keeps a reference of them with memory ``memory`` (weights
 mu^(T-t), mu = 1 - 1/memory): the autocovariances R_0, R_1, R_2 of e - m, with
 m their mean over about ``MEAN_MEMORY`` samples (an estimator's errors carry
