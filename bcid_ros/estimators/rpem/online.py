@@ -284,7 +284,7 @@ class Rpem(RecursiveEstimator):
                 self._plant_changed(age)
                 return
             # the recursion's own normalised error e / sqrt(s) against the same reference:
-            # grown while the fit's model's did not, the recursion left its fit (its
+            # detected where the fit's model's are not, the recursion left its fit (its
             # estimate moves between fits), and a refit of the stored samples restarts it
             if self._left_fit.record(e / math.sqrt(s)):
                 self._restart('the recursion left its fit')
