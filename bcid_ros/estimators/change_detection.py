@@ -9,8 +9,10 @@ Basseville and Nikiforov, *Detection of Abrupt Changes*, 1993, sec. 2.2),
 so that a large change is seen within a few samples and a small persistent
 one once its evidence has added up.
 
-**The errors.** Each plant gives its normalised one-step error (the
-estimator's a-priori error over the square root of its gain term, e/sqrt(s)).
+**The errors.** Each plant gives its normalised one-step error (rls and
+bcrls: the a-priori error over the square root of the gain term, e/sqrt(s);
+rpem: the one-step error of its last fit's model, whose residuals prime the
+reference, :meth:`ChangeDetector.prime`).
 The detector keeps a reference of them with memory ``memory`` (weights
 mu^(T-t), mu = 1 - 1/memory): the autocovariances R_0, R_1, R_2 of e - m, with
 m their mean over about ``MEAN_MEMORY`` samples (an estimator's errors carry
@@ -405,23 +407,27 @@ class ChangeDetector:
         """Return each plant's CUSUM over the threshold, ``(K,)`` (1: a detection)."""
         return self.state.statistic / self.threshold
 
-    def get_state(self, rows: Any = slice(None)) -> dict[str, np.ndarray]:
+    def get_state(self, rows: Any = slice(None), prefix: str = 'change_',
+                  ) -> dict[str, np.ndarray]:
         """
-        Return copies of the state's arrays (of plants ``rows``) under ``change_<name>`` keys.
+        Return copies of the state's arrays (of plants ``rows``) under ``<prefix><name>`` keys.
 
         ``rows`` a list of one index gives one plant's arrays as a one-plant
         detector holds them: what a single-plant estimator's snapshot keeps.
+        ``prefix`` starts with ``change_`` (:func:`with_detector_arrays`); an
+        estimator with two detectors names them apart.
         """
-        return {f'change_{field.name}': getattr(self.state, field.name)[rows].copy()
+        return {f'{prefix}{field.name}': getattr(self.state, field.name)[rows].copy()
                 for field in dataclasses.fields(DetectorState)}
 
-    def set_state(self, arrays: dict[str, np.ndarray], rows: Any = slice(None)) -> None:
+    def set_state(self, arrays: dict[str, np.ndarray], rows: Any = slice(None),
+                  prefix: str = 'change_') -> None:
         """Take over what :meth:`get_state` made (into plants ``rows``; missing keys: afresh)."""
         for field in dataclasses.fields(DetectorState):
-            value = arrays.get(f'change_{field.name}')
+            value = arrays.get(f'{prefix}{field.name}')
             target = getattr(self.state, field.name)
             target[rows] = 0.0 if value is None else np.asarray(value, dtype=float)
-        if any(f'change_{field.name}' not in arrays
+        if any(f'{prefix}{field.name}' not in arrays
                for field in dataclasses.fields(DetectorState)):
             self.clear(rows)
 

@@ -31,6 +31,7 @@ from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PE
                                            RandomWalk, repair_covariance, VARIANCE_FLOOR)
 from bcid_ros.estimators.residual_state import (residual_items, residual_states,
                                                 with_gradient_arrays)
+from bcid_ros.estimators.rpem.feed import FitModelFeed, with_feed_items
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
@@ -41,6 +42,8 @@ from bcid_ros.estimators.simulation_check import UNDERSTATED
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
+#: The snapshot keys' prefix of the test of the recursion against its fit (_left_fit).
+LEFT_FIT_PREFIX = 'change_left_fit_'
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -142,7 +145,11 @@ class Rpem(RecursiveEstimator):
       and restarts the fit schedule on the samples after the change;
     * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
       :mod:`.watch` (a stuck projection a refit can move, undone steps; a
-      projection active on many steps); a changing plant is the detector's;
+      projection active on many steps), and a recursion that left its fit
+      (its errors grown against the fit's residuals, by a second
+      :class:`~bcid_ros.estimators.change_detection.ChangeDetector`, while
+      the fit's model's errors did not: :mod:`.feed`); a changing plant is
+      the detector's, which tests the errors of the last fit's model;
     * anti-windup as in Rls (no division by :math:`\lambda` while
       :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
       ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
@@ -199,10 +206,14 @@ class Rpem(RecursiveEstimator):
         self._predictor = RecursivePredictor(n, r, self.feedthrough, self.input_delay,
                                              self._armax, self._offset, self._size,
                                              self._filter_slice)
+        # the detector's errors: those of the last fit's model (rpem/feed.py)
+        self._feed = FitModelFeed(n, r, self.feedthrough, self.input_delay, self._armax,
+                                  self._offset, self._size)
         self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
                                   self._offset, self._channel)
         self._watch = RestartWatch()
         self._detector = ChangeDetector()
+        self._left_fit = ChangeDetector()
         self._reset()
 
     # ------------------------------------------------------------- the step
@@ -222,6 +233,7 @@ class Rpem(RecursiveEstimator):
         theta = self._theta_n
         # phi(t) and psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
         regressors = self._predictor.regressors(yn, un, theta)
+        fed = self._feed.error(yn, un)
         if regressors is None:  # refilling the lags after a restart
             self._keep(y, u)
             return
@@ -261,16 +273,21 @@ class Rpem(RecursiveEstimator):
             self._forgetting_factor - lam)
         self._updates += 1
         self._keep(y, u)
-        if self._change_detection and self._settled:
-            # the normalised one-step error e / sqrt(s) (docs/tracking.md), against the
-            # reference of the last fit's residuals (both on the fit's means), once the
+        if self._change_detection and self._settled and fed is not None:
+            # the one-step error of the last fit's model (rpem/feed.py), against the
+            # reference of that fit's residuals (both on the fit's means), once the
             # estimate has been valid since the last change: before, the errors are those
             # of a model still converging, and a detection would only restart it from
             # fewer samples
-            age = self._detector.record(e / math.sqrt(s))
+            age = self._detector.record(fed)
             if age:
                 self._plant_changed(age)
                 return
+            # the recursion's own normalised error e / sqrt(s) against the same reference:
+            # detected where the fit's model's are not, the recursion left its fit (its
+            # estimate moves between fits), and a refit of the stored samples restarts it
+            if self._left_fit.record(e / math.sqrt(s)):
+                self._restart('the recursion left its fit')
         if self._tau >= self._gate_from and not self._quiet_left:
             # the residual tests take the prediction error (and, OE, psi); the HAC psi e
             self._monitor.record(e, u, psi)
@@ -331,6 +348,7 @@ class Rpem(RecursiveEstimator):
             return
         self._flag(flag)
         self._refused += 1
+        self._feed.refused()
         self._decide_now()
         phi, psi, y, u = gating
         # y(t) unknown: its prediction in its place, residual 0
@@ -352,6 +370,7 @@ class Rpem(RecursiveEstimator):
         yn, un = self._normalised(y, u)
         theta = self._theta_n
         regressors = self._predictor.regressors(yn, un, theta)
+        self._feed.error(yn, un)
         if regressors is not None:
             self._predictor.advance(yn, *regressors, theta)
 
@@ -412,8 +431,11 @@ class Rpem(RecursiveEstimator):
             return False
         if mean is not None:  # the frame of the fit's samples, its offset and its lags
             self._fit_mean[:] = mean
-        # the errors to come are judged against this fit's residuals (its own model's)
-        self._detector.prime(result.residuals(segments[-1], self._armax))
+        # the errors to come, its model's and the recursion's, are judged against this fit's
+        # residuals (its own model's)
+        residuals = result.residuals(segments[-1], self._armax)
+        self._detector.prime(residuals)
+        self._left_fit.prime(residuals)
         # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
         # goes on after its detection, and a model that blends it may never pass the tests
         self._settled = self._settled or (self._changes > 0 and result.weight >= WARMUP)
@@ -428,6 +450,7 @@ class Rpem(RecursiveEstimator):
         self._arx = result.arx * self._unscale
         # the predictor's lags: those of the last segment's newest samples
         self._predictor.load(result.tail_x, segments[-1][1], result.tail_e, result.tail_psi)
+        self._feed.load(self._theta_n, result.tail_x, segments[-1][1], result.tail_e)
         theta = self._theta_n
         self._watch.fitted(on_boundary([theta[:self.order]] + (
             [theta[self._filter_slice]] if self._armax else [])), fresh)
@@ -477,6 +500,7 @@ class Rpem(RecursiveEstimator):
         self._settled = False
         self._forget_residuals()
         self._detector.clear()
+        self._left_fit.clear()
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
         rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
@@ -629,6 +653,7 @@ class Rpem(RecursiveEstimator):
     def _reset(self) -> None:
         p, size = self.num_parameters, self._size
         self._predictor.clear()
+        self._feed.reset()
         self._store.clear()
         # theta in normalised units, and the offset last with detrend: mean
         self._theta_n = np.zeros(size)
@@ -658,6 +683,7 @@ class Rpem(RecursiveEstimator):
         # whether the estimate has been valid since the last change (the detector runs)
         self._settled = False
         self._detector.clear()
+        self._left_fit.clear()
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -685,6 +711,7 @@ class Rpem(RecursiveEstimator):
 
     def _restart_regressor(self) -> None:
         self._predictor.clear()
+        self._feed.clear()
         self._store.break_pending = True
         self._simulation.clear()  # (a gap in its window)
 
@@ -711,8 +738,10 @@ class Rpem(RecursiveEstimator):
                    'change_note': self._change_note, 'settled': self._settled}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
-        return ({**arrays, **residual_arrays, **self._detector.get_state()},
-                {**scalars, **residual_scalars})
+        feed_arrays, feed_scalars = self._feed.state_items()
+        return ({**arrays, **residual_arrays, **self._detector.get_state(),
+                 **self._left_fit.get_state(prefix=LEFT_FIT_PREFIX), **feed_arrays},
+                {**scalars, **residual_scalars, **feed_scalars})
 
     def set_state(self, state: Any) -> None:
         """
@@ -726,6 +755,7 @@ class Rpem(RecursiveEstimator):
         if 'fit_mean' not in arrays:  # a snapshot from before: its running means
             arrays['fit_mean'] = np.array(arrays.get('operating_point', own['fit_mean']))
         arrays, scalars = self._store.with_job_items(arrays, state.scalars)
+        arrays, scalars = with_feed_items(arrays, scalars)
         super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -734,6 +764,7 @@ class Rpem(RecursiveEstimator):
         self._fit_mean = arrays['fit_mean']
         self._p = np.ascontiguousarray(arrays['p'])
         self._predictor.load_state(arrays, scalars)
+        self._feed.load_state(arrays, scalars)
         self._store.load_state(arrays, scalars)
         self._watch.load_state(scalars)
         for name in self._SCALARS:
@@ -743,6 +774,7 @@ class Rpem(RecursiveEstimator):
         self._change_note = str(scalars.get('change_note', ''))
         self._settled = bool(scalars.get('settled', False))
         self._detector.set_state(arrays)
+        self._left_fit.set_state(arrays, prefix=LEFT_FIT_PREFIX)
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)

@@ -1,0 +1,134 @@
+r"""
+What rpem gives its change detector: the one-step errors of the last fit's model, held fixed.
+
+Each fit primes the detector with that fit's residuals (docs/tracking.md):
+the reference describes the errors of the fitted model. The recursion's own
+errors between fits are of another model: with forgetting its estimate
+moves with a memory of about 1/(1 - lambda) samples, and on slow or
+ill-conditioned plants it leaves the fit within a few hundred samples (on a
+third-order plant with poles near 0.99, 17 dB: from 0.13 % off at the fit to
+2-8 % off 100-200 samples later, its errors two to eight times the fit's),
+so that its error variance grows on a plant that did not change. The errors
+of the fit's model, the parameters held at the fit and its predictor run on
+(:class:`~bcid_ros.estimators.rpem.history.RecursivePredictor` with theta
+fixed), are what its residuals describe: out of the fit's samples they are
+the same process, the prediction error of a fixed model, as long as the
+plant does not change, and after a change they carry the whole
+(G_new - G_fit) u, which the recursion would partly follow. The recursion's
+own errors go to a second detector against the same reference: grown there
+alone, they say that the recursion left its fit, and rpem restarts it from
+a refit (docs/tracking.md).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bcid_ros.estimators.rpem.history import PredictorHistory
+
+
+class FitModelFeed:
+    """
+    The predictor of the last fit's model (theta held), giving its one-step errors.
+
+    The lags of :class:`~bcid_ros.estimators.rpem.history.PredictorHistory`
+    moved on as :class:`~bcid_ros.estimators.rpem.history.RecursivePredictor`
+    moves them, without the gradient filter (theta does not move).
+
+    Parameters
+    ----------
+    order, num_inputs, feedthrough, input_delay
+        As for :class:`~bcid_ros.estimators.rpem.history.PredictorHistory`.
+    armax : bool
+        The ARMAX predictor (else OE).
+    offset : bool
+        Whether theta ends with the offset.
+    size : int
+        The length of theta.
+
+    """
+
+    def __init__(self, order: int, num_inputs: int, feedthrough: bool,
+                 input_delay: tuple[int, ...], armax: bool, offset: bool, size: int) -> None:
+        self._history = PredictorHistory(order, num_inputs, feedthrough, input_delay, armax,
+                                         offset)
+        self._theta = np.zeros(size)
+        self._armax = armax
+        self._offset = offset
+        self._prediction: float | None = None
+
+    def load(self, theta: np.ndarray, x: np.ndarray, u: np.ndarray, e: np.ndarray) -> None:
+        """Hold the fit's ``theta`` and continue from its lags x, u, e (oldest first)."""
+        self._theta[:] = theta
+        self._history.load_rows_oldest_first(np.column_stack((-x, u, e)))
+
+    def error(self, yn: float, un: np.ndarray) -> float | None:
+        """
+        Take sample t (normalised) and return y(t) minus the fit's model's prediction.
+
+        None while the lags refill (as the recursion's predictor).
+        """
+        history, theta = self._history, self._theta
+        refilled = history.filled == history.span
+        phi = history.push(yn, un)
+        if not history.ready:
+            self._prediction = None
+            return None
+        if refilled and not self._armax:  # as the recursion's OE predictor after a restart
+            phi = history.level_output_lags()
+        prediction = float(phi.dot(theta))
+        self._prediction = prediction
+        if self._armax:
+            history.set_newest(yn, yn - prediction)  # the residual lag
+        else:  # the simulated output, without the offset
+            history.set_newest(prediction - theta[-1] if self._offset else prediction, 0.0)
+        return yn - prediction
+
+    def refused(self) -> None:
+        """Take the last sample as refused: ARMAX's residual lag becomes 0 (OE needs no y)."""
+        if self._armax and self._prediction is not None:
+            # y(t) unknown: its prediction in its place, residual 0 (as the recursion's)
+            self._history.set_newest(self._prediction, 0.0)
+
+    def clear(self) -> None:
+        """Forget the lags (a restart of the regressor); the model stays."""
+        self._history.clear()
+        self._prediction = None
+
+    def reset(self) -> None:
+        """Forget the model and the lags (no fit yet)."""
+        self.clear()
+        self._theta[:] = 0.0
+
+    def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return (arrays, scalars) under ``feed_`` names."""
+        history = self._history
+        return ({'feed_theta': self._theta, 'feed_history': history.history},
+                {'feed_filled': history.filled, 'feed_position': history.position})
+
+    def load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        """Take over what :meth:`state_items` made."""
+        self._theta = np.array(arrays['feed_theta'], dtype=float)
+        history = self._history
+        history.history[:] = arrays['feed_history']
+        history.filled = int(scalars['feed_filled'])
+        history.position = int(scalars['feed_position'])
+        self._prediction = None
+
+
+def with_feed_items(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
+                    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """
+    Return a snapshot's items with the feed's, from before the feed: the recursion's own.
+
+    The estimate of the snapshot stands for the fit's model and its
+    predictor's lags for the fit's, until the next fit.
+    """
+    if 'feed_theta' in arrays:
+        return arrays, scalars
+    return ({**arrays, 'feed_theta': np.array(arrays['theta_n'], dtype=float),
+             'feed_history': np.array(arrays['history'], dtype=float)},
+            {**scalars, 'feed_filled': scalars['filled'],
+             'feed_position': scalars['position']})
