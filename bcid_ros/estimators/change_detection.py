@@ -220,7 +220,7 @@ class ChangeDetector:
         for field in dataclasses.fields(DetectorState):
             getattr(self.state, field.name)[rows] = 0.0
 
-    def prime(self, residuals: np.ndarray, row: int = 0, keep_evidence: bool = False) -> None:
+    def prime(self, residuals: np.ndarray, row: int = 0) -> None:
         """
         Start plant ``row`` afresh with the reference of ``residuals`` (oldest first).
 
@@ -231,19 +231,8 @@ class ChangeDetector:
         newest weighs 1, the one k samples older mu^k) and the same centring on
         the final mean; armed at once with WARMUP of them or more, otherwise
         the following samples complete the reference.
-
-        ``keep_evidence``: the CUSUM S, its run and the run's statistics go on
-        through the new reference (if it is armed at once): each increment is
-        still a log-likelihood ratio against a reference that describes the
-        errors it tests, so exp(S) stays a supermartingale under the null and
-        Lorden's bound holds; the evidence of a plant that keeps moving is not
-        dropped at every refit.
         """
         st = self.state
-        run = int(st.run[row]) if keep_evidence else 0
-        statistic = float(st.statistic[row])
-        # the run's statistics z, oldest first (the newest at slot seen - 1)
-        kept = st.ring[row, (int(st.seen[row]) - np.arange(min(run, RING), 0, -1)) % RING].copy()
         self.clear(row)
         x = np.asarray(residuals, dtype=float)[-RING:]
         count = x.shape[0]
@@ -265,9 +254,6 @@ class ChangeDetector:
         st.seen[row] = float(count)
         if count >= WARMUP:
             self._whiten(np.array([row], dtype=np.intp))
-            if run:
-                st.statistic[row], st.run[row] = statistic, float(run)
-                st.ring[row, (count - np.arange(kept.shape[0], 0, -1)) % RING] = kept
 
     def record(self, error: Any) -> Any:
         """

@@ -34,7 +34,7 @@ from bcid_ros.estimators.residual_state import (residual_items, residual_states,
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
-from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, StoredFit
+from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.simulation_check import UNDERSTATED
@@ -412,11 +412,8 @@ class Rpem(RecursiveEstimator):
             return False
         if mean is not None:  # the frame of the fit's samples, its offset and its lags
             self._fit_mean[:] = mean
-        # the errors to come are judged against this fit's residuals (its own model's); after
-        # a change the CUSUM's evidence goes on through the refit: a plant that is still
-        # moving (a drift found part of the way) adds up across the fits
-        self._detector.prime(result.residuals(segments[-1], self._armax),
-                             keep_evidence=self._changes > 0)
+        # the errors to come are judged against this fit's residuals (its own model's)
+        self._detector.prime(result.residuals(segments[-1], self._armax))
         # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
         # goes on after its detection, and a model that blends it may never pass the tests
         self._settled = self._settled or (self._changes > 0 and result.weight >= WARMUP)
@@ -484,24 +481,9 @@ class Rpem(RecursiveEstimator):
         loss, tau = np.array([self._loss]), np.array([self._tau])
         rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
         self._loss, self._tau = float(loss[0]), float(tau[0])
-        if self._store.restart_schedule(age, newest_half=self._still_moving()):
+        if self._store.restart_schedule(age):
             self._fit()
         self._decide_now()
-
-    def _still_moving(self) -> bool:
-        """
-        Whether the plant may still be moving after this change: the fits take the newest half.
-
-        Without forgetting a fit weighs every sample since the change point
-        alike, so a change found part of the way through a drift leaves the
-        rest of the drift in every later fit (docs/tracking.md, "What a
-        detection does"). A change found while the fits since the one before
-        were still growing (fewer than BATCH_LIMIT samples since it) says
-        that the plant did not hold still for a full fit: it may be drifting.
-        With forgetting the fits already weigh the newest samples most.
-        """
-        return (self._changes > 1 and self._forgetting_factor == 1.0
-                and self._store.since_start < BATCH_LIMIT)
 
     # --------------------------------------------------- health and validity
     def _check_covariance(self) -> None:

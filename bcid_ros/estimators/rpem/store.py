@@ -297,9 +297,6 @@ class SampleStore:
         self.since_start = 0
         self.next_fit = self.first_fit
         self.break_pending = False
-        #: Whether the fits take only the newest half of the samples since the last change
-        #: (the plant may still be moving: :meth:`restart_schedule`)
-        self.newest_half = False
         #: The fit on its way (spread over the updates), or None
         self.job: FitJob | None = None
 
@@ -329,7 +326,7 @@ class SampleStore:
         self.since_start += 1
         return self.since_start == self.next_fit
 
-    def restart_schedule(self, keep: int = 0, newest_half: bool = False) -> bool:
+    def restart_schedule(self, keep: int = 0) -> bool:
         """
         Keep only the last ``keep`` samples for the fits (a plant change at that point).
 
@@ -338,16 +335,10 @@ class SampleStore:
         (OE: an output refused against the old plant). The schedule starts
         again from them; returns whether they are already enough for a fit
         (the caller then fits now). With ``keep`` 0 the next stored sample
-        starts a segment. ``newest_half``: the plant may still be moving
-        after the change point (a change found during a drift), so each fit
-        takes only the newest half of the samples since it (at least the
-        first fit's count): the samples of a drift that went on after the
-        change point leave the fits once as many have come after them, at the
-        cost of half the samples where the plant held still.
+        starts a segment.
         """
         keep = min(max(int(keep), 0), self.stored)
         self.job = None  # a fit on its way blends the old plant in
-        self.newest_half = newest_half
         self.stored = keep
         self.since_start = keep
         self.next_fit = max(self.first_fit, keep)
@@ -396,10 +387,7 @@ class SampleStore:
 
         """
         self.next_fit = self._after(self.since_start, forgetting_factor)
-        count = self.stored
-        if self.newest_half:
-            count = min(count, max(self.first_fit, math.ceil(count / 2)))
-        rows, breaks, excluded = self._rows(count)
+        rows, breaks, excluded = self._rows()
         self.job = FitJob(rows, breaks, excluded, mean, scale, theta, forgetting_factor, prior,
                           limit, self.position, self._channel, self._armax)
         self.job.fresh = fresh
@@ -417,9 +405,7 @@ class SampleStore:
         self.job = None
         self.take_marks(job)
         fitted = job.fitted
-        # the job's rows and the samples stored since (all the stored, unless it fitted fewer)
-        written = (self.position - job.position) % BATCH_LIMIT
-        rows, breaks, excluded = self._rows(min(self.stored, job.breaks.shape[0] + written))
+        rows, breaks, excluded = self._rows()
         if job.mean is not None:
             rows = rows - job.mean
         segments = self._segments(rows, breaks, excluded, fitted.scale, job.forgetting_factor)
@@ -464,11 +450,11 @@ class SampleStore:
             return later
         return since_start + SLIDE if forgetting_factor < 1.0 else 0
 
-    def _rows(self, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return the newest ``count`` stored samples, segment starts, exclusions, oldest first."""
-        # their ring positions (they wrap round the ring's end when a plant change restarted
-        # the count part of the way through it)
-        index = np.arange(self.position - count, self.position) % BATCH_LIMIT
+    def _rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the stored samples, their segment starts and exclusions, oldest first."""
+        # the ring positions of the last `stored` samples (they wrap round the ring's end
+        # when a plant change restarted the count part of the way through it)
+        index = np.arange(self.position - self.stored, self.position) % BATCH_LIMIT
         return self.buffer[index], self.breaks[index], self.excluded[index]
 
     @staticmethod
@@ -498,7 +484,7 @@ class SampleStore:
         arrays = {'buffer': self.buffer, 'breaks': self.breaks, 'excluded': self.excluded}
         scalars = {'buffer_position': self.position, 'stored': self.stored,
                    'since_start': self.since_start, 'next_fit': self.next_fit,
-                   'break_pending': self.break_pending, 'newest_half': self.newest_half}
+                   'break_pending': self.break_pending}
         size = self._channel.shape[0]
         job_arrays, job_scalars = (FitJob.empty_items(self._channels, size) if self.job is None
                                    else self.job.state_items(self._channels, size))
@@ -519,6 +505,5 @@ class SampleStore:
         self.since_start = int(scalars['since_start'])
         self.next_fit = int(scalars['next_fit'])
         self.break_pending = bool(scalars['break_pending'])
-        self.newest_half = bool(scalars.get('newest_half', False))  # (a snapshot from before)
         # the fit that was on its way runs its passes again, to the work it had done
         self.job = FitJob.from_state(arrays, scalars, self._channel, self._armax, self.fitter())
