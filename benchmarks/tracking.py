@@ -2,7 +2,8 @@
 Following a plant that changes: detection, recovery and honesty of ``valid``.
 
 Usage: ``.venv/bin/python -m benchmarks.tracking [--count 30] [--seed 0]
-[--estimators rpem,rpem_0.999,rls,bcrls] [--early 30] [--json OUT] [--plot OUT.png]``
+[--estimators rpem,rpem_0.999,rls,bcrls] [--model-holds] [--early 30] [--json OUT]
+[--plot OUT.png]``
 from the repository root (docs/tracking.md). Progress goes to stderr, the tables to stdout.
 
 **The family** (:func:`tracking_case`, seeded): open-loop plants of order 1-3 with one or
@@ -34,6 +35,17 @@ recovery, changes flagged (``plant_change`` after the
 change), drifts never recovered, the share of the 2000 samples after the change that are
 ``valid`` while delta > 10 %, and false detections (``plant_change`` before the change or on
 the ``none`` plants) per 100,000 samples.
+
+**Where each estimator's model holds** (``--model-holds``): the same cases (plants, inputs,
+changes, white noise sequence and SNR: the seeded draws are the same) with the output noise
+made to fit a model (:data:`MODELS`): ``arx`` (rls's), the white sequence as the equation
+error of the plant at each sample, ``A_t(q) y = B_t(q) u + e``, scaled so that the output
+noise has the family's SNR; ``oe_white`` (bcrls's), the white sequence as the output noise;
+``oe`` (rpem's), the family itself (white or coloured output noise). Each configuration runs
+on its own estimator's plants; ``CONFIG@MODEL`` (e.g. ``rpem@arx``) runs it on another's.
+The reference on ``arx`` plants is the batch least-squares ARX fit
+(:func:`bcid_ros.analysis.pem.fit_arx`: with white equation error it is the maximum-likelihood
+fit, where the OE fit is consistent but not efficient); on the others, the OE fit as above.
 
 **Early in a run** (``--early``): plants that fit each estimator's model (rls: ARX with white
 equation error; bcrls: output error with white noise; rpem: output error with coloured noise),
@@ -73,6 +85,9 @@ CONFIGS = {
     'bcrls': ('bcrls', {}),
     'bcrls_0.999': ('bcrls', {'forgetting_factor': 0.999}),
 }
+#: The model (noise structure) under which each estimator is consistent: its plants in the
+#: early-run table and with ``--model-holds``.
+MODELS = {'rls': 'arx', 'bcrls': 'oe_white', 'rpem': 'oe'}
 #: The reference's window grid (samples after the change).
 WINDOWS = (10, 15, 20, 30, 40, 60, 80, 120, 160, 240, 320, 480, 640, 960, 1280, 1920)
 #: Samples after the change over which "valid while far off" is counted.
@@ -86,9 +101,14 @@ WITHIN = 5.0
 class TrackingCase:
     """One plant that changes (see the module docstring): data, truth per sample, change."""
 
-    def __init__(self, seed: tuple[int, int]) -> None:
+    def __init__(self, seed: tuple[int, int], model: str = 'family') -> None:
+        if model not in ('family', *MODELS.values()):
+            raise ValueError(f'model must be family or one of {sorted(MODELS.values())}, '
+                             f'got {model!r}')
         rng = np.random.default_rng(seed)
         self.seed = seed
+        # 'oe' is the family itself: the draws below do not depend on the model
+        self.model = 'family' if model == 'oe' else model
         # a plant whose truth 2000 samples do not determine (before or after the change) is
         # drawn again, as in the realistic family: no estimator's error would mean anything
         for _ in range(100):
@@ -120,12 +140,19 @@ class TrackingCase:
         before = np.concatenate([before[:self.order], *numerators])
         after, self.change = self._changed(rng, poles, numerators)
         self.theta = self._trajectory(before, after)
-        noise_free = self._simulate()
+        noise_free = self._simulate(self.u)
         self.noise = str(rng.choice(['white', 'coloured']))
         self.snr_db = float(rng.uniform(10.0, 40.0))
-        e = rng.standard_normal(count)
+        white = rng.standard_normal(count)
+        e = white
         if self.noise == 'coloured':
             e = signal.lfilter([1.0, rng.uniform(-0.5, 0.5)], [1.0, -rng.uniform(0.5, 0.95)], e)
+        if self.model == 'arx':
+            # the plant driven by the white sequence as its equation error alone (linear in
+            # it, so scaling the output noise scales the equation error)
+            e, self.noise = self._simulate(np.zeros_like(self.u), white), 'equation-error'
+        elif self.model == 'oe_white':
+            e, self.noise = white, 'white'
         scale = noise_free[:self.change_at].std() * 10.0 ** (-self.snr_db / 20.0)
         self.y = noise_free + e * (scale / e.std())
         structure = Structure(self.order, self.num_inputs)
@@ -182,11 +209,10 @@ class TrackingCase:
             weight[start + self.drift:] = 1.0
         return before[None, :] + weight[:, None] * (after - before)[None, :]
 
-    def _simulate(self) -> np.ndarray:
-        """Return the noise-free output of the time-varying plant (direct form)."""
+    def _simulate(self, u: np.ndarray, equation_error: np.ndarray | None = None) -> np.ndarray:
+        """Return the time-varying plant's output (direct form), plus an equation error."""
         n, r = self.order, self.num_inputs
-        y = np.zeros(self.samples)
-        u = self.u
+        y = np.zeros(self.samples) if equation_error is None else equation_error.copy()
         for t in range(self.samples):
             theta = self.theta[t]
             total = 0.0
@@ -195,7 +221,7 @@ class TrackingCase:
                     total -= theta[k - 1] * y[t - k]
                     for i in range(r):
                         total += theta[n + i * n + k - 1] * u[t - k, i]
-            y[t] = total
+            y[t] += total
         return y
 
     @property
@@ -225,8 +251,16 @@ def recovery(deltas: np.ndarray, start: int, band: float) -> int | None:
     return None if start + last >= deltas.shape[0] else last
 
 
+def batch_fit(y: np.ndarray, u: np.ndarray, structure: Structure, model: str,
+              offset: bool = False) -> Any:
+    """Return the efficient batch fit for plants of ``model``: ARX least squares, else OE."""
+    if model == 'arx':
+        return fit_arx(y, u, structure)
+    return fit_oe(y, u, structure, offset=offset)
+
+
 def reference(case: TrackingCase) -> dict[str, Any]:
-    """Return the windowed batch OE reference's band and recovery (None: not in the grid)."""
+    """Return the windowed batch reference's band and recovery (None: not in the grid)."""
     structure = Structure(case.order, case.num_inputs)
     start = case.settled_at
 
@@ -236,7 +270,8 @@ def reference(case: TrackingCase) -> dict[str, Any]:
             y = case.y[first:last]
             u = case.u[first:last]
             try:
-                fit = fit_oe(y - y.mean(), u - u.mean(axis=0), structure, offset=True)
+                fit = batch_fit(y - y.mean(), u - u.mean(axis=0), structure, case.model,
+                                offset=True)
             except ValueError:  # too few samples for the structure
                 return math.inf
         return float(delta(fit.theta, case.theta[last - 1]))
@@ -369,7 +404,7 @@ def batch_delta(y: np.ndarray, u: np.ndarray, truth: np.ndarray, order: int,
     """Return the batch reference's delta on a record: ARX LS for ARX plants, else OE."""
     with warnings.catch_warnings():
         warnings.simplefilter('ignore')
-        fit = (fit_arx if model == 'arx' else fit_oe)(y, u, Structure(order))
+        fit = batch_fit(y, u, Structure(order), model)
     return float(delta(fit.theta, truth))
 
 
@@ -382,7 +417,7 @@ def early(count: int) -> list[list[Any]]:
     what the data allow, and the residual tests rightly see its error).
     """
     rows = []
-    for name, model in (('rls', 'arx'), ('bcrls', 'oe_white'), ('rpem', 'oe')):
+    for name, model in MODELS.items():
         hits = {500: [0, 0], 1000: [0, 0], 3000: [0, 0]}
         for seed in range(count):
             y, u, truth, order = early_case(seed, model)
@@ -425,49 +460,80 @@ def plot(case: TrackingCase, run: dict[str, Any], path: Path) -> None:
     figure.savefig(path, dpi=90)
 
 
+def plants_of(column: str, model_holds: bool) -> tuple[str, str]:
+    """Return (configuration, model of its plants) of a column ``CONFIG[@MODEL]``."""
+    config, _, model = column.partition('@')
+    if config not in CONFIGS:
+        raise ValueError(f'estimators: {config!r} is not one of {sorted(CONFIGS)}')
+    if not model:
+        model = MODELS[CONFIGS[config][0]] if model_holds else 'family'
+    return config, model
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark; print the tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument('--count', type=int, default=30)
     parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--estimators', default='rpem,rpem_0.999,rls,bcrls')
+    parser.add_argument('--estimators', default='rpem,rpem_0.999,rls,bcrls',
+                        help='configurations, CONFIG or CONFIG@MODEL (arx, oe_white, oe)')
+    parser.add_argument('--model-holds', action='store_true',
+                        help="run each estimator on plants of its own model")
     parser.add_argument('--early', type=int, default=0, help='plants for the early-run table')
     parser.add_argument('--json', type=Path)
     parser.add_argument('--plot', type=Path, help='plot the first abrupt case of the first '
                         'configuration')
     args = parser.parse_args(argv)
-    configs = args.estimators.split(',')
-    cases, references = [], []
-    runs: dict[str, list[dict[str, Any]]] = {config: [] for config in configs}
+    columns: dict[str, tuple[str, str]] = {}  # label -> (configuration, model)
+    for column in args.estimators.split(','):
+        config, model = plants_of(column, args.model_holds)
+        columns[config if model == 'family' else f'{config}@{model}'] = (config, model)
+    models = list(dict.fromkeys(model for _, model in columns.values()))
+    cases: dict[str, list[TrackingCase]] = {model: [] for model in models}
+    references: dict[str, list[dict[str, Any]]] = {model: [] for model in models}
+    runs: dict[str, list[dict[str, Any]]] = {column: [] for column in columns}
     for k in range(args.count):
-        case = TrackingCase((args.seed, k))
-        cases.append(case)
-        references.append(reference(case) if case.kind != 'none' else {'recovery': None})
-        print(f'{case.describe()}: reference recovery {references[-1]["recovery"]}',
-              file=sys.stderr)
-        for config in configs:
-            result = run_estimator(case, config)
-            runs[config].append(result)
-            print(f'  {config}: recovery {result["recovery"]} flagged {result["flagged"]} '
-                  f'false {result["false_detections"]} far-valid '
-                  f'{result["far_valid_share"]:.3f}', file=sys.stderr)
-    recoveries = [r['recovery'] for r in references if r['recovery'] is not None]
-    print(f'reference recovery: median {np.median(recoveries):.0f} samples over '
-          f'{len(recoveries)} changes (none in the grid: '
-          f'{sum(c.kind != "none" for c in cases) - len(recoveries)})\n')
-    print(markdown_table(['', *configs], summarise(cases, references, runs)))
+        for model in models:
+            case = TrackingCase((args.seed, k), model)
+            cases[model].append(case)
+            references[model].append(reference(case) if case.kind != 'none'
+                                     else {'recovery': None})
+            print(f'{case.describe()}: reference recovery '
+                  f'{references[model][-1]["recovery"]}', file=sys.stderr)
+            for column, (config, of) in columns.items():
+                if of == model:
+                    result = run_estimator(case, config)
+                    runs[column].append(result)
+                    print(f'  {column}: recovery {result["recovery"]} flagged '
+                          f'{result["flagged"]} false {result["false_detections"]} far-valid '
+                          f'{result["far_valid_share"]:.3f}', file=sys.stderr)
+    header: list[str] = ['']
+    rows: list[list[Any]] = []
+    for model in models:
+        recoveries = [r['recovery'] for r in references[model] if r['recovery'] is not None]
+        print(f'reference recovery ({model} plants): median {np.median(recoveries):.0f} '
+              f'samples over {len(recoveries)} changes (none in the grid: '
+              f'{sum(c.kind != "none" for c in cases[model]) - len(recoveries)})')
+        group = {column: runs[column] for column, (_, of) in columns.items() if of == model}
+        header += list(group)
+        table = summarise(cases[model], references[model], group)
+        rows = table if not rows else [row + extra[1:] for row, extra in zip(rows, table)]
+    print()
+    print(markdown_table(header, rows))
     if args.early:
         print()
         print(markdown_table(['accurate but invalid at', '500', '1000', '3000'],
                              early(args.early)))
     if args.plot:
-        first = next(k for k, case in enumerate(cases) if case.kind == 'abrupt')
-        plot(cases[first], runs[configs[0]][first], args.plot)
+        column = next(iter(columns))
+        model = columns[column][1]
+        first = next(k for k, case in enumerate(cases[model]) if case.kind == 'abrupt')
+        plot(cases[model][first], runs[column][first], args.plot)
     if args.json:
-        args.json.write_text(json.dumps({config: [
+        args.json.write_text(json.dumps({column: [
             {key: value for key, value in run.items()
              if key not in ('deltas', 'valid', 'changes', 'theta')} for run in results]
-            for config, results in runs.items()}, indent=1))
+            for column, results in runs.items()}, indent=1))
     return 0
 
 
