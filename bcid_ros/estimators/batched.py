@@ -572,6 +572,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         """Return rows as an index array."""
         return np.arange(self.num_plants)[rows]
 
+    def _view_rows(self, rows: np.ndarray) -> Rows:
+        """Return distinct ascending ``rows`` as a slice where they are every plant (a view)."""
+        return slice(None) if rows.shape[0] == self.num_plants else rows
+
     def _flag_counts(self, key: str) -> np.ndarray:
         """Return the per-plant counts of flag ``key``, made on first use."""
         if key not in self.flags:
