@@ -44,7 +44,7 @@ from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
 from bcid_ros.estimators.shared_settings import SharedSettings
-from bcid_ros.estimators.simulation_check import SimulationWindow
+from bcid_ros.estimators.simulation_check import SimulationWindows
 from bcid_ros.estimators.validity import PlantsValidity
 
 Rows = slice | np.ndarray
@@ -221,8 +221,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
 
     def _clear_simulations(self, rows: Any) -> None:
         """Empty the simulation check's window of ``rows`` (a gap, a restart, a reset)."""
-        for row in self._indices(rows).tolist():
-            self._simulations[row].clear()
+        self._simulations.clear(self._indices(rows))
 
     @property
     def theta(self) -> np.ndarray:
@@ -454,12 +453,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._after_ls_step(rows, y, phi)
             # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
             tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
-            for row in rows[~tested].tolist():  # a sample a window does not take: a gap
-                self._simulations[row].gap()
+            if not tested.all():  # a sample a window does not take: a gap
+                self._simulations.gap(rows[~tested])
             if tested.any():
                 at, y, phi, u, errors, gains = _where(tested, rows, y, phi, u, errors, gains)
-                for row, output, inputs in zip(at.tolist(), y.tolist(), u):
-                    self._simulations[row].record(output, inputs)
+                self._simulations.record(at, y, u)
                 self._record_residuals(at, y, phi, u, errors)
                 if self._change_detection:
                     self._detect(at, errors, gains)
@@ -574,6 +572,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         """Return rows as an index array."""
         return np.arange(self.num_plants)[rows]
 
+    def _view_rows(self, rows: np.ndarray) -> Rows:
+        """Return distinct ascending ``rows`` as a slice where they are every plant (a view)."""
+        return slice(None) if rows.shape[0] == self.num_plants else rows
+
     def _flag_counts(self, key: str) -> np.ndarray:
         """Return the per-plant counts of flag ``key``, made on first use."""
         if key not in self.flags:
@@ -595,9 +597,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         """Make the per-plant state arrays (their values are set by the resets)."""
         plants, p = self.num_plants, self.num_parameters
         # the simulation check's window of each plant (RecursiveEstimator._start_simulation_check)
-        self._simulations = [SimulationWindow(self.order, self.num_inputs, self.feedthrough,
-                                              (0,) * self.num_inputs, self._forgetting_factor)
-                             for _ in range(plants)]
+        self._simulations = SimulationWindows(plants, self.order, self.num_inputs,
+                                              self.feedthrough, (0,) * self.num_inputs,
+                                              self._forgetting_factor)
         self._theta_ls = np.zeros((plants, p))
         self._p = np.zeros((plants, p, p))
         self._loss = np.zeros(plants)

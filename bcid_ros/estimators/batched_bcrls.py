@@ -58,16 +58,17 @@ class BatchedBcrls(BatchedRls):
     def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Apply eqs. (51) and (46) to the plants ``rows``; keep z = [phi; y] for the moments."""
         self._record_moments(rows, y, phi)
+        at = self._view_rows(rows)
         sigma2, compensated, low, reset = compensate_rows(
-            self._theta_ls[rows], self._p[rows], self._loss[rows], self._tau[rows],
-            self._lambda_theta_c[rows], self._sigma2[rows])
+            self._theta_ls[at], self._p[at], self._loss[at], self._tau[at],
+            self._lambda_theta_c[at], self._sigma2[at])
         if low.any():
             self._flag('sigma2_denominator', rows, low)
         if reset.any():
             self._flag('compensation_reset', rows, reset)
-        self._sigma2[rows] = sigma2
-        self._theta_c[rows] = compensated
-        self._lambda_theta_c[rows] = compensated * self._lambda_diagonal
+        self._sigma2[at] = sigma2
+        self._theta_c[at] = compensated
+        self._lambda_theta_c[at] = compensated * self._lambda_diagonal
 
     def _check_validity(self, plants: np.ndarray, more: Any = None) -> None:
         """Add the compensation's reasons (Bcrls._check_validity); restart diverging ones."""
@@ -95,12 +96,19 @@ class BatchedBcrls(BatchedRls):
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
         """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
-        past = self._output_gradients[rows]
-        psi = output_gradient(self._theta_c[rows], phi, self._output_errors[rows], past)
-        error, bounded, self._output_errors[rows] = output_error_rows(
-            self._theta_c[rows], self._output_errors[rows], y, phi, self._signal_scale[rows, 0])
+        at = self._view_rows(rows)
+        theta, past_errors = self._theta_c[at], self._output_errors[at]
+        # (a view of every plant's rows, or a copy of some: updated in place, then put back)
+        past = self._output_gradients[at]
+        psi = output_gradient(theta, phi, past_errors, past)
+        error, bounded, self._output_errors[at] = output_error_rows(
+            theta, past_errors, y, phi, self._signal_scale[at, 0])
+        if bounded.all():
+            self._output_gradients[at] = past
+            self._monitor.record_rows(rows, error, u, psi)
+            return
         past[~bounded] = 0.0
-        self._output_gradients[rows] = past
+        self._output_gradients[at] = past
         if bounded.any():
             self._monitor.record_rows(rows[bounded], error[bounded], u[bounded], psi[bounded])
 

@@ -17,8 +17,8 @@ from scipy import signal
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.simulation_check import (check, FALSE_ALARM, judge, numerator_lags,
-                                                  refit, SimulationWindow, UNDERSTATED,
-                                                  UNDERSTATEMENT_LIMIT)
+                                                  refit, SimulationWindow, SimulationWindows,
+                                                  UNDERSTATED, UNDERSTATEMENT_LIMIT)
 from equivalence import assert_paths_agree, two_path_spread
 
 #: Denominator poles and the three inputs' numerators (b_i1, b_i2) of the generated plant.
@@ -275,3 +275,49 @@ def test_no_covariance_is_the_statistic_of_an_exact_estimate():
     assert_paths_agree(settled(y, u, a), statistic(y, u, a), spread, y.size, 'T')
     with pytest.raises(AssertionError):
         assert_paths_agree(settled(y, u, a + 1e-6), statistic(y, u, a), spread, y.size, 'T')
+
+
+def test_windows_over_plants_keep_what_each_plant_window_keeps():
+    # the batched estimators record all plants at once; each plant's window must hold, judge
+    # and save what a one-plant window given the same calls does: through ring wraps (L = 250 at
+    # lambda 0.996, 2L rows), gaps, a restart, a new lambda and a snapshot of one plant
+    plants, rng = 3, np.random.default_rng(5)
+    y, u, _ = three_inputs(0, count=1500, arx=True)
+    many = SimulationWindows(plants, 2, 3, False, (0, 0, 0), forgetting_factor=0.996)
+    single = [SimulationWindow(2, 3, False, (0, 0, 0), forgetting_factor=0.996)
+              for _ in range(plants)]
+    theta = np.array([-1.75, 0.76] + [b for pair in NUMERATORS for b in pair])
+    for t in range(y.size):
+        at = np.flatnonzero(rng.random(plants) < 0.9)
+        many.record(at, y[t] * (1 + at), u[t] * (1 + at)[:, None])
+        for plant in at.tolist():
+            single[plant].record(y[t] * (1 + plant), u[t] * (1 + plant))
+        if t % 331 == 0:
+            many.gap(np.array([t % plants]))
+            single[t % plants].gap()
+        if t == 900:
+            many.clear(np.array([1]))
+            single[1].clear()
+        if t == 1000:
+            many.follow_forgetting_factor(0.9955)
+            for window in single:
+                window.follow_forgetting_factor(0.9955)
+        if t % 40 == 0:
+            for plant in range(plants):
+                assert (many[plant].reasons(theta[:2], theta[2:])
+                        == single[plant].reasons(theta[:2], theta[2:]))
+                np.testing.assert_equal(many[plant].statistic, single[plant].statistic)
+        if t == 1200:
+            arrays, scalars = many[2].state_items()
+            restored = SimulationWindows(plants, 2, 3, False, (0, 0, 0), 0.9955)
+            restored[2].load(arrays, scalars)
+            assert restored[2].state_items()[1] == scalars
+            np.testing.assert_array_equal(restored[2].state_items()[0]['simulation_rows'],
+                                          arrays['simulation_rows'])
+    judged = 0
+    for plant in range(plants):
+        mine, theirs = many[plant].state_items(), single[plant].state_items()
+        np.testing.assert_array_equal(mine[0]['simulation_rows'], theirs[0]['simulation_rows'])
+        assert mine[1] == theirs[1]
+        judged += np.isfinite(theirs[1]['simulation_statistic'])
+    assert judged == plants
