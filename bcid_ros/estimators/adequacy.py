@@ -22,18 +22,15 @@ import numpy as np
 
 from bcid_ros.estimators.adequacy_state import MonitorState, MonitorStates
 from bcid_ros.estimators.lagged import decayed_weights, effective_size, PlantCursors
-from bcid_ros.estimators.residual_statistics import (chi2_quantile, chi2_survival,
-                                                     covariance_factors, cross_statistics,
-                                                     levinson, prewhitening_filter,
-                                                     settling_known, settling_sums,
-                                                     whiteness_statistic)
+from bcid_ros.estimators.residual_statistics import (
+    chi2_quantile, chi2_survival, covariance_factors, cross_statistics, levinson,
+    prewhitening_filter, settling_known, settling_sums, whiteness_statistic)
 
 #: The monitor, its state and its settings; the chi-square tails and the Levinson
 #: recursion of :mod:`~bcid_ros.estimators.residual_statistics` are kept importable here.
-__all__ = ['AdequacyMonitor', 'MonitorState', 'MODEL_TESTS', 'LAGS', 'MIN_WINDOW',
-           'MAX_WINDOW', 'SAMPLES_PER_LAG', 'HYSTERESIS', 'PREWHITENING_ORDER', 'COLOUR_LAGS',
-           'BLOCK', 'CHECKS_PER_WINDOW', 'default_window', 'chi2_quantile', 'chi2_survival',
-           'levinson']
+__all__ = ['AdequacyMonitor', 'MonitorState', 'MODEL_TESTS', 'LAGS', 'MIN_WINDOW', 'MAX_WINDOW',
+           'SAMPLES_PER_LAG', 'HYSTERESIS', 'PREWHITENING_ORDER', 'COLOUR_LAGS', 'BLOCK',
+           'CHECKS_PER_WINDOW', 'default_window', 'chi2_quantile', 'chi2_survival', 'levinson']
 
 #: The tests of each kind of model (docs/trust.md): (whiteness, residual may be coloured).
 MODEL_TESTS = {
@@ -533,6 +530,9 @@ class AdequacyMonitor(MonitorStates):
     def ready(self) -> Any:
         """Whether the window holds enough samples for the tests (N >= SAMPLES_PER_LAG M)."""
         return self.effective_samples >= SAMPLES_PER_LAG * self.lags
+
+    def ready_of(self, plant: int) -> bool:  # ready[k] would size all K plants to give one
+        return bool(self._sizes(plant) >= SAMPLES_PER_LAG * self.lags)
 
     def _sizes(self, plants: Any) -> np.ndarray:
         """Return the effective sample sizes N of ``plants``, ``(R,)``."""

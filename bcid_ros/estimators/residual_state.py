@@ -29,7 +29,7 @@ def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list
     gets a verdict); before that, not being ready is a reason itself: a model the data
     have not yet been able to contradict is not yet trusted.
     """
-    ready = monitor.ready if plant is None else monitor.ready[plant]
+    ready = monitor.ready if plant is None else monitor.ready_of(plant)
     if not ready:
         short = monitor.short_reasons(plant)
         if short is not None:

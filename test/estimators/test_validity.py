@@ -94,6 +94,9 @@ class ShortRecordMonitor:
     def reasons_of(self, plant):
         return []
 
+    def ready_of(self, plant):
+        return self.ready[plant]
+
 
 @pytest.mark.parametrize('plant', [None, 1])
 def test_a_plant_change_holds_until_the_tests_are_ready_on_new_samples_with_nothing_else(plant):
