@@ -204,8 +204,7 @@ class HacCovariance:
 
     def record_all(self, scores: Any) -> None:
         """Add one plant's scores ``(m, p)``, oldest first: ``record`` of each row (copied)."""
-        for score in np.array(scores, dtype=float, ndmin=2):
-            self._products.append(score)
+        self._products.extend(scores)
 
     def record_rows(self, rows: Any, scores: Any) -> None:
         """

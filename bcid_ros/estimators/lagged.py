@@ -301,6 +301,26 @@ class LaggedProducts:
         self.flush()
         return True
 
+    def extend(self, rows: Any) -> None:
+        """
+        Keep the rows ``(m, d)`` of one plant, oldest first (copied): :meth:`append` of each.
+
+        The same sums, bit for bit: the rows that complete the pending block are
+        appended, each whole block after them is added as :meth:`flush` adds it
+        (without a list of its rows), the rest appended.
+        """
+        if self.plants is not None:
+            raise ValueError('extend keeps the rows of one plant; K plants record with record()')
+        rows = np.array(rows, dtype=float, ndmin=2)
+        first = min(rows.shape[0], -len(self.pending) % BLOCK)
+        for row in rows[:first]:
+            self.append_product(row, 1.0)
+        end = first + (rows.shape[0] - first) // BLOCK * BLOCK
+        for start in range(first, end, BLOCK):
+            self.add(rows[start:start + BLOCK])
+        for row in rows[end:]:
+            self.append_product(row, 1.0)
+
     def record(self, rows: Any, values: Any) -> int:
         """
         Keep one row of each plant in ``rows`` (K plants); add the buffers that are full.

@@ -236,3 +236,24 @@ def test_importing_the_trust_modules_does_not_import_scipy():
     code = ('import sys, bcid_ros.estimators.adequacy, bcid_ros.estimators.hac; '
             'sys.exit(int("scipy" in sys.modules))')
     assert subprocess.run([sys.executable, '-c', code]).returncode == 0
+
+
+@pytest.mark.parametrize('lam', [1.0, 0.995])
+@pytest.mark.parametrize('before', [0, 1, BLOCK - 1, BLOCK + 7])
+def test_record_all_is_record_of_each_row_bit_for_bit(lam, before):
+    """Whole blocks added at once (record_all) give the sums of row-by-row records."""
+    rng = np.random.default_rng(5)
+    first, scores = rng.standard_normal((before, 3)), rng.standard_normal((3 * BLOCK + 41, 3))
+    scores[BLOCK + 3] = np.nan  # a non-finite row counts as zero in either path
+    by_row, at_once = (HacCovariance(dimension=3, forgetting_factor=lam) for _ in range(2))
+    for hac in (by_row, at_once):
+        hac.record_all(first)
+    for score in scores.copy():
+        by_row.record(score)
+    at_once.record_all(scores)
+    scores[:] = 0.0  # record_all copies
+    row_state, once_state = by_row.get_state().products, at_once.get_state().products
+    assert row_state.keys() == once_state.keys()
+    for name, value in row_state.items():
+        assert np.asarray(value).tobytes() == np.asarray(once_state[name]).tobytes(), name
+    assert by_row.covariance(np.eye(3)).tobytes() == at_once.covariance(np.eye(3)).tobytes()

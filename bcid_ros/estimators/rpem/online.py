@@ -36,7 +36,8 @@ from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
-from bcid_ros.estimators.rpem.uncertainty import normalised_covariance, parameter_covariance
+from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
+                                                  parameter_covariance)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.simulation_check import UNDERSTATED
 
@@ -458,6 +459,12 @@ class Rpem(RecursiveEstimator):
         # would swell the HAC (hundreds of times on a fit that moved far): the fit's own
         self._hac.reset()
         self._hac.record_all(result.scores)
+        # what the covariance of P leaves out: the fit chose each segment's initial state
+        self._excess = fitted_state_excess(
+            normalised_covariance(self._hac, p, result.weight, self._forgetting_factor),
+            result.information, *result.profiled, 1.0 / self.initial_covariance,
+            result.weight, self._forgetting_factor)
+        self._fit_sample = self._samples
         self._lambda_t = min(self._forgetting_factor, LAMBDA_START)
         self._fitted = True
         return True
@@ -503,7 +510,8 @@ class Rpem(RecursiveEstimator):
         self._left_fit.clear()
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
-        rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
+        keep = rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
+        self._excess *= float(keep[0]) ** 2  # the old fit's weight, cut as P's information
         self._loss, self._tau = float(loss[0]), float(tau[0])
         if self._store.restart_schedule(age):
             self._fit()
@@ -594,7 +602,8 @@ class Rpem(RecursiveEstimator):
         if not self.ready or not self._tau > 0.0:
             return None
         return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
-                                    self.num_parameters, self._unscale)
+                                    self.num_parameters, self._unscale, self._excess,
+                                    self._forgetting_factor ** (self._samples - self._fit_sample))
 
     def _covariance_count(self) -> float | None:
         """Return tau, the samples the estimate rests on (``oe``: an output-error covariance)."""
@@ -674,6 +683,9 @@ class Rpem(RecursiveEstimator):
         self._loss = 0.0
         self._tau = 0.0
         self._lambda_t = self._forgetting_factor
+        # the last fit's E (uncertainty.fitted_state_excess) and the sample it came at
+        self._excess = np.zeros((size, size))
+        self._fit_sample = 0
         self._watch.clear()
         self._gate_from = rules.GATE_WARMUP * p
         self._changes = 0
@@ -717,7 +729,7 @@ class Rpem(RecursiveEstimator):
 
     #: The scalars of the recursion; the predictor and the store name theirs.
     _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
-                'forgetting_factor')
+                'forgetting_factor', 'fit_sample')
     #: The type of each scalar that is no int.
     _KINDS: dict[str, Callable[[Any], Any]] = {
         'loss': float, 'tau': float, 'lambda_t': float, 'forgetting_factor': float,
@@ -729,7 +741,7 @@ class Rpem(RecursiveEstimator):
         arrays = {'theta_n': self._theta_n, 'p': self._p,
                   'psi_history': lag_arrays['psi_history'], 'arx': self._arx,
                   'signal_scale': self._signal_scale, 'fit_mean': self._fit_mean,
-                  **stored_arrays,
+                  'fitted_state_excess': self._excess, **stored_arrays,
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
@@ -754,14 +766,18 @@ class Rpem(RecursiveEstimator):
         arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
         if 'fit_mean' not in arrays:  # a snapshot from before: its running means
             arrays['fit_mean'] = np.array(arrays.get('operating_point', own['fit_mean']))
+        if 'fitted_state_excess' not in arrays:  # from before: the held covariance alone
+            arrays['fitted_state_excess'] = np.zeros_like(own['fitted_state_excess'])
         arrays, scalars = self._store.with_job_items(arrays, state.scalars)
         arrays, scalars = with_feed_items(arrays, scalars)
+        scalars = {'fit_sample': 0, **scalars}
         super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
         self._signal_scale = arrays['signal_scale']
         self._fit_mean = arrays['fit_mean']
+        self._excess = arrays['fitted_state_excess']
         self._p = np.ascontiguousarray(arrays['p'])
         self._predictor.load_state(arrays, scalars)
         self._feed.load_state(arrays, scalars)
