@@ -44,7 +44,7 @@ from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
 from bcid_ros.estimators.shared_settings import SharedSettings
-from bcid_ros.estimators.simulation_check import SimulationWindows
+from bcid_ros.estimators.simulation_windows import SimulationWindows
 from bcid_ros.estimators.validity import PlantsValidity
 
 Rows = slice | np.ndarray

@@ -17,8 +17,9 @@ from scipy import signal
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.simulation_check import (check, FALSE_ALARM, judge, numerator_lags,
-                                                  refit, SimulationWindow, SimulationWindows,
-                                                  UNDERSTATED, UNDERSTATEMENT_LIMIT)
+                                                  refit, SimulationWindow, UNDERSTATED,
+                                                  UNDERSTATEMENT_LIMIT)
+from bcid_ros.estimators.simulation_windows import SimulationWindows
 from equivalence import assert_paths_agree, two_path_spread
 
 #: Denominator poles and the three inputs' numerators (b_i1, b_i2) of the generated plant.
