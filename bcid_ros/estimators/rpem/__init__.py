@@ -16,8 +16,11 @@ them.
 The modules, each importing only those below it:
 
 * :mod:`~bcid_ros.estimators.rpem.online`: :class:`Rpem`, the recursive
-  estimator (the recursion, the gate, the hand-over from a fit, validity,
-  state);
+  estimator (the recursion, the gate, the hand-over from a fit, validity);
+* :mod:`~bcid_ros.estimators.rpem.state`: what it holds, made, saved and
+  restored (snapshots of older versions included);
+* :mod:`~bcid_ros.estimators.rpem.feed`: the last fit's model run on, whose
+  one-step errors the change detector tests;
 * :mod:`~bcid_ros.estimators.rpem.watch`: :class:`RestartWatch`, the
   projection and undone-step monitors that restart it (a plant that changes
   or drifts is the change detector's), and their validity reasons;

@@ -15,9 +15,8 @@ not at hand to check them.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -25,16 +24,15 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import ChangeDetector, WARMUP, with_detector_arrays
+from bcid_ros.estimators.change_detection import ChangeDetector, WARMUP
 from bcid_ros.estimators.polynomials import is_stable
-from bcid_ros.estimators.recursion import (downdate, Forgetting, HEALTH_CHECK_PERIOD,
-                                           RandomWalk, repair_covariance, VARIANCE_FLOOR)
-from bcid_ros.estimators.residual_state import (residual_items, residual_states,
-                                                with_gradient_arrays)
-from bcid_ros.estimators.rpem.feed import FitModelFeed, with_feed_items
+from bcid_ros.estimators.recursion import (downdate, HEALTH_CHECK_PERIOD, repair_covariance,
+                                           VARIANCE_FLOOR)
+from bcid_ros.estimators.rpem.feed import FitModelFeed
 from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
+from bcid_ros.estimators.rpem.state import RpemState
 from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
                                                   parameter_covariance)
@@ -43,8 +41,6 @@ from bcid_ros.estimators.simulation_check import UNDERSTATED
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
-#: The snapshot keys' prefix of the test of the recursion against its fit (_left_fit).
-LEFT_FIT_PREFIX = 'change_left_fit_'
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -52,7 +48,7 @@ LAMBDA_START = 1.0
 LAMBDA_RATE = 0.99
 
 
-class Rpem(RecursiveEstimator):
+class Rpem(RpemState, RecursiveEstimator):
     r"""
     Recursive prediction-error method for the OE or ARMAX model, with a batch-refined start.
 
@@ -659,47 +655,6 @@ class Rpem(RecursiveEstimator):
         # theta in the user's units: theta_k s_y / s_channel(k)
         self._unscale = scale[0] / scale[self._channel]
 
-    def _reset(self) -> None:
-        p, size = self.num_parameters, self._size
-        self._predictor.clear()
-        self._feed.reset()
-        self._store.clear()
-        # theta in normalised units, and the offset last with detrend: mean
-        self._theta_n = np.zeros(size)
-        self._p = self.initial_covariance * np.eye(size)
-        self._arx = np.zeros(p)
-        self._signal_scale = np.ones(1 + self.num_inputs)
-        # the means the last fit centred its samples on (detrend: mean; _normalised)
-        self._fit_mean = np.zeros(1 + self.num_inputs)
-        self._set_scale_dependents()
-        #: What happens to P between samples: recursion.Forgetting (P / lambda, anti-windup)
-        #: or, with adaptation: kalman, recursion.RandomWalk (P + q I in normalised units)
-        self._propagation = (RandomWalk(self._parameter_drift) if self.adaptation == 'kalman'
-                             else Forgetting(self.initial_covariance * size))
-        self._fitted = False
-        self._fits = 0
-        self._samples = 0
-        self._updates = 0
-        self._loss = 0.0
-        self._tau = 0.0
-        self._lambda_t = self._forgetting_factor
-        # the last fit's E (uncertainty.fitted_state_excess) and the sample it came at
-        self._excess = np.zeros((size, size))
-        self._fit_sample = 0
-        self._watch.clear()
-        self._gate_from = rules.GATE_WARMUP * p
-        self._changes = 0
-        self._reasons: tuple[str, ...] = ()
-        self._period_reasons: list[str] = []
-        self._change_note = ''
-        # whether the estimate has been valid since the last change (the detector runs)
-        self._settled = False
-        self._detector.clear()
-        self._left_fit.clear()
-        # (phi, psi, y, u) of the step whose sample the gate is testing
-        self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
-        self._forget_residuals()
-
     def _forget_residuals(self) -> None:
         """
         Start the residual tests, the HAC and the simulation check afresh (reset, change).
@@ -726,72 +681,3 @@ class Rpem(RecursiveEstimator):
         self._feed.clear()
         self._store.break_pending = True
         self._simulation.clear()  # (a gap in its window)
-
-    #: The scalars of the recursion; the predictor and the store name theirs.
-    _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
-                'forgetting_factor', 'fit_sample')
-    #: The type of each scalar that is no int.
-    _KINDS: dict[str, Callable[[Any], Any]] = {
-        'loss': float, 'tau': float, 'lambda_t': float, 'forgetting_factor': float,
-        'fitted': bool}
-
-    def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        lag_arrays, lag_scalars = self._predictor.state_items()
-        stored_arrays, stored_scalars = self._store.state_items()
-        arrays = {'theta_n': self._theta_n, 'p': self._p,
-                  'psi_history': lag_arrays['psi_history'], 'arx': self._arx,
-                  'signal_scale': self._signal_scale, 'fit_mean': self._fit_mean,
-                  'fitted_state_excess': self._excess, **stored_arrays,
-                  'history': lag_arrays['history']}
-        scalars = {**stored_scalars,
-                   **{name: getattr(self, '_' + name) for name in self._SCALARS},
-                   **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
-                   'period_reasons': list(self._period_reasons),
-                   'change_note': self._change_note, 'settled': self._settled}
-        residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
-                                                           self._hac.get_state())
-        feed_arrays, feed_scalars = self._feed.state_items()
-        return ({**arrays, **residual_arrays, **self._detector.get_state(),
-                 **self._left_fit.get_state(prefix=LEFT_FIT_PREFIX), **feed_arrays},
-                {**scalars, **residual_scalars, **feed_scalars})
-
-    def set_state(self, state: Any) -> None:
-        """
-        Restore a :meth:`get_state` snapshot; one from before the parameter term loads too.
-
-        Its residual tests then count the estimate's error from the samples
-        after the load on (:func:`~bcid_ros.estimators.residual_state.with_gradient_arrays`).
-        """
-        own, _ = self._state_items()
-        arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
-        if 'fit_mean' not in arrays:  # a snapshot from before: its running means
-            arrays['fit_mean'] = np.array(arrays.get('operating_point', own['fit_mean']))
-        if 'fitted_state_excess' not in arrays:  # from before: the held covariance alone
-            arrays['fitted_state_excess'] = np.zeros_like(own['fitted_state_excess'])
-        arrays, scalars = self._store.with_job_items(arrays, state.scalars)
-        arrays, scalars = with_feed_items(arrays, scalars)
-        scalars = {'fit_sample': 0, **scalars}
-        super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
-
-    def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
-        self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
-        self._signal_scale = arrays['signal_scale']
-        self._fit_mean = arrays['fit_mean']
-        self._excess = arrays['fitted_state_excess']
-        self._p = np.ascontiguousarray(arrays['p'])
-        self._predictor.load_state(arrays, scalars)
-        self._feed.load_state(arrays, scalars)
-        self._store.load_state(arrays, scalars)
-        self._watch.load_state(scalars)
-        for name in self._SCALARS:
-            setattr(self, '_' + name, self._KINDS.get(name, int)(scalars[name]))
-        self._reasons = tuple(scalars['reasons'])
-        self._period_reasons = list(scalars.get('period_reasons', ()))
-        self._change_note = str(scalars.get('change_note', ''))
-        self._settled = bool(scalars.get('settled', False))
-        self._detector.set_state(arrays)
-        self._left_fit.set_state(arrays, prefix=LEFT_FIT_PREFIX)
-        self._set_scale_dependents()
-        monitor, hac = residual_states(arrays, scalars)
-        self._monitor.set_state(monitor)
-        self._hac.set_state(hac)
