@@ -213,8 +213,22 @@ class ChangeDetector:
         self._values = np.zeros((fields - 1, count))
         self._all = np.arange(count)
         self._lagged = np.empty((3, count))
-        self.state = DetectorState(*self._values, np.zeros((count, RING)))
+        self._state = DetectorState(*self._values, np.zeros((count, RING)))
+        # one plant: its numbers as Python floats between records (None: the block holds them)
+        self._one: list[float] | None = None
         self.clear()
+
+    @property
+    def state(self) -> DetectorState:
+        """Return the per-plant arrays (one plant's numbers written back first)."""
+        self._write_back()
+        return self._state
+
+    def _write_back(self) -> None:
+        """Put one plant's numbers, held as Python floats since its last record, in the block."""
+        if self._one is not None:
+            self._values[:, 0] = self._one
+            self._one = None
 
     # ------------------------------------------------------------- the API
     def clear(self, rows: Any = slice(None)) -> None:
@@ -275,6 +289,7 @@ class ChangeDetector:
         """Record ``error`` ``(R,)`` of plants ``rows`` (indices); return their ages (int)."""
         rows = np.asarray(rows, dtype=np.intp)
         error = np.asarray(error, dtype=float)
+        self._write_back()
         values = self._values
         # every plant in order (the common case): the fields' own rows, in place
         every = rows.shape[0] == values.shape[1] and bool((rows == self._all).all())
@@ -368,16 +383,22 @@ class ChangeDetector:
         st.armed[rows] = np.where(usable, 1.0, 0.0)
 
     def _record_one(self, error: float) -> int:
-        """:meth:`record_rows` of one plant on Python floats (the same operations, same bits)."""
-        values = self._values
+        """
+        :meth:`record_rows` of one plant on Python floats (the same operations, same bits).
+
+        Its numbers stay Python floats from one record to the next (``_one``); reading
+        :attr:`state` writes them back (a read and a write of the block each sample were
+        half of a record's time).
+        """
+        one = self._one
         (weight, mean, r0, r1, r2, lag1, lag2, f1, f2, inverse_std, statistic, run, seen,
-         armed, mean_weight) = values[:, 0].tolist()
+         armed, mean_weight) = self._values[:, 0].tolist() if one is None else one
         x = error - mean
         age = 0
         if armed:
             z = (x - f1 * lag1 - f2 * lag2) * inverse_std
             z = -CLIP if z < -CLIP else (CLIP if z > CLIP else z)
-            self.state.ring[0, int(seen) % RING] = z
+            self._state.ring[0, int(seen) % RING] = z
             statistic += _VAR_GAIN * (z * z) - _VAR_COST
             if statistic > 0.0:
                 run += 1.0
@@ -394,8 +415,8 @@ class ChangeDetector:
         r2 = mu * r2 + x * lag2
         lag2, lag1 = lag1, x
         seen += 1.0
-        values[:, 0] = (weight, mean, r0, r1, r2, lag1, lag2, f1, f2, inverse_std, statistic,
-                        run, seen, armed, mean_weight)
+        self._one = [weight, mean, r0, r1, r2, lag1, lag2, f1, f2, inverse_std, statistic,
+                     run, seen, armed, mean_weight]
         if seen >= WARMUP and math.fmod(seen, BLOCK) == 0.0:
             self._whiten(np.zeros(1, dtype=np.intp))
         if age:
