@@ -106,6 +106,17 @@ class SimulationWindows:
         self._judged[:] = False
 
 
+def _plant_entry(name: str, kind: type) -> property:
+    """Return a property that reads and writes plant k's entry of the windows' array ``name``."""
+    def read(window: _PlantWindow) -> Any:
+        return kind(getattr(window._windows, name)[window._plant])
+
+    def write(window: _PlantWindow, value: Any) -> None:
+        getattr(window._windows, name)[window._plant] = value
+
+    return property(read, write)
+
+
 class _PlantWindow(SimulationWindow):
     """Plant k's :class:`SimulationWindow` in a :class:`SimulationWindows`: its rows there."""
 
@@ -131,37 +142,11 @@ class _PlantWindow(SimulationWindow):
     def _rows(self) -> np.ndarray:
         return self._windows._rows[self._plant]
 
-    @property
-    def _end(self) -> int:
-        return int(self._windows._end[self._plant])
-
-    @_end.setter
-    def _end(self, value: int) -> None:
-        self._windows._end[self._plant] = value
-
-    @property
-    def _filled(self) -> int:
-        return int(self._windows._filled[self._plant])
-
-    @_filled.setter
-    def _filled(self, value: int) -> None:
-        self._windows._filled[self._plant] = value
-
-    @property
-    def _since(self) -> int:
-        return int(self._windows._since[self._plant])
-
-    @_since.setter
-    def _since(self, value: int) -> None:
-        self._windows._since[self._plant] = value
-
-    @property
-    def _judged(self) -> bool:
-        return bool(self._windows._judged[self._plant])
-
-    @_judged.setter
-    def _judged(self, value: bool) -> None:
-        self._windows._judged[self._plant] = value
+    # SimulationWindow's counters, as plant k's entries of the windows' arrays
+    _end = _plant_entry('_end', int)
+    _filled = _plant_entry('_filled', int)
+    _since = _plant_entry('_since', int)
+    _judged = _plant_entry('_judged', bool)
 
 
 __all__ = ['SimulationWindows']

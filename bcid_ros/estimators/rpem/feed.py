@@ -55,8 +55,6 @@ class FitModelFeed:
         self._history = PredictorHistory(order, num_inputs, feedthrough, input_delay, armax,
                                          offset)
         self._theta = np.zeros(size)
-        self._armax = armax
-        self._offset = offset
         self._prediction: float | None = None
 
     def load(self, theta: np.ndarray, x: np.ndarray, u: np.ndarray, e: np.ndarray) -> None:
@@ -70,25 +68,18 @@ class FitModelFeed:
 
         None while the lags refill (as the recursion's predictor).
         """
-        history, theta = self._history, self._theta
-        refilled = history.filled == history.span
-        phi = history.push(yn, un)
-        if not history.ready:
+        phi = self._history.regressor(yn, un)  # as the recursion's predictor's
+        if phi is None:
             self._prediction = None
             return None
-        if refilled and not self._armax:  # as the recursion's OE predictor after a restart
-            phi = history.level_output_lags()
-        prediction = float(phi.dot(theta))
+        prediction = float(phi.dot(self._theta))
         self._prediction = prediction
-        if self._armax:
-            history.set_newest(yn, yn - prediction)  # the residual lag
-        else:  # the simulated output, without the offset
-            history.set_newest(prediction - theta[-1] if self._offset else prediction, 0.0)
+        self._history.set_prediction(yn, prediction, self._theta)
         return yn - prediction
 
     def refused(self) -> None:
         """Take the last sample as refused: ARMAX's residual lag becomes 0 (OE needs no y)."""
-        if self._armax and self._prediction is not None:
+        if self._history.residual_lags and self._prediction is not None:
             # y(t) unknown: its prediction in its place, residual 0 (as the recursion's)
             self._history.set_newest(self._prediction, 0.0)
 
@@ -104,17 +95,13 @@ class FitModelFeed:
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) under ``feed_`` names."""
-        history = self._history
-        return ({'feed_theta': self._theta, 'feed_history': history.history},
-                {'feed_filled': history.filled, 'feed_position': history.position})
+        arrays, scalars = self._history.state_items('feed_')
+        return {'feed_theta': self._theta, **arrays}, scalars
 
     def load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over what :meth:`state_items` made."""
         self._theta = np.array(arrays['feed_theta'], dtype=float)
-        history = self._history
-        history.history[:] = arrays['feed_history']
-        history.filled = int(scalars['feed_filled'])
-        history.position = int(scalars['feed_position'])
+        self._history.load_state(arrays, scalars, 'feed_')
         self._prediction = None
 
 

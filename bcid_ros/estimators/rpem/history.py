@@ -49,6 +49,7 @@ class PredictorHistory:
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
                  input_delay: tuple[int, ...], residual_lags: bool, constant: bool) -> None:
         self.order = order
+        self.residual_lags, self.constant = residual_lags, constant
         self.span = order + max(input_delay)
         self.width = 3 + num_inputs
         self.history = np.zeros((self.span + 1, self.width))
@@ -112,6 +113,45 @@ class PredictorHistory:
         self.filled = count
         self.position = count % (self.span + 1)
 
+    def regressor(self, x: float, u: np.ndarray) -> np.ndarray | None:
+        """
+        Add sample t and return phi(t); None while the lags refill (after :meth:`clear`).
+
+        Without residual lags (OE) the output lags are levelled when the lags are
+        full again (:meth:`level_output_lags`).
+        """
+        refilled = self.filled == self.span
+        phi = self.push(x, u)
+        if not self.ready:
+            return None
+        if refilled and not self.residual_lags:
+            phi = self.level_output_lags()
+        return phi
+
+    def set_prediction(self, y: float, prediction: float, theta: np.ndarray) -> None:
+        """
+        Store the lags of sample t at the model theta whose prediction phi(t)' theta is given.
+
+        ARMAX (residual lags): e(t) = y(t) - prediction; OE: x(t) = w(t), the
+        prediction without the offset (theta's last entry with a constant).
+        """
+        if self.residual_lags:
+            self.set_newest(y, y - prediction)
+        else:
+            self.set_newest(prediction - theta[-1] if self.constant else prediction, 0.0)
+
+    def state_items(self, prefix: str = '') -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return (arrays, scalars) of the ring: ``<prefix>history``, ``filled``, ``position``."""
+        return ({f'{prefix}history': self.history},
+                {f'{prefix}filled': self.filled, f'{prefix}position': self.position})
+
+    def load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any],
+                   prefix: str = '') -> None:
+        """Take over what :meth:`state_items` made."""
+        self.history[:] = arrays[f'{prefix}history']
+        self.filled = int(scalars[f'{prefix}filled'])
+        self.position = int(scalars[f'{prefix}position'])
+
     @property
     def ready(self) -> bool:
         """Whether every lag of phi(t) comes from a real sample."""
@@ -167,26 +207,17 @@ class RecursivePredictor:
     def regressors(self, yn: float, un: np.ndarray,
                    theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Take sample t (normalised) and return (phi(t), psi(t)); None while the lags refill."""
-        history = self.history
-        refilled = history.filled == history.span
-        phi = history.push(yn, un)
-        if not history.ready:  # refilling the lags after a restart
+        phi = self.history.regressor(yn, un)
+        if phi is None:  # refilling the lags after a restart
             return None
-        if refilled and not self._armax:
-            phi = history.level_output_lags()
         # psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
         psi = phi - theta[self._filter].dot(self.psi_history)
         return phi, psi
 
     def advance(self, yn: float, phi: np.ndarray, psi: np.ndarray, theta: np.ndarray) -> None:
         """Move the predictor on: the a-posteriori lags of sample t and psi(t)."""
-        posterior = float(phi.dot(theta))
-        if self._armax:
-            # e(t) = y(t) - phi(t)' theta(t), the a-posteriori residual
-            self.history.set_newest(yn, yn - posterior)
-        else:
-            # w(t) = phi(t)' theta(t) without the offset: the simulated output
-            self.history.set_newest(posterior - theta[-1] if self._offset else posterior, 0.0)
+        # the a-posteriori lags: e(t) = y(t) - phi(t)' theta(t) (ARMAX), w(t) (OE)
+        self.history.set_prediction(yn, float(phi.dot(theta)), theta)
         psi_history = self.psi_history
         psi_history[1:] = psi_history[:-1]
         psi_history[0] = psi
@@ -205,14 +236,10 @@ class RecursivePredictor:
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the lags under the estimator's state names."""
-        history = self.history
-        return ({'psi_history': self.psi_history, 'history': history.history},
-                {'filled': history.filled, 'position': history.position})
+        arrays, scalars = self.history.state_items()
+        return {'psi_history': self.psi_history, **arrays}, scalars
 
     def load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over what :meth:`state_items` made."""
         self.psi_history = arrays['psi_history']
-        history = self.history
-        history.history[:] = arrays['history']
-        history.filled = int(scalars['filled'])
-        history.position = int(scalars['position'])
+        self.history.load_state(arrays, scalars)
