@@ -8,7 +8,7 @@ of the predictor (the simulated output w for OE, the measured y and the
 residual for ARMAX) and gathers the regression vector
 :math:`\varphi(t)`; :class:`RecursivePredictor` adds the gradient filter
 :math:`\psi(t) = \varphi(t) / D(q)` (D = F for OE, C for ARMAX) with its n
-lags, and moves both on with the a-posteriori values of each step.
+lags, and moves both on with the values of each step.
 """
 
 from __future__ import annotations
@@ -100,7 +100,7 @@ class PredictorHistory:
         return self._flat[self._index[newest]]
 
     def set_newest(self, x: float, e: float) -> None:
-        """Replace x and e of the newest sample (the a-posteriori values of the step)."""
+        """Replace x and e of the newest sample (the values of the step)."""
         row = self.history[self.position - 1]
         row[0] = -x
         row[-2] = e
@@ -170,10 +170,12 @@ class RecursivePredictor:
 
     :meth:`regressors` gives :math:`\varphi(t)` and
     :math:`\psi(t) = \varphi(t) - d_1\psi(t-1) - \dots - d_n\psi(t-n)`;
-    :meth:`advance` stores the a-posteriori lag of the step (OE:
-    :math:`w(t) = \varphi^T(t)\hat\theta(t)` without the offset; ARMAX:
-    :math:`\bar\varepsilon(t) = y(t) - \varphi^T(t)\hat\theta(t)`) and
-    :math:`\psi(t)`. All in normalised units.
+    :meth:`advance` stores the lag of sample t at the estimate it is given
+    (OE: :math:`w(t) = \varphi^T(t)\hat\theta` without the offset; ARMAX:
+    :math:`\bar\varepsilon(t) = y(t) - \varphi^T(t)\hat\theta`; the
+    recursion gives :math:`\hat\theta(t)`, a posteriori, or for OE under
+    forgetting :math:`\hat\theta(t-1)`) and :math:`\psi(t)`. All in
+    normalised units.
 
     Parameters
     ----------
@@ -215,8 +217,8 @@ class RecursivePredictor:
         return phi, psi
 
     def advance(self, yn: float, phi: np.ndarray, psi: np.ndarray, theta: np.ndarray) -> None:
-        """Move the predictor on: the a-posteriori lags of sample t and psi(t)."""
-        # the a-posteriori lags: e(t) = y(t) - phi(t)' theta(t) (ARMAX), w(t) (OE)
+        """Move the predictor on: the lags of sample t at ``theta``, and psi(t)."""
+        # the lags: e(t) = y(t) - phi(t)' theta (ARMAX), w(t) = phi(t)' theta (OE)
         self.history.set_prediction(yn, float(phi.dot(theta)), theta)
         psi_history = self.psi_history
         psi_history[1:] = psi_history[:-1]
