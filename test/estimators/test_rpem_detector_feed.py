@@ -155,8 +155,8 @@ def test_the_errors_fed_under_forgetting_are_those_the_fits_residuals_describe(s
     # the bound is 1e-5 per sample: no detection after a fit of 1000 samples or more; fits
     # of a few hundred samples, whose own error their residuals do not count, may still
     # raise one, and its memory cut brings such fits again (docs/tracking.md; on seeds 0-15
-    # 4 and 5 detections, before and after the a-priori lag under forgetting, every one
-    # after a fit of 463-593 samples)
+    # 4 and 7 detections, before and after rpem's OE lags under forgetting followed the
+    # step, every one after a fit of 463-569 samples)
     assert all(detections == 0 for size, _, _, detections in fits if size >= 1000)
 
 

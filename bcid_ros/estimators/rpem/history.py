@@ -105,6 +105,12 @@ class PredictorHistory:
         row[0] = -x
         row[-2] = e
 
+    def move_output_lags(self, change: np.ndarray) -> None:
+        """Add ``change[k]`` to x(t-k), k = 0 ... len(change) - 1, t the newest sample."""
+        rows = self.span + 1
+        newest = self.position - 1
+        self.history[[(newest - k) % rows for k in range(change.shape[0])], 0] -= change
+
     def load_rows_oldest_first(self, rows: np.ndarray) -> None:
         """Make ``rows`` ``[-x, u_1 ... u_r, e]`` (oldest first) the content of the ring."""
         self.clear()
@@ -225,6 +231,17 @@ class RecursivePredictor:
         psi_history[0] = psi
         if self._offset and not self._armax:
             psi_history[0, -1] = 0.0  # the OE offset's gradient is 1, not filtered by 1/F
+
+    def follow(self, step: np.ndarray) -> None:
+        r"""
+        Move the simulated output lags (OE) to the estimate after a step, to first order.
+
+        :math:`w(t-k, \hat\theta + \Delta) \approx w(t-k) + \psi^T(t-k)\Delta`,
+        k = 0 ... n - 1 (psi is the gradient of the simulated output): the lags
+        of phi(t + 1) are then those of the current estimate, where the
+        recursion's own lags hold the estimates of their time.
+        """
+        self.history.move_output_lags(self.psi_history.dot(step))
 
     def load(self, x: np.ndarray, u: np.ndarray, e: np.ndarray, psi: np.ndarray) -> None:
         """Continue from the lags x, u, e (oldest first) and psi(t-1) ... psi(t-n) of a fit."""
