@@ -71,6 +71,9 @@ class PredictorHistory:
             if constant:
                 index.append(width - 1)
             self._index.append(np.array(index, dtype=np.intp))
+        # x(t), x(t-1) ... x(t-n+1) of each newest row, for move_output_lags
+        self._output_lags = [np.array([((newest - k) % rows) * width for k in range(order)],
+                                      dtype=np.intp) for newest in range(rows)]
 
     def push(self, x: float, u: np.ndarray) -> np.ndarray:
         """Add sample t (x(t), u(t); e(t) = 0 until :meth:`set_newest`) and return phi(t)."""
@@ -106,10 +109,8 @@ class PredictorHistory:
         row[-2] = e
 
     def move_output_lags(self, change: np.ndarray) -> None:
-        """Add ``change[k]`` to x(t-k), k = 0 ... len(change) - 1, t the newest sample."""
-        rows = self.span + 1
-        newest = self.position - 1
-        self.history[[(newest - k) % rows for k in range(change.shape[0])], 0] -= change
+        """Add ``change[k]`` to x(t-k), k = 0 ... n - 1, t the newest sample."""
+        self._flat[self._output_lags[self.position - 1]] -= change  # the rows hold -x
 
     def load_rows_oldest_first(self, rows: np.ndarray) -> None:
         """Make ``rows`` ``[-x, u_1 ... u_r, e]`` (oldest first) the content of the ring."""
