@@ -109,14 +109,15 @@ def slow_stationary_plant(seed, count=6000):
 
 
 def fed_after_fits(estimator, y, u):
-    """Run ``estimator``; return, per fit, (residuals' size, their mean square, errors fed)."""
+    """Run ``estimator``; per fit: residuals' size, mean square, errors fed, detections after."""
     detector = estimator._detector
     prime, record = detector.prime, detector.record
     fits, fed = [], []
 
     def primed(residuals, row=0):
         residuals = np.asarray(residuals)
-        fits.append((estimator.samples, residuals.size, float(np.mean(residuals[-1024:] ** 2))))
+        fits.append((estimator.samples, residuals.size, float(np.mean(residuals[-1024:] ** 2)),
+                     estimator.flags.get('plant_change', 0)))
         return prime(residuals, row)
 
     def recorded(error):
@@ -127,10 +128,11 @@ def fed_after_fits(estimator, y, u):
     estimator.run(y, u)
     fed = np.array(fed)
     out = []
-    for k, (at, size, mean_square) in enumerate(fits):
+    changes = [fit[3] for fit in fits[1:]] + [estimator.flags.get('plant_change', 0)]
+    for k, (at, size, mean_square, detected) in enumerate(fits):
         end = fits[k + 1][0] if k + 1 < len(fits) else y.shape[0]
         inside = (fed[:, 0] > at) & (fed[:, 0] <= end)
-        out.append((size, mean_square, fed[inside, 1]))
+        out.append((size, mean_square, fed[inside, 1], changes[k] - detected))
     return out
 
 
@@ -142,16 +144,20 @@ def test_the_errors_fed_under_forgetting_are_those_the_fits_residuals_describe(s
     # are the process its residuals describe
     y, u = slow_stationary_plant(seed)
     estimator = make_estimator('rpem', order=3, forgetting_factor=0.999)
+    fits = fed_after_fits(estimator, y, u)
     ratios = [float(np.mean(errors ** 2)) / mean_square
-              for size, mean_square, errors in fed_after_fits(estimator, y, u)
+              for size, mean_square, errors, _ in fits
               if size >= 1000 and errors.shape[0] >= 200]
     assert len(ratios) >= 3
     # the mean square of >= 200 white errors over their variance: standard deviation
     # sqrt(2 / 200) = 0.1 (the reference's own error is smaller): 1.5 is 5 of them
     assert max(ratios) < 1.5
-    # the bound is 1e-5 per sample; fits of a few hundred samples, whose own error their
-    # residuals do not count, may still raise one (docs/tracking.md)
-    assert estimator.flags.get('plant_change', 0) <= 1
+    # the bound is 1e-5 per sample: no detection after a fit of 1000 samples or more; fits
+    # of a few hundred samples, whose own error their residuals do not count, may still
+    # raise one, and its memory cut brings such fits again (docs/tracking.md; on seeds 0-15
+    # 4 and 7 detections, before and after rpem's OE lags under forgetting followed the
+    # step, every one after a fit of 463-569 samples)
+    assert all(detections == 0 for size, _, _, detections in fits if size >= 1000)
 
 
 def test_a_recursion_that_leaves_its_fit_restarts_from_a_refit_not_a_plant_change():

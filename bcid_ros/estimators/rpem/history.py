@@ -8,7 +8,7 @@ of the predictor (the simulated output w for OE, the measured y and the
 residual for ARMAX) and gathers the regression vector
 :math:`\varphi(t)`; :class:`RecursivePredictor` adds the gradient filter
 :math:`\psi(t) = \varphi(t) / D(q)` (D = F for OE, C for ARMAX) with its n
-lags, and moves both on with the a-posteriori values of each step.
+lags, and moves both on with the values of each step.
 """
 
 from __future__ import annotations
@@ -71,6 +71,9 @@ class PredictorHistory:
             if constant:
                 index.append(width - 1)
             self._index.append(np.array(index, dtype=np.intp))
+        # x(t), x(t-1) ... x(t-n+1) of each newest row, for move_output_lags
+        self._output_lags = [np.array([((newest - k) % rows) * width for k in range(order)],
+                                      dtype=np.intp) for newest in range(rows)]
 
     def push(self, x: float, u: np.ndarray) -> np.ndarray:
         """Add sample t (x(t), u(t); e(t) = 0 until :meth:`set_newest`) and return phi(t)."""
@@ -100,10 +103,14 @@ class PredictorHistory:
         return self._flat[self._index[newest]]
 
     def set_newest(self, x: float, e: float) -> None:
-        """Replace x and e of the newest sample (the a-posteriori values of the step)."""
+        """Replace x and e of the newest sample (the values of the step)."""
         row = self.history[self.position - 1]
         row[0] = -x
         row[-2] = e
+
+    def move_output_lags(self, change: np.ndarray) -> None:
+        """Add ``change[k]`` to x(t-k), k = 0 ... n - 1, t the newest sample."""
+        self._flat[self._output_lags[self.position - 1]] -= change  # the rows hold -x
 
     def load_rows_oldest_first(self, rows: np.ndarray) -> None:
         """Make ``rows`` ``[-x, u_1 ... u_r, e]`` (oldest first) the content of the ring."""
@@ -170,10 +177,12 @@ class RecursivePredictor:
 
     :meth:`regressors` gives :math:`\varphi(t)` and
     :math:`\psi(t) = \varphi(t) - d_1\psi(t-1) - \dots - d_n\psi(t-n)`;
-    :meth:`advance` stores the a-posteriori lag of the step (OE:
-    :math:`w(t) = \varphi^T(t)\hat\theta(t)` without the offset; ARMAX:
-    :math:`\bar\varepsilon(t) = y(t) - \varphi^T(t)\hat\theta(t)`) and
-    :math:`\psi(t)`. All in normalised units.
+    :meth:`advance` stores the lag of sample t at the estimate it is given
+    (OE: :math:`w(t) = \varphi^T(t)\hat\theta` without the offset; ARMAX:
+    :math:`\bar\varepsilon(t) = y(t) - \varphi^T(t)\hat\theta`; the
+    recursion gives :math:`\hat\theta(t)`, a posteriori, or for OE under
+    forgetting :math:`\hat\theta(t-1)`) and :math:`\psi(t)`. All in
+    normalised units.
 
     Parameters
     ----------
@@ -215,14 +224,25 @@ class RecursivePredictor:
         return phi, psi
 
     def advance(self, yn: float, phi: np.ndarray, psi: np.ndarray, theta: np.ndarray) -> None:
-        """Move the predictor on: the a-posteriori lags of sample t and psi(t)."""
-        # the a-posteriori lags: e(t) = y(t) - phi(t)' theta(t) (ARMAX), w(t) (OE)
+        """Move the predictor on: the lags of sample t at ``theta``, and psi(t)."""
+        # the lags: e(t) = y(t) - phi(t)' theta (ARMAX), w(t) = phi(t)' theta (OE)
         self.history.set_prediction(yn, float(phi.dot(theta)), theta)
         psi_history = self.psi_history
         psi_history[1:] = psi_history[:-1]
         psi_history[0] = psi
         if self._offset and not self._armax:
             psi_history[0, -1] = 0.0  # the OE offset's gradient is 1, not filtered by 1/F
+
+    def follow(self, step: np.ndarray) -> None:
+        r"""
+        Move the simulated output lags (OE) to the estimate after a step, to first order.
+
+        :math:`w(t-k, \hat\theta + \Delta) \approx w(t-k) + \psi^T(t-k)\Delta`,
+        k = 0 ... n - 1 (psi is the gradient of the simulated output): the lags
+        of phi(t + 1) are then those of the current estimate, where the
+        recursion's own lags hold the estimates of their time.
+        """
+        self.history.move_output_lags(self.psi_history.dot(step))
 
     def load(self, x: np.ndarray, u: np.ndarray, e: np.ndarray, psi: np.ndarray) -> None:
         """Continue from the lags x, u, e (oldest first) and psi(t-1) ... psi(t-n) of a fit."""
