@@ -87,12 +87,27 @@ def test_the_recursion_under_forgetting_stays_near_its_fit_on_a_slow_plant(seed)
         < 0.05 * np.linalg.norm(np.poly(POLES)[1:])
 
 
+@pytest.mark.parametrize('seed', range(3))
+def test_with_a_random_walk_the_recursion_stays_on_a_slow_plant(seed):
+    # adaptation: kalman adds q I to P at every step, so its gain does not vanish either: with
+    # the a-posteriori lag the recursion ended 9.5-74 % off this plant on seeds 0-2 (255-822
+    # stability projections). Its stated drift lets theta wander about sqrt(k q) a parameter
+    # in k samples, so the fit's distance is no measure here; the truth is (now 0.01-0.13 %
+    # off, the tolerance that of the first test)
+    y, u = slow_plant(seed)
+    estimator = Rpem(order=3, num_inputs=2, adaptation='kalman', parameter_drift=1e-7,
+                     change_detection=False)
+    estimator.run(y, u)
+    truth = np.r_[np.poly(POLES)[1:], B[0, 1:], B[1, 1:]]
+    assert np.linalg.norm(estimator.theta - truth) < 0.05 * np.linalg.norm(truth)
+
+
 @pytest.mark.parametrize('settings, follows', [
     ({}, False),
     ({'forgetting_factor': 0.999}, True),
-    ({'adaptation': 'kalman', 'parameter_drift': 1e-7}, False)])
+    ({'adaptation': 'kalman', 'parameter_drift': 1e-7}, True)])
 def test_under_forgetting_the_output_lags_follow_the_step_along_psi(settings, follows):
-    # without forgetting the gain falls as 1/t and the newest lag is L&S's a-posteriori
+    # without forgetting or drift the gain falls as 1/t and the newest lag is L&S's a-posteriori
     # w(t) = phi(t)' theta(t), the older ones untouched; under forgetting every lag k < n
     # moves to theta(t) to first order, w(t - k) + psi(t - k)' (theta(t) - theta(t - 1)),
     # the newest from the prediction phi(t)' theta(t - 1)
