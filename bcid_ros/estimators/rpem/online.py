@@ -128,7 +128,8 @@ class Rpem(RpemState, RecursiveEstimator):
     the estimate after the step (a posteriori, L&S). For OE under forgetting
     (lambda < 1) or a random walk (``adaptation: kalman``, whose gain does not
     vanish either: on realistic seed 2's 60 plants its restarts fell 178 -> 5
-    and its stability projections 11,346 -> 1,952 with this) the newest is the simulated output of the estimate before it,
+    and its stability projections 11,346 -> 1,952 with this) the newest is
+    the simulated output of the estimate before it,
     :math:`\hat y(t) = \varphi^T(t)\hat\theta(t-1)`, and after the step the
     last n move to the new estimate along their gradient,
     :math:`w(t-k) \mathrel{+}= \psi^T(t-k)\,\Delta\hat\theta` (k < n): the lags of
