@@ -91,8 +91,9 @@ SETTLING_EXCUSE = 4.0
 UNDERSTATEMENT_LIMIT = 100.0
 #: How the reason of an understated covariance begins (it names the std, not the model).
 UNDERSTATED = 'parameter std too small'
-#: The check runs every this many recorded samples (its cost, a simulation of the window and
-#: one least-squares solve, a few ms, amortised).
+#: The check runs every this many recorded samples by default (its cost, a simulation of the
+#: window and one least-squares solve, a few ms, amortised); an estimator may ask for a
+#: shorter period (:class:`SimulationWindow`'s ``period``).
 CHECK_PERIOD = 500
 
 
@@ -452,7 +453,7 @@ class SimulationWindow:
     detrends), :meth:`gap` forgets them at a sample the estimator does not record (the
     verdict holds), :meth:`clear` forgets them and the verdict (a restart), and
     :meth:`reasons` runs
-    :func:`check` on them every :data:`CHECK_PERIOD` recorded samples once there are enough
+    :func:`check` on them every ``period`` recorded samples once there are enough
     (at every call while the window fills), keeping its reason in between.
 
     Parameters
@@ -461,11 +462,26 @@ class SimulationWindow:
         The model's structure.
     forgetting_factor : float
         The estimator's lambda, which sets L (:func:`window_length`).
+    period : int
+        The recorded samples from one check to the next (:data:`CHECK_PERIOD`; 1: at every
+        :meth:`reasons` with a sample since the last check).
+
+    Raises
+    ------
+    ValueError
+        If ``period`` is below 1.
 
     """
 
+    #: The recorded samples from one check to the next (the windows over plants share it).
+    period = CHECK_PERIOD
+
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
-                 input_delay: Sequence[int], forgetting_factor: float = 1.0) -> None:
+                 input_delay: Sequence[int], forgetting_factor: float = 1.0,
+                 period: int = CHECK_PERIOD) -> None:
+        if period < 1:
+            raise ValueError(f'period must be at least 1, got {period!r}')
+        self.period = period
         self.order = order
         self.lags = numerator_lags(order, num_inputs, feedthrough, input_delay)
         self.minimum = SAMPLES_PER_PARAMETER * (state_count(order, self.lags) + 1 + order
@@ -525,16 +541,21 @@ class SimulationWindow:
 
     def _due(self) -> bool:
         """
-        Return whether the window is due for a check: CHECK_PERIOD samples since the last.
+        Return whether the window is due for a check: ``period`` samples since the last.
 
         While the window fills, at every call (the estimators decide their validity every
         ``rules.VALIDITY_PERIOD`` samples: at most ``WINDOW / 100`` extra checks): a bias
         shows in T in proportion to the window's length, and a record shorter than
-        CHECK_PERIOD past the first check would otherwise keep the verdict of its first,
+        the period past the first check would otherwise keep the verdict of its first,
         shortest window (three-input rls under output-error noise, 600 samples: T 18.1 on
         the first window of 229 samples, 53.8 on 519, against a limit of 20.1).
         """
-        return self._since >= CHECK_PERIOD or (self._since > 0 and self._filled < self.window)
+        return self._since >= self.period or (self._since > 0 and self._filled < self.window)
+
+    @property
+    def judged(self) -> bool:
+        """Whether the samples kept since the last gap or restart have had a verdict."""
+        return self._judged
 
     def judging(self) -> bool:
         """Return whether the next :meth:`reasons` runs the check (rather than keep a verdict)."""

@@ -19,7 +19,8 @@ from typing import Any, Callable, ClassVar, Sequence
 import numpy as np
 
 from bcid_ros.estimators.residual_state import residual_reasons
-from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationWindow
+from bcid_ros.estimators.simulation_check import (CHECK_PERIOD, simulation_reasons,
+                                                  SimulationWindow)
 
 
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
@@ -108,6 +109,8 @@ class Validity:
     #: The simulation check's window, whose reason joins them too (None: it keeps none;
     #: :meth:`_start_simulation_check`).
     _simulation: SimulationWindow | None = None
+    #: The recorded samples from one simulation check to the next (1: at every decision).
+    _SIMULATION_CHECK_PERIOD: ClassVar[int] = CHECK_PERIOD
 
     @property
     def valid(self) -> bool:
@@ -175,7 +178,8 @@ class Validity:
         it in :meth:`_decide_validity` and keeps it in the state (docs/trust.md).
         """
         self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
-                                            self.input_delay, self._forgetting_factor)
+                                            self.input_delay, self._forgetting_factor,
+                                            self._SIMULATION_CHECK_PERIOD)
 
     def _live_reasons(self) -> list[str] | tuple[str, ...]:
         """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""

@@ -15,7 +15,9 @@ from scipy import signal
 
 from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.estimators import make_batched_estimator, make_estimator
-from bcid_ros.estimators.simulation_check import FALSE_ALARM, window_length
+from bcid_ros.estimators.rules import VALIDITY_PERIOD
+from bcid_ros.estimators.simulation_check import (FALSE_ALARM, judge, numerator_lags,
+                                                  window_length)
 from bcid_ros.simulation import make_scenario
 
 #: Samples of each record.
@@ -156,3 +158,46 @@ def test_rpem_is_not_valid_with_its_estimate_far_outside_its_std():
     estimator.run(case.y, case.u)
     z = np.abs(estimator.theta - case.theta) / estimator.parameter_std
     assert not (estimator.valid and z.max() > 4.5), (z, estimator.validity_reasons)
+
+
+def first_contradicted(estimator, y, u, start, every=5):
+    """
+    Feed ``y``, ``u``; return when the check contradicts the estimate, and when it is named.
+
+    The first: the first sample (a multiple of ``every`` from ``start``, once valid) where
+    the check on the last L samples contradicts the estimate of that sample; the second:
+    the first where the estimator names its simulation off (None: never).
+    """
+    lags = numerator_lags(estimator.order, estimator.num_inputs, False,
+                          (0,) * estimator.num_inputs)
+    order, length = estimator.order, window_length(1.0)
+    contradicted = named = None
+    was_valid = False
+    for t in range(y.size):
+        was_valid = estimator.update(y[t], u[t]) or was_valid
+        if named is None and simulation_reasons(estimator):
+            named = t
+        if contradicted is None and was_valid and t >= start and t % every == 0:
+            theta, size = estimator.theta, order + lags.size
+            covariance = estimator.parameter_covariance[None, :size, :size]
+            if judge(y[None, t - length + 1:t + 1], u[None, t - length + 1:t + 1],
+                     theta[None, :order], theta[None, order:size].reshape(1, *lags.shape),
+                     lags, covariance=covariance)[3][0]:
+                contradicted = t
+    return contradicted, named
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_rpem_judges_its_window_at_every_validity_decision(seed):
+    # the gain drifts by half over the record and the detector is off: the estimate lags
+    # behind, and the check on the last L samples contradicts it from some sample on. rpem
+    # judges its window at every validity decision (every VALIDITY_PERIOD updates), so it
+    # names the simulation off within VALIDITY_PERIOD samples of that sample; with the
+    # check every CHECK_PERIOD (500) samples its verdict held for up to 500 (seeds 0-3:
+    # 192-267 samples late, now 17-92)
+    y, u = ding_miso(seed, drift=0.5)
+    estimator = make_estimator('rpem', order=2, num_inputs=2, change_detection=False)
+    contradicted, named = first_contradicted(estimator, y, u, start=window_length(1.0))
+    assert contradicted is not None and named is not None
+    assert contradicted - VALIDITY_PERIOD <= named <= contradicted + VALIDITY_PERIOD
+

@@ -173,6 +173,9 @@ class Rpem(RpemState, RecursiveEstimator):
     name = 'rpem'
     noise_names = ('sigma2',)
     tracks = True
+    #: The simulation check at every validity decision, not every CHECK_PERIOD samples: a
+    #: verdict kept between checks let a drift's lag or a new fit go unjudged (docs/trust.md)
+    _SIMULATION_CHECK_PERIOD = 1
 
     def __init__(self, *, model: str = 'oe', **settings: Any) -> None:
         if model not in MODELS:
