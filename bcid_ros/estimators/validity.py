@@ -65,16 +65,18 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     ``change`` is the reason a detected plant change gave (``''``: none); it
     comes first, and holds until the residual tests of ``monitor`` (of
     ``plant`` of a many-plant monitor) are ready again, on a full window of the
-    new plant's samples, with no other reason left: a short-record verdict on
-    the samples replayed at the restart does not end it. ``ready_again``, where
-    given, is the estimator's own word that its estimate now rests on the new
-    plant's samples alone (rpem: a fit of only those) and replaces the residual
-    tests' readiness. Returns the reasons and the change's reason that still
-    holds (``''`` once the change is done).
+    new plant's samples, and the simulation check has judged the model on the
+    samples since the change (its window at its minimum length: the window is
+    cleared at the change, and an empty one has no verdict), with no other
+    reason left: a short-record verdict on the samples replayed at the restart
+    does not end it. ``ready_again``, where given, is the estimator's own word
+    that its estimate now rests on the new plant's samples alone (rpem: a fit of
+    only those) and replaces the residual tests' readiness. Returns the reasons
+    and the change's reason that still holds (``''`` once the change is done).
     """
     found = (monitor, plant, simulation, theta, order, covariance, count)
     reasons = decided_reasons([change, *own] if change else own, *found)
-    if change and reasons == [change] and (
+    if change and reasons == [change] and (simulation is None or simulation.judged) and (
             _ready_again(monitor, plant) if ready_again is None else ready_again):
         return decided_reasons(own, *found), ''
     return reasons, change

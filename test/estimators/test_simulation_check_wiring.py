@@ -12,11 +12,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy import signal
+from test_tracking import changing_plant, run
 
 from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.estimators import make_batched_estimator, make_estimator
 from bcid_ros.estimators.rules import VALIDITY_PERIOD
 from bcid_ros.estimators.simulation_check import (FALSE_ALARM, judge, numerator_lags,
+                                                  SAMPLES_PER_PARAMETER, state_count,
                                                   window_length)
 from bcid_ros.simulation import make_scenario
 
@@ -201,3 +203,18 @@ def test_rpem_judges_its_window_at_every_validity_decision(seed):
     assert contradicted is not None and named is not None
     assert contradicted - VALIDITY_PERIOD <= named <= contradicted + VALIDITY_PERIOD
 
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_rpem_is_not_valid_after_a_change_before_the_check_judged_the_new_samples(seed):
+    # after a detection the window is cleared: valid only once the check has judged the
+    # new model on the window's minimum of the new plant's samples (before: valid again
+    # 75-111 samples after the detection, with no verdict on the new plant's samples)
+    y, u, _ = changing_plant(seed)
+    estimator = make_estimator('rpem', order=2)
+    valid, reasons = run(estimator, y, u)
+    flagged = [t for t, why in enumerate(reasons) if why and why[0].startswith('plant changed')]
+    assert estimator.flags['plant_change'] == 1
+    lags = numerator_lags(2, 1, False, (0,))
+    minimum = SAMPLES_PER_PARAMETER * (state_count(2, lags) + 1 + 2 + lags.size)
+    assert not valid[flagged[0]:flagged[0] + minimum].any()
+    assert valid[-1]
