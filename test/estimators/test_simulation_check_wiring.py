@@ -218,3 +218,17 @@ def test_rpem_is_not_valid_after_a_change_before_the_check_judged_the_new_sample
     minimum = SAMPLES_PER_PARAMETER * (state_count(2, lags) + 1 + 2 + lags.size)
     assert not valid[flagged[0]:flagged[0] + minimum].any()
     assert valid[-1]
+
+
+def test_rpem_judges_its_refit_on_the_window_it_kept():
+    # a restart refits the stored samples of the same plant: the window keeps them, and the
+    # decision at the restart judges at once (it was emptied, and nothing was judged for
+    # the window's minimum of samples after it)
+    y, u = ding_miso(0)
+    estimator = make_estimator('rpem', order=2, num_inputs=2)
+    estimator.run(y[:2000], u[:2000])
+    filled = estimator.get_state().scalars['simulation_filled']
+    assert filled == window_length(1.0)
+    estimator._restart('a test')
+    scalars = estimator.get_state().scalars
+    assert scalars['simulation_filled'] == filled and scalars['simulation_judged']

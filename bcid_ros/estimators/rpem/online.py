@@ -472,8 +472,11 @@ class Rpem(RpemState, RecursiveEstimator):
         """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
         self._flag('restarted')
         self._watch.restarting(reason)
-        # the residuals so far are of the model that drifted
+        # the residuals so far are of the model that drifted; the simulation check's window
+        # holds the same plant's samples, on which the refit is judged at once
+        window = self._simulation
         self._forget_residuals()
+        self._simulation = window
         self._fit(fresh=False)
         self._decide_now()
 
