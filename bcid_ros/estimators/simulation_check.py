@@ -528,15 +528,19 @@ class SimulationWindow:
     def record(self, y: float, u: Any) -> None:
         """Keep one sample."""
         rows = self._rows
-        if self._end == rows.shape[0]:
-            rows[:self.window] = rows[self.window:]
-            self._end = self.window
-        rows[self._end, 0] = y
-        rows[self._end, 1:] = u
-        self._end += 1
-        self._filled = min(self._filled + 1, self.window)
+        end = self._end
+        if end == rows.shape[0]:
+            end = self.window
+            rows[:end] = rows[end:]
+        row = rows[end]
+        row[0] = y
+        row[1:] = u
+        self._end = end + 1
+        filled = self._filled
+        if filled < self.window:
+            self._filled = filled = filled + 1
         self._since += 1
-        if self._filled < self.minimum:
+        if filled < self.minimum:
             self._judged = False
 
     def _due(self) -> bool:

@@ -219,6 +219,7 @@ class Rpem(RpemState, RecursiveEstimator):
                                   self._offset, self._channel)
         self._watch = RestartWatch()
         self._detector = ChangeDetector()
+        self._warning_level = CHANGE_WARNING * self._detector.threshold
         self._left_fit = ChangeDetector()
         self._reset()
 
@@ -579,11 +580,10 @@ class Rpem(RpemState, RecursiveEstimator):
         the warning costs that share of a stationary record's valid samples.
         """
         statistic = self._detector.statistic_of()
-        level = self._detector.threshold
-        if statistic < CHANGE_WARNING * level:
+        if statistic < self._warning_level:  # (once a sample: valid is asked at each update)
             return ()
-        return (f'change suspected: the change detector at {statistic / level:.2f} of its '
-                'threshold',)
+        return (f'change suspected: the change detector at '
+                f'{statistic / self._detector.threshold:.2f} of its threshold',)
 
     # --------------------------------------------------------- the accessors
     @property
