@@ -97,7 +97,8 @@ UNDERSTATED = 'parameter std too small'
 CHECK_PERIOD = 500
 
 
-def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
+def simulate(a: np.ndarray, drive: np.ndarray,
+             recursion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     r"""
     Return :math:`x = d / A(q)` from rest for each plant and each series.
 
@@ -108,8 +109,9 @@ def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
     samples: within a block, :math:`x = H d + Z s`, H the lower-triangular Toeplitz matrix
     of the impulse response of 1/A over the block and Z the free responses to the state
     :math:`s = [x_{t-1} \dots x_{t-n}]` at its start, both from the recursion over one
-    block; the next state is the block's last n outputs. Exact, in numpy, one matrix
-    product per block instead of one step per sample.
+    block (:func:`block_recursion`; ``recursion``: already made for ``a``); the next state
+    is the block's last n outputs. Exact, in numpy, one matrix product per block instead of
+    one step per sample.
     """
     count, series, length = drive.shape
     order = a.shape[1]
@@ -117,21 +119,9 @@ def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
     if order == 0:
         x[:] = drive
         return x
-    block = max(BLOCK, order)
-    # the recursion over one block: impulse response (column 0) and the n free responses
-    unit = np.zeros((count, 1 + order, block))
-    unit[:, 0, 0] = 1.0
-    state = np.zeros((count, 1 + order, order))
-    state[:, 1:, :] = np.eye(order)
+    toeplitz, free = block_recursion(a) if recursion is None else recursion
+    block = toeplitz.shape[1]
     with np.errstate(over='ignore', invalid='ignore'):
-        for t in range(block):
-            value = unit[:, :, t] - np.einsum('kj,ksj->ks', a, state)
-            unit[:, :, t] = value
-            state = np.concatenate([value[:, :, None], state[:, :, :-1]], axis=2)
-        impulse, free = unit[:, 0], unit[:, 1:]
-        rows = np.arange(block)
-        toeplitz = np.where(rows[:, None] >= rows[None, :],
-                            impulse[:, np.clip(rows[:, None] - rows[None, :], 0, None)], 0.0)
         current = np.zeros((count, series, order))
         for start in range(0, length, block):
             stop = min(start + block, length)
@@ -147,6 +137,33 @@ def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
                           max(stop - order, 0)][:, :, ::-1]
                 current[:, :, tail.shape[2]:tail.shape[2] + older.shape[2]] = older
     return x
+
+
+def block_recursion(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return :func:`simulate`'s H ``(K, B, B)`` and Z ``(K, n, B)`` of 1/A over one block.
+
+    From the recursion over ``max(BLOCK, n)`` samples: the impulse response (H's columns,
+    shifted) and the free responses to each of the n past outputs. Made once per model, it
+    serves every simulation of that model (the check simulates three times).
+    """
+    count, order = a.shape
+    block = max(BLOCK, order)
+    # the recursion over one block: impulse response (column 0) and the n free responses
+    unit = np.zeros((count, 1 + order, block))
+    unit[:, 0, 0] = 1.0
+    state = np.zeros((count, 1 + order, order))
+    state[:, 1:, :] = np.eye(order)
+    with np.errstate(over='ignore', invalid='ignore'):
+        for t in range(block):
+            value = unit[:, :, t] - np.einsum('kj,ksj->ks', a, state)
+            unit[:, :, t] = value
+            state = np.concatenate([value[:, :, None], state[:, :, :-1]], axis=2)
+        impulse, free = unit[:, 0], unit[:, 1:]
+        rows = np.arange(block)
+        toeplitz = np.where(rows[:, None] >= rows[None, :],
+                            impulse[:, np.clip(rows[:, None] - rows[None, :], 0, None)], 0.0)
+    return toeplitz, free
 
 
 def input_drive(b: np.ndarray, lags: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -180,20 +197,23 @@ def state_count(order: int, lags: np.ndarray) -> int:
     return max(order, int(lags.max()) if lags.size else 0)
 
 
-def _free_responses(a: np.ndarray, length: int, states: int) -> np.ndarray:
+def _free_responses(a: np.ndarray, length: int, states: int,
+                    recursion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Return the nuisance columns ``(L, s + 1)``: q^-m delta / A (m < s) and a constant."""
     drives = np.zeros((1, states, length))
     for m in range(min(states, length)):
         drives[0, m, m] = 1.0
-    responses = simulate(a[None], drives)[0] if states else np.zeros((0, length))
+    responses = simulate(a[None], drives, recursion)[0] if states else np.zeros((0, length))
     return np.vstack([responses, np.ones((1, length))]).T
 
 
 def _simulation_error(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
-                      lags: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      lags: np.ndarray, recursion: tuple[np.ndarray, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (epsilon, simulated output G u, nuisance columns) of one plant's window."""
-    simulated = simulate(a[None], input_drive(b[None], lags, u[None])[:, None])[0, 0]
-    nuisance = _free_responses(a, y.size, state_count(a.size, lags))
+    simulated = simulate(a[None], input_drive(b[None], lags, u[None])[:, None],
+                         recursion)[0, 0]
+    nuisance = _free_responses(a, y.size, state_count(a.size, lags), recursion)
     error = y - simulated
     scale = np.linalg.norm(nuisance, axis=0)
     scale[scale == 0.0] = 1.0
@@ -201,13 +221,13 @@ def _simulation_error(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray
     return error - (nuisance / scale) @ beta, simulated, nuisance
 
 
-def _gradient(a: np.ndarray, simulated: np.ndarray, u: np.ndarray,
-              lags: np.ndarray) -> np.ndarray:
+def _gradient(a: np.ndarray, simulated: np.ndarray, u: np.ndarray, lags: np.ndarray,
+              recursion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Return psi = d yhat / d[a, b] over the window, ``(L, p)`` (Ljung 1999, ch. 10)."""
     length = simulated.size
     order = a.size
     series = np.vstack([simulated[None], u.T])[None]
-    filtered = simulate(a[None], series)[0]
+    filtered = simulate(a[None], series, recursion)[0]
     columns = np.zeros((length, order + lags.size))
     for k in range(1, order + 1):
         columns[k:, k - 1] = -filtered[0, :length - k]
@@ -331,8 +351,9 @@ def _refit_columns(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
                    lags: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray,
                                               np.ndarray, np.ndarray]:
     """Return :func:`refit`'s values and the gradient ψ and nuisance columns N it used."""
-    error, simulated, nuisance = _simulation_error(y, u, a, b, lags)
-    gradient = _gradient(a, simulated, u, lags)
+    recursion = block_recursion(a[None]) if a.size else None  # one model: made once
+    error, simulated, nuisance = _simulation_error(y, u, a, b, lags, recursion)
+    gradient = _gradient(a, simulated, u, lags, recursion)
     columns = np.hstack([gradient, nuisance])
     scale = np.linalg.norm(columns, axis=0)
     scale[scale == 0.0] = 1.0
@@ -648,6 +669,6 @@ def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order
 
 
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE',
-           'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'check',
-           'input_drive', 'judge', 'numerator_lags', 'refit', 'settled_statistic', 'simulate',
-           'simulation_reasons', 'state_count', 'understatement', 'window_length']
+           'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'block_recursion',
+           'check', 'input_drive', 'judge', 'numerator_lags', 'refit', 'settled_statistic',
+           'simulate', 'simulation_reasons', 'state_count', 'understatement', 'window_length']
