@@ -424,6 +424,12 @@ class ChangeDetector:
         return age
 
     # ------------------------------------------------------------ the state
+    def statistic_of(self, row: int = 0) -> float:
+        """Return plant ``row``'s CUSUM S, without writing one plant's numbers back."""
+        if self._one is not None and row == 0:
+            return self._one[_ROW['statistic']]
+        return float(self._values[_ROW['statistic'], row])
+
     def evidence(self) -> np.ndarray:
         """Return each plant's CUSUM over the threshold, ``(K,)`` (1: a detection)."""
         return self.state.statistic / self.threshold

@@ -91,12 +91,14 @@ SETTLING_EXCUSE = 4.0
 UNDERSTATEMENT_LIMIT = 100.0
 #: How the reason of an understated covariance begins (it names the std, not the model).
 UNDERSTATED = 'parameter std too small'
-#: The check runs every this many recorded samples (its cost, a simulation of the window and
-#: one least-squares solve, a few ms, amortised).
+#: The check runs every this many recorded samples by default (its cost, a simulation of the
+#: window and one least-squares solve, a few ms, amortised); an estimator may ask for a
+#: shorter period (:class:`SimulationWindow`'s ``period``).
 CHECK_PERIOD = 500
 
 
-def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
+def simulate(a: np.ndarray, drive: np.ndarray,
+             recursion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     r"""
     Return :math:`x = d / A(q)` from rest for each plant and each series.
 
@@ -107,8 +109,9 @@ def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
     samples: within a block, :math:`x = H d + Z s`, H the lower-triangular Toeplitz matrix
     of the impulse response of 1/A over the block and Z the free responses to the state
     :math:`s = [x_{t-1} \dots x_{t-n}]` at its start, both from the recursion over one
-    block; the next state is the block's last n outputs. Exact, in numpy, one matrix
-    product per block instead of one step per sample.
+    block (:func:`block_recursion`; ``recursion``: already made for ``a``); the next state
+    is the block's last n outputs. Exact, in numpy, one matrix product per block instead of
+    one step per sample.
     """
     count, series, length = drive.shape
     order = a.shape[1]
@@ -116,21 +119,9 @@ def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
     if order == 0:
         x[:] = drive
         return x
-    block = max(BLOCK, order)
-    # the recursion over one block: impulse response (column 0) and the n free responses
-    unit = np.zeros((count, 1 + order, block))
-    unit[:, 0, 0] = 1.0
-    state = np.zeros((count, 1 + order, order))
-    state[:, 1:, :] = np.eye(order)
+    toeplitz, free = block_recursion(a) if recursion is None else recursion
+    block = toeplitz.shape[1]
     with np.errstate(over='ignore', invalid='ignore'):
-        for t in range(block):
-            value = unit[:, :, t] - np.einsum('kj,ksj->ks', a, state)
-            unit[:, :, t] = value
-            state = np.concatenate([value[:, :, None], state[:, :, :-1]], axis=2)
-        impulse, free = unit[:, 0], unit[:, 1:]
-        rows = np.arange(block)
-        toeplitz = np.where(rows[:, None] >= rows[None, :],
-                            impulse[:, np.clip(rows[:, None] - rows[None, :], 0, None)], 0.0)
         current = np.zeros((count, series, order))
         for start in range(0, length, block):
             stop = min(start + block, length)
@@ -146,6 +137,33 @@ def simulate(a: np.ndarray, drive: np.ndarray) -> np.ndarray:
                           max(stop - order, 0)][:, :, ::-1]
                 current[:, :, tail.shape[2]:tail.shape[2] + older.shape[2]] = older
     return x
+
+
+def block_recursion(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return :func:`simulate`'s H ``(K, B, B)`` and Z ``(K, n, B)`` of 1/A over one block.
+
+    From the recursion over ``max(BLOCK, n)`` samples: the impulse response (H's columns,
+    shifted) and the free responses to each of the n past outputs. Made once per model, it
+    serves every simulation of that model (the check simulates three times).
+    """
+    count, order = a.shape
+    block = max(BLOCK, order)
+    # the recursion over one block: impulse response (column 0) and the n free responses
+    unit = np.zeros((count, 1 + order, block))
+    unit[:, 0, 0] = 1.0
+    state = np.zeros((count, 1 + order, order))
+    state[:, 1:, :] = np.eye(order)
+    with np.errstate(over='ignore', invalid='ignore'):
+        for t in range(block):
+            value = unit[:, :, t] - np.einsum('kj,ksj->ks', a, state)
+            unit[:, :, t] = value
+            state = np.concatenate([value[:, :, None], state[:, :, :-1]], axis=2)
+        impulse, free = unit[:, 0], unit[:, 1:]
+        rows = np.arange(block)
+        toeplitz = np.where(rows[:, None] >= rows[None, :],
+                            impulse[:, np.clip(rows[:, None] - rows[None, :], 0, None)], 0.0)
+    return toeplitz, free
 
 
 def input_drive(b: np.ndarray, lags: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -179,20 +197,23 @@ def state_count(order: int, lags: np.ndarray) -> int:
     return max(order, int(lags.max()) if lags.size else 0)
 
 
-def _free_responses(a: np.ndarray, length: int, states: int) -> np.ndarray:
+def _free_responses(a: np.ndarray, length: int, states: int,
+                    recursion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Return the nuisance columns ``(L, s + 1)``: q^-m delta / A (m < s) and a constant."""
     drives = np.zeros((1, states, length))
     for m in range(min(states, length)):
         drives[0, m, m] = 1.0
-    responses = simulate(a[None], drives)[0] if states else np.zeros((0, length))
+    responses = simulate(a[None], drives, recursion)[0] if states else np.zeros((0, length))
     return np.vstack([responses, np.ones((1, length))]).T
 
 
 def _simulation_error(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
-                      lags: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      lags: np.ndarray, recursion: tuple[np.ndarray, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Return (epsilon, simulated output G u, nuisance columns) of one plant's window."""
-    simulated = simulate(a[None], input_drive(b[None], lags, u[None])[:, None])[0, 0]
-    nuisance = _free_responses(a, y.size, state_count(a.size, lags))
+    simulated = simulate(a[None], input_drive(b[None], lags, u[None])[:, None],
+                         recursion)[0, 0]
+    nuisance = _free_responses(a, y.size, state_count(a.size, lags), recursion)
     error = y - simulated
     scale = np.linalg.norm(nuisance, axis=0)
     scale[scale == 0.0] = 1.0
@@ -200,13 +221,13 @@ def _simulation_error(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray
     return error - (nuisance / scale) @ beta, simulated, nuisance
 
 
-def _gradient(a: np.ndarray, simulated: np.ndarray, u: np.ndarray,
-              lags: np.ndarray) -> np.ndarray:
+def _gradient(a: np.ndarray, simulated: np.ndarray, u: np.ndarray, lags: np.ndarray,
+              recursion: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Return psi = d yhat / d[a, b] over the window, ``(L, p)`` (Ljung 1999, ch. 10)."""
     length = simulated.size
     order = a.size
     series = np.vstack([simulated[None], u.T])[None]
-    filtered = simulate(a[None], series)[0]
+    filtered = simulate(a[None], series, recursion)[0]
     columns = np.zeros((length, order + lags.size))
     for k in range(1, order + 1):
         columns[k:, k - 1] = -filtered[0, :length - k]
@@ -330,8 +351,9 @@ def _refit_columns(y: np.ndarray, u: np.ndarray, a: np.ndarray, b: np.ndarray,
                    lags: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray,
                                               np.ndarray, np.ndarray]:
     """Return :func:`refit`'s values and the gradient ψ and nuisance columns N it used."""
-    error, simulated, nuisance = _simulation_error(y, u, a, b, lags)
-    gradient = _gradient(a, simulated, u, lags)
+    recursion = block_recursion(a[None]) if a.size else None  # one model: made once
+    error, simulated, nuisance = _simulation_error(y, u, a, b, lags, recursion)
+    gradient = _gradient(a, simulated, u, lags, recursion)
     columns = np.hstack([gradient, nuisance])
     scale = np.linalg.norm(columns, axis=0)
     scale[scale == 0.0] = 1.0
@@ -452,7 +474,7 @@ class SimulationWindow:
     detrends), :meth:`gap` forgets them at a sample the estimator does not record (the
     verdict holds), :meth:`clear` forgets them and the verdict (a restart), and
     :meth:`reasons` runs
-    :func:`check` on them every :data:`CHECK_PERIOD` recorded samples once there are enough
+    :func:`check` on them every ``period`` recorded samples once there are enough
     (at every call while the window fills), keeping its reason in between.
 
     Parameters
@@ -461,11 +483,26 @@ class SimulationWindow:
         The model's structure.
     forgetting_factor : float
         The estimator's lambda, which sets L (:func:`window_length`).
+    period : int
+        The recorded samples from one check to the next (:data:`CHECK_PERIOD`; 1: at every
+        :meth:`reasons` with a sample since the last check).
+
+    Raises
+    ------
+    ValueError
+        If ``period`` is below 1.
 
     """
 
+    #: The recorded samples from one check to the next (the windows over plants share it).
+    period = CHECK_PERIOD
+
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
-                 input_delay: Sequence[int], forgetting_factor: float = 1.0) -> None:
+                 input_delay: Sequence[int], forgetting_factor: float = 1.0,
+                 period: int = CHECK_PERIOD) -> None:
+        if period < 1:
+            raise ValueError(f'period must be at least 1, got {period!r}')
+        self.period = period
         self.order = order
         self.lags = numerator_lags(order, num_inputs, feedthrough, input_delay)
         self.minimum = SAMPLES_PER_PARAMETER * (state_count(order, self.lags) + 1 + order
@@ -512,29 +549,38 @@ class SimulationWindow:
     def record(self, y: float, u: Any) -> None:
         """Keep one sample."""
         rows = self._rows
-        if self._end == rows.shape[0]:
-            rows[:self.window] = rows[self.window:]
-            self._end = self.window
-        rows[self._end, 0] = y
-        rows[self._end, 1:] = u
-        self._end += 1
-        self._filled = min(self._filled + 1, self.window)
+        end = self._end
+        if end == rows.shape[0]:
+            end = self.window
+            rows[:end] = rows[end:]
+        row = rows[end]
+        row[0] = y
+        row[1:] = u
+        self._end = end + 1
+        filled = self._filled
+        if filled < self.window:
+            self._filled = filled = filled + 1
         self._since += 1
-        if self._filled < self.minimum:
+        if filled < self.minimum:
             self._judged = False
 
     def _due(self) -> bool:
         """
-        Return whether the window is due for a check: CHECK_PERIOD samples since the last.
+        Return whether the window is due for a check: ``period`` samples since the last.
 
         While the window fills, at every call (the estimators decide their validity every
         ``rules.VALIDITY_PERIOD`` samples: at most ``WINDOW / 100`` extra checks): a bias
         shows in T in proportion to the window's length, and a record shorter than
-        CHECK_PERIOD past the first check would otherwise keep the verdict of its first,
+        the period past the first check would otherwise keep the verdict of its first,
         shortest window (three-input rls under output-error noise, 600 samples: T 18.1 on
         the first window of 229 samples, 53.8 on 519, against a limit of 20.1).
         """
-        return self._since >= CHECK_PERIOD or (self._since > 0 and self._filled < self.window)
+        return self._since >= self.period or (self._since > 0 and self._filled < self.window)
+
+    @property
+    def judged(self) -> bool:
+        """Whether the samples kept since the last gap or restart have had a verdict."""
+        return self._judged
 
     def judging(self) -> bool:
         """Return whether the next :meth:`reasons` runs the check (rather than keep a verdict)."""
@@ -623,6 +669,6 @@ def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order
 
 
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE',
-           'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'check',
-           'input_drive', 'judge', 'numerator_lags', 'refit', 'settled_statistic', 'simulate',
-           'simulation_reasons', 'state_count', 'understatement', 'window_length']
+           'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'block_recursion',
+           'check', 'input_drive', 'judge', 'numerator_lags', 'refit', 'settled_statistic',
+           'simulate', 'simulation_reasons', 'state_count', 'understatement', 'window_length']

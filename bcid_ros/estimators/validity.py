@@ -19,7 +19,8 @@ from typing import Any, Callable, ClassVar, Sequence
 import numpy as np
 
 from bcid_ros.estimators.residual_state import residual_reasons
-from bcid_ros.estimators.simulation_check import simulation_reasons, SimulationWindow
+from bcid_ros.estimators.simulation_check import (CHECK_PERIOD, simulation_reasons,
+                                                  SimulationWindow)
 
 
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
@@ -64,16 +65,18 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     ``change`` is the reason a detected plant change gave (``''``: none); it
     comes first, and holds until the residual tests of ``monitor`` (of
     ``plant`` of a many-plant monitor) are ready again, on a full window of the
-    new plant's samples, with no other reason left: a short-record verdict on
-    the samples replayed at the restart does not end it. ``ready_again``, where
-    given, is the estimator's own word that its estimate now rests on the new
-    plant's samples alone (rpem: a fit of only those) and replaces the residual
-    tests' readiness. Returns the reasons and the change's reason that still
-    holds (``''`` once the change is done).
+    new plant's samples, and the simulation check has judged the model on the
+    samples since the change (its window at its minimum length: the window is
+    cleared at the change, and an empty one has no verdict), with no other
+    reason left: a short-record verdict on the samples replayed at the restart
+    does not end it. ``ready_again``, where given, is the estimator's own word
+    that its estimate now rests on the new plant's samples alone (rpem: a fit of
+    only those) and replaces the residual tests' readiness. Returns the reasons
+    and the change's reason that still holds (``''`` once the change is done).
     """
     found = (monitor, plant, simulation, theta, order, covariance, count)
     reasons = decided_reasons([change, *own] if change else own, *found)
-    if change and reasons == [change] and (
+    if change and reasons == [change] and (simulation is None or simulation.judged) and (
             _ready_again(monitor, plant) if ready_again is None else ready_again):
         return decided_reasons(own, *found), ''
     return reasons, change
@@ -108,6 +111,8 @@ class Validity:
     #: The simulation check's window, whose reason joins them too (None: it keeps none;
     #: :meth:`_start_simulation_check`).
     _simulation: SimulationWindow | None = None
+    #: The recorded samples from one simulation check to the next (1: at every decision).
+    _SIMULATION_CHECK_PERIOD: ClassVar[int] = CHECK_PERIOD
 
     @property
     def valid(self) -> bool:
@@ -175,7 +180,8 @@ class Validity:
         it in :meth:`_decide_validity` and keeps it in the state (docs/trust.md).
         """
         self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
-                                            self.input_delay, self._forgetting_factor)
+                                            self.input_delay, self._forgetting_factor,
+                                            self._SIMULATION_CHECK_PERIOD)
 
     def _live_reasons(self) -> list[str] | tuple[str, ...]:
         """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""

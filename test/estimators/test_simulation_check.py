@@ -16,9 +16,9 @@ import pytest
 from scipy import signal
 
 from bcid_ros.estimators import make_estimator
-from bcid_ros.estimators.simulation_check import (check, FALSE_ALARM, judge, numerator_lags,
-                                                  refit, SimulationWindow, UNDERSTATED,
-                                                  UNDERSTATEMENT_LIMIT)
+from bcid_ros.estimators.simulation_check import (check, CHECK_PERIOD, FALSE_ALARM, judge,
+                                                  numerator_lags, refit, SimulationWindow,
+                                                  UNDERSTATED, UNDERSTATEMENT_LIMIT)
 from bcid_ros.estimators.simulation_windows import SimulationWindows
 from equivalence import assert_paths_agree, two_path_spread
 
@@ -160,6 +160,27 @@ def test_a_gap_keeps_the_verdict_until_the_window_judges_again():
     assert window.reasons(*model)
     window.clear()  # a restart: a new model, no verdict
     assert window.reasons(*model) == []
+
+
+@pytest.mark.parametrize('period', [1, 100, CHECK_PERIOD])
+def test_a_full_window_is_judged_every_period_samples(period):
+    # a model off by half its gain on a full window: the window is judged again once
+    # ``period`` samples came since the last verdict, and the verdict held in between
+    rng = np.random.default_rng(4)
+    u = np.repeat(np.sign(rng.standard_normal(600)), 5)
+    y = signal.lfilter([0.0, 0.5], [1.0, -0.9], u) + 0.01 * rng.standard_normal(u.size)
+    window = SimulationWindow(1, 1, False, (0,), period=period)
+    for k in range(window.window):
+        window.record(y[k], u[k:k + 1])
+    right, wrong = (np.array([-0.9]), np.array([0.5])), (np.array([-0.9]), np.array([0.25]))
+    assert window.reasons(*right) == [] and window.judged
+    judged = []
+    for k in range(window.window, window.window + CHECK_PERIOD):
+        window.record(y[k], u[k:k + 1])
+        judged.append(bool(window.reasons(*wrong)))
+    assert judged.index(True) == period - 1  # the samples since the verdict reach period
+    with pytest.raises(ValueError, match='period'):
+        SimulationWindow(1, 1, False, (0,), period=0)
 
 
 def _oe_record(seed, count):

@@ -12,10 +12,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy import signal
+from test_tracking import changing_plant, run
 
 from bcid_ros.analysis.realistic import realistic_case
 from bcid_ros.estimators import make_batched_estimator, make_estimator
-from bcid_ros.estimators.simulation_check import FALSE_ALARM, window_length
+from bcid_ros.estimators.rules import VALIDITY_PERIOD
+from bcid_ros.estimators.simulation_check import (FALSE_ALARM, judge, numerator_lags,
+                                                  SAMPLES_PER_PARAMETER, state_count,
+                                                  window_length)
 from bcid_ros.simulation import make_scenario
 
 #: Samples of each record.
@@ -156,3 +160,75 @@ def test_rpem_is_not_valid_with_its_estimate_far_outside_its_std():
     estimator.run(case.y, case.u)
     z = np.abs(estimator.theta - case.theta) / estimator.parameter_std
     assert not (estimator.valid and z.max() > 4.5), (z, estimator.validity_reasons)
+
+
+def first_contradicted(estimator, y, u, start, every=5):
+    """
+    Feed ``y``, ``u``; return when the check contradicts the estimate, and when it is named.
+
+    The first: the first sample (a multiple of ``every`` from ``start``, once valid) where
+    the check on the last L samples contradicts the estimate of that sample; the second:
+    the first where the estimator names its simulation off (None: never).
+    """
+    lags = numerator_lags(estimator.order, estimator.num_inputs, False,
+                          (0,) * estimator.num_inputs)
+    order, length = estimator.order, window_length(1.0)
+    contradicted = named = None
+    was_valid = False
+    for t in range(y.size):
+        was_valid = estimator.update(y[t], u[t]) or was_valid
+        if named is None and simulation_reasons(estimator):
+            named = t
+        if contradicted is None and was_valid and t >= start and t % every == 0:
+            theta, size = estimator.theta, order + lags.size
+            covariance = estimator.parameter_covariance[None, :size, :size]
+            if judge(y[None, t - length + 1:t + 1], u[None, t - length + 1:t + 1],
+                     theta[None, :order], theta[None, order:size].reshape(1, *lags.shape),
+                     lags, covariance=covariance)[3][0]:
+                contradicted = t
+    return contradicted, named
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_rpem_judges_its_window_at_every_validity_decision(seed):
+    # the gain drifts by half over the record and the detector is off: the estimate lags
+    # behind, and the check on the last L samples contradicts it from some sample on. rpem
+    # judges its window at every validity decision (every VALIDITY_PERIOD updates), so it
+    # names the simulation off within VALIDITY_PERIOD samples of that sample; with the
+    # check every CHECK_PERIOD (500) samples its verdict held for up to 500 (seeds 0-3:
+    # 192-267 samples late, now 17-92)
+    y, u = ding_miso(seed, drift=0.5)
+    estimator = make_estimator('rpem', order=2, num_inputs=2, change_detection=False)
+    contradicted, named = first_contradicted(estimator, y, u, start=window_length(1.0))
+    assert contradicted is not None and named is not None
+    assert contradicted - VALIDITY_PERIOD <= named <= contradicted + VALIDITY_PERIOD
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2, 3])
+def test_rpem_is_not_valid_after_a_change_before_the_check_judged_the_new_samples(seed):
+    # after a detection the window is cleared: valid only once the check has judged the
+    # new model on the window's minimum of the new plant's samples (before: valid again
+    # 75-111 samples after the detection, with no verdict on the new plant's samples)
+    y, u, _ = changing_plant(seed)
+    estimator = make_estimator('rpem', order=2)
+    valid, reasons = run(estimator, y, u)
+    flagged = [t for t, why in enumerate(reasons) if why and why[0].startswith('plant changed')]
+    assert estimator.flags['plant_change'] == 1
+    lags = numerator_lags(2, 1, False, (0,))
+    minimum = SAMPLES_PER_PARAMETER * (state_count(2, lags) + 1 + 2 + lags.size)
+    assert not valid[flagged[0]:flagged[0] + minimum].any()
+    assert valid[-1]
+
+
+def test_rpem_judges_its_refit_on_the_window_it_kept():
+    # a restart refits the stored samples of the same plant: the window keeps them, and the
+    # decision at the restart judges at once (it was emptied, and nothing was judged for
+    # the window's minimum of samples after it)
+    y, u = ding_miso(0)
+    estimator = make_estimator('rpem', order=2, num_inputs=2)
+    estimator.run(y[:2000], u[:2000])
+    filled = estimator.get_state().scalars['simulation_filled']
+    assert filled == window_length(1.0)
+    estimator._restart('a test')
+    scalars = estimator.get_state().scalars
+    assert scalars['simulation_filled'] == filled and scalars['simulation_judged']

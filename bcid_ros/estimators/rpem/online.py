@@ -46,6 +46,10 @@ MODELS = ('oe', 'armax')
 LAMBDA_START = 1.0
 #: See LAMBDA_START.
 LAMBDA_RATE = 0.99
+#: Not valid while the change detector's CUSUM S is at or past this share w of its threshold
+#: h: under no change exp(S) is a supermartingale, so S >= w h on at most exp(-w h) =
+#: FALSE_ALARM^w of the samples (0.32 %; docs/tracking.md, "Valid while far off")
+CHANGE_WARNING = 0.5
 
 
 class Rpem(RpemState, RecursiveEstimator):
@@ -196,6 +200,11 @@ class Rpem(RpemState, RecursiveEstimator):
     name = 'rpem'
     noise_names = ('sigma2',)
     tracks = True
+    #: The simulation check at every validity decision, not every CHECK_PERIOD samples: a
+    #: verdict kept between checks let a drift's lag or a new fit go unjudged (docs/trust.md)
+    _SIMULATION_CHECK_PERIOD = 1
+    #: the change detector's warning (CHANGE_WARNING) moves with every sample
+    _LIVE_REASONS = True
 
     def __init__(self, *, model: str = 'oe', **settings: Any) -> None:
         if model not in MODELS:
@@ -233,6 +242,7 @@ class Rpem(RpemState, RecursiveEstimator):
                                   self._offset, self._channel)
         self._watch = RestartWatch()
         self._detector = ChangeDetector()
+        self._warning_level = CHANGE_WARNING * self._detector.threshold
         self._left_fit = ChangeDetector()
         self._reset()
 
@@ -503,8 +513,11 @@ class Rpem(RpemState, RecursiveEstimator):
         """Restart from a fit of the stored samples (flag ``restarted``), e.g. after a drift."""
         self._flag('restarted')
         self._watch.restarting(reason)
-        # the residuals so far are of the model that drifted
+        # the residuals so far are of the model that drifted; the simulation check's window
+        # holds the same plant's samples, on which the refit is judged at once
+        window = self._simulation
         self._forget_residuals()
+        self._simulation = window
         self._fit(fresh=False)
         self._decide_now()
 
@@ -589,6 +602,22 @@ class Rpem(RpemState, RecursiveEstimator):
         # covariance's fault, not the model's, and holds no detection back
         self._settled = self._settled or all(
             reason.startswith(UNDERSTATED) for reason in self._reasons)
+
+    def _live_reasons(self) -> tuple[str, ...]:
+        """
+        Return the change detector's warning: its CUSUM past ``CHANGE_WARNING`` of h.
+
+        Until a detection the old model is valid, though the detector's evidence
+        has been growing for h over its mean increment samples; past w h a change
+        is suspected. With S >= w h on at most FALSE_ALARM^w of the samples of no
+        change (Ville's inequality for exp(S), a supermartingale under the null),
+        the warning costs that share of a stationary record's valid samples.
+        """
+        statistic = self._detector.statistic_of()
+        if statistic < self._warning_level:  # (once a sample: valid is asked at each update)
+            return ()
+        return (f'change suspected: the change detector at '
+                f'{statistic / self._detector.threshold:.2f} of its threshold',)
 
     # --------------------------------------------------------- the accessors
     @property
