@@ -3,7 +3,8 @@ rpem's change warning: not valid while the change detector's CUSUM is past half 
 
 Until a detection the old model is valid; the warning (``CHANGE_WARNING`` w of the threshold
 h) makes ``valid`` false part of the way. Its cost where nothing changes is derived from the
-detector's design: exp(S) is a supermartingale under the null (the log-likelihood-ratio
+detector's design: S(t) is the largest sum of its last k increments, whose exponentials,
+taken backwards from t, are a supermartingale from 1 under the null (the log-likelihood-ratio
 increments have E exp = 1, less with the clip), so by Ville's inequality S >= w h on at most
 exp(-w h) = FALSE_ALARM^w of the samples (docs/tracking.md).
 """

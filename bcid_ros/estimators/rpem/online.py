@@ -47,7 +47,8 @@ LAMBDA_START = 1.0
 #: See LAMBDA_START.
 LAMBDA_RATE = 0.99
 #: Not valid while the change detector's CUSUM S is at or past this share w of its threshold
-#: h: under no change exp(S) is a supermartingale, so S >= w h on at most exp(-w h) =
+#: h: under no change S(t), the largest sum of its last k increments, is >= w h on at
+#: most exp(-w h) (Ville's inequality for the increments' likelihood ratios) =
 #: FALSE_ALARM^w of the samples (0.32 %; docs/tracking.md, "Valid while far off")
 CHANGE_WARNING = 0.5
 
@@ -610,7 +611,7 @@ class Rpem(RpemState, RecursiveEstimator):
         Until a detection the old model is valid, though the detector's evidence
         has been growing for h over its mean increment samples; past w h a change
         is suspected. With S >= w h on at most FALSE_ALARM^w of the samples of no
-        change (Ville's inequality for exp(S), a supermartingale under the null),
+        change (S(t) is the largest sum of its last k increments: Ville's inequality),
         the warning costs that share of a stationary record's valid samples.
         """
         statistic = self._detector.statistic_of()
