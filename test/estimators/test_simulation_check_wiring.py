@@ -232,3 +232,29 @@ def test_rpem_judges_its_refit_on_the_window_it_kept():
     estimator._restart('a test')
     scalars = estimator.get_state().scalars
     assert scalars['simulation_filled'] == filled and scalars['simulation_judged']
+
+
+def test_rpem_judges_a_fit_at_the_update_after_the_one_that_took_it(monkeypatch):
+    # the update that hands a fit over (its HAC, the fitted state's sandwich) and the
+    # simulation check of the new estimate together took 8-10 ms (benchmarks/rpem_stall.py),
+    # at the 10 ms an update may wait: the fit is judged at the next update, never in the
+    # one that took it, and a snapshot taken in between carries the pending decision
+    import bcid_ros.estimators.simulation_check as simulation_check
+    judged = []
+    real_judge = simulation_check.judge
+    monkeypatch.setattr(simulation_check, 'judge',
+                        lambda *arguments, **keywords: judged.append(True)
+                        or real_judge(*arguments, **keywords))
+    y, u = ding_miso(0)
+    estimator = make_estimator('rpem', order=2, num_inputs=2)
+    took, checked_after = [], []
+    for t in range(y.shape[0]):
+        fits, judged[:] = estimator.fits, []
+        estimator.update(y[t], u[t])
+        if estimator.fits != fits:
+            took.append(bool(judged))
+            assert estimator.get_state().scalars['decide_pending']
+        elif len(checked_after) < len(took):  # (judged once the window holds its minimum)
+            checked_after.append(bool(judged) or not estimator._simulation.judging())
+    assert len(took) >= 3
+    assert not any(took) and all(checked_after)

@@ -249,6 +249,8 @@ class Rpem(RpemState, RecursiveEstimator):
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
+        if self._decide_pending:  # the fit handed over at the last update, judged now
+            self._decide_now()
         if self._fitted:
             self._step(y, u)
         else:
@@ -463,7 +465,10 @@ class Rpem(RpemState, RecursiveEstimator):
         if fitted.result is not None and self._take_fit(fitted.result, fitted.segments,
                                                         fitted.scale, fresh, mean):
             self._fits += 1
-            self._decide_now()  # a new estimate: judged now, not at the period's end
+            # a new estimate: judged at the next update, not at the period's end; not in
+            # this one, whose hand-over and the simulation check took 8-10 ms together
+            # (benchmarks/rpem_stall.py; the bound is 10 ms)
+            self._decide_pending = True
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
                   fresh: bool, mean: np.ndarray | None) -> bool:
@@ -592,6 +597,7 @@ class Rpem(RpemState, RecursiveEstimator):
         The change's reason stays until a fit of the samples after it passes
         the residual tests.
         """
+        self._decide_pending = False
         notes = []
         if self._watch.restart_note:  # a restart since the last period (reported there too)
             notes.append(f'restarted ({self._watch.restart_note})')

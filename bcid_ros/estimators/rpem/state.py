@@ -55,6 +55,8 @@ class RpemState:
         # the last fit's E (uncertainty.fitted_state_excess) and the sample it came at
         self._excess = np.zeros((size, size))
         self._fit_sample = 0
+        # a fit handed over at the last update, to be judged at the next (Rpem._fitted_now)
+        self._decide_pending = False
         self._watch.clear()
         self._gate_from = rules.GATE_WARMUP * p
         self._changes = 0
@@ -71,11 +73,11 @@ class RpemState:
 
     #: The scalars of the recursion; the predictor and the store name theirs.
     _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
-                'forgetting_factor', 'fit_sample')
+                'forgetting_factor', 'fit_sample', 'decide_pending')
     #: The type of each scalar that is no int.
     _KINDS: dict[str, Callable[[Any], Any]] = {
         'loss': float, 'tau': float, 'lambda_t': float, 'forgetting_factor': float,
-        'fitted': bool}
+        'fitted': bool, 'decide_pending': bool}
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         lag_arrays, lag_scalars = self._predictor.state_items()
@@ -112,7 +114,7 @@ class RpemState:
             arrays['fitted_state_excess'] = np.zeros_like(own['fitted_state_excess'])
         arrays, scalars = self._store.with_job_items(arrays, state.scalars)
         arrays, scalars = with_feed_items(arrays, scalars)
-        scalars = {'fit_sample': 0, **scalars}
+        scalars = {'fit_sample': 0, 'decide_pending': False, **scalars}
         super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
