@@ -586,7 +586,8 @@ class Rpem(RpemState, RecursiveEstimator):
         if reason:
             self._restart(reason)
         self._period_reasons = watch.reasons(steps)
-        self._decide_now()
+        if not self._decide_pending:  # else a fit came in this update: decided at the next
+            self._decide_now()
 
     def _decide_now(self) -> None:
         """
