@@ -520,7 +520,8 @@ class Rpem(RpemState, RecursiveEstimator):
         self._flag('restarted')
         self._watch.restarting(reason)
         # the residuals so far are of the model that drifted; the simulation check's window
-        # holds the same plant's samples, on which the refit is judged at once
+        # holds the same plant's samples: the estimate is judged on it at once, the refit
+        # once handed over
         window = self._simulation
         self._forget_residuals()
         self._simulation = window
