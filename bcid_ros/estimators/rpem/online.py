@@ -467,8 +467,13 @@ class Rpem(RpemState, RecursiveEstimator):
             self._fits += 1
             # a new estimate: judged at the next update, not at the period's end; not in
             # this one, whose hand-over and the simulation check took 8-10 ms together
-            # (benchmarks/rpem_stall.py; the bound is 10 ms)
-            self._decide_pending = True
+            # (benchmarks/rpem_stall.py; the bound is 10 ms), the last verdict holding for
+            # that sample. The first fit has none (it makes rpem ready): judged at once
+            # (a short fit, a window too short to check)
+            if self._fits == 1:
+                self._decide_now()
+            else:
+                self._decide_pending = True
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
                   fresh: bool, mean: np.ndarray | None) -> bool:
