@@ -15,7 +15,7 @@ from scipy import signal
 from test_tracking import changing_plant, run
 
 from bcid_ros.analysis.realistic import realistic_case
-from bcid_ros.estimators import make_batched_estimator, make_estimator
+from bcid_ros.estimators import make_batched_estimator, make_estimator, simulation_check
 from bcid_ros.estimators.rules import VALIDITY_PERIOD
 from bcid_ros.estimators.simulation_check import (FALSE_ALARM, judge, numerator_lags,
                                                   SAMPLES_PER_PARAMETER, state_count,
@@ -242,7 +242,6 @@ def test_rpem_judges_a_fit_at_the_update_after_the_one_that_took_it(monkeypatch)
     # first fit, which makes rpem ready and has no verdict to keep for that sample, is
     # judged at once (deferred, rpem was valid for that one sample, its residual tests not
     # ready)
-    import bcid_ros.estimators.simulation_check as simulation_check
     judged = []
     real_judge = simulation_check.judge
     monkeypatch.setattr(simulation_check, 'judge',
