@@ -527,9 +527,7 @@ class Rpem(RpemState, RecursiveEstimator):
         # the residuals so far are of the model that drifted; the simulation check's window
         # holds the same plant's samples: the estimate is judged on it at once, the refit
         # once handed over
-        window = self._simulation
-        self._forget_residuals()
-        self._simulation = window
+        self._forget_residuals(keep_window=True)
         self._fit(fresh=False)
         self._decide_now()
 
@@ -732,9 +730,12 @@ class Rpem(RpemState, RecursiveEstimator):
         # theta in the user's units: theta_k s_y / s_channel(k)
         self._unscale = scale[0] / scale[self._channel]
 
-    def _forget_residuals(self) -> None:
+    def _forget_residuals(self, keep_window: bool = False) -> None:
         """
         Start the residual tests, the HAC and the simulation check afresh (reset, change).
+
+        ``keep_window``: the simulation check's window stays (a restart: its samples are
+        the same plant's).
 
         OE: the cross test counts the estimate's own error (the parameter
         term, with the HAC covariance of every internal parameter in the
@@ -751,7 +752,8 @@ class Rpem(RpemState, RecursiveEstimator):
             parameter_covariance=self._internal_covariance if oe else None)
         self._hac = HacCovariance(dimension=self._size,
                                   forgetting_factor=self._forgetting_factor)
-        self._start_simulation_check()
+        if not keep_window:
+            self._start_simulation_check()
 
     def _restart_regressor(self) -> None:
         self._predictor.clear()
