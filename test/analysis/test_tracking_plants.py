@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from benchmarks.tracking import run_estimator, TrackingCase
+from benchmarks.tracking import (AFTER_SETTLED, run_estimator, TrackingCase, WINDOWS, WITHIN,
+                                 within_reference)
 
 SEED = (0, 0)  # an abrupt change of one pole, order 3
 
@@ -69,3 +70,13 @@ def test_the_estimator_whose_model_holds_follows_the_change(cases, config, model
     if config == 'rls':
         biased = run_estimator(cases['family'], 'rls')
         assert biased['delta_final'] > 5.0 * run['delta_final']
+
+
+def test_a_recovery_is_within_a_reference_beyond_its_grid_only_if_it_happens():
+    # five times the grid's end (the least such a reference's recovery can be) exceeds the
+    # samples a record has after its change, so any recovery the record can show is within
+    assert WITHIN * (WINDOWS[-1] + 1) > AFTER_SETTLED
+    assert within_reference(AFTER_SETTLED, None)
+    assert not within_reference(None, None) and not within_reference(None, 10)
+    assert within_reference(50, 10) and not within_reference(51, 10)
+    assert within_reference(5, 0)  # a reference in band at once allows WITHIN samples
