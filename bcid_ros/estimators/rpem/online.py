@@ -486,9 +486,12 @@ class Rpem(RpemState, RecursiveEstimator):
         are not nested) by :func:`~bcid_ros.estimators.rpem.window.moved`. A move keeps the
         newest half of the samples since the start (at least WARMUP; flag ``window_moved``)
         and returns True: a fit of them is due now. Before any change the fits are never
-        compared: a stationary record's schedule is as it was.
+        compared: a stationary record's schedule is as it was. Without forgetting only: the
+        variance of the move is that of nested windows of equally weighted samples, and
+        forgetting lets a drift's samples go by itself.
         """
-        if not fresh or not self._changes or self._fit_sample != self._samples:
+        if (not fresh or not self._changes or self._forgetting_factor < 1.0
+                or self._fit_sample != self._samples):
             return False
         store = self._store
         start = self._samples - store.since_start
