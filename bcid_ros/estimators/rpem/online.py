@@ -37,7 +37,7 @@ from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, St
 from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
                                                   parameter_covariance)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
-from bcid_ros.estimators.rpem.window import moved
+from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
 from bcid_ros.estimators.simulation_check import UNDERSTATED
 
 #: Values of the ``model`` option.
@@ -507,7 +507,7 @@ class Rpem(RpemState, RecursiveEstimator):
             return False
         self._flag('window_moved')
         self._window_weight = 0.0
-        return store.restart_schedule(max(store.since_start // 2, WARMUP))
+        return store.restart_schedule(max(int(KEEP_SHARE * store.since_start), WARMUP))
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
                   fresh: bool, mean: np.ndarray | None) -> bool:

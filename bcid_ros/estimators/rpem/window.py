@@ -39,6 +39,8 @@ from scipy.stats import chi2
 
 #: The chi-square tail probability past which two nested fits are told apart.
 MOVE_LEVEL = 1e-3
+#: The share of the window's samples (the newest) a move keeps.
+KEEP_SHARE = 0.5
 
 
 def moved(step: np.ndarray, covariance: np.ndarray, weight: float,
@@ -70,4 +72,4 @@ def moved(step: np.ndarray, covariance: np.ndarray, weight: float,
     return statistic > float(chi2.isf(level, step.shape[0]))
 
 
-__all__ = ['MOVE_LEVEL', 'moved']
+__all__ = ['KEEP_SHARE', 'MOVE_LEVEL', 'moved']
