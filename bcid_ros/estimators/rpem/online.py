@@ -168,7 +168,10 @@ class Rpem(RpemState, RecursiveEstimator):
       a refused sample keeps the predictor running with its prediction in
       place of y (OE: it is stored with weight 0); a plant change cuts the
       memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
-      and restarts the fit schedule on the samples after the change;
+      and restarts the fit schedule on the samples after the change; after it
+      (lambda = 1) a fit that moved from the last one of the same start by more
+      than their nested windows explain keeps the newest half of the window
+      (``window_moved``: the plant still moves, :mod:`.window`);
     * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
       :mod:`.watch` (a stuck projection a refit can move, undone steps; a
       projection active on many steps), and a recursion that left its fit
