@@ -33,10 +33,11 @@ from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.state import RpemState
-from bcid_ros.estimators.rpem.store import SampleStore, Segment, StoredFit
+from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
                                                   parameter_covariance)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
+from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
 from bcid_ros.estimators.simulation_check import UNDERSTATED
 
 #: Values of the ``model`` option.
@@ -167,7 +168,10 @@ class Rpem(RpemState, RecursiveEstimator):
       a refused sample keeps the predictor running with its prediction in
       place of y (OE: it is stored with weight 0); a plant change cuts the
       memory to ``CHANGE_MEMORY`` p (as :class:`~bcid_ros.estimators.rls.Rls`)
-      and restarts the fit schedule on the samples after the change;
+      and restarts the fit schedule on the samples after the change; after it
+      (lambda = 1) a fit that moved from the last one of the same start by more
+      than their nested windows explain keeps the newest half of the window
+      (``window_moved``: the plant still moves, :mod:`.window`);
     * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
       :mod:`.watch` (a stuck projection a refit can move, undone steps; a
       projection active on many steps), and a recursion that left its fit
@@ -447,6 +451,7 @@ class Rpem(RpemState, RecursiveEstimator):
         ended = self._store.advance()
         if ended is not None:  # its last pass ended: the predictor run on to this sample
             self._fitted_now(*ended, job.mean)
+            due = self._window_moved(ended[1]) or due
         if due:
             self._fit()
 
@@ -474,6 +479,38 @@ class Rpem(RpemState, RecursiveEstimator):
                 self._decide_now()
             else:
                 self._decide_pending = True
+
+    def _window_moved(self, fresh: bool) -> bool:
+        """
+        After a change, keep the newest half of the fits' window if the plant still moves.
+
+        The fit just taken is compared with the last fresh one of the same window start
+        (nested windows, both of at least the detector's warm-up; the sliding schedule's
+        are not nested) by :func:`~bcid_ros.estimators.rpem.window.moved`. A move keeps the
+        newest half of the samples since the start (at least WARMUP; flag ``window_moved``)
+        and returns True: a fit of them is due now. Before any change the fits are never
+        compared: a stationary record's schedule is as it was. Without forgetting only: the
+        variance of the move is that of nested windows of equally weighted samples, and
+        forgetting lets a drift's samples go by itself.
+        """
+        if (not fresh or not self._changes or self._forgetting_factor < 1.0
+                or self._fit_sample != self._samples):
+            return False
+        store = self._store
+        start = self._samples - store.since_start
+        nested = start == self._window_start and store.since_start <= BATCH_LIMIT
+        previous, previous_weight = self._window_theta.copy(), self._window_weight
+        theta, weight = self._theta(), self._tau
+        self._window_theta[:], self._window_weight, self._window_start = theta, weight, start
+        if not nested or previous_weight < WARMUP:
+            return False
+        covariance = self._parameter_covariance()
+        if covariance is None or not moved(theta - previous, covariance, weight,
+                                           previous_weight):
+            return False
+        self._flag('window_moved')
+        self._window_weight = 0.0
+        return store.restart_schedule(max(int(KEEP_SHARE * store.since_start), WARMUP))
 
     def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
                   fresh: bool, mean: np.ndarray | None) -> bool:

@@ -55,6 +55,11 @@ class RpemState:
         # the last fit's E (uncertainty.fitted_state_excess) and the sample it came at
         self._excess = np.zeros((size, size))
         self._fit_sample = 0
+        # the last fresh fit after a change, its weight and its window's first sample
+        # (Rpem._window_moved; weight 0: none)
+        self._window_theta = np.zeros(p)
+        self._window_weight = 0.0
+        self._window_start = 0
         # a fit handed over at the last update, to be judged at the next (Rpem._fitted_now)
         self._decide_pending = False
         self._watch.clear()
@@ -73,11 +78,12 @@ class RpemState:
 
     #: The scalars of the recursion; the predictor and the store name theirs.
     _SCALARS = ('fitted', 'fits', 'samples', 'updates', 'loss', 'tau', 'lambda_t', 'changes',
-                'forgetting_factor', 'fit_sample', 'decide_pending')
+                'forgetting_factor', 'fit_sample', 'decide_pending', 'window_weight',
+                'window_start')
     #: The type of each scalar that is no int.
     _KINDS: dict[str, Callable[[Any], Any]] = {
         'loss': float, 'tau': float, 'lambda_t': float, 'forgetting_factor': float,
-        'fitted': bool, 'decide_pending': bool}
+        'fitted': bool, 'decide_pending': bool, 'window_weight': float}
 
     def _state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         lag_arrays, lag_scalars = self._predictor.state_items()
@@ -85,7 +91,8 @@ class RpemState:
         arrays = {'theta_n': self._theta_n, 'p': self._p,
                   'psi_history': lag_arrays['psi_history'], 'arx': self._arx,
                   'signal_scale': self._signal_scale, 'fit_mean': self._fit_mean,
-                  'fitted_state_excess': self._excess, **stored_arrays,
+                  'fitted_state_excess': self._excess, 'window_theta': self._window_theta,
+                  **stored_arrays,
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
                    **{name: getattr(self, '_' + name) for name in self._SCALARS},
@@ -112,9 +119,12 @@ class RpemState:
             arrays['fit_mean'] = np.array(arrays.get('operating_point', own['fit_mean']))
         if 'fitted_state_excess' not in arrays:  # from before: the held covariance alone
             arrays['fitted_state_excess'] = np.zeros_like(own['fitted_state_excess'])
+        if 'window_theta' not in arrays:  # from before: no fit to compare the next with
+            arrays['window_theta'] = np.zeros_like(own['window_theta'])
         arrays, scalars = self._store.with_job_items(arrays, state.scalars)
         arrays, scalars = with_feed_items(arrays, scalars)
-        scalars = {'fit_sample': 0, 'decide_pending': False, **scalars}
+        scalars = {'fit_sample': 0, 'decide_pending': False, 'window_weight': 0.0,
+                   'window_start': 0, **scalars}
         super().set_state(dataclasses.replace(state, arrays=arrays, scalars=scalars))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -122,6 +132,7 @@ class RpemState:
         self._signal_scale = arrays['signal_scale']
         self._fit_mean = arrays['fit_mean']
         self._excess = arrays['fitted_state_excess']
+        self._window_theta = arrays['window_theta']
         self._p = np.ascontiguousarray(arrays['p'])
         self._predictor.load_state(arrays, scalars)
         self._feed.load_state(arrays, scalars)

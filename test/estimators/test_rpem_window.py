@@ -1,0 +1,43 @@
+"""rpem/window.py: the move of a fit against the last one of a nested window (Hausman)."""
+
+import numpy as np
+
+from bcid_ros.estimators.rpem.window import moved
+
+#: A correlated covariance of three parameters per sample.
+SIGMA = np.array([[1.0, 0.6, 0.2], [0.6, 2.0, -0.3], [0.2, -0.3, 0.5]])
+
+
+def nested_means(rng, first, second, shift=0.0):
+    """Return the means of the first ``first`` and of all ``second`` samples (a later shift)."""
+    samples = rng.multivariate_normal(np.zeros(3), SIGMA, size=second)
+    samples[first:] += shift
+    return samples[:first].mean(axis=0), samples.mean(axis=0)
+
+
+def test_nested_means_of_one_distribution_move_at_the_stated_rate():
+    # 4000 pairs at level 1 %: 40 expected, sd 6.3; the bound is 5 sd either side
+    rng = np.random.default_rng(7)
+    count = 0
+    for _ in range(4000):
+        older, newer = nested_means(rng, 200, 300)
+        count += moved(newer - older, SIGMA / 300, 300.0, 200.0, level=0.01)
+    assert 8 <= count <= 72
+
+
+def test_a_shift_of_the_newer_samples_is_a_move():
+    # the 100 newer samples shifted by 0.5 sd: the means differ by 1/6 sd, about 6 sd of the
+    # difference's spread (sqrt(1/200 - 1/300) = 0.041 sd)
+    rng = np.random.default_rng(8)
+    moves = [moved(newer - older, SIGMA / 300, 300.0, 200.0)
+             for older, newer in (nested_means(rng, 200, 300, shift=0.5 * np.sqrt(
+                 np.diag(SIGMA))) for _ in range(50))]
+    assert np.mean(moves) > 0.9
+
+
+def test_no_spread_or_no_newer_samples_is_no_move():
+    step = np.array([1.0, 0.0, 0.0])
+    assert not moved(step, SIGMA, 300.0, 300.0)  # the same window: nothing to compare
+    assert not moved(step, np.zeros((3, 3)), 300.0, 200.0)  # no spread to judge against
+    assert not moved(step, -SIGMA, 300.0, 200.0)  # not a covariance
+    assert not moved(np.full(3, np.nan), SIGMA, 300.0, 200.0)
