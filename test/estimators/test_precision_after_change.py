@@ -39,7 +39,7 @@ def test_precision_is_judged_only_while_a_change_holds_and_only_with_a_covarianc
     # no change: the same imprecise estimate is valid (the scope is after a change)
     assert validity.decided_after_change([], '', None, theta=THETA,
                                          covariance=imprecise) == ([], '')
-    # no covariance yet: no precision shown; none to ask (or no estimate): not judged
+    # no std yet: no precision shown; none to ask (or no estimate): not judged
     assert validity.decided_after_change([], CHANGE, None, theta=THETA,
                                          covariance=lambda: None) == (
         [CHANGE, f'{validity.IMPRECISE}: no std of the estimate yet'], CHANGE)
@@ -80,18 +80,25 @@ def precision_bound(estimator):
 
 
 @pytest.mark.parametrize('seed', range(3))
-def test_rpem_is_valid_again_after_a_change_only_once_its_estimate_is_precise(seed):
-    # test_tracking's second-order plant, white input, output error: rpem detects the change
-    # and was valid again 170-260 samples on, before its covariance existed
+def test_rpem_names_an_imprecise_estimate_after_a_change_and_is_valid_once_precise(seed):
+    # test_tracking's second-order plant, white input, output error: detected, then the
+    # new estimate's std shrinks below the level within the record; rpem was valid again
+    # 170-260 samples after the change, before it had a std
     y, u, _ = changing_plant(seed, noise=1.0)
     estimator = make_estimator('rpem', order=2)
-    again = None
+    named, again = [], None
     for t in range(y.shape[0]):
         valid = estimator.update(y[t], u[t])
-        if t >= 3000 and valid and estimator.flags.get('plant_change', 0):
-            again = precision_bound(estimator)
-            break
-    assert again is not None and again <= validity.PRECISION
+        fresh = [r for r in estimator.validity_reasons if r.startswith(validity.IMPRECISE)]
+        if fresh and fresh[0] not in named:  # judged at this sample: its bound now
+            named.append(fresh[0])
+            bound = precision_bound(estimator)
+            assert bound is None if fresh[0].endswith('yet') else bound > validity.PRECISION
+        if valid and again is None and t >= 3000 and estimator.flags.get('plant_change', 0):
+            again = precision_bound(estimator)  # valid again after the change: precise
+            assert again is not None and again <= validity.PRECISION
+    assert named and again is not None
+    assert estimator.valid and precision_bound(estimator) <= validity.PRECISION
 
 
 def test_rpem_is_not_valid_while_far_off_after_a_change_its_data_hardly_determine():
