@@ -109,19 +109,19 @@ def imprecision(theta: np.ndarray | None,
     extreme one), so :math:`k\sqrt{\mathrm{tr}\,C} \le` ``PRECISION``
     :math:`\lVert\hat\theta\rVert` (k = ``PRECISION_SIGMAS``) bounds the relative
     error by ``PRECISION`` with probability at least 95.4 %, whatever the shape of C.
-    No covariance yet (``covariance()`` None) is no precision shown; not judged (``''``)
-    without an estimate or a covariance to ask, or with one not finite (a many-plant row
-    judged as exact).
+    No covariance yet (``covariance()`` None, or a many-plant row of NaN: the single
+    estimator's None) is no precision shown; not judged (``''``) without an estimate or
+    a covariance to ask.
     """
     if theta is None or covariance is None:
         return ''
     matrix = covariance()
-    if matrix is None:
+    if matrix is None or not np.isfinite(matrix).all():
         return f'{IMPRECISE}: no std of the estimate yet'
     size = float(np.linalg.norm(theta))
     spread = math.sqrt(max(float(np.trace(matrix)), 0.0))
     bound = PRECISION_SIGMAS * spread / size if size > 0.0 else math.inf
-    if not math.isfinite(spread) or bound <= PRECISION:
+    if bound <= PRECISION:
         return ''
     return (f'{IMPRECISE}: {PRECISION_SIGMAS:g} sqrt(tr C) is {100.0 * bound:.0f} % of |theta|, '
             f'above {100.0 * PRECISION:g} % (the new plant\'s samples do not determine it yet)')
