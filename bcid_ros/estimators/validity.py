@@ -141,7 +141,7 @@ def doubt_the_model(reasons: Sequence[str]) -> bool:
 
 
 def _row(rows: Callable[[], np.ndarray], plant: int) -> np.ndarray:
-    """Return ``rows()[plant]``: one plant's parameter covariance (NaN: judged as exact)."""
+    """Return ``rows()[plant]``: one plant's parameter covariance (NaN: none known)."""
     return rows()[plant]
 
 
@@ -212,7 +212,9 @@ class Validity:
             reasons, change = decided_after_change(
                 own, change, self._monitor, simulation=self._simulation,
                 theta=None if self._simulation is None else self._theta(), order=self.order,
-                covariance=lambda: self.parameter_covariance, ready_again=ready_again,
+                # asked at most once a decision (the check and the precision after a change)
+                covariance=functools.cache(lambda: self.parameter_covariance),
+                ready_again=ready_again,
                 count=self._covariance_count)
         self._reasons = tuple(reasons)
         return change
