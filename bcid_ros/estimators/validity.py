@@ -6,7 +6,8 @@ distrust it. The reasons are the estimator's own (from its equations: an
 unstable model, a compensation that does not converge, ...) and the ones every
 estimator shares: the residual tests' and the simulation check's; a detected
 plant change adds its own, which holds until the residual tests are ready on a
-full window of the new plant's samples (docs/trust.md, docs/tracking.md). A
+full window of the new plant's samples and the new estimate is known to
+``PRECISION`` of its size (:func:`imprecision`; docs/trust.md, docs/tracking.md). A
 check changes nothing but the reasons: what it finds that needs action is done
 by the estimator's update.
 """
@@ -14,13 +15,24 @@ by the estimator's update.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, Callable, ClassVar, Sequence
 
 import numpy as np
 
 from bcid_ros.estimators.residual_state import residual_reasons
 from bcid_ros.estimators.simulation_check import (CHECK_PERIOD, simulation_reasons,
-                                                  SimulationWindow)
+                                                  SimulationWindow, UNDERSTATED)
+
+#: After a plant change, the estimate must be known to this share of its size (2-norm)
+#: before the change is done: PRECISION_SIGMAS sqrt(tr C) <= PRECISION ||theta_hat||.
+PRECISION = 0.1
+#: The multiple of sqrt(tr C), the RMS of ||theta_hat - theta||, that bounds the error: for
+#: a Gaussian error of any covariance C, P(||e|| >= k sqrt(tr C)) <= P(|z| >= k) for
+#: k^2 >= 1.54 (Szekely and Bakirov 2003), 4.6 % at k = 2.
+PRECISION_SIGMAS = 2.0
+#: How the reason of an estimate not yet known to PRECISION begins (it names the std).
+IMPRECISE = 'imprecise'
 
 
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
@@ -78,12 +90,58 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     reasons = decided_reasons([change, *own] if change else own, *found)
     if change and reasons == [change] and (simulation is None or simulation.judged) and (
             _ready_again(monitor, plant) if ready_again is None else ready_again):
+        imprecise = imprecision(theta, covariance)
+        if imprecise:  # the model explains the new samples, but they do not pin it down yet
+            return [change, imprecise], change
         return decided_reasons(own, *found), ''
     return reasons, change
 
 
+def imprecision(theta: np.ndarray | None,
+                covariance: Callable[[], np.ndarray | None] | None) -> str:
+    r"""
+    Return why the estimate is not known to ``PRECISION`` of its size (``''``: it is).
+
+    With C the estimate's covariance (``covariance()``), :math:`\sqrt{\mathrm{tr}\,C}`
+    is the RMS of :math:`\lVert\hat\theta - \theta\rVert`, and for a Gaussian error
+    of any C, :math:`P(\lVert e\rVert \ge k\sqrt{\mathrm{tr}\,C}) \le P(|z| \ge k)`
+    for :math:`k^2 \ge 1.54` (Szekely and Bakirov 2003: the one-dimensional form is the
+    extreme one), so :math:`k\sqrt{\mathrm{tr}\,C} \le` ``PRECISION``
+    :math:`\lVert\hat\theta\rVert` (k = ``PRECISION_SIGMAS``) bounds the relative
+    error by ``PRECISION`` with probability at least 95.4 %, whatever the shape of C.
+    No covariance yet (``covariance()`` None, or a many-plant row of NaN: the single
+    estimator's None) is no precision shown; not judged (``''``) without an estimate or
+    a covariance to ask.
+    """
+    if theta is None or covariance is None:
+        return ''
+    matrix = covariance()
+    if matrix is None or not np.isfinite(matrix).all():
+        return f'{IMPRECISE}: no std of the estimate yet'
+    size = float(np.linalg.norm(theta))
+    spread = math.sqrt(max(float(np.trace(matrix)), 0.0))
+    bound = PRECISION_SIGMAS * spread / size if size > 0.0 else math.inf
+    if bound <= PRECISION:
+        return ''
+    return (f'{IMPRECISE}: {PRECISION_SIGMAS:g} sqrt(tr C) is {100.0 * bound:.0f} % of |theta|, '
+            f'above {100.0 * PRECISION:g} % (the new plant\'s samples do not determine it yet)')
+
+
+def doubt_the_model(reasons: Sequence[str]) -> bool:
+    """
+    Return whether ``reasons`` doubt the model, not only its covariance.
+
+    A std judged too small (``UNDERSTATED``) and an estimate not yet known to
+    ``PRECISION`` after a change (``IMPRECISE``, with the change's reason it holds) name
+    the covariance: the model passed its checks.
+    """
+    if any(reason.startswith(IMPRECISE) for reason in reasons):
+        return len(reasons) > 2  # [change, imprecise] and nothing else
+    return not all(reason.startswith(UNDERSTATED) for reason in reasons)
+
+
 def _row(rows: Callable[[], np.ndarray], plant: int) -> np.ndarray:
-    """Return ``rows()[plant]``: one plant's parameter covariance (NaN: judged as exact)."""
+    """Return ``rows()[plant]``: one plant's parameter covariance (NaN: none known)."""
     return rows()[plant]
 
 
@@ -154,7 +212,9 @@ class Validity:
             reasons, change = decided_after_change(
                 own, change, self._monitor, simulation=self._simulation,
                 theta=None if self._simulation is None else self._theta(), order=self.order,
-                covariance=lambda: self.parameter_covariance, ready_again=ready_again,
+                # asked at most once a decision (the check and the precision after a change)
+                covariance=functools.cache(lambda: self.parameter_covariance),
+                ready_again=ready_again,
                 count=self._covariance_count)
         self._reasons = tuple(reasons)
         return change
@@ -240,4 +300,5 @@ class PlantsValidity:
                     changes[plant] = change
 
 
-__all__ = ['PlantsValidity', 'Validity', 'decided_after_change', 'decided_reasons']
+__all__ = ['decided_after_change', 'decided_reasons', 'doubt_the_model', 'imprecision',
+           'IMPRECISE', 'PlantsValidity', 'PRECISION', 'PRECISION_SIGMAS', 'Validity']

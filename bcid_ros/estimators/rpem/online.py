@@ -38,7 +38,7 @@ from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalise
                                                   parameter_covariance)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
-from bcid_ros.estimators.simulation_check import UNDERSTATED
+from bcid_ros.estimators.validity import doubt_the_model
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
@@ -647,10 +647,9 @@ class Rpem(RpemState, RecursiveEstimator):
         self._change_note = self._decide_validity(
             notes + self._period_reasons, self._change_note,
             ready_again=self._store.since_start < self._samples)
-        # the detector runs once the model passed its checks; a std judged too small is the
-        # covariance's fault, not the model's, and holds no detection back
-        self._settled = self._settled or all(
-            reason.startswith(UNDERSTATED) for reason in self._reasons)
+        # the detector runs once the model passed its checks; a std judged too small or an
+        # estimate not yet precise is the covariance's matter, and holds no detection back
+        self._settled = self._settled or not doubt_the_model(self._reasons)
 
     def _live_reasons(self) -> tuple[str, ...]:
         """
