@@ -24,7 +24,7 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import ChangeDetector, WARMUP
+from bcid_ros.estimators.change_detection import BlockMeanDetector, ChangeDetector, WARMUP
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, HEALTH_CHECK_PERIOD, repair_covariance,
                                            VARIANCE_FLOOR)
@@ -178,7 +178,10 @@ class Rpem(RpemState, RecursiveEstimator):
       (its errors grown against the fit's residuals, by a second
       :class:`~bcid_ros.estimators.change_detection.ChangeDetector`, while
       the fit's model's errors did not: :mod:`.feed`); a changing plant is
-      the detector's, which tests the errors of the last fit's model;
+      the detector's, which tests the errors of the last fit's model, and
+      of their means over blocks of 100 samples (a change seen at low
+      frequencies only:
+      :class:`~bcid_ros.estimators.change_detection.BlockMeanDetector`);
     * anti-windup as in Rls (no division by :math:`\lambda` while
       :math:`\mathrm{tr}\,P > p_0 p`) and a Cholesky check of P every
       ``HEALTH_CHECK_PERIOD`` updates (``covariance_repaired``).
@@ -247,6 +250,8 @@ class Rpem(RpemState, RecursiveEstimator):
                                   self._offset, self._channel)
         self._watch = RestartWatch()
         self._detector = ChangeDetector()
+        # the same errors' slow part: their means over blocks (change_detection.py)
+        self._block_test = BlockMeanDetector()
         self._warning_level = CHANGE_WARNING * self._detector.threshold
         self._left_fit = ChangeDetector()
         self._reset()
@@ -328,6 +333,9 @@ class Rpem(RpemState, RecursiveEstimator):
             # of a model still converging, and a detection would only restart it from
             # fewer samples
             age = self._detector.record(fed)
+            # the block means see an error grown at low frequencies, which the detector's
+            # centring and whitening remove (a slow pole or gain moved: docs/tracking.md)
+            age = age or self._block_test.record(fed, self._samples)
             if age:
                 self._plant_changed(age)
                 return
@@ -525,6 +533,7 @@ class Rpem(RpemState, RecursiveEstimator):
         residuals = result.residuals(segments[-1], self._armax)
         self._detector.prime(residuals)
         self._left_fit.prime(residuals)
+        self._block_test.prime(residuals)
         # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
         # goes on after its detection, and a model that blends it may never pass the tests
         self._settled = self._settled or (self._changes > 0 and result.weight >= WARMUP)
@@ -598,6 +607,7 @@ class Rpem(RpemState, RecursiveEstimator):
         self._forget_residuals()
         self._detector.clear()
         self._left_fit.clear()
+        self._block_test.clear()
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
         keep = rules.cut_memory(self._p[None], loss, tau, self.num_parameters)

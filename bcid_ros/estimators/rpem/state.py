@@ -23,6 +23,8 @@ from bcid_ros.estimators.rpem.feed import with_feed_items
 
 #: The snapshot keys' prefix of the test of the recursion against its fit (_left_fit).
 LEFT_FIT_PREFIX = 'change_left_fit_'
+#: The snapshot key of the block-mean test's numbers (all zeros when absent: afresh).
+BLOCK_TEST_KEY = 'change_block_test'
 
 
 class RpemState:
@@ -72,6 +74,7 @@ class RpemState:
         self._settled = False
         self._detector.clear()
         self._left_fit.clear()
+        self._block_test.clear()
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._forget_residuals()
@@ -103,7 +106,8 @@ class RpemState:
                                                            self._hac.get_state())
         feed_arrays, feed_scalars = self._feed.state_items()
         return ({**arrays, **residual_arrays, **self._detector.get_state(),
-                 **self._left_fit.get_state(prefix=LEFT_FIT_PREFIX), **feed_arrays},
+                 **self._left_fit.get_state(prefix=LEFT_FIT_PREFIX), **feed_arrays,
+                 BLOCK_TEST_KEY: self._block_test.state.copy()},
                 {**scalars, **residual_scalars, **feed_scalars})
 
     def set_state(self, state: Any) -> None:
@@ -146,10 +150,11 @@ class RpemState:
         self._settled = bool(scalars.get('settled', False))
         self._detector.set_state(arrays)
         self._left_fit.set_state(arrays, prefix=LEFT_FIT_PREFIX)
+        self._block_test.state[:] = arrays[BLOCK_TEST_KEY]
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
         self._hac.set_state(hac)
 
 
-__all__ = ['LEFT_FIT_PREFIX', 'RpemState']
+__all__ = ['BLOCK_TEST_KEY', 'LEFT_FIT_PREFIX', 'RpemState']
