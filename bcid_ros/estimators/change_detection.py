@@ -506,8 +506,9 @@ class BlockMeanDetector:
     correlation dies out well within B are close to independent and Gaussian
     (the central limit theorem), and Lorden's bound gives a mean run length of
     at least e^{h_b} blocks: with the block test's share alpha_s = BLOCK_SHARE
-    alpha of the stated rate per sample, h_b = 9.21 for alpha = 1e-5, and the
-    two tests together stay within 1.1 alpha. The reference is learnt on
+    alpha of the stated rate per sample, h_b = 9.21 for alpha = 1e-5; the
+    detector beside it takes the rest, (1 - BLOCK_SHARE) alpha, so that the
+    two tests together stay within alpha. The reference is learnt on
     BLOCK_WARMUP blocks or more (its own scatter and noise colour slower
     than B samples raise the rate): the measured rates are in
     docs/tracking.md. The reference is kept through the fits (a later fit's

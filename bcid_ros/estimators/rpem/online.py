@@ -24,7 +24,8 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import BlockMeanDetector, ChangeDetector, WARMUP
+from bcid_ros.estimators.change_detection import (BLOCK_SHARE, BlockMeanDetector, ChangeDetector,
+                                                  FALSE_ALARM, WARMUP)
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, HEALTH_CHECK_PERIOD, repair_covariance,
                                            VARIANCE_FLOOR)
@@ -249,7 +250,9 @@ class Rpem(RpemState, RecursiveEstimator):
         self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
                                   self._offset, self._channel)
         self._watch = RestartWatch()
-        self._detector = ChangeDetector()
+        # the stated false-alarm rate is shared: the block test takes BLOCK_SHARE of it and
+        # the detector the rest, so that a plant_change of either stays within FALSE_ALARM
+        self._detector = ChangeDetector(false_alarm=(1.0 - BLOCK_SHARE) * FALSE_ALARM)
         # the same errors' slow part: their means over blocks (change_detection.py)
         self._block_test = BlockMeanDetector()
         self._warning_level = CHANGE_WARNING * self._detector.threshold
