@@ -15,7 +15,8 @@ from scipy import signal
 from bcid_ros.analysis.pem import fit_oe, Structure
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.rpem.uncertainty import fitted_state_excess, normalised_covariance
+from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
+                                                  parameter_covariance)
 
 
 @pytest.mark.parametrize('seed', range(4))
@@ -66,3 +67,53 @@ def test_the_excess_is_zero_where_the_state_carries_no_information():
                                1e-6, 2000.0, 1.0)
     assert np.linalg.eigvalsh(less).min() >= -1e-9 * np.abs(less).max()
     assert np.abs(less).max() > 0.0
+
+
+def test_a_fit_too_short_for_the_hac_leaves_the_share_unknown_not_zero():
+    """Fewer scores than the HAC's first estimate needs: E is NaN, and there is no std."""
+    rng = np.random.default_rng(5)
+    scores = rng.standard_normal((200, 3))
+    information = np.eye(4) * 200.0
+    hac = HacCovariance(dimension=4, forgetting_factor=1.0)
+    hac.record_all(np.column_stack((scores, rng.standard_normal(200))))
+    held = normalised_covariance(hac, np.linalg.inv(information), 200.0, 1.0)
+    assert held is None  # 200 scores: no estimate yet
+    excess = fitted_state_excess(held, information, information[:3, :3], scores, 1e-6, 200.0,
+                                 1.0)
+    assert np.isnan(excess).all()
+    hac.record_all(rng.standard_normal((200, 4)))  # the recursion's scores give it one
+    assert parameter_covariance(hac, np.eye(4), 400.0, 1.0, 3, np.ones(3)) is not None
+    assert parameter_covariance(hac, np.eye(4), 400.0, 1.0, 3, np.ones(3), excess) is None
+
+
+def test_rpem_first_std_on_a_slow_plant_bounds_its_error():
+    """
+    Poles 0.992, 0.95 and 0.9, a PRBS held 5 samples, white noise at 30 dB: rpem's first std.
+
+    The first fits (57-200 samples) have too few scores for the HAC; the recursion's scores
+    gave it an estimate at ~256 samples, and the std was the held-state one until the fit of
+    ~310 samples: the error was beyond twice sqrt(tr C) on 5 of 12 seeds (3-4.5 times it;
+    tracking plant (2, 10) after its change: 12 times, and ``valid`` took it as precise).
+    For an honest Gaussian C, P(||e|| >= 2 sqrt(tr C)) <= 4.6 % (validity.imprecision), so
+    3 or more of 12 has probability below 2 %.
+    """
+    a = np.real(np.poly([0.992, 0.95, 0.9]))
+    b = np.array([1.0, -0.5, 0.2]) * 1e-3
+    truth = np.r_[a[1:], b]
+    beyond = 0
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        u = np.repeat(np.sign(rng.standard_normal(81)), 5)[:400]
+        x = signal.lfilter(np.r_[0.0, b], a, u)
+        y = x + 10 ** (-30 / 20) * x.std() * rng.standard_normal(400)
+        estimator = make_estimator('rpem', order=3)
+        covariance = None
+        for t in range(400):
+            estimator.update(y[t], u[t])
+            covariance = estimator.parameter_covariance
+            if covariance is not None:
+                break
+        assert covariance is not None
+        error = np.linalg.norm(estimator.theta - truth)
+        beyond += error > 2.0 * np.sqrt(np.trace(covariance))
+    assert beyond <= 2, beyond

@@ -65,20 +65,20 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
         theta_k in the user's units per normalised unit: s_y / s_channel(k).
     excess : numpy.ndarray, shape ``(q, q)``, optional
         E of the last fit (:func:`fitted_state_excess`): decay² P E P joins the
-        sandwich.
+        sandwich; NaN (the share not known): no covariance.
     decay : float
         The weight the last fit's samples keep now: lambda^k after k steps.
 
     Returns
     -------
     numpy.ndarray or None
-        ``(count, count)``; None while the HAC has no estimate or the
-        effective sample size is not above q.
+        ``(count, count)``; None while the HAC has no estimate, the
+        effective sample size is not above q, or ``excess`` is not known.
 
     """
     covariance = normalised_covariance(hac, p, tau, forgetting_factor)
-    if covariance is None:
-        return None
+    if covariance is None or (excess is not None and not np.isfinite(excess).all()):
+        return None  # (an excess of NaN: the last fit's share is not known, nor the std)
     if excess is not None:  # the fitted initial state's share, carried on by the recursion
         covariance = covariance + decay * decay * (p @ excess @ p)
     # normalised units to theta's: theta_k s_y / s_channel(k)
@@ -132,13 +132,21 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     -------
     numpy.ndarray
         ``(q, q)`` symmetric positive semi-definite, zero outside theta's block;
-        zeros where either covariance is not known.
+        zeros where nothing was profiled; NaN where either covariance is not known
+        (a fit of fewer scores than the HAC's first estimate needs): the share is
+        then unknown, not zero. Taken as zero, a short fit of a slow plant had
+        the held covariance alone once the recursion's scores gave the HAC an
+        estimate: on tracking plant (2, 10) (a pole at 0.992, 200 samples after
+        its change) 2 sqrt(tr C) was 8 % of the estimate's size while it was 49 %
+        off, and ``valid`` took it as precise.
 
     """
     size, count = information.shape[0], profiled_information.shape[0]
     excess = np.zeros((size, size))
-    if held is None or profiled_scores.shape[0] == 0:
+    if profiled_scores.shape[0] == 0:
         return excess
+    if held is None:
+        return np.full((size, size), np.nan)
     hac = HacCovariance(dimension=count, forgetting_factor=forgetting_factor)
     hac.record_all(profiled_scores)
     try:
@@ -147,7 +155,7 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
         return excess
     profiled = normalised_covariance(hac, p_profiled, tau, forgetting_factor)
     if profiled is None or not np.isfinite(profiled).all():
-        return excess
+        return np.full((size, size), np.nan)
     # D: the positive part of C_c - C_h (the held one can be larger in a direction by
     # the noise of the two HAC estimates; it is never less honest there)
     values, vectors = np.linalg.eigh(profiled - held[:count, :count])
