@@ -474,6 +474,8 @@ BLOCK_RING = 64
 #: The positions of the block test's numbers in its state array (then its ring of q).
 _BLOCK_FIELDS = ('centre', 'sum', 'count', 'last', 'power', 'weight', 'seen', 'statistic',
                  'run')
+#: The first of them move with every sample (kept on Python floats between snapshots).
+_SAMPLE_FIELDS = 4
 
 
 class BlockMeanDetector:
@@ -539,20 +541,31 @@ class BlockMeanDetector:
         self._gain = 0.5 * (1.0 - 1.0 / BLOCK_RATIO)
         self._cost = 0.5 * math.log(BLOCK_RATIO)
         self._break_even = self._cost / self._gain
-        self.state = np.zeros(len(_BLOCK_FIELDS) + BLOCK_RING)
+        self._state = np.zeros(len(_BLOCK_FIELDS) + BLOCK_RING)
         self.clear()
+
+    @property
+    def state(self) -> np.ndarray:
+        """Its numbers and the ring of its run's q (the block's sums written back first)."""
+        self._state[:_SAMPLE_FIELDS] = (self._centre, self._total, self._count, self._last)
+        return self._state
+
+    def load(self, state: np.ndarray) -> None:
+        """Continue from a snapshot's :attr:`state`."""
+        self._state[:] = state
+        self._centre, self._total, self._count, self._last = (
+            self._state[:_SAMPLE_FIELDS].tolist())
 
     def clear(self) -> None:
         """Start afresh: no reference, no evidence (after a plant change)."""
-        self.state[:] = 0.0
-        self.state[_BLOCK_FIELDS.index('last')] = -2.0
+        self._state[:] = 0.0
+        # the block's numbers, which move with every sample, on Python floats
+        self._centre, self._total, self._count, self._last = 0.0, 0.0, 0.0, -2.0
 
     def prime(self, residuals: np.ndarray) -> None:
         """Take a new fit: centre the errors on its residuals' mean; start a new block."""
-        st = self.state
-        st[_BLOCK_FIELDS.index('centre')] = float(np.mean(residuals)) if len(residuals) else 0.0
-        st[_BLOCK_FIELDS.index('sum')] = 0.0
-        st[_BLOCK_FIELDS.index('count')] = 0.0
+        self._centre = float(np.mean(residuals)) if len(residuals) else 0.0
+        self._total, self._count = 0.0, 0.0
 
     def record(self, error: float, sample: int) -> int:
         """
@@ -561,29 +574,35 @@ class BlockMeanDetector:
         A sample that does not follow the last one recorded starts a new block
         (a gap: refilled lags, a refused sample).
         """
-        fields = len(_BLOCK_FIELDS)
-        (centre, total, count, last, power, weight, seen, statistic,
-         run) = self.state[:fields].tolist()
-        if sample != last + 1.0:
+        if sample != self._last + 1.0:
             total, count = 0.0, 0.0
-        total += error - centre
+        else:
+            total, count = self._total, self._count
+        total += error - self._centre
         count += 1.0
-        if count >= BLOCK_LENGTH:
-            mean = total / count
-            total, count = 0.0, 0.0
-            if seen >= BLOCK_WARMUP and power > 0.0:
-                q = min(mean * mean * weight / power, CLIP * CLIP)
-                self.state[fields + int(seen) % BLOCK_RING] = q
-                statistic += self._gain * q - self._cost
-                run = run + 1.0 if statistic > 0.0 else 0.0
-                statistic = max(statistic, 0.0)
-                if statistic >= self.threshold:
-                    return self._detected(int(seen), int(run))
-            power = self._mu * power + mean * mean
-            weight = self._mu * weight + 1.0
-            seen += 1.0
-        self.state[:fields] = (centre, total, count, float(sample), power, weight, seen,
-                               statistic, run)
+        self._last = float(sample)
+        if count < BLOCK_LENGTH:
+            self._total, self._count = total, count
+            return 0
+        self._total, self._count = 0.0, 0.0
+        return self._record_block(total / count)
+
+    def _record_block(self, mean: float) -> int:
+        """Test a block's mean against the reference, then learn it; the age, or 0."""
+        state = self._state
+        power, weight, seen, statistic, run = state[_SAMPLE_FIELDS:len(_BLOCK_FIELDS)].tolist()
+        if seen >= BLOCK_WARMUP and power > 0.0:
+            q = min(mean * mean * weight / power, CLIP * CLIP)
+            state[len(_BLOCK_FIELDS) + int(seen) % BLOCK_RING] = q
+            statistic += self._gain * q - self._cost
+            run = run + 1.0 if statistic > 0.0 else 0.0
+            statistic = max(statistic, 0.0)
+            if statistic >= self.threshold:
+                return self._detected(int(seen), int(run))
+        power = self._mu * power + mean * mean
+        weight = self._mu * weight + 1.0
+        seen += 1.0
+        state[_SAMPLE_FIELDS:len(_BLOCK_FIELDS)] = (power, weight, seen, statistic, run)
         return 0
 
     def _detected(self, seen: int, run: int) -> int:
@@ -601,7 +620,7 @@ class BlockMeanDetector:
         change no closer); none left, the detecting sample alone.
         """
         count = min(run, BLOCK_RING)
-        q = self.state[len(_BLOCK_FIELDS) + np.arange(seen + 1 - count, seen + 1) % BLOCK_RING]
+        q = self._state[len(_BLOCK_FIELDS) + np.arange(seen + 1 - count, seen + 1) % BLOCK_RING]
         below = np.flatnonzero(q < self._break_even)
         first = int(below[-1]) + 1 if below.size else 0
         self.clear()
@@ -609,7 +628,7 @@ class BlockMeanDetector:
 
     def statistic_of(self) -> float:
         """Return the CUSUM S."""
-        return float(self.state[_BLOCK_FIELDS.index('statistic')])
+        return float(self._state[_BLOCK_FIELDS.index('statistic')])
 
 
 def with_detector_arrays(arrays: dict[str, np.ndarray], own: dict[str, np.ndarray],

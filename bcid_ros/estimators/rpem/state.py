@@ -150,7 +150,7 @@ class RpemState:
         self._settled = bool(scalars.get('settled', False))
         self._detector.set_state(arrays)
         self._left_fit.set_state(arrays, prefix=LEFT_FIT_PREFIX)
-        self._block_test.state[:] = arrays[BLOCK_TEST_KEY]
+        self._block_test.load(arrays[BLOCK_TEST_KEY])
         self._set_scale_dependents()
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
