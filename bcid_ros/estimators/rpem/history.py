@@ -127,13 +127,14 @@ class PredictorHistory:
         Without residual lags (OE) the output lags are levelled when the lags are
         full again (:meth:`level_output_lags`).
         """
-        refilled = self.filled == self.span
+        filled = self.filled
         phi = self.push(x, u)
-        if not self.ready:
+        if filled > self.span:  # full before this sample: the usual case
+            return phi
+        if filled < self.span:  # refilling
             return None
-        if refilled and not self.residual_lags:
-            phi = self.level_output_lags()
-        return phi
+        # full with this sample
+        return phi if self.residual_lags else self.level_output_lags()
 
     def set_prediction(self, y: float, prediction: float, theta: np.ndarray) -> None:
         """
@@ -144,8 +145,9 @@ class PredictorHistory:
         """
         if self.residual_lags:
             self.set_newest(y, y - prediction)
-        else:
-            self.set_newest(prediction - theta[-1] if self.constant else prediction, 0.0)
+        else:  # (e(t) is 0 since push)
+            self.history[self.position - 1, 0] = -(
+                prediction - theta[-1] if self.constant else prediction)
 
     def state_items(self, prefix: str = '') -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the ring: ``<prefix>history``, ``filled``, ``position``."""
@@ -228,7 +230,11 @@ class RecursivePredictor:
         # the lags: e(t) = y(t) - phi(t)' theta (ARMAX), w(t) = phi(t)' theta (OE)
         self.history.set_prediction(yn, float(phi.dot(theta)), theta)
         psi_history = self.psi_history
-        psi_history[1:] = psi_history[:-1]
+        order = psi_history.shape[0]
+        if order == 2:  # (a row copied costs half of a block moved)
+            psi_history[1] = psi_history[0]
+        elif order > 2:
+            psi_history[1:] = psi_history[:-1]
         psi_history[0] = psi
         if self._offset and not self._armax:
             psi_history[0, -1] = 0.0  # the OE offset's gradient is 1, not filtered by 1/F
