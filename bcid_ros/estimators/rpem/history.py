@@ -209,7 +209,11 @@ class RecursivePredictor:
         self.psi_history = np.zeros((order, size))
         self._armax = armax
         self._offset = offset
+        self._order = order
         self._filter = filter_slice
+        # the estimate whose D coefficients (a view of it) regressors last took
+        self._theta: np.ndarray | None = None
+        self._coefficients = np.zeros(order)
 
     def fill(self, y: float, u: np.ndarray) -> None:
         """Take a sample before the first fit (no estimate yet: the lags only)."""
@@ -221,8 +225,10 @@ class RecursivePredictor:
         phi = self.history.regressor(yn, un)
         if phi is None:  # refilling the lags after a restart
             return None
+        if theta is not self._theta:  # (the view is kept: the estimate moves in place)
+            self._theta, self._coefficients = theta, theta[self._filter]
         # psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
-        psi = phi - theta[self._filter].dot(self.psi_history)
+        psi = phi - self._coefficients.dot(self.psi_history)
         return phi, psi
 
     def advance(self, yn: float, phi: np.ndarray, psi: np.ndarray, theta: np.ndarray) -> None:
@@ -230,10 +236,9 @@ class RecursivePredictor:
         # the lags: e(t) = y(t) - phi(t)' theta (ARMAX), w(t) = phi(t)' theta (OE)
         self.history.set_prediction(yn, float(phi.dot(theta)), theta)
         psi_history = self.psi_history
-        order = psi_history.shape[0]
-        if order == 2:  # (a row copied costs half of a block moved)
+        if self._order == 2:  # (a row copied costs half of a block moved)
             psi_history[1] = psi_history[0]
-        elif order > 2:
+        elif self._order > 2:
             psi_history[1:] = psi_history[:-1]
         psi_history[0] = psi
         if self._offset and not self._armax:
