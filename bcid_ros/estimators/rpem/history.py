@@ -127,13 +127,14 @@ class PredictorHistory:
         Without residual lags (OE) the output lags are levelled when the lags are
         full again (:meth:`level_output_lags`).
         """
-        refilled = self.filled == self.span
+        filled = self.filled
         phi = self.push(x, u)
-        if not self.ready:
+        if filled > self.span:  # full before this sample: the usual case
+            return phi
+        if filled < self.span:  # refilling
             return None
-        if refilled and not self.residual_lags:
-            phi = self.level_output_lags()
-        return phi
+        # full with this sample
+        return phi if self.residual_lags else self.level_output_lags()
 
     def set_prediction(self, y: float, prediction: float, theta: np.ndarray) -> None:
         """
@@ -144,8 +145,9 @@ class PredictorHistory:
         """
         if self.residual_lags:
             self.set_newest(y, y - prediction)
-        else:
-            self.set_newest(prediction - theta[-1] if self.constant else prediction, 0.0)
+        else:  # (e(t) is 0 since push)
+            self.history[self.position - 1, 0] = -(
+                prediction - theta[-1] if self.constant else prediction)
 
     def state_items(self, prefix: str = '') -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the ring: ``<prefix>history``, ``filled``, ``position``."""
@@ -207,7 +209,11 @@ class RecursivePredictor:
         self.psi_history = np.zeros((order, size))
         self._armax = armax
         self._offset = offset
+        self._order = order
         self._filter = filter_slice
+        # the estimate whose D coefficients (a view of it) regressors last took
+        self._theta: np.ndarray | None = None
+        self._coefficients = np.zeros(order)
 
     def fill(self, y: float, u: np.ndarray) -> None:
         """Take a sample before the first fit (no estimate yet: the lags only)."""
@@ -219,8 +225,10 @@ class RecursivePredictor:
         phi = self.history.regressor(yn, un)
         if phi is None:  # refilling the lags after a restart
             return None
+        if theta is not self._theta:  # (the view is kept: the estimate moves in place)
+            self._theta, self._coefficients = theta, theta[self._filter]
         # psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
-        psi = phi - theta[self._filter].dot(self.psi_history)
+        psi = phi - self._coefficients.dot(self.psi_history)
         return phi, psi
 
     def advance(self, yn: float, phi: np.ndarray, psi: np.ndarray, theta: np.ndarray) -> None:
@@ -228,7 +236,10 @@ class RecursivePredictor:
         # the lags: e(t) = y(t) - phi(t)' theta (ARMAX), w(t) = phi(t)' theta (OE)
         self.history.set_prediction(yn, float(phi.dot(theta)), theta)
         psi_history = self.psi_history
-        psi_history[1:] = psi_history[:-1]
+        if self._order == 2:  # (a row copied costs half of a block moved)
+            psi_history[1] = psi_history[0]
+        elif self._order > 2:
+            psi_history[1:] = psi_history[:-1]
         psi_history[0] = psi
         if self._offset and not self._armax:
             psi_history[0, -1] = 0.0  # the OE offset's gradient is 1, not filtered by 1/F

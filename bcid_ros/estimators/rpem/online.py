@@ -53,6 +53,8 @@ LAMBDA_RATE = 0.99
 #: most exp(-w h) (Ville's inequality for the increments' likelihood ratios) =
 #: FALSE_ALARM^w of the samples (0.32 %; docs/tracking.md, "Valid while far off")
 CHANGE_WARNING = 0.5
+#: The floor of the gate's variance, squared (a power of two: exact)
+_VARIANCE_FLOOR2 = VARIANCE_FLOOR ** 2
 
 
 class Rpem(RpemState, RecursiveEstimator):
@@ -276,8 +278,9 @@ class Rpem(RpemState, RecursiveEstimator):
         """Make one recursion step on a checked sample (the class docstring's equations)."""
         yn, un = self._normalised(y, u)
         theta = self._theta_n
+        predictor = self._predictor
         # phi(t) and psi(t) = phi(t) - d_1 psi(t-1) - ... - d_n psi(t-n)
-        regressors = self._predictor.regressors(yn, un, theta)
+        regressors = predictor.regressors(yn, un, theta)
         fed = self._feed.error(yn, un)
         if regressors is None:  # refilling the lags after a restart
             self._keep(y, u)
@@ -293,37 +296,42 @@ class Rpem(RpemState, RecursiveEstimator):
             self._refuse(s)
             return
         if self._tau >= self._gate_from:
-            changes = self._changes
             # z^2 = e^2 / [(J / tau) (s + 1 - lambda)]
-            z2 = e * e / ((self._loss / self._tau + VARIANCE_FLOOR ** 2) * (s + 1.0 - lam))
-            self._gating = (phi, psi, y, u)
-            accepted = self._gate(z2)
-            self._gating = None
-            if not accepted:
-                return
-            if self._changes != changes:  # the memory was cut: P changed
-                g = self._p.dot(psi)
-                s = lam + float(psi.dot(g))
-                if not 0.0 < s < math.inf:
-                    self._refuse(s)
+            z2 = e * e / ((self._loss / self._tau + _VARIANCE_FLOOR2) * (s + 1.0 - lam))
+            # the gate's quiet case (rules.gate_is_quiet) on floats, as Rls's: used, and only
+            # a lifted tail moves; any other tested sample goes to the rules (_gate)
+            if self._change_score or not z2 <= self._gate_limit2:
+                changes = self._changes
+                self._gating = (phi, psi, y, u)
+                accepted = self._gate(z2)
+                self._gating = None
+                if not accepted:
                     return
+                if self._changes != changes:  # the memory was cut: P changed
+                    g = self._p.dot(psi)
+                    s = lam + float(psi.dot(g))
+                    if not 0.0 < s < math.inf:
+                        self._refuse(s)
+                        return
+            elif self._gate_tail != 1.0:
+                self._gate_tail = rules.lowered_tail(self._gate_tail)
         # the lags of sample t: of theta(t-1) (a priori, then moved to theta(t) along psi)
         # for OE whose gain does not vanish (forgetting, a random walk), else of theta(t)
         # (a posteriori); the class docstring, "Predictor lags"
         a_priori = not self._armax and (self._forgetting_factor < 1.0
                                         or self.adaptation == 'kalman')
         if a_priori:
-            self._predictor.advance(yn, phi, psi, theta)
+            predictor.advance(yn, phi, psi, theta)
             prior = theta.copy()
         taken = self._move_theta(theta, g, e / s)
         if a_priori and taken:  # the output lags moved to theta(t) along psi
-            self._predictor.follow(theta - prior)
+            predictor.follow(theta - prior)
         self._commit_covariance(g, s, lam)
         # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
         self._loss = lam * (self._loss + e * e / s)
         self._tau = lam * self._tau + 1.0
         if not a_priori:
-            self._predictor.advance(yn, phi, psi, theta)
+            predictor.advance(yn, phi, psi, theta)
         self._watch.stepped(taken)
         self._lambda_t = self._forgetting_factor - LAMBDA_RATE * (
             self._forgetting_factor - lam)
@@ -361,14 +369,15 @@ class Rpem(RpemState, RecursiveEstimator):
 
     def _move_theta(self, theta: np.ndarray, g: np.ndarray, gain: float) -> bool:
         """Take theta + mu g gain with mu = 1, 1/2, ... inside D_M, or stay (False)."""
+        # on Python floats (each sum rounds as numpy's would), written back once
+        old, step = theta.tolist(), g.tolist()
         n = self.order
-        armax = self._armax
-        noise = self._filter_slice
+        noise = self._filter_slice if self._armax else None
         for _ in range(HALVINGS + 1):
             # theta(t) = theta(t-1) + mu P psi e / s
-            new = theta + g * gain
+            new = [value + change * gain for value, change in zip(old, step)]
             if is_stable(new[:n], REGION_MARGIN) and (
-                    not armax or is_stable(new[noise], REGION_MARGIN)):
+                    noise is None or is_stable(new[noise], REGION_MARGIN)):
                 theta[:] = new
                 return True
             gain *= 0.5
@@ -447,19 +456,19 @@ class Rpem(RpemState, RecursiveEstimator):
         means move early in a record and that c follows only slowly. A
         constant centring is no loss to a model with an offset.
         """
-        scale = self._inverse_scale
         if self._means is not None:
             shift = self._means.mean - self._fit_mean
             y, u = y + float(shift[0]), u + shift[1:]
-        return y * scale[0], u * scale[1:]
+        return y * self._output_factor, u * self._input_factors
 
     # ------------------------------------------------------------- the fits
     def _keep(self, y: float, u: np.ndarray, excluded: bool = False) -> None:
         """Store the sample, do a slice of the fit on its way; start a fit if one is due."""
         self._samples += 1
-        due = self._store.add(y, u, None if self._means is None else self._means.mean, excluded)
-        job = self._store.job
-        ended = self._store.advance()
+        store = self._store
+        due = store.add(y, u, None if self._means is None else self._means.mean, excluded)
+        job = store.job
+        ended = None if job is None else store.advance()  # (None: no fit on its way)
         if ended is not None:  # its last pass ended: the predictor run on to this sample
             self._fitted_now(*ended, job.mean)
             due = self._window_moved(ended[1]) or due
@@ -775,7 +784,9 @@ class Rpem(RpemState, RecursiveEstimator):
     # -------------------------------------------------------------- the state
     def _set_scale_dependents(self) -> None:
         scale = self._signal_scale
-        self._inverse_scale = 1.0 / scale
+        # _normalised's factors 1 / scale, y's on a Python float
+        inverse = 1.0 / scale
+        self._output_factor, self._input_factors = float(inverse[0]), inverse[1:]
         # theta in the user's units: theta_k s_y / s_channel(k)
         self._unscale = scale[0] / scale[self._channel]
 
