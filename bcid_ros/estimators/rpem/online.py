@@ -614,7 +614,7 @@ class Rpem(RpemState, RecursiveEstimator):
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
         keep = rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
-        self._excess *= float(keep[0]) ** 2  # the old fit's weight, cut as P's information
+        self._excess *= float(keep[0])  # E's root: the old fit's weight, cut as P's information
         self._loss, self._tau = float(loss[0]), float(tau[0])
         if self._store.restart_schedule(age):
             self._fit()

@@ -31,7 +31,12 @@ exponential forgetting :math:`\theta(t) - \theta^* \approx
 \lambda^k P(t) P_f^{-1} (\theta_f - \theta^*) + \ldots` after k steps (the
 information form of the recursion, Ljung and Söderström 1983, sec. 2.6), so
 :math:`\lambda^{2k} P(t) E P(t)`, :math:`E = P_f^{-1} D P_f^{-1}`, joins the
-sandwich (:func:`fitted_state_excess`, :func:`parameter_covariance`).
+sandwich (:func:`fitted_state_excess`, :func:`parameter_covariance`). E is kept as
+its square root :math:`R = P_f^{-1} D^{1/2}` (:math:`E = RR^T`) and the share
+computed as :math:`(P R)(P R)^T`: the information behind :math:`P_f^{-1}` spans
+ten and more decades on a slow plant, and the product P E P lost them twice,
+where P R loses them once (:func:`carried_excess`).
+
 """
 
 from __future__ import annotations
@@ -64,8 +69,9 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     unscale : numpy.ndarray, shape ``(count,)``
         theta_k in the user's units per normalised unit: s_y / s_channel(k).
     excess : numpy.ndarray, shape ``(q, q)``, optional
-        E of the last fit (:func:`fitted_state_excess`): decay² P E P joins the
-        sandwich; NaN (the share not known): no covariance.
+        R, the square root of E of the last fit (:func:`fitted_state_excess`):
+        decay² P E P joins the sandwich (:func:`carried_excess`); NaN (the share
+        not known): no covariance.
     decay : float
         The weight the last fit's samples keep now: lambda^k after k steps.
 
@@ -80,9 +86,32 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     if covariance is None or (excess is not None and not np.isfinite(excess).all()):
         return None  # (an excess of NaN: the last fit's share is not known, nor the std)
     if excess is not None:  # the fitted initial state's share, carried on by the recursion
-        covariance = covariance + decay * decay * (p @ excess @ p)
+        covariance = covariance + decay * decay * carried_excess(p, excess)
     # normalised units to theta's: theta_k s_y / s_channel(k)
     return covariance[:count, :count] * np.outer(unscale, unscale)
+
+
+def carried_excess(p: np.ndarray, root: np.ndarray) -> np.ndarray:
+    r"""
+    Return P E P as (P R)(P R)^T, from the square root R of E (:func:`fitted_state_excess`).
+
+    R is P_f^-1 D^1/2 and the recursion's P is near P_f after a fit, so P R is near D^1/2,
+    computed to about cond(P_f) times the rounding error. The plain product P E P of
+    E = R R^T loses cond(P_f) squared: on tracking plant (1, 17) (poles 0.995 to 0.997),
+    at fits with cond(P_f) 1e12-1e13, its variances were negative where D's were 0.4-254
+    (no std at all, and the window test after a change, :mod:`.window`, judged nothing),
+    and a root taken from E's eigenvalues was positive but 2.5-15,000 times D.
+    """
+    carried = p @ root
+    return carried @ carried.T
+
+
+def excess_root(excess: np.ndarray) -> np.ndarray:
+    """Return a square root R of E, R R^T = E (E's negative eigenvalues at 0; NaN stays NaN)."""
+    if not np.isfinite(excess).all():
+        return np.full_like(excess, np.nan)
+    values, vectors = np.linalg.eigh(0.5 * (excess + excess.T))
+    return vectors * np.sqrt(np.maximum(values, 0.0))
 
 
 def normalised_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
@@ -110,13 +139,13 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
                         profiled_information: np.ndarray, profiled_scores: np.ndarray,
                         prior: float, tau: float, forgetting_factor: float) -> np.ndarray:
     """
-    Return E = P_f^-1 D P_f^-1 of a fit: what its held-state covariance leaves out.
+    Return R = P_f^-1 D^1/2 of a fit, E = R R^T: what its held-state covariance leaves out.
 
     Parameters
     ----------
     held : numpy.ndarray or None, shape ``(q, q)``
         C_h, the sandwich of the fit (:func:`normalised_covariance` of its scores
-        and P_f); None: not known (E is 0).
+        and P_f); None: not known (R is NaN).
     information : numpy.ndarray, shape ``(q, q)``
         I_h, the fit's information with the nuisance held (P_f is the inverse of
         it plus ``prior`` I).
@@ -131,8 +160,9 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     Returns
     -------
     numpy.ndarray
-        ``(q, q)`` symmetric positive semi-definite, zero outside theta's block;
-        zeros where nothing was profiled; NaN where either covariance is not known
+        ``(q, q)``, its columns outside theta's block zero (R R^T is E: symmetric
+        positive semi-definite); zeros where nothing was profiled; NaN where either
+        covariance is not known
         (a fit of fewer scores than the HAC's first estimate needs): the share is
         then unknown, not zero. Taken as zero, a short fit of a slow plant had
         the held covariance alone once the recursion's scores gave the HAC an
@@ -142,9 +172,8 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
 
     """
     size, count = information.shape[0], profiled_information.shape[0]
-    excess = np.zeros((size, size))
     if profiled_scores.shape[0] == 0:
-        return excess
+        return np.zeros((size, size))
     if held is None:
         return np.full((size, size), np.nan)
     hac = HacCovariance(dimension=count, forgetting_factor=forgetting_factor)
@@ -152,13 +181,14 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     try:
         p_profiled = np.linalg.inv(profiled_information + prior * np.eye(count))
     except np.linalg.LinAlgError:
-        return excess
+        return np.zeros((size, size))
     profiled = normalised_covariance(hac, p_profiled, tau, forgetting_factor)
     if profiled is None or not np.isfinite(profiled).all():
         return np.full((size, size), np.nan)
     # D: the positive part of C_c - C_h (the held one can be larger in a direction by
-    # the noise of the two HAC estimates; it is never less honest there)
+    # the noise of the two HAC estimates; it is never less honest there); its root
     values, vectors = np.linalg.eigh(profiled - held[:count, :count])
-    excess[:count, :count] = (vectors * np.maximum(values, 0.0)) @ vectors.T
-    inverse = information + prior * np.eye(size)  # P_f^-1
-    return inverse @ excess @ inverse
+    root = np.zeros((size, size))
+    root[:count, :count] = vectors * np.sqrt(np.maximum(values, 0.0))
+    return (information + prior * np.eye(size)) @ root  # P_f^-1 D^1/2
+
