@@ -37,14 +37,37 @@ computed as :math:`(P R)(P R)^T`: the information behind :math:`P_f^{-1}` spans
 ten and more decades on a slow plant, and the product P E P lost them twice,
 where P R loses them once (:func:`carried_excess`).
 
+**Ends the data cannot tell apart.** The sandwich is the curvature at the
+estimate. On a plant whose data determine its response but not its
+parameters (an input that barely excites a fast pole, poles near 1), the loss
+has a long curved valley, and the curvature at a point of it says nothing of
+how far the valley goes: on tracking plant (2, 23) with lambda 0.999, after its
+drift ended, the estimate was 26-41 % off with 2 sqrt(tr C) 4-20 % of its size
+(largest error 40-7000 in Mahalanobis units), while its simulated output was the
+true model's (squared error 0.98-1.04 of it over the last 1000 samples) and the
+window's information at the truth put 2 std at 36-58 %, the error at 2-11 in
+its units. The fit's two starts (:class:`~bcid_ros.estimators.rpem.fit.BatchFit`)
+end apart along such a valley (there: 15-72 % apart, thousands of std, the
+losses within the likelihood-ratio region): the other end's distance d joins
+the fit's covariance as d d^T, carried on by the recursion as the initial
+state's share (:func:`with_unresolved`).
 """
 
 from __future__ import annotations
+
+import math
+from typing import Callable
 
 import numpy as np
 
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.noise_colour import colour, MAX_COLOUR
+from bcid_ros.estimators.residual_statistics import chi2_quantile
+
+#: The likelihood-ratio region's tail probability within which the fit's other end is one
+#: the data do not tell from its estimate (:func:`with_unresolved`).
+UNRESOLVED_LEVEL = 0.05
 
 
 def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
@@ -192,3 +215,62 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     root[:count, :count] = vectors * np.sqrt(np.maximum(values, 0.0))
     return (information + prior * np.eye(size)) @ root  # P_f^-1 D^1/2
 
+
+def with_unresolved(root: np.ndarray, theta: np.ndarray,
+                    alternative: tuple[np.ndarray, float] | None, weight: float,
+                    forgetting_factor: float, residuals: Callable[[], np.ndarray],
+                    inverse: np.ndarray) -> np.ndarray:
+    r"""
+    Return the root of E + P_f^-1 d d^T P_f^-1 where the fit's other end is as good, else R.
+
+    The likelihood-ratio statistic of a parameter vector against the estimate,
+    :math:`N(V_2/V_1 - 1)` (V the weighted losses, N the weight), is at the truth
+    :math:`(\tau_2/\tau)\chi^2_p` under white errors (the weighted estimate's covariance
+    is :math:`\sigma^2(\tau_2/\tau)H^{-1}` for the weighted curvature H; 1 without
+    forgetting) and at most :math:`\kappa` times that with coloured ones (kappa the peak of
+    the residuals' spectrum over their variance,
+    :func:`~bcid_ros.estimators.noise_colour.colour`; the simulation check's bound). The
+    other end within its ``UNRESOLVED_LEVEL`` quantile is in the likelihood-ratio
+    confidence region: the data do not prefer the estimate to it, and the estimate's error
+    can be as large as d = theta_2 - theta_1, which joins the fit's covariance as d d^T (as
+    :func:`fitted_state_excess`'s D, carried on by the recursion with the fit's weight).
+
+    Parameters
+    ----------
+    root : numpy.ndarray, shape ``(q, q)``
+        R of the fit (:func:`fitted_state_excess`); NaN (not known) stays NaN.
+    theta : numpy.ndarray, shape ``(p,)``
+        The fit's estimate.
+    alternative : tuple or None
+        ``(theta_2, V_2 / V_1)`` of its other start (None: one start).
+    weight, forgetting_factor : float
+        N and lambda (the fit's weights lambda^k).
+    residuals : callable
+        Returns the fit's residuals (asked only where kappa decides).
+    inverse : numpy.ndarray, shape ``(q, q)``
+        P_f^-1 (q >= p: the offset last).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(q, q)``: R' with R' R'^T = R R^T + P_f^-1 d d^T P_f^-1 (from the QR
+        factorisation of [R, P_f^-1 d]^T, which keeps the columns' accuracy), or R where
+        the ends agree or the data prefer the estimate.
+
+    """
+    if alternative is None or not weight > 0.0 or not np.isfinite(root).all():
+        return root
+    other, ratio = alternative
+    step = np.zeros(root.shape[0])
+    step[:theta.shape[0]] = other - theta
+    if not (np.isfinite(step).all() and math.isfinite(ratio)) or not step.any():
+        return root
+    statistic = weight * (ratio - 1.0)
+    limit = chi2_quantile(UNRESOLVED_LEVEL, theta.shape[0]) * weighted_square_ratio(
+        weight, forgetting_factor)
+    # kappa is in [1, MAX_COLOUR]: the residuals are asked only where it decides
+    if statistic > limit and (statistic > MAX_COLOUR * limit
+                              or statistic > colour(residuals()) * limit):
+        return root
+    stacked = np.vstack((root.T, (inverse @ step)[None]))
+    return np.linalg.qr(stacked, mode='r').T
