@@ -42,12 +42,12 @@ estimate. On a plant whose data determine its response but not its
 parameters (an input that barely excites a fast pole, poles near 1), the loss
 has a long curved valley, and the curvature at a point of it says nothing of
 how far the valley goes: on tracking plant (2, 23) with lambda 0.999, after its
-drift ended, the estimate was 26-41 % off with 2 sqrt(tr C) 4-20 % of its size
-(largest error 40-7000 in Mahalanobis units), while its simulated output was the
-true model's (squared error 0.98-1.04 of it over the last 1000 samples) and the
-window's information at the truth put 2 std at 36-58 %, the error at 2-11 in
+drift ended, the estimate was 14-41 % off with 2 sqrt(tr C) 7-21 % of its size
+(the error 4-7000 in its Mahalanobis units), while its simulated output was the
+true model's (squared error 0.91-1.04 of it over the last 1000 samples) and the
+window's information at the truth put 2 std at 36-45 %, the error at 2-11 in
 its units. The fit's two starts (:class:`~bcid_ros.estimators.rpem.fit.BatchFit`)
-end apart along such a valley (there: 15-72 % apart, thousands of std, the
+end apart along such a valley (there: up to 112 % apart, thousands of std, the
 losses within the likelihood-ratio region): the other end's distance d joins
 the fit's covariance as d d^T, carried on by the recursion as the initial
 state's share (:func:`with_unresolved`).
