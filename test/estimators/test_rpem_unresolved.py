@@ -7,6 +7,8 @@ estimate said nothing of a long valley of equally good models, which the fit's t
 find (docs/tracking.md, 2026-11-28, session 8, far8).
 """
 
+import dataclasses
+
 import numpy as np
 from scipy import signal
 
@@ -130,3 +132,23 @@ def test_rpem_reopens_a_change_when_a_refit_finds_an_estimate_as_good_far_away()
     assert error > 0.1 * np.linalg.norm(case.theta[5799])
     # the std now covers the error: 2 sqrt(tr C) is beyond it
     assert 2.0 * np.sqrt(np.trace(estimator.parameter_covariance)) > error
+
+
+def test_a_snapshot_with_the_share_itself_loads_through_its_root():
+    """A snapshot from before the root (E under 'fitted_state_excess') gives the same std."""
+    rng = np.random.default_rng(4)
+    u = rng.standard_normal(1200)
+    x = signal.lfilter([0.0, 1.0, 0.5], [1.0, -1.5, 0.7], u)
+    y = x + 0.1 * x.std() * rng.standard_normal(1200)
+    estimator = make_estimator('rpem', order=2)
+    estimator.run(y, u)
+    state = estimator.get_state()
+    root = state.arrays['fitted_state_root']
+    assert np.abs(root).max() > 0.0
+    old = {key: value for key, value in state.arrays.items() if key != 'fitted_state_root'}
+    old['fitted_state_excess'] = root @ root.T
+    loaded = make_estimator('rpem', order=2)
+    loaded.set_state(dataclasses.replace(state, arrays=old))
+    # E's eigen-root differs from R by a rotation, R R^T to the rounding of a 3 x 3 problem
+    np.testing.assert_allclose(loaded.parameter_covariance, estimator.parameter_covariance,
+                               rtol=1e-6)
