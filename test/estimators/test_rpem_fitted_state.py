@@ -48,7 +48,7 @@ def test_rpem_std_on_a_slow_plant_agrees_with_the_batch_fit(seed):
 
 
 def test_the_excess_is_zero_where_the_state_carries_no_information():
-    """Profiled information equal to the held one: no excess (and a PSD E otherwise)."""
+    """Profiled information equal to the held one: no excess (and a PSD E = R R^T otherwise)."""
     rng = np.random.default_rng(3)
     scores = rng.standard_normal((2000, 3))
     information = scores.T @ scores
@@ -59,12 +59,14 @@ def test_the_excess_is_zero_where_the_state_carries_no_information():
     hac.record_all(np.column_stack((scores, rng.standard_normal(2000))))
     held = normalised_covariance(hac, np.linalg.inv(held_information + 1e-6 * np.eye(4)),
                                  2000.0, 1.0)
-    same = fitted_state_excess(held, held_information, information, scores, 1e-6, 2000.0,
+    root = fitted_state_excess(held, held_information, information, scores, 1e-6, 2000.0,
                                1.0)
+    same = root @ root.T  # E
     # the two HAC estimates of one long-run covariance differ by their sampling error only
     assert np.abs(same).max() <= 0.1 * np.abs(held_information @ held @ held_information).max()
-    less = fitted_state_excess(held, held_information, 0.25 * information, 0.5 * scores,
+    root = fitted_state_excess(held, held_information, 0.25 * information, 0.5 * scores,
                                1e-6, 2000.0, 1.0)
+    less = root @ root.T
     assert np.linalg.eigvalsh(less).min() >= -1e-9 * np.abs(less).max()
     assert np.abs(less).max() > 0.0
 

@@ -16,7 +16,8 @@ def nested_means(rng, first, second, shift=0.0):
 
 
 def test_nested_means_of_one_distribution_move_at_the_stated_rate():
-    # 4000 pairs at level 1 %: 40 expected, sd 6.3; the bound is 5 sd either side
+    # 4000 pairs at level 1 %: at most 40 expected (Bonferroni; equality for independent
+    # parameters), sd 6.3; the bound is 5 sd either side of 40
     rng = np.random.default_rng(7)
     count = 0
     for _ in range(4000):
@@ -41,3 +42,21 @@ def test_no_spread_or_no_newer_samples_is_no_move():
     assert not moved(step, np.zeros((3, 3)), 300.0, 200.0)  # no spread to judge against
     assert not moved(step, -SIGMA, 300.0, 200.0)  # not a covariance
     assert not moved(np.full(3, np.nan), SIGMA, 300.0, 200.0)
+
+
+def test_a_step_along_the_weakest_direction_alone_is_no_move():
+    """
+    A covariance of ten decades: a step of 6 std along its weakest direction, none per parameter.
+
+    Tracking plant (1, 5) after its change: every parameter within 1.4 std of the older fit,
+    5.2 std along the covariance's weakest direction (cond 4.5e10), W 62.6 against 27.9. The
+    test judges each parameter: the weakest direction is not what a fit of a few hundred
+    samples honours (rpem/window.py).
+    """
+    rotation = np.linalg.qr(np.random.default_rng(9).standard_normal((3, 3)))[0]
+    values = np.array([1.0, 1e-2, 1e-10])
+    covariance = (rotation * values) @ rotation.T
+    step = 6.0 * np.sqrt(values[2]) * rotation[:, 2]  # W = 6^2 times (N2/N1 - 1)^-1
+    assert not moved(step * np.sqrt(0.5), covariance, 300.0, 200.0)
+    # the same size along a parameter's own std is a move
+    assert moved(6.0 * np.sqrt(covariance[0, 0] * 0.5) * np.eye(3)[0], covariance, 300.0, 200.0)

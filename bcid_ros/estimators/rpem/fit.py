@@ -81,6 +81,10 @@ class FitResult:
         nuisance instead, as the recursion does, and on a slow plant's short
         segments claims far more (tracking plant (1, 5): variances 5-200 times
         smaller).
+    alternative : tuple or None
+        ``(theta, ratio)``: where the fit's other start ended, and the ratio of its
+        loss to the estimate's (the search's criterion; None: one start), for
+        :func:`~bcid_ros.estimators.rpem.uncertainty.with_unresolved`.
 
     """
 
@@ -99,6 +103,8 @@ class FitResult:
         self.offset = offset
         self.scores = scores
         self.profiled = profiled
+        #: (theta, loss ratio) where the fit's other start ended (None: one start)
+        self.alternative: tuple[np.ndarray, float] | None = None
 
     def residuals(self, segment: tuple[np.ndarray, np.ndarray, np.ndarray],
                   armax: bool) -> np.ndarray:
@@ -200,16 +206,19 @@ class BatchFit:
         starts = [(yield from self._best([theta for theta in candidates
                                           if np.isfinite(theta).all()], usable)),
                   (yield from self._best(path, usable))]
-        best_theta, best_loss = None, math.inf
+        ends = []
         for theta, loss in starts:
             if theta is None:
                 continue
-            theta, loss = yield from self._search(theta, loss, usable, prior)
-            if loss < best_loss:
-                best_theta, best_loss = theta, loss
-        if best_theta is None:
+            ends.append((yield from self._search(theta, loss, usable, prior)))
+        if not ends:
             return None
-        result = self._result(best_theta, segments, usable, arx)
+        ends.sort(key=lambda end: end[1])
+        result = self._result(ends[0][0], segments, usable, arx)
+        # the other start's end: where the data may not tell it from the estimate, its
+        # distance is an error no covariance at the estimate shows (rpem/uncertainty.py)
+        if len(ends) > 1 and ends[0][1] > 0.0:
+            result.alternative = (ends[1][0], ends[1][1] / ends[0][1])
         yield self._cost(usable, 2 * (self.num_parameters + 1))
         return result
 
@@ -497,9 +506,11 @@ class BatchFit:
         usable = [(y, u, w, self._predictor.input_columns(u)) for y, u, w in segments
                   if y.shape[0] > self.span]
         tail_x, tail_e, tail_psi, offset = self._tails(result.theta, segments, usable)
-        return FitResult(result.theta, result.information, result.loss, result.weight,
-                         result.arx, tail_x, tail_e, tail_psi, offset, result.scores,
-                         result.profiled)
+        continued = FitResult(result.theta, result.information, result.loss, result.weight,
+                              result.arx, tail_x, tail_e, tail_psi, offset, result.scores,
+                              result.profiled)
+        continued.alternative = result.alternative
+        return continued
 
     def _tails(self, theta: np.ndarray, segments: list,
                usable: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

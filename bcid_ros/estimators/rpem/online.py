@@ -36,13 +36,16 @@ from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.state import RpemState
 from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, StoredFit
 from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
-                                                  parameter_covariance)
+                                                  parameter_covariance, with_unresolved)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
-from bcid_ros.estimators.validity import doubt_the_model
+from bcid_ros.estimators.validity import doubt_the_model, imprecision
 
 #: Values of the ``model`` option.
 MODELS = ('oe', 'armax')
+#: The change's reason again, after a change taken as done, when a fit finds another estimate
+#: as good as its own farther away than PRECISION allows (:meth:`Rpem._fitted_now`).
+UNRESOLVED_NOTE = 'plant changed: a refit of its samples found another estimate as good'
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -487,9 +490,21 @@ class Rpem(RpemState, RecursiveEstimator):
         """Continue the recursion from a fit (if it is sound) centred on ``mean``."""
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
-        if fitted.result is not None and self._take_fit(fitted.result, fitted.segments,
-                                                        fitted.scale, fresh, mean):
+        result = fitted.result
+        if result is not None and self._take_fit(result, fitted.segments, fitted.scale, fresh,
+                                                 mean):
             self._fits += 1
+            # the other start's end, where the data cannot tell it apart (:mod:`.uncertainty`)
+            root = self._excess
+            self._excess = with_unresolved(
+                root, result.theta, result.alternative, result.weight, self._forgetting_factor,
+                lambda: result.residuals(fitted.segments[-1], self._armax),
+                result.information + np.eye(self._size) / self.initial_covariance)
+            if self._changes and not self._change_note and self._excess is not root and (
+                    imprecision(self._theta(), lambda: self.parameter_covariance)):
+                # the new plant's estimate was taken as known to PRECISION, and a refit of
+                # its samples found another as good farther away: the change is not done
+                self._change_note = UNRESOLVED_NOTE
             # a new estimate: judged at the next update, not at the period's end; not in
             # this one, whose hand-over and the simulation check took 8-10 ms together
             # (benchmarks/rpem_stall.py; the bound is 10 ms), the last verdict holding for
@@ -623,7 +638,7 @@ class Rpem(RpemState, RecursiveEstimator):
         # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
         loss, tau = np.array([self._loss]), np.array([self._tau])
         keep = rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
-        self._excess *= float(keep[0]) ** 2  # the old fit's weight, cut as P's information
+        self._excess *= float(keep[0])  # E's root: the old fit's weight, cut as P's information
         self._loss, self._tau = float(loss[0]), float(tau[0])
         if self._store.restart_schedule(age):
             self._fit()

@@ -20,6 +20,7 @@ from bcid_ros.estimators.recursion import Forgetting, RandomWalk
 from bcid_ros.estimators.residual_state import (residual_items, residual_states,
                                                 with_gradient_arrays)
 from bcid_ros.estimators.rpem.feed import with_feed_items
+from bcid_ros.estimators.rpem.uncertainty import excess_root
 
 #: The snapshot keys' prefix of the test of the recursion against its fit (_left_fit).
 LEFT_FIT_PREFIX = 'change_left_fit_'
@@ -54,7 +55,8 @@ class RpemState:
         self._loss = 0.0
         self._tau = 0.0
         self._lambda_t = self._forgetting_factor
-        # the last fit's E (uncertainty.fitted_state_excess) and the sample it came at
+        # the root R of the last fit's E = R R^T (uncertainty.fitted_state_excess) and the
+        # sample it came at
         self._excess = np.zeros((size, size))
         self._fit_sample = 0
         # the last fresh fit after a change, its weight and its window's first sample
@@ -94,7 +96,7 @@ class RpemState:
         arrays = {'theta_n': self._theta_n, 'p': self._p,
                   'psi_history': lag_arrays['psi_history'], 'arx': self._arx,
                   'signal_scale': self._signal_scale, 'fit_mean': self._fit_mean,
-                  'fitted_state_excess': self._excess, 'window_theta': self._window_theta,
+                  'fitted_state_root': self._excess, 'window_theta': self._window_theta,
                   **stored_arrays,
                   'history': lag_arrays['history']}
         scalars = {**stored_scalars,
@@ -121,8 +123,10 @@ class RpemState:
         arrays = with_detector_arrays(with_gradient_arrays(state.arrays, own), own)
         if 'fit_mean' not in arrays:  # a snapshot from before: its running means
             arrays['fit_mean'] = np.array(arrays.get('operating_point', own['fit_mean']))
-        if 'fitted_state_excess' not in arrays:  # from before: the held covariance alone
-            arrays['fitted_state_excess'] = np.zeros_like(own['fitted_state_excess'])
+        if 'fitted_state_root' not in arrays:  # from before: E itself, or the held alone
+            arrays['fitted_state_root'] = (excess_root(arrays['fitted_state_excess'])
+                                           if 'fitted_state_excess' in arrays
+                                           else np.zeros_like(own['fitted_state_root']))
         if 'window_theta' not in arrays:  # from before: no fit to compare the next with
             arrays['window_theta'] = np.zeros_like(own['window_theta'])
         arrays, scalars = self._store.with_job_items(arrays, state.scalars)
@@ -135,7 +139,7 @@ class RpemState:
         self._theta_n, self._arx = arrays['theta_n'], arrays['arx']
         self._signal_scale = arrays['signal_scale']
         self._fit_mean = arrays['fit_mean']
-        self._excess = arrays['fitted_state_excess']
+        self._excess = arrays['fitted_state_root']
         self._window_theta = arrays['window_theta']
         self._p = np.ascontiguousarray(arrays['p'])
         self._predictor.load_state(arrays, scalars)

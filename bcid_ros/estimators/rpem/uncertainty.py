@@ -31,15 +31,43 @@ exponential forgetting :math:`\theta(t) - \theta^* \approx
 \lambda^k P(t) P_f^{-1} (\theta_f - \theta^*) + \ldots` after k steps (the
 information form of the recursion, Ljung and Söderström 1983, sec. 2.6), so
 :math:`\lambda^{2k} P(t) E P(t)`, :math:`E = P_f^{-1} D P_f^{-1}`, joins the
-sandwich (:func:`fitted_state_excess`, :func:`parameter_covariance`).
+sandwich (:func:`fitted_state_excess`, :func:`parameter_covariance`). E is kept as
+its square root :math:`R = P_f^{-1} D^{1/2}` (:math:`E = RR^T`) and the share
+computed as :math:`(P R)(P R)^T`: the information behind :math:`P_f^{-1}` spans
+ten and more decades on a slow plant, and the product P E P lost them twice,
+where P R loses them once (:func:`carried_excess`).
+
+**Ends the data cannot tell apart.** The sandwich is the curvature at the
+estimate. On a plant whose data determine its response but not its
+parameters (an input that barely excites a fast pole, poles near 1), the loss
+has a long curved valley, and the curvature at a point of it says nothing of
+how far the valley goes: on tracking plant (2, 23) with lambda 0.999, after its
+drift ended, the estimate was 14-41 % off with 2 sqrt(tr C) 7-21 % of its size
+(the error 4-7000 in its Mahalanobis units), while its simulated output was the
+true model's (squared error 0.91-1.04 of it over the last 1000 samples) and the
+window's information at the truth put 2 std at 36-45 %, the error at 2-11 in
+its units. The fit's two starts (:class:`~bcid_ros.estimators.rpem.fit.BatchFit`)
+end apart along such a valley (there: up to 112 % apart, thousands of std, the
+losses within the likelihood-ratio region): the other end's distance d joins
+the fit's covariance as d d^T, carried on by the recursion as the initial
+state's share (:func:`with_unresolved`).
 """
 
 from __future__ import annotations
+
+import math
+from typing import Callable
 
 import numpy as np
 
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.noise_colour import colour, MAX_COLOUR
+from bcid_ros.estimators.residual_statistics import chi2_quantile
+
+#: The likelihood-ratio region's tail probability within which the fit's other end is one
+#: the data do not tell from its estimate (:func:`with_unresolved`).
+UNRESOLVED_LEVEL = 0.05
 
 
 def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
@@ -64,8 +92,9 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     unscale : numpy.ndarray, shape ``(count,)``
         theta_k in the user's units per normalised unit: s_y / s_channel(k).
     excess : numpy.ndarray, shape ``(q, q)``, optional
-        E of the last fit (:func:`fitted_state_excess`): decay² P E P joins the
-        sandwich; NaN (the share not known): no covariance.
+        R, the square root of E of the last fit (:func:`fitted_state_excess`):
+        decay² P E P joins the sandwich (:func:`carried_excess`); NaN (the share
+        not known): no covariance.
     decay : float
         The weight the last fit's samples keep now: lambda^k after k steps.
 
@@ -80,9 +109,32 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     if covariance is None or (excess is not None and not np.isfinite(excess).all()):
         return None  # (an excess of NaN: the last fit's share is not known, nor the std)
     if excess is not None:  # the fitted initial state's share, carried on by the recursion
-        covariance = covariance + decay * decay * (p @ excess @ p)
+        covariance = covariance + decay * decay * carried_excess(p, excess)
     # normalised units to theta's: theta_k s_y / s_channel(k)
     return covariance[:count, :count] * np.outer(unscale, unscale)
+
+
+def carried_excess(p: np.ndarray, root: np.ndarray) -> np.ndarray:
+    r"""
+    Return P E P as (P R)(P R)^T, from the square root R of E (:func:`fitted_state_excess`).
+
+    R is P_f^-1 D^1/2 and the recursion's P is near P_f after a fit, so P R is near D^1/2,
+    computed to about cond(P_f) times the rounding error. The plain product P E P of
+    E = R R^T loses cond(P_f) squared: on tracking plant (1, 17) (poles 0.995 to 0.997),
+    at fits with cond(P_f) 1e12-1e13, its variances were negative where D's were 0.4-254
+    (no std at all, and the window test after a change, :mod:`.window`, judged nothing),
+    and a root taken from E's eigenvalues was positive but 2.5-15,000 times D.
+    """
+    carried = p @ root
+    return carried @ carried.T
+
+
+def excess_root(excess: np.ndarray) -> np.ndarray:
+    """Return a square root R of E, R R^T = E (E's negative eigenvalues at 0; NaN stays NaN)."""
+    if not np.isfinite(excess).all():
+        return np.full_like(excess, np.nan)
+    values, vectors = np.linalg.eigh(0.5 * (excess + excess.T))
+    return vectors * np.sqrt(np.maximum(values, 0.0))
 
 
 def normalised_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
@@ -110,13 +162,13 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
                         profiled_information: np.ndarray, profiled_scores: np.ndarray,
                         prior: float, tau: float, forgetting_factor: float) -> np.ndarray:
     """
-    Return E = P_f^-1 D P_f^-1 of a fit: what its held-state covariance leaves out.
+    Return R = P_f^-1 D^1/2 of a fit, E = R R^T: what its held-state covariance leaves out.
 
     Parameters
     ----------
     held : numpy.ndarray or None, shape ``(q, q)``
         C_h, the sandwich of the fit (:func:`normalised_covariance` of its scores
-        and P_f); None: not known (E is 0).
+        and P_f); None: not known (R is NaN).
     information : numpy.ndarray, shape ``(q, q)``
         I_h, the fit's information with the nuisance held (P_f is the inverse of
         it plus ``prior`` I).
@@ -131,8 +183,9 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     Returns
     -------
     numpy.ndarray
-        ``(q, q)`` symmetric positive semi-definite, zero outside theta's block;
-        zeros where nothing was profiled; NaN where either covariance is not known
+        ``(q, q)``, its columns outside theta's block zero (R R^T is E: symmetric
+        positive semi-definite); zeros where nothing was profiled; NaN where either
+        covariance is not known
         (a fit of fewer scores than the HAC's first estimate needs): the share is
         then unknown, not zero. Taken as zero, a short fit of a slow plant had
         the held covariance alone once the recursion's scores gave the HAC an
@@ -142,9 +195,8 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
 
     """
     size, count = information.shape[0], profiled_information.shape[0]
-    excess = np.zeros((size, size))
     if profiled_scores.shape[0] == 0:
-        return excess
+        return np.zeros((size, size))
     if held is None:
         return np.full((size, size), np.nan)
     hac = HacCovariance(dimension=count, forgetting_factor=forgetting_factor)
@@ -152,13 +204,73 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     try:
         p_profiled = np.linalg.inv(profiled_information + prior * np.eye(count))
     except np.linalg.LinAlgError:
-        return excess
+        return np.zeros((size, size))
     profiled = normalised_covariance(hac, p_profiled, tau, forgetting_factor)
     if profiled is None or not np.isfinite(profiled).all():
         return np.full((size, size), np.nan)
     # D: the positive part of C_c - C_h (the held one can be larger in a direction by
-    # the noise of the two HAC estimates; it is never less honest there)
+    # the noise of the two HAC estimates; it is never less honest there); its root
     values, vectors = np.linalg.eigh(profiled - held[:count, :count])
-    excess[:count, :count] = (vectors * np.maximum(values, 0.0)) @ vectors.T
-    inverse = information + prior * np.eye(size)  # P_f^-1
-    return inverse @ excess @ inverse
+    root = np.zeros((size, size))
+    root[:count, :count] = vectors * np.sqrt(np.maximum(values, 0.0))
+    return (information + prior * np.eye(size)) @ root  # P_f^-1 D^1/2
+
+
+def with_unresolved(root: np.ndarray, theta: np.ndarray,
+                    alternative: tuple[np.ndarray, float] | None, weight: float,
+                    forgetting_factor: float, residuals: Callable[[], np.ndarray],
+                    inverse: np.ndarray) -> np.ndarray:
+    r"""
+    Return the root of E + P_f^-1 d d^T P_f^-1 where the fit's other end is as good, else R.
+
+    The likelihood-ratio statistic of a parameter vector against the estimate,
+    :math:`N(V_2/V_1 - 1)` (V the weighted losses, N the weight), is at the truth
+    :math:`(\tau_2/\tau)\chi^2_p` under white errors (the weighted estimate's covariance
+    is :math:`\sigma^2(\tau_2/\tau)H^{-1}` for the weighted curvature H; 1 without
+    forgetting) and at most :math:`\kappa` times that with coloured ones (kappa the peak of
+    the residuals' spectrum over their variance,
+    :func:`~bcid_ros.estimators.noise_colour.colour`; the simulation check's bound). The
+    other end within its ``UNRESOLVED_LEVEL`` quantile is in the likelihood-ratio
+    confidence region: the data do not prefer the estimate to it, and the estimate's error
+    can be as large as d = theta_2 - theta_1, which joins the fit's covariance as d d^T (as
+    :func:`fitted_state_excess`'s D, carried on by the recursion with the fit's weight).
+
+    Parameters
+    ----------
+    root : numpy.ndarray, shape ``(q, q)``
+        R of the fit (:func:`fitted_state_excess`); NaN (not known) stays NaN.
+    theta : numpy.ndarray, shape ``(p,)``
+        The fit's estimate.
+    alternative : tuple or None
+        ``(theta_2, V_2 / V_1)`` of its other start (None: one start).
+    weight, forgetting_factor : float
+        N and lambda (the fit's weights lambda^k).
+    residuals : callable
+        Returns the fit's residuals (asked only where kappa decides).
+    inverse : numpy.ndarray, shape ``(q, q)``
+        P_f^-1 (q >= p: the offset last).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(q, q)``: R' with R' R'^T = R R^T + P_f^-1 d d^T P_f^-1 (from the QR
+        factorisation of [R, P_f^-1 d]^T, which keeps the columns' accuracy), or R where
+        the ends agree or the data prefer the estimate.
+
+    """
+    if alternative is None or not weight > 0.0 or not np.isfinite(root).all():
+        return root
+    other, ratio = alternative
+    step = np.zeros(root.shape[0])
+    step[:theta.shape[0]] = other - theta
+    if not (np.isfinite(step).all() and math.isfinite(ratio)) or not step.any():
+        return root
+    statistic = weight * (ratio - 1.0)
+    limit = chi2_quantile(UNRESOLVED_LEVEL, theta.shape[0]) * weighted_square_ratio(
+        weight, forgetting_factor)
+    # kappa is in [1, MAX_COLOUR]: the residuals are asked only where it decides
+    if statistic > limit and (statistic > MAX_COLOUR * limit
+                              or statistic > colour(residuals()) * limit):
+        return root
+    stacked = np.vstack((root.T, (inverse @ step)[None]))
+    return np.linalg.qr(stacked, mode='r').T
