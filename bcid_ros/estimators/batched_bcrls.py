@@ -21,7 +21,7 @@ from bcid_ros.estimators.batched import BatchedRls, Rows
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
                                        gradient_covariances, LaggedMoments,
                                        output_error_rows, output_gradient)
-from bcid_ros.estimators.held_model import hold_due
+from bcid_ros.estimators.held_model import hold_due, precise
 from bcid_ros.estimators.polynomials import spectral_radii
 
 
@@ -97,8 +97,9 @@ class BatchedBcrls(BatchedRls):
             # no reason against the compensation, and a stable A (a bounded output error)
             sound = (np.array([not reasons for reasons in found], dtype=bool) & ~diverging
                      & (spectral_radii(self._theta_c[plants, :self.order]) < 1.0))
-            self._hold_models(plants[hold_due(sound, self._tau[plants],
-                                              self._held_tau[plants])])
+            due = plants[hold_due(sound, self._tau[plants], self._held_tau[plants])]
+            if due.size:
+                self._hold_models(due[precise(self._theta_c[due], self._covariances(due))])
 
     def _hold_models(self, plants: np.ndarray) -> None:
         """Hold the estimates of ``plants`` for the detector (Bcrls._hold_model)."""

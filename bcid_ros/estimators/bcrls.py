@@ -19,7 +19,7 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.bcrls_covariance import LaggedMoments, MOMENT_BLOCK
 from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.held_model import hold_due
+from bcid_ros.estimators.held_model import hold_due, precise
 from bcid_ros.estimators.polynomials import spectral_radii
 from bcid_ros.estimators.recursion import matvec, rowdot
 from bcid_ros.estimators.rls import ls_batch, Rls
@@ -97,7 +97,8 @@ class Bcrls(Rls):
     tests (``adequacy_model`` 'oe_white') with its gradient, so that they
     count the settling estimate's error (docs/trust.md). The change detector
     takes the LS step's normalised error, as rls's, until the estimate can be
-    held (500 samples, a stable A, no reason against the compensation); from
+    held (500 samples, a stable A, no reason against the compensation, known
+    to 10 % of its size); from
     then on the output error of that estimate held fixed, refreshed as the
     estimate grows (:mod:`~bcid_ros.estimators.held_model`): under the model
     it is white, and a moved pole shows there where it does not in the
@@ -226,7 +227,8 @@ class Bcrls(Rls):
             self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         if self._change_detection and hold_due(
                 not found[0] and not diverging[0] and spectral_radii(
-                    self._theta_c[None, :self.order])[0] < 1.0, self._tau, self._held_tau):
+                    self._theta_c[None, :self.order])[0] < 1.0, self._tau, self._held_tau
+        ) and precise(self._theta_c[None], self._covariances(None))[0]:
             self._hold_model()
 
     def _hold_model(self) -> None:

@@ -22,10 +22,11 @@ plant's low frequencies, adds little to its variance (docs/tracking.md,
 "Where each estimator's model holds").
 
 **When it is held.** At the first validity check after a (re)start where
-the estimate rests on ``HOLD_FROM`` (weighted) samples, its A is stable and
+the estimate rests on ``HOLD_FROM`` (weighted) samples, its A is stable,
 its compensation has no reason against it (converged, determined,
-contracting); the detector then starts afresh on the held model's errors
-(its warm-up, 500 samples); the LS step's errors feed it until then. Not
+contracting) and it is known to 10 % of its size (:func:`precise`); the
+detector then starts afresh on the held model's errors (its warm-up, 500
+samples); the LS step's errors feed it until then. Not
 only once ``valid``: the shared checks (the residual tests, the simulation
 check) may refuse an estimate that is accurate for long on a slow plant (one
 0.2 % off refused for 4000 samples), and one first valid after an undetected
@@ -49,6 +50,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
+from bcid_ros.estimators.validity import imprecision
+
 #: The estimate is first held once it rests on this many (weighted) samples.
 HOLD_FROM = 500.0
 #: The held model is refreshed when the estimate rests on this many times its samples.
@@ -68,4 +73,19 @@ def hold_due(sound: Any, tau: Any, held_tau: Any) -> Any:
     return sound & (tau >= HOLD_FROM) & ((held_tau <= 0.0) | (tau >= GROWTH * held_tau))
 
 
-__all__ = ['GROWTH', 'HOLD_FROM', 'hold_due']
+def precise(theta: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """
+    Return which estimates ``theta`` ``(K, p)`` are known to PRECISION of their size.
+
+    The rule of a detected change's end (:func:`~bcid_ros.estimators.validity.imprecision`,
+    2 sqrt(tr C) <= 0.1 |theta|) with ``covariances`` ``(K, p, p)`` (NaN: none, not
+    precise): a model held less precise than that carries its own error (G - G_h) u,
+    as large as the noise or larger, and the refresh that replaces it changes the
+    detector's input by as much (a false detection, seed 2 case 14 of the tracking
+    family's ``oe_white`` plants: held 35 % off, flagged 450 samples later).
+    """
+    return np.array([not imprecision(row, lambda matrix=matrix: matrix)
+                     for row, matrix in zip(theta, covariances)], dtype=bool)
+
+
+__all__ = ['GROWTH', 'HOLD_FROM', 'hold_due', 'precise']

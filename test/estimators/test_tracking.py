@@ -15,6 +15,7 @@ from test_contract import same_state
 
 from bcid_ros.estimators import make_batched_estimator, make_estimator
 from bcid_ros.estimators.change_detection import FALSE_ALARM, WARMUP
+from bcid_ros.estimators.held_model import precise
 
 A_BEFORE, B_BEFORE = [1.0, -1.5, 0.7], [0.0, 1.0, 0.5]
 A_AFTER, B_AFTER = [1.0, -1.2, 0.5], [0.0, 1.5, 0.8]
@@ -302,3 +303,12 @@ def test_bcrls_held_model_is_state_and_a_snapshot_from_before_it_loads():
     assert batched.plant_state(1).scalars['held_tau'] == 0.0
     batched.set_plant_state(0, state)
     same_state(state, batched.plant_state(0))
+
+
+@pytest.mark.parametrize('share, held', [(0.09, True), (0.11, False), (math.nan, False)])
+def test_bcrls_holds_only_an_estimate_known_to_a_tenth_of_its_size(share, held):
+    # 2 sqrt(tr C) against 0.1 |theta| (the rule that ends a detected change): C = v I_2
+    # with 2 sqrt(2 v) = share |theta|; no covariance (NaN) is no precision shown
+    theta = np.array([[0.6, -0.8]])  # |theta| = 1
+    covariance = np.eye(2)[None] * share ** 2 / 8.0
+    assert precise(theta, covariance).tolist() == [held]
