@@ -139,37 +139,29 @@ class BatchedBcrls(BatchedRls):
     def _record_held_errors(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Run the held models' output errors of ``rows`` on (Bcrls._record_residual)."""
         at = self._view_rows(rows)
-        held_tau = self._held_tau[at]
-        # whether every plant of rows holds a model (the common case: no subsets), and
-        # whether some held A is unstable (its filter restarts, it gives the detector nothing)
-        self._every_held, self._unbounded = bool(held_tau.min() > 0.0), False
-        held = None if self._every_held else held_tau > 0.0
-        if self._every_held:
-            error, bounded, self._held_errors[at] = output_error_rows(
-                self._held_theta[at], self._held_errors[at], y, phi, self._signal_scale[at, 0])
-        elif held.any():
-            rows, y, phi = rows[held], y[held], phi[held]
-            error, bounded, self._held_errors[rows] = output_error_rows(
-                self._held_theta[rows], self._held_errors[rows], y, phi,
-                self._signal_scale[rows, 0])
-        else:
+        held = self._held_tau[at] > 0.0
+        self._some_held, self._unbounded = bool(held.any()), False
+        if not self._some_held:
             return
-        self._held_input[rows] = error
-        if not bounded.all():
+        # every plant of rows runs the filter, one not holding a model with theta_h = 0 (its
+        # error y, never used, its past kept at zero): no subset taken where most hold one
+        error, bounded, past = output_error_rows(
+            self._held_theta[at], self._held_errors[at], y, phi, self._signal_scale[at, 0])
+        past *= held[:, None]
+        self._held_errors[at] = past
+        if not bounded.all():  # an unstable held A: its filter restarts, no input this sample
             self._unbounded = True
-            self._held_input[rows[~bounded]] = np.nan
+            error = np.where(bounded, error, np.nan)
+        self._held_input[at] = error
 
     def _detector_errors(self, rows: np.ndarray, errors: np.ndarray, gains: np.ndarray,
                          ) -> tuple[np.ndarray, np.ndarray]:
         """Return the held model's output error where one is held, else e / sqrt(s)."""
-        if self._every_held:  # (a view where rows are every plant: the detector copies it)
-            inputs = self._held_input[self._view_rows(rows)]
-        else:
-            inputs = errors / np.sqrt(gains)
-            held = self._held_tau[rows] > 0.0
-            if not held.any():
-                return rows, inputs
-            inputs[held] = self._held_input[rows[held]]
+        inputs = errors / np.sqrt(gains)
+        if not self._some_held:
+            return rows, inputs
+        at = self._view_rows(rows)
+        inputs = np.where(self._held_tau[at] > 0.0, self._held_input[at], inputs)
         if not self._unbounded:
             return rows, inputs
         finite = np.isfinite(inputs)
@@ -214,7 +206,7 @@ class BatchedBcrls(BatchedRls):
         self._held_errors = np.zeros((plants, self.order))
         self._held_tau = np.zeros(plants)
         self._held_input = np.zeros(plants)
-        self._every_held, self._unbounded = False, False
+        self._some_held, self._unbounded = False, False
         # the output error's tests with the estimate's own error (Bcrls._forget_residuals)
         self._monitor = AdequacyMonitor(
             num_inputs=self.num_inputs, model=self.adequacy_model,
