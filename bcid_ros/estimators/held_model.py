@@ -82,7 +82,8 @@ def precise(theta: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     precise): a model held less precise than that carries its own error (G - G_h) u,
     as large as the noise or larger, and the refresh that replaces it changes the
     detector's input by as much (a false detection, seed 2 case 14 of the tracking
-    family's ``oe_white`` plants: held 35 % off, flagged 450 samples later).
+    family's ``oe_white`` plants: held 115 % off, refreshed 35 % off, flagged 450
+    samples later; docs/tracking.md, "Limits", 2026-11-28 session 8).
     """
     return np.array([not imprecision(row, lambda matrix=matrix: matrix)
                      for row, matrix in zip(theta, covariances)], dtype=bool)
