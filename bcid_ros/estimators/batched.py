@@ -476,11 +476,17 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         if not plain.any():
             return
         rows, errors, gains = _where(plain, rows, errors, gains)
-        ages = self._detector.record_rows(rows, errors / np.sqrt(gains))
+        rows, inputs = self._detector_errors(rows, errors, gains)
+        ages = self._detector.record_rows(rows, inputs)
         changed = ages > 0
         if changed.any():
             for plant, age in zip(rows[changed].tolist(), ages[changed].tolist()):
                 self._plant_changed(plant, age)
+
+    def _detector_errors(self, rows: np.ndarray, errors: np.ndarray, gains: np.ndarray,
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the plants of ``rows`` that give the detector an input, and their inputs."""
+        return rows, errors / np.sqrt(gains)
 
     def _plant_changed(self, plant: int, age: int) -> None:
         """

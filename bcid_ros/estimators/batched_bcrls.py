@@ -10,16 +10,19 @@ validity and sandwich covariance per plant.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, ClassVar
 
 import numpy as np
 
 from bcid_ros.estimators.adequacy import AdequacyMonitor
-from bcid_ros.estimators.base import weighted_square_ratio
+from bcid_ros.estimators.base import EstimatorState, weighted_square_ratio
 from bcid_ros.estimators.batched import BatchedRls, Rows
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
                                        gradient_covariances, LaggedMoments,
                                        output_error_rows, output_gradient)
+from bcid_ros.estimators.held_model import hold_due, precise
+from bcid_ros.estimators.polynomials import spectral_radii
 
 
 class BatchedBcrls(BatchedRls):
@@ -39,8 +42,10 @@ class BatchedBcrls(BatchedRls):
     name: ClassVar[str] = 'bcrls'
     noise_names: ClassVar[tuple[str, ...]] = ('sigma2',)
     _SNAPSHOT_ARRAYS = BatchedRls._SNAPSHOT_ARRAYS + ('theta_c', 'output_errors',
-                                                      'output_gradients')
-    _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int}
+                                                      'output_gradients', 'held_theta',
+                                                      'held_errors')
+    _SNAPSHOT_SCALARS = {**BatchedRls._SNAPSHOT_SCALARS, 'sigma2': float, 'resets_checked': int,
+                         'held_tau': float}
     adequacy_model = Bcrls.adequacy_model
     hac_std = Bcrls.hac_std
     _single = Bcrls
@@ -88,6 +93,24 @@ class BatchedBcrls(BatchedRls):
             self._resets_checked[restart] += 1
             self._theta_c[restart] = self._theta_ls[restart]
             self._lambda_theta_c[restart] = self._theta_c[restart] * self._lambda_diagonal
+        if self._change_detection:
+            # no reason against the compensation, and a stable A (a bounded output error)
+            sound = (np.array([not reasons for reasons in found], dtype=bool) & ~diverging
+                     & (spectral_radii(self._theta_c[plants, :self.order]) < 1.0))
+            due = plants[hold_due(sound, self._tau[plants], self._held_tau[plants])]
+            if due.size:
+                self._hold_models(due[precise(self._theta_c[due], self._covariances(due))])
+
+    def _hold_models(self, plants: np.ndarray) -> None:
+        """Hold the estimates of ``plants`` for the detector (Bcrls._hold_model)."""
+        if not plants.size:
+            return
+        first = plants[self._held_tau[plants] <= 0.0]
+        if first.size:  # their detector's reference was of the LS step's errors
+            self._detector.clear(first)
+            self._held_errors[first] = 0.0
+        self._held_theta[plants] = self._theta_c[plants]
+        self._held_tau[plants] = self._tau[plants]
 
     def _covariances(self, plants: np.ndarray) -> np.ndarray:
         """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""
@@ -103,6 +126,7 @@ class BatchedBcrls(BatchedRls):
         psi = output_gradient(theta, phi, past_errors, past)
         error, bounded, self._output_errors[at] = output_error_rows(
             theta, past_errors, y, phi, self._signal_scale[at, 0])
+        self._record_held_errors(rows, y, phi)
         if bounded.all():
             self._output_gradients[at] = past
             self._monitor.record_rows(rows, error, u, psi)
@@ -111,6 +135,37 @@ class BatchedBcrls(BatchedRls):
         self._output_gradients[at] = past
         if bounded.any():
             self._monitor.record_rows(rows[bounded], error[bounded], u[bounded], psi[bounded])
+
+    def _record_held_errors(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
+        """Run the held models' output errors of ``rows`` on (Bcrls._record_residual)."""
+        at = self._view_rows(rows)
+        held = self._held_tau[at] > 0.0
+        self._some_held, self._unbounded = bool(held.any()), False
+        if not self._some_held:
+            return
+        # every plant of rows runs the filter, one not holding a model with theta_h = 0 (its
+        # error y, never used, its past kept at zero): no subset taken where most hold one
+        error, bounded, past = output_error_rows(
+            self._held_theta[at], self._held_errors[at], y, phi, self._signal_scale[at, 0])
+        past *= held[:, None]
+        self._held_errors[at] = past
+        if not bounded.all():  # an unstable held A: its filter restarts, no input this sample
+            self._unbounded = True
+            error = np.where(bounded, error, np.nan)
+        self._held_input[at] = error
+
+    def _detector_errors(self, rows: np.ndarray, errors: np.ndarray, gains: np.ndarray,
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the held model's output error where one is held, else e / sqrt(s)."""
+        inputs = errors / np.sqrt(gains)
+        if not self._some_held:
+            return rows, inputs
+        at = self._view_rows(rows)
+        inputs = np.where(self._held_tau[at] > 0.0, self._held_input[at], inputs)
+        if not self._unbounded:
+            return rows, inputs
+        finite = np.isfinite(inputs)
+        return rows[finite], inputs[finite]
 
     def _theta(self) -> np.ndarray:
         return self._theta_c
@@ -146,6 +201,12 @@ class BatchedBcrls(BatchedRls):
         # e_oe(t-1) ... e_oe(t-n) and psi(t-1) ... psi(t-n), newest first (Bcrls._record_residual)
         self._output_errors = np.zeros((plants, self.order))
         self._output_gradients = np.zeros((plants, self.order, p))
+        # the detector's held models (Bcrls._drop_held_model) and their last output errors
+        self._held_theta = np.zeros((plants, p))
+        self._held_errors = np.zeros((plants, self.order))
+        self._held_tau = np.zeros(plants)
+        self._held_input = np.zeros(plants)
+        self._some_held, self._unbounded = False, False
         # the output error's tests with the estimate's own error (Bcrls._forget_residuals)
         self._monitor = AdequacyMonitor(
             num_inputs=self.num_inputs, model=self.adequacy_model,
@@ -163,10 +224,28 @@ class BatchedBcrls(BatchedRls):
         self._output_errors[rows] = 0.0
         self._output_gradients[rows] = 0.0
 
+    def _forget_residuals(self, rows: np.ndarray) -> None:
+        super()._forget_residuals(rows)
+        # none held (a reset, a change): the LS step's errors feed the detector again
+        dropped = rows[self._held_tau[rows] > 0.0]
+        if dropped.size:
+            self._detector.clear(dropped)
+        self._held_theta[rows] = 0.0
+        self._held_errors[rows] = 0.0
+        self._held_tau[rows] = 0.0
+
     def _plant_items(self, plant: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         arrays, scalars = super()._plant_items(plant)
         moment_arrays, moment_scalars = self._moments.plant_items(plant)
         return {**arrays, **moment_arrays}, {**scalars, **moment_scalars}
+
+    def set_plant_state(self, plant: int, state: EstimatorState) -> None:
+        """Load a snapshot into plant k (BatchedRls's); one from before the held model too."""
+        # (none held: the LS step's errors feed its detector until its estimate is held)
+        super().set_plant_state(plant, dataclasses.replace(
+            state, arrays={'held_theta': np.zeros(self.num_parameters),
+                           'held_errors': np.zeros(self.order), **state.arrays},
+            scalars={'held_tau': 0.0, **state.scalars}))
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:

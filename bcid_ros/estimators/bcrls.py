@@ -9,6 +9,7 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, Callable, Sequence
 
@@ -18,6 +19,7 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.bcrls_covariance import LaggedMoments, MOMENT_BLOCK
 from bcid_ros.estimators.blas import load_blas
+from bcid_ros.estimators.held_model import hold_due, precise
 from bcid_ros.estimators.polynomials import spectral_radii
 from bcid_ros.estimators.recursion import matvec, rowdot
 from bcid_ros.estimators.rls import ls_batch, Rls
@@ -94,9 +96,15 @@ class Bcrls(Rls):
     too, and the output error of the compensated model goes to the residual
     tests (``adequacy_model`` 'oe_white') with its gradient, so that they
     count the settling estimate's error (docs/trust.md). The change detector
-    takes the LS step's normalised error, as rls's: the output error's colour
-    (1/A times the noise's) and the compensation's wandering break its
-    reference (docs/tracking.md, "False detections").
+    takes the LS step's normalised error, as rls's, until the estimate can be
+    held (500 samples, a stable A, no reason against the compensation, known
+    to 10 % of its size); from
+    then on the output error of that estimate held fixed, refreshed as the
+    estimate grows (:mod:`~bcid_ros.estimators.held_model`): under the model
+    it is white, and a moved pole shows there where it does not in the
+    equation error (docs/tracking.md). Not the output error of the current
+    estimate: the compensation's wandering breaks the detector's reference
+    (docs/tracking.md, "False detections").
 
     The noise estimate is published as ``sigma2``.
 
@@ -155,21 +163,35 @@ class Bcrls(Rls):
         the filter and is not recorded. The covariance is bcrls's own
         sandwich, not the HAC. With it go the output error's gradient psi
         (:func:`output_gradient`), for the estimate's own error in the tests.
+        The change detector takes the held model's output error once one is
+        held (:mod:`~bcid_ros.estimators.held_model`), the LS step's
+        normalised error e / sqrt(s) before, as rls's.
         """
         theta = self._theta_c
         past = self._output_errors
-        error = y - float(phi.dot(theta))
-        for a, previous in zip(theta[:self.order].tolist(), past):
-            error -= a * previous
-        if abs(error) < OUTPUT_ERROR_LIMIT * self._signal_scale[0]:
+        error = output_error(theta[:self.order].tolist(), theta, past, y, phi)
+        limit = OUTPUT_ERROR_LIMIT * self._signal_scale[0]
+        if abs(error) < limit:
             psi = output_gradient(theta, phi, past, self._output_gradients)
             past.pop()
             past.insert(0, error)
             self._monitor.record(error, u, psi)
         else:
             self._forget_output_errors()
-        if self._gain:  # the change detector's input: the LS step's normalised error, as rls's
-            self._detect(self._error / math.sqrt(self._gain))
+        if not self._held_tau:  # the detector's input: the LS step's normalised error
+            if self._gain:
+                self._detect(self._error / math.sqrt(self._gain))
+            return
+        # the held model's output error (held_model.py)
+        held = self._held_errors
+        error = output_error(self._held_a, self._held_theta, held, y, phi)
+        if not abs(error) < limit:  # an unstable held A: its filter restarts
+            self._held_errors = [0.0] * self.order
+            return
+        held.pop()
+        held.insert(0, error)
+        if self._gain:
+            self._detect(error)
 
     @property
     def sigma2(self) -> float:
@@ -203,6 +225,20 @@ class Bcrls(Rls):
             self._resets_checked += 1
             self._theta_c = self._theta_ls.copy()
             self._lambda_theta_c = self._theta_c * self._lambda_diagonal
+        if self._change_detection and hold_due(
+                not found[0] and not diverging[0] and spectral_radii(
+                    self._theta_c[None, :self.order])[0] < 1.0, self._tau, self._held_tau
+        ) and precise(self._theta_c[None], self._covariances(None))[0]:
+            self._hold_model()
+
+    def _hold_model(self) -> None:
+        """Hold the estimate for the detector's errors (held_model.py); the first: afresh."""
+        if not self._held_tau:  # the detector's reference was of the LS step's errors
+            self._detector.clear()
+            self._held_errors = [0.0] * self.order
+        self._held_theta = self._theta_c.copy()
+        self._held_a = self._held_theta[:self.order].tolist()  # (its A's, for output_error)
+        self._held_tau = self._tau
 
     def _covariances(self, rows: np.ndarray) -> np.ndarray:
         """Return the covariance of this plant as ``(1, p, p)`` (NaN where there is none)."""
@@ -223,12 +259,24 @@ class Bcrls(Rls):
             forgetting_factor=self._forgetting_factor, num_parameters=self.num_parameters,
             parameter_covariance=self._gradient_covariances)
         self._forget_output_errors()
+        self._drop_held_model()
 
     def _forget_output_errors(self) -> None:
         """Restart the filters 1 / A of the output error and of its gradient."""
         # e_oe(t-1) ... e_oe(t-n) and psi(t-1) ... psi(t-n), newest first
         self._output_errors = [0.0] * self.order
         self._output_gradients = np.zeros((self.order, self.num_parameters))
+
+    def _drop_held_model(self) -> None:
+        """Hold no model (a reset, a change): the LS step's errors feed the detector again."""
+        if getattr(self, '_held_tau', 0.0):  # its reference was of the held model's errors
+            self._detector.clear()
+        # the held model of the detector (held_model.py): theta_h, e_h(t-1) ... e_h(t-n),
+        # and the tau it rests on (0: none held)
+        self._held_theta = np.zeros(self.num_parameters)
+        self._held_a = [0.0] * self.order
+        self._held_errors = [0.0] * self.order
+        self._held_tau = 0.0
 
     def _reset(self) -> None:
         super()._reset()
@@ -246,9 +294,17 @@ class Bcrls(Rls):
         moment_arrays, moment_scalars = self._moment_state()
         return {**arrays, 'theta_c': self._theta_c, 'output_errors': np.array(
             self._output_errors), 'output_gradients': self._output_gradients.copy(),
+            'held_theta': self._held_theta, 'held_errors': np.array(self._held_errors),
             **moment_arrays}, {
             **scalars, 'sigma2': self._sigma2, 'resets_checked': self._resets_checked,
-            **moment_scalars}
+            'held_tau': self._held_tau, **moment_scalars}
+
+    def set_state(self, state: Any) -> None:
+        """Restore a :meth:`get_state` snapshot; one from before the held model loads too."""
+        # (none held: the LS step's errors feed the detector until the estimate is held)
+        missing = {'held_theta': np.zeros(self.num_parameters), 'held_errors': np.zeros(
+            self.order)}
+        super().set_state(dataclasses.replace(state, arrays={**missing, **state.arrays}))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)
@@ -260,6 +316,11 @@ class Bcrls(Rls):
         self._lambda_theta_c = self._theta_c * self._lambda_diagonal
         self._sigma2 = float(scalars['sigma2'])
         self._resets_checked = int(scalars['resets_checked'])
+        # a snapshot from before the held model: none held (its arrays: set_state)
+        self._held_tau = float(scalars.get('held_tau', 0.0))
+        self._held_theta = np.array(arrays['held_theta'], dtype=float)
+        self._held_a = self._held_theta[:self.order].tolist()
+        self._held_errors = np.asarray(arrays['held_errors'], dtype=float).tolist()
         self._load_moments(arrays, scalars)
 
     # ------------------------------------------------------- the uncertainty
@@ -557,6 +618,21 @@ def output_gradient(theta: np.ndarray, phi: np.ndarray, past_errors: np.ndarray,
     return psi
 
 
+def output_error(a: list[float], theta: np.ndarray, past: list[float], y: float,
+                 phi: np.ndarray) -> float:
+    """
+    Return one plant's output error e(t) = y - phi^T theta - sum_i a_i e(t-i) on floats.
+
+    ``a`` is theta's a_1 ... a_n as a list and ``past`` holds e(t-1) ... e(t-n),
+    newest first (lists of n floats: no array made of them each sample);
+    :func:`output_error_rows` is the rows form.
+    """
+    error = y - float(phi.dot(theta))
+    for coefficient, previous in zip(a, past):
+        error -= coefficient * previous
+    return error
+
+
 def output_error_rows(theta: np.ndarray, past: np.ndarray, y: np.ndarray, phi: np.ndarray,
                       y_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
@@ -567,10 +643,9 @@ def output_error_rows(theta: np.ndarray, past: np.ndarray, y: np.ndarray, phi: n
     a plant whose error is beyond ``OUTPUT_ERROR_LIMIT`` times its output
     scale (or not finite) restarts its filter.
     """
-    error = y - rowdot(phi, theta)
-    for i in range(past.shape[1]):
-        error -= theta[:, i] * past[:, i]
+    error = y - rowdot(phi, theta) - rowdot(theta[:, :past.shape[1]], past)
     bounded = np.abs(error) < OUTPUT_ERROR_LIMIT * y_scale
     past = np.concatenate([error[:, None], past[:, :-1]], axis=1)
-    past[~bounded] = 0.0
+    if not bounded.all():
+        past[~bounded] = 0.0
     return error, bounded, past
