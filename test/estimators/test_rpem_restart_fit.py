@@ -10,6 +10,8 @@ ends of the searches are compared with the state free (docs/tracking.md, session
 import numpy as np
 from scipy import signal
 
+from benchmarks.tracking import TrackingCase
+from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.rpem.fit import BatchFit
 from bcid_ros.estimators.rpem.segment import SegmentPredictor
 
@@ -78,3 +80,23 @@ def test_a_fit_after_a_change_lands_near_the_new_plant():
         result = batch.fit([(y, u, np.ones(y.shape[0]))], [old], 1e-6, after_change=True)
         errors.append(np.linalg.norm(result.theta - new) / np.linalg.norm(new))
     assert np.median(errors) < 0.3, np.round(errors, 3)
+
+
+def test_a_snapshot_while_a_fit_after_a_change_is_on_its_way_continues_bit_for_bit():
+    """The job keeps that its samples follow a change: restored, the same passes and ends."""
+    case = TrackingCase((2, 0), 'family')
+    y, u = case.y[:case.change_at + 400], case.u[:case.change_at + 400]
+    estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs)
+    first = estimator.run(y, u).theta
+    estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs)
+    for t in range(y.shape[0]):
+        estimator.update(float(y[t]), u[t])
+        snapshot = estimator.get_state()
+        if estimator.flags.get('plant_change', 0) and snapshot.scalars['job_done'] > 0:
+            break
+    assert snapshot.scalars['job_after_change']
+    restored = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs)
+    restored.set_state(snapshot)
+    np.testing.assert_array_equal(restored.run(y[t + 1:], u[t + 1:]).theta, first[t + 1:])
+    estimator.run(y[t + 1:], u[t + 1:])
+    assert restored.fits == estimator.fits
