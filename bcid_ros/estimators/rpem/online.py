@@ -484,7 +484,8 @@ class Rpem(RpemState, RecursiveEstimator):
                      self._theta_n[:self.num_parameters] if self._fitted else None,
                      self._forgetting_factor, 1.0 / self.initial_covariance,
                      math.sqrt(self._gate_limit2))
-        self._store.start(*arguments, fresh)
+        # after a plant change the stored samples are the new plant's (restart_schedule)
+        self._store.start(*arguments, fresh, after_change=self._changes > 0)
 
     def _fitted_now(self, fitted: StoredFit, fresh: bool, mean: np.ndarray | None) -> None:
         """Continue the recursion from a fit (if it is sound) centred on ``mean``."""

@@ -129,6 +129,8 @@ class FitJob:
         self.break_after = False
         #: Whether it fits new samples (not a restart's refit of the same: rpem.watch)
         self.fresh = True
+        #: Whether its samples follow a plant change (BatchFit.steps: ``after_change``)
+        self.after_change = False
         self.done = 0
         self.fitted: StoredFit | None = None
         self._channel, self._armax = channel, armax
@@ -148,14 +150,16 @@ class FitJob:
             candidates.append(self.theta * ratio)
         outliers = 0
         with np.errstate(all='ignore'):
-            result = yield from batch.steps(segments, candidates, self.prior)
+            result = yield from batch.steps(segments, candidates, self.prior,
+                                            self.after_change)
             if result is not None:
                 outliers = self._exclude_outliers(batch, result.theta, segments)
                 yield self.rows.shape[0]
             if outliers:
                 segments = SampleStore._segments(rows, self.breaks, self.excluded, new_scale,
                                                  lam)
-                result = yield from batch.steps(segments, [result.theta], self.prior)
+                result = yield from batch.steps(segments, [result.theta], self.prior,
+                                                self.after_change)
         return StoredFit(result, segments, new_scale, outliers)
 
     def advance(self, batch: BatchFit, work: float) -> bool:
@@ -186,6 +190,7 @@ class FitJob:
                   'job_scale': self.scale,
                   'job_theta': np.zeros(size) if self.theta is None else self.theta}
         scalars = {'job_count': count, 'job_done': self.done, 'job_fresh': self.fresh,
+                   'job_after_change': self.after_change,
                    'job_ended': self.fitted is not None,
                    'job_position': self.position, 'job_has_mean': self.mean is not None,
                    'job_has_theta': self.theta is not None,
@@ -202,6 +207,7 @@ class FitJob:
                   'job_mean': np.zeros(channels), 'job_scale': np.ones(channels),
                   'job_theta': np.zeros(size)}
         scalars = {'job_count': 0, 'job_done': 0, 'job_fresh': True, 'job_ended': False,
+                   'job_after_change': False,
                    'job_position': 0,
                    'job_has_mean': False,
                    'job_has_theta': False, 'job_forgetting_factor': 1.0, 'job_prior': 0.0,
@@ -223,6 +229,8 @@ class FitJob:
                   float(scalars['job_forgetting_factor']), float(scalars['job_prior']),
                   float(scalars['job_limit']), int(scalars['job_position']), channel, armax)
         job.fresh = bool(scalars['job_fresh'])
+        # (a snapshot from before it: the comparison of the ends as it was)
+        job.after_change = bool(scalars.get('job_after_change', False))
         done = int(scalars['job_done'])
         while job.done < done:  # the same passes, to the same point
             job.advance(batch, done - job.done)
@@ -361,7 +369,8 @@ class SampleStore:
 
     # ------------------------------------------------------------- the fit
     def start(self, mean: np.ndarray | None, scale: np.ndarray, theta: np.ndarray | None,
-              forgetting_factor: float, prior: float, limit: float, fresh: bool) -> None:
+              forgetting_factor: float, prior: float, limit: float, fresh: bool,
+              after_change: bool = False) -> None:
         """
         Start a fit of the stored samples, spread over the next updates; schedule the next.
 
@@ -384,6 +393,9 @@ class SampleStore:
             The gate's limit of a prediction error, in robust scales.
         fresh : bool
             Whether it fits new samples (not a restart's refit of the same ones).
+        after_change : bool
+            Whether the samples follow a plant change (their first segment starts
+            where the old plant left the output: :meth:`BatchFit.steps`).
 
         """
         self.next_fit = self._after(self.since_start, forgetting_factor)
@@ -391,6 +403,7 @@ class SampleStore:
         self.job = FitJob(rows, breaks, excluded, mean, scale, theta, forgetting_factor, prior,
                           limit, self.position, self._channel, self._armax)
         self.job.fresh = fresh
+        self.job.after_change = after_change
 
     def advance(self) -> tuple[StoredFit, bool] | None:
         """
