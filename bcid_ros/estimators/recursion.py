@@ -323,8 +323,9 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     """
     lam = settings.forgetting_factor
     count = rows.shape[0]
-    theta, p_old = plants.theta[rows], plants.p[rows]
-    loss, tau = plants.loss[rows], plants.tau[rows]
+    stored = _stored_rows(plants, rows)
+    theta, p_old = _copy_rows(plants.theta, stored), _copy_rows(plants.p, stored)
+    loss, tau = _copy_rows(plants.loss, stored), _copy_rows(plants.tau, stored)
     # g = P(t-1) phi(t); s = lambda + phi' g; e = y(t) - phi' theta(t-1)
     g = matvec(p_old, phi)
     s = lam + rowdot(phi, g)
@@ -341,13 +342,13 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     if tested.any():
         every = tested.all()  # (the common case: the arrays themselves, no subsets taken)
         at, e2_at, loss_at, tau_at, s_at = where_rows(tested, rows, e2, loss, tau, s)
-        stored = _stored_rows(plants, at)
+        gated = stored if every else at
         # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)]: the error over its variance
-        z2 = e2_at / ((loss_at / tau_at + plants.variance_floor[stored]) * (s_at + 1.0 - lam))
+        z2 = e2_at / ((loss_at / tau_at + plants.variance_floor[gated]) * (s_at + 1.0 - lam))
         # the gate's quiet case (rules.gate_is_quiet): no score pending, within the limit
-        quiet = (plants.score[stored] == 0.0) & (z2 <= settings.gate_limit2)
-        used, plants.score[stored], plants.tail[stored], change = rules.gate(
-            z2, settings.gate_limit2, plants.score[stored], plants.tail[stored])
+        quiet = (plants.score[gated] == 0.0) & (z2 <= settings.gate_limit2)
+        used, plants.score[gated], plants.tail[gated], change = rules.gate(
+            z2, settings.gate_limit2, plants.score[gated], plants.tail[gated])
         if every:
             plain &= quiet
             refused = ~used
@@ -404,6 +405,11 @@ def where_rows(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
 def _stored_rows(plants: LsPlants, rows: np.ndarray) -> slice | np.ndarray:
     """Return distinct ascending ``rows`` as a slice where they are every plant (views)."""
     return slice(None) if rows.shape[0] == plants.tau.shape[0] else rows
+
+
+def _copy_rows(array: np.ndarray, stored: slice | np.ndarray) -> np.ndarray:
+    """Return a copy of the rows ``stored`` of ``array`` (a slice copied whole: no gather)."""
+    return array[stored].copy() if isinstance(stored, slice) else array[stored]
 
 
 def _mask(count: int, where: np.ndarray) -> np.ndarray:
