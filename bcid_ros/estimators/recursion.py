@@ -376,6 +376,9 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
         for key, where in (('windup_limited', windup), ('covariance_repaired', repaired)):
             if where.any():
                 events[key] = _mask(count, np.flatnonzero(commit)[where])
+    if stepped.all():  # every plant stepped (the common case): none repaired, undone, refused
+        nothing = np.zeros(count, dtype=bool)
+        return StepOutcome(stepped, events, nothing, nothing.copy(), e, np.where(plain, s, 0.0))
     if repair.any():
         repair_rows(plants, rows[repair], settings.initial_covariance)
         events['covariance_repaired'] = events.get('covariance_repaired',
