@@ -138,9 +138,9 @@ class BatchedBcrls(BatchedRls):
         """
         Run the output-error filters of ``at``; return the estimate's errors and where bounded.
 
-        The estimate's filter (Bcrls._record_residual) and, where some plant
-        holds a model, X
-        call on the stacked filters; the held errors are kept for the detector.
+        The estimate's filter and, where some plant holds a model, the held
+        models' (both Bcrls._record_residual's) in one call on the stacked
+        filters; the held models' errors are kept for the detector.
         """
         held = self._held_tau[at] > 0.0
         self._holding, self._some_held, self._unbounded = held, bool(held.any()), False
