@@ -39,7 +39,7 @@ from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import (held_nbytes, PlantReasons, StackedRegressors,
                                         usable_samples)
 from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
-                                           RandomWalk, scale_dependents)
+                                           RandomWalk, scale_dependents, where_rows)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
@@ -428,42 +428,50 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         settings = LsSettings(self._forgetting_factor, self._gate_limit2, self._gate_from,
                               self._propagation, self.initial_covariance)
         outcome = ls_step_rows(self._plants, rows, y, phi, settings)
-        for key, where in outcome.events.items():
+        events = outcome.events  # (each mask present only where it holds somewhere)
+        checked = self._step_events(rows, events) if events else None
+        if outcome.restart.any():
+            self._regressors.clear(rows[outcome.restart])
+            self._clear_simulations(rows[outcome.restart])
+        if outcome.relearn.any():
+            self._restart_learning(rows[outcome.relearn])
+        if checked is not None:
+            # valid is decided at every such event (Rls._rare_step)
+            self._check_validity(checked)
+        stepped = outcome.stepped
+        if stepped.any():
+            rows, y, phi, u, errors, gains = where_rows(stepped, rows, y, phi, u,
+                                                        outcome.errors, outcome.gains)
+            self._after_ls_step(rows, y, phi)
+            # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
+            every = self._view_rows(rows)
+            tested = (self._tau[every] >= self._gate_from) & (self._quiet[every] == 0)
+            at = rows
+            if not tested.all():  # a sample a window does not take: a gap
+                self._simulations.gap(rows[~tested])
+                at, y, phi, u, errors, gains = where_rows(tested, rows, y, phi, u, errors, gains)
+            if at.size:
+                self._simulations.record(at, y, u)
+                self._record_residuals(at, y, phi, u, errors)
+                if self._change_detection:
+                    self._detect(at, errors, gains)
+            due = self._updates[every] >= self._next_check[every]
+            if due.any():
+                self._check_validity(rows[due])
+
+    def _step_events(self, rows: np.ndarray, events: dict[str, np.ndarray]) -> np.ndarray | None:
+        """Count the ``events`` of a step of ``rows``; return the plants to check (None: none)."""
+        for key, where in events.items():
             self._flag(key, rows, where)
-        changed = outcome.events.get('plant_change', np.zeros(rows.shape[0], dtype=bool))
+        changed = events.get('plant_change', np.zeros(rows.shape[0], dtype=bool))
         if changed.any():
             self._forget_residuals(rows[changed])
             # as Rls._rare_step: the samples given are counted while detection runs
             count = self._seen if self._change_detection else self._updates
             for plant in rows[changed].tolist():
                 self._change_notes[plant] = f'plant changed (sample {count[plant]})'
-        if outcome.restart.any():
-            self._regressors.clear(rows[outcome.restart])
-            self._clear_simulations(rows[outcome.restart])
-        if outcome.relearn.any():
-            self._restart_learning(rows[outcome.relearn])
-        events = changed | outcome.events.get('outlier_rejected', changed & False)
-        if events.any():
-            # valid is decided at every such event (Rls._rare_step)
-            self._check_validity(rows[events])
-        stepped = outcome.stepped
-        if stepped.any():
-            rows, y, phi, u, errors, gains = _where(stepped, rows, y, phi, u, outcome.errors,
-                                                    outcome.gains)
-            self._after_ls_step(rows, y, phi)
-            # the residual tests and the HAC from the gate's warm-up on (Rls._record_residual)
-            tested = (self._tau[rows] >= self._gate_from) & (self._quiet[rows] == 0)
-            if not tested.all():  # a sample a window does not take: a gap
-                self._simulations.gap(rows[~tested])
-            if tested.any():
-                at, y, phi, u, errors, gains = _where(tested, rows, y, phi, u, errors, gains)
-                self._simulations.record(at, y, u)
-                self._record_residuals(at, y, phi, u, errors)
-                if self._change_detection:
-                    self._detect(at, errors, gains)
-            due = rows[self._updates[rows] >= self._next_check[rows]]
-            if due.size:
-                self._check_validity(due)
+        checked = changed | events.get('outlier_rejected', changed & False)
+        return rows[checked] if checked.any() else None
 
     def _detect(self, rows: np.ndarray, errors: np.ndarray, gains: np.ndarray) -> None:
         """
@@ -475,7 +483,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         plain = gains > 0.0
         if not plain.any():
             return
-        rows, errors, gains = _where(plain, rows, errors, gains)
+        rows, errors, gains = where_rows(plain, rows, errors, gains)
         rows, inputs = self._detector_errors(rows, errors, gains)
         ages = self._detector.record_rows(rows, inputs)
         changed = ages > 0
@@ -692,13 +700,6 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._recent[plant] = arrays['recent']
         self._seen[plant] = int(scalars.get('seen', 0))
         self._detector.set_state(arrays, [plant])
-
-
-def _where(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Return the rows of ``arrays`` where ``mask``: the arrays themselves where it is all true."""
-    if mask.all():
-        return arrays
-    return tuple(array[mask] for array in arrays)
 
 
 __all__ = ['BatchedRls']

@@ -120,13 +120,10 @@ class BatchedBcrls(BatchedRls):
                           u: np.ndarray, errors: np.ndarray) -> None:
         """Give the residual tests the output errors of ``rows`` (Bcrls._record_residual)."""
         at = self._view_rows(rows)
-        theta, past_errors = self._theta_c[at], self._output_errors[at]
         # (a view of every plant's rows, or a copy of some: updated in place, then put back)
         past = self._output_gradients[at]
-        psi = output_gradient(theta, phi, past_errors, past)
-        error, bounded, self._output_errors[at] = output_error_rows(
-            theta, past_errors, y, phi, self._signal_scale[at, 0])
-        self._record_held_errors(rows, y, phi)
+        psi = output_gradient(self._theta_c[at], phi, self._output_errors[at], past)
+        error, bounded = self._run_output_errors(at, y, phi)
         if bounded.all():
             self._output_gradients[at] = past
             self._monitor.record_rows(rows, error, u, psi)
@@ -136,23 +133,32 @@ class BatchedBcrls(BatchedRls):
         if bounded.any():
             self._monitor.record_rows(rows[bounded], error[bounded], u[bounded], psi[bounded])
 
-    def _record_held_errors(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
-        """Run the held models' output errors of ``rows`` on (Bcrls._record_residual)."""
-        at = self._view_rows(rows)
+    def _run_output_errors(self, at: Rows, y: np.ndarray,
+                           phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Run the output-error filters of ``at``; return the estimate's errors and where bounded.
+
+        The estimate's filter and, where some plant holds a model, the held
+        models' (both Bcrls._record_residual's) in one call on the stacked
+        filters; the held models' errors are kept for the detector.
+        """
         held = self._held_tau[at] > 0.0
-        self._some_held, self._unbounded = bool(held.any()), False
-        if not self._some_held:
-            return
-        # every plant of rows runs the filter, one not holding a model with theta_h = 0 (its
-        # error y, never used, its past kept at zero): no subset taken where most hold one
-        error, bounded, past = output_error_rows(
-            self._held_theta[at], self._held_errors[at], y, phi, self._signal_scale[at, 0])
-        past *= held[:, None]
-        self._held_errors[at] = past
-        if not bounded.all():  # an unstable held A: its filter restarts, no input this sample
-            self._unbounded = True
-            error = np.where(bounded, error, np.nan)
-        self._held_input[at] = error
+        self._holding, self._some_held, self._unbounded = held, bool(held.any()), False
+        # every plant of at runs the held filter, one not holding a model with theta_h = 0
+        # (its error y, never used, its past kept at zero): no subset taken where most hold one
+        filters = slice(None) if self._some_held else slice(1)
+        errors, bounded, past = output_error_rows(
+            self._filter_theta[filters, at], self._filter_errors[filters, at], y, phi,
+            self._signal_scale[at, 0])
+        if self._some_held:
+            past[1] *= held[:, None]
+            held_errors = errors[1]
+            if not bounded[1].all():  # an unstable held A: its filter restarts, no input now
+                self._unbounded = True
+                held_errors = np.where(bounded[1], held_errors, np.nan)
+            self._held_input[at] = held_errors
+        self._filter_errors[filters, at] = past
+        return errors[0], bounded[0]
 
     def _detector_errors(self, rows: np.ndarray, errors: np.ndarray, gains: np.ndarray,
                          ) -> tuple[np.ndarray, np.ndarray]:
@@ -160,8 +166,10 @@ class BatchedBcrls(BatchedRls):
         inputs = errors / np.sqrt(gains)
         if not self._some_held:
             return rows, inputs
-        at = self._view_rows(rows)
-        inputs = np.where(self._held_tau[at] > 0.0, self._held_input[at], inputs)
+        # rows are those of the last _run_output_errors or some of them (the plain steps)
+        held = (self._holding if rows.shape[0] == self._holding.shape[0]
+                else self._held_tau[rows] > 0.0)
+        inputs = np.where(held, self._held_input[self._view_rows(rows)], inputs)
         if not self._unbounded:
             return rows, inputs
         finite = np.isfinite(inputs)
@@ -193,19 +201,23 @@ class BatchedBcrls(BatchedRls):
         # the diagonal of Lambda = diag(I_n, 0)
         self._lambda_diagonal = np.zeros(p)
         self._lambda_diagonal[:self.order] = 1.0
-        self._theta_c = np.zeros((plants, p))
+        # the output-error filters of each plant: its estimate's (row 0: theta_c and the
+        # errors e_oe(t-1) ... e_oe(t-n), newest first; Bcrls._record_residual) and its held
+        # model's for the detector (row 1, Bcrls._drop_held_model), run in one call
+        self._filter_theta = np.zeros((2, plants, p))
+        self._filter_errors = np.zeros((2, plants, self.order))
+        self._theta_c, self._held_theta = self._filter_theta
+        self._output_errors, self._held_errors = self._filter_errors
         self._lambda_theta_c = np.zeros((plants, p))
         self._sigma2 = np.zeros(plants)
         self._resets_checked = np.zeros(plants, dtype=np.int64)
         self._moments = LaggedMoments(plants, self.order, p)
-        # e_oe(t-1) ... e_oe(t-n) and psi(t-1) ... psi(t-n), newest first (Bcrls._record_residual)
-        self._output_errors = np.zeros((plants, self.order))
+        # psi(t-1) ... psi(t-n), newest first (Bcrls._record_residual)
         self._output_gradients = np.zeros((plants, self.order, p))
-        # the detector's held models (Bcrls._drop_held_model) and their last output errors
-        self._held_theta = np.zeros((plants, p))
-        self._held_errors = np.zeros((plants, self.order))
+        # tau of each held model (0: none held), its last output error, the plants holding one
         self._held_tau = np.zeros(plants)
         self._held_input = np.zeros(plants)
+        self._holding = np.zeros(plants, dtype=bool)
         self._some_held, self._unbounded = False, False
         # the output error's tests with the estimate's own error (Bcrls._forget_residuals)
         self._monitor = AdequacyMonitor(

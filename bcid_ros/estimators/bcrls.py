@@ -416,9 +416,12 @@ def compensate_rows(theta_ls: np.ndarray, p: np.ndarray, loss: np.ndarray, tau: 
     # denominator of (51): 1 + theta_c(t-1)' Lambda theta_LS(t)
     denominator = 1.0 + rowdot(previous, theta_ls)
     low = ~(denominator >= DENOMINATOR_MIN)
-    sigma2 = sigma2.copy()
     # sigma2(t) = J(t) / (tau(t) * denominator)          (51)
-    sigma2[~low] = loss[~low] / (tau[~low] * denominator[~low])
+    if low.any():
+        sigma2 = sigma2.copy()
+        sigma2[~low] = loss[~low] / (tau[~low] * denominator[~low])
+    else:  # every plant's (the common case): the same quotients, no subsets taken
+        sigma2 = loss / (tau * denominator)
     # theta_c(t) = theta_LS(t) + tau sigma2 P(t) Lambda theta_c(t-1)   (46)
     compensated = theta_ls + (tau * sigma2)[:, None] * matvec(p, previous)
     size = rowdot(compensated, compensated)
@@ -641,11 +644,13 @@ def output_error_rows(theta: np.ndarray, past: np.ndarray, y: np.ndarray, phi: n
     The rows form of ``Bcrls._record_residual`` (plants ``(K,)``, ``past``
     ``(K, n)`` newest first): e_oe(t) = y - phi^T theta - sum_i a_i e_oe(t-i);
     a plant whose error is beyond ``OUTPUT_ERROR_LIMIT`` times its output
-    scale (or not finite) restarts its filter.
+    scale (or not finite) restarts its filter. ``theta`` ``(F, K, p)`` and
+    ``past`` ``(F, K, n)`` run F filters of each plant on the same samples in
+    one call (the errors ``(F, K)``), each row's products the same as alone.
     """
-    error = y - rowdot(phi, theta) - rowdot(theta[:, :past.shape[1]], past)
+    error = y - rowdot(phi, theta) - rowdot(theta[..., :past.shape[-1]], past)
     bounded = np.abs(error) < OUTPUT_ERROR_LIMIT * y_scale
-    past = np.concatenate([error[:, None], past[:, :-1]], axis=1)
+    past = np.concatenate([error[..., None], past[..., :-1]], axis=-1)
     if not bounded.all():
         past[~bounded] = 0.0
     return error, bounded, past

@@ -53,11 +53,15 @@ class LaggedMoments:
 
     def record(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """Keep z = [phi; y] of ``rows``; return the plants whose block is now full."""
-        slots = self.order + self.pending[rows]
+        # distinct ascending rows: every plant's are the arrays themselves (no copies)
+        at = slice(None) if rows.shape[0] == self.pending.shape[0] else rows
+        pending = self.pending[at]
+        slots = self.order + pending
         self.ring[rows, slots, :-1] = phi
         self.ring[rows, slots, -1] = y
-        self.pending[rows] += 1
-        return rows[self.pending[rows] == MOMENT_BLOCK]
+        pending += 1
+        self.pending[at] = pending
+        return rows[pending == MOMENT_BLOCK]
 
     def flush(self, rows: np.ndarray | slice, forgetting_factor: float, theta_c: np.ndarray,
               sigma2: np.ndarray, component_scale: np.ndarray, y_scale: np.ndarray) -> None:

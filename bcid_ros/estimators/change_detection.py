@@ -303,8 +303,9 @@ class ChangeDetector:
             z = (x - f1 * lag1 - f2 * lag2) * inverse_std
             detected = self._test(rows, z, seen, statistic, run, age)
         elif tested.any():
-            z = (x[tested] - f1[tested] * lag1[tested] - f2[tested] * lag2[tested]) \
-                * inverse_std[tested]
+            # z of every row (element-wise: the same numbers), then those of the armed ones
+            tested = np.flatnonzero(tested)
+            z = ((x - f1 * lag1 - f2 * lag2) * inverse_std)[tested]
             kept, lengths = statistic[tested], run[tested]
             found = np.zeros(z.shape[0], dtype=np.int64)
             detected = self._test(rows[tested], z, seen[tested], kept, lengths, found)
@@ -328,7 +329,7 @@ class ChangeDetector:
         """Clip z, keep it in the ring, step the CUSUMs of ``rows`` in place; return any found."""
         np.maximum(z, -CLIP, out=z)
         np.minimum(z, CLIP, out=z)
-        self.state.ring[rows, seen.astype(np.intp) % RING] = z
+        self._state.ring[rows, seen.astype(np.intp) % RING] = z
         value = statistic + (_VAR_GAIN * (z * z) - _VAR_COST)
         positive = value > 0.0
         statistic[:] = np.where(positive, value, 0.0)

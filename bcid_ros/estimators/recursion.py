@@ -318,12 +318,14 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     UNDONE_LIMIT such failures in a row start the plant afresh; forgetting
     stops while the normalised trace exceeds p0 p (``windup_limited``); every
     HEALTH_CHECK_PERIOD updates P is checked by Cholesky and repaired if
-    needed. ``y`` ``(R,)`` and ``phi`` ``(R, p)`` are the rows' samples.
+    needed. ``rows`` are distinct and ascending; ``y`` ``(R,)`` and ``phi``
+    ``(R, p)`` are their samples.
     """
     lam = settings.forgetting_factor
     count = rows.shape[0]
-    theta, p_old = plants.theta[rows], plants.p[rows]
-    loss, tau = plants.loss[rows], plants.tau[rows]
+    stored = _stored_rows(plants, rows)
+    theta, p_old = _copy_rows(plants.theta, stored), _copy_rows(plants.p, stored)
+    loss, tau = _copy_rows(plants.loss, stored), _copy_rows(plants.tau, stored)
     # g = P(t-1) phi(t); s = lambda + phi' g; e = y(t) - phi' theta(t-1)
     g = matvec(p_old, phi)
     s = lam + rowdot(phi, g)
@@ -338,15 +340,21 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     tested = ~(repair | broken) & (tau >= settings.gate_from)
     plain = ~careful
     if tested.any():
+        every = tested.all()  # (the common case: the arrays themselves, no subsets taken)
+        at, e2_at, loss_at, tau_at, s_at = where_rows(tested, rows, e2, loss, tau, s)
+        gated = stored if every else at
         # z^2 = e^2 / [(J / tau + floor)(s + 1 - lambda)]: the error over its variance
-        z2 = e2[tested] / ((loss[tested] / tau[tested] + plants.variance_floor[rows[tested]])
-                           * (s[tested] + 1.0 - lam))
-        at = rows[tested]
+        z2 = e2_at / ((loss_at / tau_at + plants.variance_floor[gated]) * (s_at + 1.0 - lam))
         # the gate's quiet case (rules.gate_is_quiet): no score pending, within the limit
-        plain[tested] &= (plants.score[at] == 0.0) & (z2 <= settings.gate_limit2)
-        used, plants.score[at], plants.tail[at], change = rules.gate(
-            z2, settings.gate_limit2, plants.score[at], plants.tail[at])
-        refused[tested] = ~used
+        quiet = (plants.score[gated] == 0.0) & (z2 <= settings.gate_limit2)
+        used, plants.score[gated], plants.tail[gated], change = rules.gate(
+            z2, settings.gate_limit2, plants.score[gated], plants.tail[gated])
+        if every:
+            plain &= quiet
+            refused = ~used
+        else:
+            plain[tested] &= quiet
+            refused[tested] = ~used
         if change.any():
             changed = np.flatnonzero(tested)[change]
             events['plant_change'] = _mask(count, changed)
@@ -362,12 +370,15 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     stepped = commit.copy()
     if commit.any():
         kept, windup, repaired = _commit_rows(
-            plants, rows[commit], theta[commit], p_old[commit], g[commit], s[commit], e[commit],
-            loss[commit], tau[commit], careful[commit], settings)
+            plants, *where_rows(commit, rows, theta, p_old, g, s, e, loss, tau, careful),
+            settings)
         stepped[commit] = kept
         for key, where in (('windup_limited', windup), ('covariance_repaired', repaired)):
             if where.any():
                 events[key] = _mask(count, np.flatnonzero(commit)[where])
+    if stepped.all():  # every plant stepped (the common case): none repaired, undone, refused
+        nothing = np.zeros(count, dtype=bool)
+        return StepOutcome(stepped, events, nothing, nothing.copy(), e, np.where(plain, s, 0.0))
     if repair.any():
         repair_rows(plants, rows[repair], settings.initial_covariance)
         events['covariance_repaired'] = events.get('covariance_repaired',
@@ -387,6 +398,23 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     return StepOutcome(stepped, events, undone | refused, relearn, e, gains)
 
 
+def where_rows(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Return the rows of ``arrays`` where ``mask``: the arrays themselves where it is all true."""
+    if mask.all():
+        return arrays
+    return tuple(array[mask] for array in arrays)
+
+
+def _stored_rows(plants: LsPlants, rows: np.ndarray) -> slice | np.ndarray:
+    """Return distinct ascending ``rows`` as a slice where they are every plant (views)."""
+    return slice(None) if rows.shape[0] == plants.tau.shape[0] else rows
+
+
+def _copy_rows(array: np.ndarray, stored: slice | np.ndarray) -> np.ndarray:
+    """Return a copy of the rows ``stored`` of ``array`` (a slice copied whole: no gather)."""
+    return array[stored].copy() if isinstance(stored, slice) else array[stored]
+
+
 def _mask(count: int, where: np.ndarray) -> np.ndarray:
     mask = np.zeros(count, dtype=bool)
     mask[where] = True
@@ -404,14 +432,15 @@ def _commit_rows(plants: LsPlants, rows: np.ndarray, theta: np.ndarray, p_old: n
     (windup) and where the health check repaired P.
     """
     lam = settings.forgetting_factor
+    stored = _stored_rows(plants, rows)
     theta_new, p_new = ls_steps(theta, p_old, g, s, e)
-    windup = settings.propagation.propagate(p_new, lam, plants.component_scale[rows] ** 2)
-    plants.theta[rows], plants.p[rows] = theta_new, p_new
+    windup = settings.propagation.propagate(p_new, lam, plants.component_scale[stored] ** 2)
+    plants.theta[stored], plants.p[stored] = theta_new, p_new
     # J(t) = lambda J(t-1) + lambda e^2 / s ; tau(t) = lambda tau(t-1) + 1
-    plants.loss[rows] = lam * (loss + e * e / s)
-    plants.tau[rows] = lam * tau + 1.0
-    updates = plants.updates[rows] + 1
-    plants.updates[rows] = updates
+    plants.loss[stored] = lam * (loss + e * e / s)
+    plants.tau[stored] = lam * tau + 1.0
+    updates = plants.updates[stored] + 1
+    plants.updates[stored] = updates
     repaired = np.zeros(rows.shape[0], dtype=bool)
     due = updates % HEALTH_CHECK_PERIOD == 0
     if due.any():
@@ -430,7 +459,7 @@ def _commit_rows(plants: LsPlants, rows: np.ndarray, theta: np.ndarray, p_old: n
             plants.loss[lost], plants.tau[lost] = loss[back], tau[back]
             plants.updates[lost] -= 1
             plants.undone[lost] += 1
-    plants.undone[rows[kept]] = 0
+    plants.undone[stored if kept.all() else rows[kept]] = 0
     return kept, windup, repaired
 
 
