@@ -39,7 +39,8 @@ from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.plants import (held_nbytes, PlantReasons, StackedRegressors,
                                         usable_samples)
 from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, LsSettings,
-                                           RandomWalk, scale_dependents, where_rows)
+                                           RandomWalk, rows_view, scale_dependents,
+                                           where_rows)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
 from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
@@ -588,7 +589,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
 
     def _view_rows(self, rows: np.ndarray) -> Rows:
         """Return distinct ascending ``rows`` as a slice where they are every plant (a view)."""
-        return slice(None) if rows.shape[0] == self.num_plants else rows
+        return rows_view(rows, self.num_plants)
 
     def _flag_counts(self, key: str) -> np.ndarray:
         """Return the per-plant counts of flag ``key``, made on first use."""

@@ -10,7 +10,6 @@ validity and sandwich covariance per plant.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, ClassVar
 
 import numpy as np
@@ -21,7 +20,7 @@ from bcid_ros.estimators.batched import BatchedRls, Rows
 from bcid_ros.estimators.bcrls import (Bcrls, compensate_rows, compensation_problems,
                                        gradient_covariances, LaggedMoments,
                                        output_error_rows, output_gradient)
-from bcid_ros.estimators.held_model import hold_due, precise
+from bcid_ros.estimators.held_model import hold_due, precise, with_held_items
 from bcid_ros.estimators.polynomials import spectral_radii
 
 
@@ -253,11 +252,7 @@ class BatchedBcrls(BatchedRls):
 
     def set_plant_state(self, plant: int, state: EstimatorState) -> None:
         """Load a snapshot into plant k (BatchedRls's); one from before the held model too."""
-        # (none held: the LS step's errors feed its detector until its estimate is held)
-        super().set_plant_state(plant, dataclasses.replace(
-            state, arrays={'held_theta': np.zeros(self.num_parameters),
-                           'held_errors': np.zeros(self.order), **state.arrays},
-            scalars={'held_tau': 0.0, **state.scalars}))
+        super().set_plant_state(plant, with_held_items(state, self.num_parameters, self.order))
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
                     scalars: dict[str, Any]) -> None:

@@ -9,7 +9,6 @@ extension to exponential forgetting (derived in docs/estimators.md).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any, Callable, Sequence
 
@@ -19,7 +18,7 @@ from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.bcrls_covariance import LaggedMoments, MOMENT_BLOCK
 from bcid_ros.estimators.blas import load_blas
-from bcid_ros.estimators.held_model import hold_due, precise
+from bcid_ros.estimators.held_model import hold_due, precise, with_held_items
 from bcid_ros.estimators.polynomials import spectral_radii
 from bcid_ros.estimators.recursion import matvec, rowdot
 from bcid_ros.estimators.rls import ls_batch, Rls
@@ -301,10 +300,7 @@ class Bcrls(Rls):
 
     def set_state(self, state: Any) -> None:
         """Restore a :meth:`get_state` snapshot; one from before the held model loads too."""
-        # (none held: the LS step's errors feed the detector until the estimate is held)
-        missing = {'held_theta': np.zeros(self.num_parameters), 'held_errors': np.zeros(
-            self.order)}
-        super().set_state(dataclasses.replace(state, arrays={**missing, **state.arrays}))
+        super().set_state(with_held_items(state, self.num_parameters, self.order))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         super()._load_state(arrays, scalars)

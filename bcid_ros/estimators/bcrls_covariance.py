@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from bcid_ros.estimators.recursion import rows_view
+
 #: The extended regressors z = [phi; y] of this many updates are kept, then
 #: added to the lagged moments of the covariance in one product per lag.
 MOMENT_BLOCK = 64
@@ -53,8 +55,7 @@ class LaggedMoments:
 
     def record(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """Keep z = [phi; y] of ``rows``; return the plants whose block is now full."""
-        # distinct ascending rows: every plant's are the arrays themselves (no copies)
-        at = slice(None) if rows.shape[0] == self.pending.shape[0] else rows
+        at = rows_view(rows, self.pending.shape[0])  # (every plant's: no copies)
         pending = self.pending[at]
         slots = self.order + pending
         self.ring[rows, slots, :-1] = phi

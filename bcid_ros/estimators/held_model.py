@@ -48,10 +48,12 @@ close to the new one: no restart transient).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
+from bcid_ros.estimators.base import EstimatorState
 from bcid_ros.estimators.validity import imprecision
 
 #: The estimate is first held once it rests on this many (weighted) samples.
@@ -89,4 +91,17 @@ def precise(theta: np.ndarray, covariances: np.ndarray) -> np.ndarray:
                      for row, matrix in zip(theta, covariances)], dtype=bool)
 
 
-__all__ = ['GROWTH', 'HOLD_FROM', 'hold_due', 'precise']
+def with_held_items(state: EstimatorState, num_parameters: int, order: int) -> EstimatorState:
+    """
+    Return ``state`` with the held model's items, none held where it has none.
+
+    A snapshot from before the held model loads so (single and batched bcrls): the
+    LS step's errors feed the detector until the estimate is held.
+    """
+    return dataclasses.replace(
+        state, arrays={'held_theta': np.zeros(num_parameters), 'held_errors': np.zeros(order),
+                       **state.arrays},
+        scalars={'held_tau': 0.0, **state.scalars})
+
+
+__all__ = ['GROWTH', 'HOLD_FROM', 'hold_due', 'precise', 'with_held_items']

@@ -323,7 +323,7 @@ def ls_step_rows(plants: LsPlants, rows: np.ndarray, y: np.ndarray, phi: np.ndar
     """
     lam = settings.forgetting_factor
     count = rows.shape[0]
-    stored = _stored_rows(plants, rows)
+    stored = rows_view(rows, plants.tau.shape[0])
     theta, p_old = _copy_rows(plants.theta, stored), _copy_rows(plants.p, stored)
     loss, tau = _copy_rows(plants.loss, stored), _copy_rows(plants.tau, stored)
     # g = P(t-1) phi(t); s = lambda + phi' g; e = y(t) - phi' theta(t-1)
@@ -405,9 +405,10 @@ def where_rows(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(array[mask] for array in arrays)
 
 
-def _stored_rows(plants: LsPlants, rows: np.ndarray) -> slice | np.ndarray:
-    """Return distinct ascending ``rows`` as a slice where they are every plant (views)."""
-    return slice(None) if rows.shape[0] == plants.tau.shape[0] else rows
+def rows_view(rows: np.ndarray, count: int) -> slice | np.ndarray:
+    """Return distinct ascending ``rows`` of ``count`` plants as a slice where they are all."""
+    # (indexing by the slice gives views and copies no rows; by the rows, a gather)
+    return slice(None) if rows.shape[0] == count else rows
 
 
 def _copy_rows(array: np.ndarray, stored: slice | np.ndarray) -> np.ndarray:
@@ -432,7 +433,7 @@ def _commit_rows(plants: LsPlants, rows: np.ndarray, theta: np.ndarray, p_old: n
     (windup) and where the health check repaired P.
     """
     lam = settings.forgetting_factor
-    stored = _stored_rows(plants, rows)
+    stored = rows_view(rows, plants.tau.shape[0])
     theta_new, p_new = ls_steps(theta, p_old, g, s, e)
     windup = settings.propagation.propagate(p_new, lam, plants.component_scale[stored] ** 2)
     plants.theta[stored], plants.p[stored] = theta_new, p_new
