@@ -72,6 +72,12 @@ def test_rpem_asks_the_level_with_forgetting_only():
     assert make_estimator('rpem', order=2)._standing_precision() is None
     assert make_estimator('rpem', order=2, forgetting_factor=0.999)._standing_precision() == LEVEL
     assert make_estimator('rls', order=2, forgetting_factor=0.999)._standing_precision() is None
+    # the forgetting factor is live: the level follows it at the next decision
+    estimator = make_estimator('rpem', order=2)
+    estimator.forgetting_factor = 0.995
+    assert estimator._standing_precision() == LEVEL
+    estimator.forgetting_factor = 1.0
+    assert estimator._standing_precision() is None
 
 
 def test_rpem_with_forgetting_is_valid_only_where_its_std_shows_the_level():
