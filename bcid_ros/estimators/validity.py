@@ -7,7 +7,10 @@ unstable model, a compensation that does not converge, ...) and the ones every
 estimator shares: the residual tests' and the simulation check's; a detected
 plant change adds its own, which holds until the residual tests are ready on a
 full window of the new plant's samples and the new estimate is known to
-``PRECISION`` of its size (:func:`imprecision`; docs/trust.md, docs/tracking.md). A
+``PRECISION`` of its size (:func:`imprecision`; docs/trust.md, docs/tracking.md). An
+estimator that states a standing precision (:meth:`Validity._standing_precision`: rpem with
+forgetting) is, at all times, not valid while its own std says its estimate is not known to
+that looser share of its size. A
 check changes nothing but the reasons: what it finds that needs action is done
 by the estimator's update.
 """
@@ -31,15 +34,26 @@ PRECISION = 0.1
 #: a Gaussian error of any covariance C, P(||e|| >= k sqrt(tr C)) <= P(|z| >= k) for
 #: k^2 >= 1.54 (Szekely and Bakirov 2003), 4.6 % at k = 2.
 PRECISION_SIGMAS = 2.0
+#: At all times, where an estimator states it (:meth:`Validity._standing_precision`): an
+#: estimate that passed every check is not valid while PRECISION_SIGMAS sqrt(tr C) > this
+#: share of ||theta_hat||, its error up to a third of its size (docs/trust.md, "Precision at
+#: all times").
+STANDING_PRECISION = 0.3
 #: How the reason of an estimate not yet known to PRECISION begins (it names the std).
 IMPRECISE = 'imprecise'
+#: Why the estimate is not precise enough after a change, and at all times.
+_AFTER_CHANGE = "the new plant's samples do not determine it yet"
+_STANDING = 'its samples do not determine it'
+#: The reason's text while there is no covariance.
+_NO_STD = 'no std of the estimate yet'
 
 
 def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
                     simulation: SimulationWindow | None = None,
                     theta: np.ndarray | None = None, order: int = 0,
                     covariance: Callable[[], np.ndarray | None] | None = None,
-                    count: Callable[[], float | None] | None = None) -> list[str]:
+                    count: Callable[[], float | None] | None = None,
+                    precision: float | None = None) -> list[str]:
     """
     Return the reasons not to trust an estimate: ``own`` and the ones every estimator shares.
 
@@ -53,14 +67,20 @@ def decided_reasons(own: Sequence[str], monitor: Any, plant: int | None = None,
     estimator keeps no window), counting the estimate's own error from ``covariance``
     (a function giving theta's covariance, asked only when the check runs), and that
     covariance against the window's information where ``count`` gives the samples the
-    estimate rests on. The one place that decides which reasons count, for one plant and
-    for K.
+    estimate rests on. ``precision`` (None: not asked) is the share of its size the
+    estimate must be known to at all times (:func:`imprecision`), judged only where no other
+    reason holds and only with a std (none yet is no evidence of imprecision). The one place
+    that decides which reasons count, for one plant and for K.
     """
     reasons = list(own)
     if monitor is not None:
         reasons += residual_reasons(monitor, plant)
     if simulation is not None:
         reasons += simulation_reasons(simulation, theta, order, covariance, count)
+    if precision is not None and not reasons:  # the model passed: is it known well enough?
+        imprecise = imprecision(theta, covariance, precision, _STANDING)
+        if imprecise and not imprecise.endswith(_NO_STD):
+            reasons.append(imprecise)
     return reasons
 
 
@@ -69,8 +89,8 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
                          theta: np.ndarray | None = None, order: int = 0,
                          covariance: Callable[[], np.ndarray | None] | None = None,
                          ready_again: bool | None = None,
-                         count: Callable[[], float | None] | None = None
-                         ) -> tuple[list[str], str]:
+                         count: Callable[[], float | None] | None = None,
+                         precision: float | None = None) -> tuple[list[str], str]:
     """
     Return the reasons of :func:`decided_reasons` with a plant change's, and the change's.
 
@@ -83,10 +103,11 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
     reason left: a short-record verdict on the samples replayed at the restart
     does not end it. ``ready_again``, where given, is the estimator's own word
     that its estimate now rests on the new plant's samples alone (rpem: a fit of
-    only those) and replaces the residual tests' readiness. Returns the reasons
+    only those) and replaces the residual tests' readiness. ``precision``: as in
+    :func:`decided_reasons` (the change's ``PRECISION`` is the stricter). Returns the reasons
     and the change's reason that still holds (``''`` once the change is done).
     """
-    found = (monitor, plant, simulation, theta, order, covariance, count)
+    found = (monitor, plant, simulation, theta, order, covariance, count, precision)
     reasons = decided_reasons([change, *own] if change else own, *found)
     if change and reasons == [change] and (simulation is None or simulation.judged) and (
             _ready_again(monitor, plant) if ready_again is None else ready_again):
@@ -98,17 +119,20 @@ def decided_after_change(own: Sequence[str], change: str, monitor: Any,
 
 
 def imprecision(theta: np.ndarray | None,
-                covariance: Callable[[], np.ndarray | None] | None) -> str:
+                covariance: Callable[[], np.ndarray | None] | None,
+                level: float = PRECISION, why: str = _AFTER_CHANGE) -> str:
     r"""
-    Return why the estimate is not known to ``PRECISION`` of its size (``''``: it is).
+    Return why the estimate is not known to ``level`` of its size (``''``: it is).
 
     With C the estimate's covariance (``covariance()``), :math:`\sqrt{\mathrm{tr}\,C}`
     is the RMS of :math:`\lVert\hat\theta - \theta\rVert`, and for a Gaussian error
     of any C, :math:`P(\lVert e\rVert \ge k\sqrt{\mathrm{tr}\,C}) \le P(|z| \ge k)`
     for :math:`k^2 \ge 1.54` (Szekely and Bakirov 2003: the one-dimensional form is the
-    extreme one), so :math:`k\sqrt{\mathrm{tr}\,C} \le` ``PRECISION``
+    extreme one), so :math:`k\sqrt{\mathrm{tr}\,C} \le` ``level``
     :math:`\lVert\hat\theta\rVert` (k = ``PRECISION_SIGMAS``) bounds the relative
-    error by ``PRECISION`` with probability at least 95.4 %, whatever the shape of C.
+    error by ``level`` with probability at least 95.4 %, whatever the shape of C
+    (``PRECISION`` after a change, ``STANDING_PRECISION`` at all times; ``why`` ends the
+    reason).
     No covariance yet (``covariance()`` None, or a many-plant row of NaN: the single
     estimator's None) is no precision shown; not judged (``''``) without an estimate or
     a covariance to ask.
@@ -117,23 +141,24 @@ def imprecision(theta: np.ndarray | None,
         return ''
     matrix = covariance()
     if matrix is None or not np.isfinite(matrix).all():
-        return f'{IMPRECISE}: no std of the estimate yet'
+        return f'{IMPRECISE}: {_NO_STD}'
     size = float(np.linalg.norm(theta))
     spread = math.sqrt(max(float(np.trace(matrix)), 0.0))
     bound = PRECISION_SIGMAS * spread / size if size > 0.0 else math.inf
-    if bound <= PRECISION:
+    if bound <= level:
         return ''
     return (f'{IMPRECISE}: {PRECISION_SIGMAS:g} sqrt(tr C) is {100.0 * bound:.0f} % of |theta|, '
-            f'above {100.0 * PRECISION:g} % (the new plant\'s samples do not determine it yet)')
+            f'above {100.0 * level:g} % ({why})')
 
 
 def doubt_the_model(reasons: Sequence[str]) -> bool:
     """
     Return whether ``reasons`` doubt the model, not only its covariance.
 
-    A std judged too small (``UNDERSTATED``) and an estimate not yet known to
-    ``PRECISION`` after a change (``IMPRECISE``, with the change's reason it holds) name
-    the covariance: the model passed its checks.
+    A std judged too small (``UNDERSTATED``), an estimate not yet known to
+    ``PRECISION`` after a change (``IMPRECISE``, with the change's reason it holds) and one
+    not known to ``STANDING_PRECISION`` (``IMPRECISE`` alone) name the covariance: the model
+    passed its checks.
     """
     if any(reason.startswith(IMPRECISE) for reason in reasons):
         return len(reasons) > 2  # [change, imprecise] and nothing else
@@ -215,9 +240,18 @@ class Validity:
                 # asked at most once a decision (the check and the precision after a change)
                 covariance=functools.cache(lambda: self.parameter_covariance),
                 ready_again=ready_again,
-                count=self._covariance_count)
+                count=self._covariance_count, precision=self._standing_precision())
         self._reasons = tuple(reasons)
         return change
+
+    def _standing_precision(self) -> float | None:
+        """
+        Return the share of its size the estimate must be known to at all times (None: not asked).
+
+        :func:`decided_reasons`'s ``precision``; an estimator whose std stops shrinking
+        (forgetting) states ``STANDING_PRECISION`` (rpem).
+        """
+        return None
 
     def _covariance_count(self) -> float | None:
         """
@@ -301,4 +335,5 @@ class PlantsValidity:
 
 
 __all__ = ['decided_after_change', 'decided_reasons', 'doubt_the_model', 'imprecision',
-           'IMPRECISE', 'PlantsValidity', 'PRECISION', 'PRECISION_SIGMAS', 'Validity']
+           'IMPRECISE', 'PlantsValidity', 'PRECISION', 'PRECISION_SIGMAS', 'STANDING_PRECISION',
+           'Validity']
