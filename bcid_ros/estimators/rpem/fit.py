@@ -162,7 +162,8 @@ class BatchFit:
     plant change (``after_change``), the end of lower loss with each segment's
     initial state free (OE; the searches' loss shrinks it towards 0, which
     charges samples that start where the old plant left the output for their
-    true state).
+    true state) where the losses tell the ends apart, else the current
+    estimate's (:meth:`_ranked`).
     """
 
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
@@ -231,8 +232,7 @@ class BatchFit:
             # the boundary, and a stationary plant of realistic_family(60, 2) two false
             # detections
             free = yield from self._scored([theta for theta, _ in ends], usable, prior=0.0)
-            ends = sorted(free, key=lambda end: end[1]) if self._prefers(free, usable) \
-                else free
+            ends = self._ranked(free, usable)
         else:
             ends.sort(key=lambda end: end[1])  # stable: a tie goes to the first start
         result = self._result(ends[0][0], segments, usable, arx)
@@ -243,28 +243,36 @@ class BatchFit:
         yield self._cost(usable, 2 * (self.num_parameters + 1))
         return result
 
-    def _prefers(self, ends: list[tuple[np.ndarray, float]], usable: list) -> bool:
+    def _ranked(self, ends: list[tuple[np.ndarray, float]],
+                usable: list) -> list[tuple[np.ndarray, float]]:
         r"""
-        Return whether the losses of ``ends`` tell the ends apart (a likelihood-ratio test).
+        Return ``ends`` best first where their losses tell them apart, else as they started.
 
-        The statistic of the worse end against the better, :math:`N(V_2/V_1 - 1)` (N the
-        weight), is :math:`(\tau_2/\tau)\chi^2_p` at the truth under white errors
-        (:func:`~bcid_ros.estimators.rpem.uncertainty.with_unresolved`); within its
-        ``UNRESOLVED_LEVEL`` quantile the data do not prefer either end. After a change
-        the free state's losses then leave the choice to the searches' own (tracking plant
-        (0, 5), 311 samples after its change: free losses 0.3 % apart, statistic 1.1
-        against 14.1, where the searches' 0.0089 against 0.0116 kept the end 12 % off and
-        the free ones took the one 35 % off, which the next fits continued from).
+        The likelihood-ratio statistic of the worse end against the better,
+        :math:`N(V_2/V_1 - 1)` (V the losses, N the weight), is at most
+        :math:`(\tau_2/\tau)\chi^2_p` at the truth under white errors
+        (:func:`~bcid_ros.estimators.rpem.uncertainty.with_unresolved`). Within its
+        ``UNRESOLVED_LEVEL`` quantile the data do not prefer either end, and the first
+        start's end stays first: that of the search from the current estimate (the
+        given candidate). A switch between minima the data do not tell apart moves the
+        estimate by their distance for nothing, and the next fits, started from it,
+        stay in its basin (tracking plant (0, 5), 311 samples after its change: losses
+        0.35 % apart, a statistic of 1.1 against 12.6, and the fit took the end 35 % off
+        over the one 12 % off for the next 1500 samples; docs/tracking.md, "Limits",
+        session 9). The other end still joins the covariance where it is as good
+        (:attr:`FitResult.alternative`, its loss ratio then possibly below 1).
         """
-        losses = sorted(loss for _, loss in ends)
+        ranked = sorted(ends, key=lambda end: end[1])
         weights = np.concatenate([w[self.span:] for _, _, w, _ in usable])
         weight = float(weights.sum())
-        if not (weight > 0.0 and losses[0] > 0.0 and math.isfinite(losses[1])):
-            return True
-        statistic = weight * (losses[1] / losses[0] - 1.0)
-        # tau_2 / tau of the fit's weights: 1 without forgetting
-        ratio = float(weights.dot(weights)) / weight
-        return statistic > chi2_quantile(UNRESOLVED_LEVEL, self.num_parameters) * ratio
+        best, second = ranked[0][1], ranked[1][1]
+        if not (weight > 0.0 and best > 0.0 and math.isfinite(second)):
+            return ranked
+        statistic = weight * (second / best - 1.0)
+        # tau_2 / tau of the fit's weights (1 without forgetting)
+        limit = chi2_quantile(UNRESOLVED_LEVEL, self.num_parameters) * float(
+            weights.dot(weights)) / weight
+        return ranked if statistic > limit else ends
 
     def _cost(self, usable: list, columns: int) -> int:
         """Return the cost of a pass: samples times columns, and PASS_COST for its calls."""
