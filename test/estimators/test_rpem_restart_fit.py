@@ -139,9 +139,10 @@ def test_a_fit_after_a_change_keeps_its_basin_where_the_data_do_not_tell():
     Tracking plant (0, 5) (gain x1.98, third order, coloured noise): recovered within 5x.
 
     311 samples after its change the fit's two ends were 0.35 % apart in loss (statistic
-    1.1 against 12.6): the lower took the end 35 % off over the current estimate's 12 %,
-    outside the band (twice the delta before the change) until 420 samples after, where the
-    windowed batch reference is in it after 40. Keeping the current estimate's end: 95.
+    1.1 against 12.6): the lower took the end 35 % off over the current estimate's 12 %, at
+    the edge of the band (twice the delta before the change, 37 %), and the recursion from
+    it left the band until 420 samples after, where the windowed batch reference is in it
+    after 40. Keeping the current estimate's end: 95.
     """
     case = TrackingCase((0, 5), 'family')
     ours, ref = run_estimator(case, 'rpem')['recovery'], reference(case)['recovery']
