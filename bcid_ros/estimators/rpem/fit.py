@@ -85,7 +85,9 @@ class FitResult:
         smaller).
     alternative : tuple or None
         ``(theta, ratio)``: where the fit's other start ended, and the ratio of its
-        loss to the estimate's (the search's criterion; None: one start), for
+        loss to the estimate's (the search's criterion, after a change the loss with
+        the state free, below 1 where the data did not tell the ends apart and the
+        current estimate's stayed; None: one start), for
         :func:`~bcid_ros.estimators.rpem.uncertainty.with_unresolved`.
 
     """
