@@ -530,6 +530,12 @@ class SimulationWindow:
         self.reason = ''
         self.coverage_reason = ''
         self.statistic = math.nan
+        # the evidence of a plant change (:meth:`contradicted_twice`): samples recorded since
+        # the clear (a gap does not reset them), whether the model passed on a full window,
+        # and the recorded count at the first check of the current run of contradictions
+        self._recorded = 0
+        self.passed = False
+        self._run_start = -1
 
     def gap(self) -> None:
         """
@@ -557,6 +563,7 @@ class SimulationWindow:
         row[0] = y
         row[1:] = u
         self._end = end + 1
+        self._recorded += 1
         filled = self._filled
         if filled < self.window:
             self._filled = filled = filled + 1
@@ -611,8 +618,41 @@ class SimulationWindow:
                 f'{UNDERSTATED}: the last {self._filled} samples determine the '
                 f'parameters up to {math.sqrt(understated[0]):.3g} times less well than it says'
                 if understated[0] > UNDERSTATEMENT_LIMIT else '')
+            self._follow_run(bool(contradicted[0]), bool(np.isfinite(statistic[0])))
         # below the minimum: the verdict from before a gap, if any
         return [reason for reason in (self.reason, self.coverage_reason) if reason]
+
+    def _follow_run(self, contradicted: bool, judged: bool) -> None:
+        """Keep the run of contradictions and whether the model passed on a full window."""
+        if contradicted:
+            if self._run_start < 0:
+                self._run_start = self._recorded
+        elif judged:
+            self._run_start = -1
+            self.passed = self.passed or self._filled >= self.window
+
+    def contradicted_twice(self) -> int:
+        r"""
+        Return the samples of the window if it contradicts a model that had passed, else 0.
+
+        The evidence of a plant change: a model that passed the check on a full window
+        since the last :meth:`clear` (``passed``: a model that never did, a structure too
+        poor for the plant, is never judged changed by this), contradicted at every check
+        since one whose window ended before the current window began: two disjoint windows
+        contradict it, with no check passing in between. Under a plant that does not
+        change, the verdicts of disjoint windows are those of independent noise, each
+        contradicting at most at the rate :math:`lpha` = ``FALSE_ALARM``: a run that
+        starts at a given check reaches a disjoint window at most at the rate
+        :math:`lpha^2`, and with a check every c samples that is at most
+        :math:`lpha^2/c` per sample (rpem, c = ``rules.VALIDITY_PERIOD`` = 100:
+        1e-6, 0.1 per 100,000 samples). The current window's samples are all after the
+        change: it was there before the first contradicted window ended.
+        """
+        if not (self.passed and self.reason and self._run_start >= 0):
+            return 0
+        if self._recorded - self._filled < self._run_start:
+            return 0
+        return self._filled
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the window for a snapshot (fixed shapes)."""
@@ -624,7 +664,9 @@ class SimulationWindow:
                  'simulation_reason': self.reason,
                  'simulation_coverage_reason': self.coverage_reason,
                  'simulation_judged': self._judged,
-                 'simulation_statistic': self.statistic})
+                 'simulation_statistic': self.statistic,
+                 'simulation_recorded': self._recorded, 'simulation_passed': self.passed,
+                 'simulation_run_start': self._run_start})
 
     def load(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over :meth:`state_items` (a snapshot without them: an empty window)."""
@@ -640,6 +682,10 @@ class SimulationWindow:
         self.coverage_reason = str(scalars.get('simulation_coverage_reason', ''))
         self._judged = bool(scalars['simulation_judged'])
         self.statistic = float(scalars['simulation_statistic'])
+        # a snapshot from before: no run of contradictions, not passed
+        self._recorded = int(scalars.get('simulation_recorded', filled))
+        self.passed = bool(scalars.get('simulation_passed', False))
+        self._run_start = int(scalars.get('simulation_run_start', -1))
 
 
 def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order: int,

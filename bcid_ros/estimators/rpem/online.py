@@ -46,6 +46,9 @@ MODELS = ('oe', 'armax')
 #: The change's reason again, after a change taken as done, when a fit finds another estimate
 #: as good as its own farther away than PRECISION allows (:meth:`Rpem._fitted_now`).
 UNRESOLVED_NOTE = 'plant changed: a refit of its samples found another estimate as good'
+#: What the change's reason adds when the simulation check found it
+#: (:meth:`~bcid_ros.estimators.simulation_check.SimulationWindow.contradicted_twice`).
+SIMULATION_NOTE = ': the simulated output contradicted on two disjoint windows'
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -666,6 +669,13 @@ class Rpem(RpemState, RecursiveEstimator):
             self._restart(reason)
         self._period_reasons = watch.reasons(steps)
         if not self._decide_pending:  # else a fit came in this update: decided at the next
+            self._decide_now()
+        # a model that passed the simulation check, contradicted on two disjoint windows
+        # since: the plant changed where the detector did not see it (docs/tracking.md)
+        age = self._simulation.contradicted_twice() if self._change_detection else 0
+        if age:
+            self._plant_changed(age)
+            self._change_note += SIMULATION_NOTE
             self._decide_now()
 
     def _decide_now(self) -> None:
