@@ -56,6 +56,11 @@ quadratic form counts it (:func:`settled_statistic`), with P capped at
 :data:`SETTLING_EXCUSE` times a fit of the window alone so that no inflated P excuses a
 misfit.
 
+**A plant change.** A model that passed on a full window and is then contradicted on two
+disjoint windows, no check passing in between, is evidence that the plant changed
+(:meth:`SimulationWindow.contradicted_twice`: at most :math:`\alpha^2` per check under a
+plant that does not change; rpem restarts on it where its change detector is silent).
+
 Everything is over a leading plant axis where it can be (:func:`simulate`,
 :func:`input_drive`); the refit is per plant. Pure numpy (the estimators import no scipy;
 :func:`simulate` runs the recursions in blocks).

@@ -1,5 +1,5 @@
 """
-A plant change found by the simulation check (simulation_check.SimulationWindow.contradicted_twice).
+A plant change found by the simulation check (SimulationWindow.contradicted_twice).
 
 A model that passed the check on a full window, then contradicted on two disjoint windows with
 no check passing in between, is taken as a plant change (rpem: the change path, from the
