@@ -40,9 +40,11 @@ def first_order(pole_before, pole_after, change, samples=6000, seed=3):
 
 def test_a_model_that_passed_is_judged_changed_on_the_second_disjoint_window():
     """
-    Pole 0.8 -> 0.7 at 3000 (a model at the old plant, 10 dB SNR): it passes on full windows
-    before; the first contradicted check is at c (after 3000), and a change is reported at the
-    first check whose window starts after c, c + WINDOW, with the window's samples as its age.
+    Pole 0.8 -> 0.7 at 3000: the change is reported at c + WINDOW, c the first contradiction.
+
+    A model at the old plant (10 dB SNR) passes on full windows before; the first
+    contradicted check is at c (after 3000), and a change is reported at the first check
+    whose window starts after c, with the window's samples as its age.
     """
     y, u = first_order(0.8, 0.7, 3000)
     first, found = None, None
@@ -62,8 +64,10 @@ def test_a_model_that_passed_is_judged_changed_on_the_second_disjoint_window():
 
 def test_a_model_that_never_passed_is_never_judged_changed():
     """
-    A first-order model of a second-order plant (poles 0.9 and 0.5) is contradicted at every
-    check on a full window and never passed: no change, however long the contradiction.
+    A model that is contradicted at every full window and never passed reports no change.
+
+    A first-order model of a second-order plant (poles 0.9 and 0.5): however long the
+    contradiction, no change.
     """
     rng = np.random.default_rng(4)
     u = rng.standard_normal(6000)
