@@ -536,9 +536,12 @@ class SimulationWindow:
         self.coverage_reason = ''
         self.statistic = math.nan
         # the evidence of a plant change (:meth:`contradicted_twice`): samples recorded since
-        # the clear (a gap does not reset them), whether the model passed on a full window,
-        # and the recorded count at the first check of the current run of contradictions
+        # the clear (a gap does not reset them), whether the last verdict passed the model on
+        # a full window, whether a model did so with the estimator's word that it passed
+        # every check (:meth:`vouch`), and the recorded count at the first check of the
+        # current run of contradictions
         self._recorded = 0
+        self._full_pass = False
         self.passed = False
         self._run_start = -1
 
@@ -629,27 +632,40 @@ class SimulationWindow:
 
     def _follow_run(self, contradicted: bool, judged: bool) -> None:
         """Keep the run of contradictions and whether the model passed on a full window."""
+        self._full_pass = not contradicted and judged and self._filled >= self.window
         if contradicted:
             if self._run_start < 0:
                 self._run_start = self._recorded
         elif judged:
             self._run_start = -1
-            self.passed = self.passed or self._filled >= self.window
+
+    def vouch(self) -> None:
+        """
+        Take the estimator's word that its model passed every check at the last verdict.
+
+        Where that verdict passed the model on a full window, the model is ``passed``: a
+        contradiction of it from then on is evidence of a change (:meth:`contradicted_twice`).
+        The check alone is not enough: a model it passes while another check names it (a
+        stability projection on most updates, the model of a closed loop) is no model of
+        the plant to judge changes by.
+        """
+        self.passed = self.passed or self._full_pass
 
     def contradicted_twice(self) -> int:
         r"""
         Return the samples of the window if it contradicts a model that had passed, else 0.
 
-        The evidence of a plant change: a model that passed the check on a full window
-        since the last :meth:`clear` (``passed``: a model that never did, a structure too
-        poor for the plant, is never judged changed by this), contradicted at every check
+        The evidence of a plant change: a model that passed the check on a full window,
+        and every other check (:meth:`vouch`), since the last :meth:`clear` (``passed``: a
+        model that never did, a structure too poor for the plant, is never judged changed
+        by this), contradicted at every check
         since one whose window ended before the current window began: two disjoint windows
         contradict it, with no check passing in between. Under a plant that does not
         change, the verdicts of disjoint windows are those of independent noise, each
-        contradicting at most at the rate :math:`lpha` = ``FALSE_ALARM``: a run that
+        contradicting at most at the rate :math:`\alpha` = ``FALSE_ALARM``: a run that
         starts at a given check reaches a disjoint window at most at the rate
-        :math:`lpha^2`, and with a check every c samples that is at most
-        :math:`lpha^2/c` per sample (rpem, c = ``rules.VALIDITY_PERIOD`` = 100:
+        :math:`\alpha^2`, and with a check every c samples that is at most
+        :math:`\alpha^2/c` per sample (rpem, c = ``rules.VALIDITY_PERIOD`` = 100:
         1e-6, 0.1 per 100,000 samples). The current window's samples are all after the
         change: it was there before the first contradicted window ended.
         """
@@ -671,6 +687,7 @@ class SimulationWindow:
                  'simulation_judged': self._judged,
                  'simulation_statistic': self.statistic,
                  'simulation_recorded': self._recorded, 'simulation_passed': self.passed,
+                 'simulation_full_pass': self._full_pass,
                  'simulation_run_start': self._run_start})
 
     def load(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -690,6 +707,7 @@ class SimulationWindow:
         # a snapshot from before: no run of contradictions, not passed
         self._recorded = int(scalars.get('simulation_recorded', filled))
         self.passed = bool(scalars.get('simulation_passed', False))
+        self._full_pass = bool(scalars.get('simulation_full_pass', False))
         self._run_start = int(scalars.get('simulation_run_start', -1))
 
 

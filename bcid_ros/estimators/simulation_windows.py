@@ -133,6 +133,7 @@ class _PlantWindow(SimulationWindow):
         self.coverage_reason = ''
         self.statistic = math.nan
         self.passed = False
+        self._full_pass = False
         self._run_start = -1
 
     def follow_forgetting_factor(self, forgetting_factor: float) -> None:

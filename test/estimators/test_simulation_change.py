@@ -25,6 +25,7 @@ def judged_windows(y, u, a, b):
         window.record(float(y[t]), [u[t]])
         if (t + 1) % PERIOD == 0:
             window.reasons(a, b)
+            window.vouch()  # an estimator whose other checks pass
             yield t + 1, window
 
 
@@ -93,6 +94,7 @@ def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass():
             # the old model's contradictions starts again after it
             passing = t + 1 == 3000 + WINDOW
             window.reasons(np.array([-0.7]) if passing else a, b)
+            window.vouch()
             if passing:
                 assert not window.reason
                 resumed = t + 1 + PERIOD
@@ -116,6 +118,7 @@ def test_the_run_survives_a_snapshot():
             each.record(float(y[t]), [u[t]])
             if (t + 1) % PERIOD == 0:
                 each.reasons(np.array([-0.8]), np.array([1.0]))
+                each.vouch()
         assert copy.contradicted_twice() == window.contradicted_twice()
         assert copy.passed == window.passed
 
@@ -143,3 +146,15 @@ def test_rpem_takes_a_change_its_detector_misses_from_the_simulation_check():
     truth = case.theta[-1]
     assert np.linalg.norm(estimator.theta - truth) < 0.02 * np.linalg.norm(truth)
     assert estimator.valid
+
+
+def test_a_model_the_estimator_does_not_vouch_for_never_passes():
+    """The check's pass alone is not enough: without vouch() no change is ever reported."""
+    y, u = first_order(0.8, 0.7, 3000)
+    window = SimulationWindow(1, 1, False, [0], period=PERIOD)
+    for t in range(y.size):
+        window.record(float(y[t]), [u[t]])
+        if (t + 1) % PERIOD == 0:
+            window.reasons(np.array([-0.8]), np.array([1.0]))
+            assert window.contradicted_twice() == 0
+    assert not window.passed and window.reason

@@ -717,6 +717,8 @@ class Rpem(RpemState, RecursiveEstimator):
         # the detector runs once the model passed its checks; a std judged too small or an
         # estimate not yet precise is the covariance's matter, and holds no detection back
         self._settled = self._settled or not doubt_the_model(self._reasons)
+        if not (self._change_note or doubt_the_model(self._reasons)):
+            self._simulation.vouch()  # the model passed every check: its changes are judged
 
     def _live_reasons(self) -> tuple[str, ...]:
         """
