@@ -56,6 +56,11 @@ quadratic form counts it (:func:`settled_statistic`), with P capped at
 :data:`SETTLING_EXCUSE` times a fit of the window alone so that no inflated P excuses a
 misfit.
 
+**A plant change.** A model that passed on a full window and is then contradicted on two
+disjoint windows, no check passing in between, is evidence that the plant changed
+(:meth:`SimulationWindow.contradicted_twice`: at most :math:`\alpha^2` per check under a
+plant that does not change; rpem restarts on it where its change detector is silent).
+
 Everything is over a leading plant axis where it can be (:func:`simulate`,
 :func:`input_drive`); the refit is per plant. Pure numpy (the estimators import no scipy;
 :func:`simulate` runs the recursions in blocks).
@@ -530,6 +535,15 @@ class SimulationWindow:
         self.reason = ''
         self.coverage_reason = ''
         self.statistic = math.nan
+        # the evidence of a plant change (:meth:`contradicted_twice`): samples recorded since
+        # the clear (a gap does not reset them), whether the last verdict passed the model on
+        # a full window, whether a model did so with the estimator's word that it passed
+        # every check (:meth:`vouch`), and the recorded count at the first check of the
+        # current run of contradictions
+        self._recorded = 0
+        self._full_pass = False
+        self.passed = False
+        self._run_start = -1
 
     def gap(self) -> None:
         """
@@ -557,6 +571,7 @@ class SimulationWindow:
         row[0] = y
         row[1:] = u
         self._end = end + 1
+        self._recorded += 1
         filled = self._filled
         if filled < self.window:
             self._filled = filled = filled + 1
@@ -611,8 +626,54 @@ class SimulationWindow:
                 f'{UNDERSTATED}: the last {self._filled} samples determine the '
                 f'parameters up to {math.sqrt(understated[0]):.3g} times less well than it says'
                 if understated[0] > UNDERSTATEMENT_LIMIT else '')
+            self._follow_run(bool(contradicted[0]), bool(np.isfinite(statistic[0])))
         # below the minimum: the verdict from before a gap, if any
         return [reason for reason in (self.reason, self.coverage_reason) if reason]
+
+    def _follow_run(self, contradicted: bool, judged: bool) -> None:
+        """Keep the run of contradictions and whether the model passed on a full window."""
+        self._full_pass = not contradicted and judged and self._filled >= self.window
+        if contradicted:
+            if self._run_start < 0:
+                self._run_start = self._recorded
+        elif judged:
+            self._run_start = -1
+
+    def vouch(self) -> None:
+        """
+        Take the estimator's word that its model passed every check at the last verdict.
+
+        Where that verdict passed the model on a full window, the model is ``passed``: a
+        contradiction of it from then on is evidence of a change (:meth:`contradicted_twice`).
+        The check alone is not enough: a model it passes while another check names it (a
+        stability projection on most updates, the model of a closed loop) is no model of
+        the plant to judge changes by.
+        """
+        self.passed = self.passed or self._full_pass
+
+    def contradicted_twice(self) -> int:
+        r"""
+        Return the samples of the window if it contradicts a model that had passed, else 0.
+
+        The evidence of a plant change: a model that passed the check on a full window,
+        and every other check (:meth:`vouch`), since the last :meth:`clear` (``passed``: a
+        model that never did, a structure too poor for the plant, is never judged changed
+        by this), contradicted at every check
+        since one whose window ended before the current window began: two disjoint windows
+        contradict it, with no check passing in between. Under a plant that does not
+        change, the verdicts of disjoint windows are those of independent noise, each
+        contradicting at most at the rate :math:`\alpha` = ``FALSE_ALARM``: a run that
+        starts at a given check reaches a disjoint window at most at the rate
+        :math:`\alpha^2`, and with a check every c samples that is at most
+        :math:`\alpha^2/c` per sample (rpem, c = ``rules.VALIDITY_PERIOD`` = 100:
+        1e-6, 0.1 per 100,000 samples). The current window's samples are all after the
+        change: it was there before the first contradicted window ended.
+        """
+        if not (self.passed and self.reason and self._run_start >= 0):
+            return 0
+        if self._recorded - self._filled < self._run_start:
+            return 0
+        return self._filled
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the window for a snapshot (fixed shapes)."""
@@ -624,7 +685,10 @@ class SimulationWindow:
                  'simulation_reason': self.reason,
                  'simulation_coverage_reason': self.coverage_reason,
                  'simulation_judged': self._judged,
-                 'simulation_statistic': self.statistic})
+                 'simulation_statistic': self.statistic,
+                 'simulation_recorded': self._recorded, 'simulation_passed': self.passed,
+                 'simulation_full_pass': self._full_pass,
+                 'simulation_run_start': self._run_start})
 
     def load(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over :meth:`state_items` (a snapshot without them: an empty window)."""
@@ -640,6 +704,11 @@ class SimulationWindow:
         self.coverage_reason = str(scalars.get('simulation_coverage_reason', ''))
         self._judged = bool(scalars['simulation_judged'])
         self.statistic = float(scalars['simulation_statistic'])
+        # a snapshot from before: no run of contradictions, not passed
+        self._recorded = int(scalars.get('simulation_recorded', filled))
+        self.passed = bool(scalars.get('simulation_passed', False))
+        self._full_pass = bool(scalars.get('simulation_full_pass', False))
+        self._run_start = int(scalars.get('simulation_run_start', -1))
 
 
 def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order: int,

@@ -47,7 +47,9 @@ class SimulationWindows:
                                                 + self.lags.size)
         self.window = window_length(forgetting_factor)
         self._rows = np.zeros((plants, 2 * self.window, 1 + num_inputs))
-        # each plant's counters of SimulationWindow (_end, _filled, _since, _judged)
+        # each plant's counters of SimulationWindow (_end, _filled, _since, _judged,
+        # _recorded)
+        self._recorded = np.zeros(plants, dtype=np.int64)
         self._end = np.zeros(plants, dtype=np.int64)
         self._filled = np.zeros(plants, dtype=np.int64)
         self._since = np.zeros(plants, dtype=np.int64)
@@ -77,6 +79,7 @@ class SimulationWindows:
         filled = np.minimum(self._filled[plants] + 1, self.window)
         self._filled[plants] = filled
         self._since[plants] += 1
+        self._recorded[plants] += 1
         self._judged[plants[filled < self.minimum]] = False
 
     def gap(self, plants: np.ndarray) -> None:
@@ -129,6 +132,9 @@ class _PlantWindow(SimulationWindow):
         self.reason = ''
         self.coverage_reason = ''
         self.statistic = math.nan
+        self.passed = False
+        self._full_pass = False
+        self._run_start = -1
 
     def follow_forgetting_factor(self, forgetting_factor: float) -> None:
         """Take the window length of a new lambda (shared: every plant's window takes it)."""
@@ -147,6 +153,7 @@ class _PlantWindow(SimulationWindow):
     _filled = _plant_entry('_filled', int)
     _since = _plant_entry('_since', int)
     _judged = _plant_entry('_judged', bool)
+    _recorded = _plant_entry('_recorded', int)
 
 
 __all__ = ['SimulationWindows']
