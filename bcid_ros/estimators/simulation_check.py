@@ -711,6 +711,17 @@ class SimulationWindow:
         self._run_start = int(scalars.get('simulation_run_start', -1))
 
 
+def change_rate(period: int) -> float:
+    r"""
+    Return the most changes a sample that :meth:`SimulationWindow.contradicted_twice` reports.
+
+    Under no change, with a check every ``period`` samples: :math:`\alpha^2`/period, the
+    share of the stated false-alarm rate the estimator gives this evidence (rpem: 1e-6 with
+    a check every 100 samples, a tenth of ``change_detection.FALSE_ALARM``).
+    """
+    return FALSE_ALARM ** 2 / period
+
+
 def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order: int,
                        covariance: Callable[[], np.ndarray | None] | None = None,
                        count: Callable[[], float | None] | None = None) -> list[str]:
@@ -739,5 +750,6 @@ def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order
 
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE',
            'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'block_recursion',
-           'check', 'input_drive', 'judge', 'numerator_lags', 'refit', 'settled_statistic',
+           'change_rate', 'check', 'input_drive', 'judge', 'numerator_lags', 'refit',
+           'settled_statistic',
            'simulate', 'simulation_reasons', 'state_count', 'understatement', 'window_length']

@@ -158,3 +158,16 @@ def test_a_model_the_estimator_does_not_vouch_for_never_passes():
             window.reasons(np.array([-0.8]), np.array([1.0]))
             assert window.contradicted_twice() == 0
     assert not window.passed and window.reason
+
+
+def test_rpem_plant_change_sources_stay_within_the_stated_rate():
+    """The whitened test, the block test and this evidence share FALSE_ALARM (per sample)."""
+    from bcid_ros.estimators import rules
+    from bcid_ros.estimators.change_detection import BLOCK_LENGTH, FALSE_ALARM
+    from bcid_ros.estimators.simulation_check import change_rate
+    rpem = make_estimator('rpem', order=2, num_inputs=1)
+    # Lorden: a CUSUM of threshold h alarms at most e^-h a sample (the block test a block)
+    rates = (np.exp(-rpem._detector.threshold), np.exp(-rpem._block_test.threshold) / BLOCK_LENGTH,
+             change_rate(rules.VALIDITY_PERIOD))
+    assert sum(rates) <= FALSE_ALARM * (1 + 1e-12)
+    assert min(rates) > 0.0

@@ -39,6 +39,7 @@ from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalise
                                                   parameter_covariance, with_unresolved)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
+from bcid_ros.estimators.simulation_check import change_rate
 from bcid_ros.estimators.validity import doubt_the_model, imprecision, STANDING_PRECISION
 
 #: Values of the ``model`` option.
@@ -258,9 +259,11 @@ class Rpem(RpemState, RecursiveEstimator):
         self._store = SampleStore(n, r, self.feedthrough, self.input_delay, self._armax,
                                   self._offset, self._channel)
         self._watch = RestartWatch()
-        # the stated false-alarm rate is shared: the block test takes BLOCK_SHARE of it and
-        # the detector the rest, so that a plant_change of either stays within FALSE_ALARM
-        self._detector = ChangeDetector(false_alarm=(1.0 - BLOCK_SHARE) * FALSE_ALARM)
+        # the stated false-alarm rate is shared: the block test takes BLOCK_SHARE of it, the
+        # simulation check's two disjoint contradictions their alpha^2 a check, and the
+        # detector the rest, so that a plant_change of any of them stays within FALSE_ALARM
+        self._detector = ChangeDetector(false_alarm=(1.0 - BLOCK_SHARE) * FALSE_ALARM
+                                        - change_rate(rules.VALIDITY_PERIOD))
         # the same errors' slow part: their means over blocks (change_detection.py)
         self._block_test = BlockMeanDetector()
         self._warning_level = CHANGE_WARNING * self._detector.threshold
