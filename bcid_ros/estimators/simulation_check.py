@@ -751,5 +751,5 @@ def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE',
            'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'block_recursion',
            'change_rate', 'check', 'input_drive', 'judge', 'numerator_lags', 'refit',
-           'settled_statistic',
-           'simulate', 'simulation_reasons', 'state_count', 'understatement', 'window_length']
+           'settled_statistic', 'simulate', 'simulation_reasons', 'state_count', 'understatement',
+           'window_length']
