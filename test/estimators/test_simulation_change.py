@@ -11,9 +11,10 @@ import numpy as np
 from scipy import signal
 
 from benchmarks.tracking import TrackingCase
-from bcid_ros.estimators import make_estimator
+from bcid_ros.estimators import make_estimator, rules
+from bcid_ros.estimators.change_detection import BLOCK_LENGTH, FALSE_ALARM
 from bcid_ros.estimators.rpem.online import SIMULATION_NOTE
-from bcid_ros.estimators.simulation_check import SimulationWindow, WINDOW
+from bcid_ros.estimators.simulation_check import change_rate, SimulationWindow, WINDOW
 
 PERIOD = 100
 
@@ -162,9 +163,6 @@ def test_a_model_the_estimator_does_not_vouch_for_never_passes():
 
 def test_rpem_plant_change_sources_stay_within_the_stated_rate():
     """The whitened test, the block test and this evidence share FALSE_ALARM (per sample)."""
-    from bcid_ros.estimators import rules
-    from bcid_ros.estimators.change_detection import BLOCK_LENGTH, FALSE_ALARM
-    from bcid_ros.estimators.simulation_check import change_rate
     rpem = make_estimator('rpem', order=2, num_inputs=1)
     # Lorden: a CUSUM of threshold h alarms at most e^-h a sample (the block test a block)
     rates = (np.exp(-rpem._detector.threshold), np.exp(-rpem._block_test.threshold) / BLOCK_LENGTH,
