@@ -21,10 +21,9 @@ from typing import Any, Generator
 import numpy as np
 
 from bcid_ros.estimators.polynomials import is_stable
-from bcid_ros.estimators.residual_statistics import chi2_quantile
 from bcid_ros.estimators.rpem.segment import INITIAL_PRIOR, SegmentPredictor, solve_regularised
 from bcid_ros.estimators.rpem.stability import HALVINGS, pull_inside, REGION_MARGIN
-from bcid_ros.estimators.rpem.uncertainty import UNRESOLVED_LEVEL
+from bcid_ros.estimators.rpem.uncertainty import unresolved_limit
 
 #: Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterations of a fit.
 IV_ITERATIONS = 8
@@ -272,8 +271,7 @@ class BatchFit:
             return ranked
         statistic = weight * (second / best - 1.0)
         # tau_2 / tau of the fit's weights (1 without forgetting)
-        limit = chi2_quantile(UNRESOLVED_LEVEL, self.num_parameters) * float(
-            weights.dot(weights)) / weight
+        limit = unresolved_limit(self.num_parameters, float(weights.dot(weights)) / weight)
         return ranked if statistic > limit else ends
 
     def _cost(self, usable: list, columns: int) -> int:

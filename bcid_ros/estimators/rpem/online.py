@@ -638,34 +638,33 @@ class Rpem(RpemState, RecursiveEstimator):
         fit (tracking plant (0, 22), a drift's end: from 0.8 % to 1.1 % off for 8 samples,
         then the fit's 0.2 %).
         """
-        held = self._p.copy(), self._loss, self._tau, self._excess.copy()
-        self._plant_changed(age)
-        self._p, self._loss, self._tau, self._excess = held
-        self._change_note += SIMULATION_NOTE
-        self._decide_now()
+        self._flag('plant_change')
+        self._restart_after_change(age, cut=False, note=SIMULATION_NOTE)
 
-    def _restart_after_change(self, age: int) -> None:
+    def _restart_after_change(self, age: int, cut: bool = True, note: str = '') -> None:
         """
         Cut the memory and restart the fits from the last ``age`` samples (the new plant's).
 
         The memory cut (rules.cut_memory) lets the recursion move at once; the
         stored samples before the change point leave the fits, and a fit of
         the ones after it starts once there are enough. Not valid from this
-        sample on, until a fit of the new samples passed the checks.
+        sample on, until a fit of the new samples passed the checks. ``cut``
+        False: no memory cut (a change whose fit starts at once); ``note`` ends
+        the change's reason.
         """
         self._changes += 1
         first = self._samples - age + 1 if age else self._samples + 1
-        self._change_note = f'plant changed (sample {first})'
+        self._change_note = f'plant changed (sample {first}){note}'
         self._settled = False
         self._forget_residuals()
         self._detector.clear()
         self._left_fit.clear()
         self._block_test.clear()
-        # one extra forgetting step: P / kappa, kappa J, kappa tau (P changed in place)
-        loss, tau = np.array([self._loss]), np.array([self._tau])
-        keep = rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
-        self._excess *= float(keep[0])  # E's root: the old fit's weight, cut as P's information
-        self._loss, self._tau = float(loss[0]), float(tau[0])
+        if cut:  # one extra forgetting step: P / kappa, kappa J, kappa tau (P in place)
+            loss, tau = np.array([self._loss]), np.array([self._tau])
+            keep = rules.cut_memory(self._p[None], loss, tau, self.num_parameters)
+            self._excess *= float(keep[0])  # E's root: the old fit's weight, cut as P's
+            self._loss, self._tau = float(loss[0]), float(tau[0])
         if self._store.restart_schedule(age):
             self._fit()
         self._decide_now()

@@ -216,6 +216,18 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     return (information + prior * np.eye(size)) @ root  # P_f^-1 D^1/2
 
 
+def unresolved_limit(parameters: int, square_ratio: float) -> float:
+    r"""
+    Return the ``UNRESOLVED_LEVEL`` quantile of the likelihood-ratio statistic at the truth.
+
+    :math:`(\tau_2/\tau)\chi^2_p` under white errors, ``square_ratio`` the weights'
+    :math:`\tau_2/\tau` (1 without forgetting): a statistic :math:`N(V_2/V_1 - 1)` within
+    it is one the data do not tell from chance (:func:`with_unresolved`, and the ranking of
+    a fit's ends after a change, :meth:`~bcid_ros.estimators.rpem.fit.BatchFit._ranked`).
+    """
+    return chi2_quantile(UNRESOLVED_LEVEL, parameters) * square_ratio
+
+
 def with_unresolved(root: np.ndarray, theta: np.ndarray,
                     alternative: tuple[np.ndarray, float] | None, weight: float,
                     forgetting_factor: float, residuals: Callable[[], np.ndarray],
@@ -266,8 +278,7 @@ def with_unresolved(root: np.ndarray, theta: np.ndarray,
     if not (np.isfinite(step).all() and math.isfinite(ratio)) or not step.any():
         return root
     statistic = weight * (ratio - 1.0)
-    limit = chi2_quantile(UNRESOLVED_LEVEL, theta.shape[0]) * weighted_square_ratio(
-        weight, forgetting_factor)
+    limit = unresolved_limit(theta.shape[0], weighted_square_ratio(weight, forgetting_factor))
     # kappa is in [1, MAX_COLOUR]: the residuals are asked only where it decides
     if statistic > limit and (statistic > MAX_COLOUR * limit
                               or statistic > colour(residuals()) * limit):
