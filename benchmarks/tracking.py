@@ -146,7 +146,7 @@ class TrackingCase:
         before = np.concatenate([before[:self.order], *numerators])
         after, self.change = self._changed(rng, poles, numerators)
         self.theta = self._trajectory(before, after)
-        noise_free = self._simulate(self.u)
+        noise_free = self.simulate(self.u)
         self.noise = str(rng.choice(['white', 'coloured']))
         self.snr_db = float(rng.uniform(10.0, 40.0))
         white = rng.standard_normal(count)
@@ -156,7 +156,7 @@ class TrackingCase:
         if self.model == 'arx':
             # the plant driven by the white sequence as its equation error alone (linear in
             # it, so scaling the output noise scales the equation error)
-            e, self.noise = self._simulate(np.zeros_like(self.u), white), 'equation-error'
+            e, self.noise = self.simulate(np.zeros_like(self.u), white), 'equation-error'
         elif self.model == 'oe_white':
             e, self.noise = white, 'white'
         scale = noise_free[:self.change_at].std() * 10.0 ** (-self.snr_db / 20.0)
@@ -215,7 +215,7 @@ class TrackingCase:
             weight[start + self.drift:] = 1.0
         return before[None, :] + weight[:, None] * (after - before)[None, :]
 
-    def _simulate(self, u: np.ndarray, equation_error: np.ndarray | None = None) -> np.ndarray:
+    def simulate(self, u: np.ndarray, equation_error: np.ndarray | None = None) -> np.ndarray:
         """Return the time-varying plant's output (direct form), plus an equation error."""
         n, r = self.order, self.num_inputs
         y = np.zeros(self.samples) if equation_error is None else equation_error.copy()

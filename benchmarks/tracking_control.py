@@ -43,10 +43,10 @@ def held(case: TrackingCase) -> TrackingCase:
     """
     control = copy.copy(case)
     control.theta = np.repeat(case.theta[case.change_at - 1][None, :], case.samples, axis=0)
-    noise = case.y - case._simulate(case.u)
+    noise = case.y - case.simulate(case.u)
     control.y = case.y.copy()
     after = slice(case.change_at, None)
-    control.y[after] = control._simulate(case.u)[after] + noise[after]
+    control.y[after] = control.simulate(case.u)[after] + noise[after]
     control.kind, control.change = 'none', 'held'
     return control
 

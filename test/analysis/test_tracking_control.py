@@ -24,7 +24,7 @@ def test_a_held_case_is_the_case_without_its_change():
     assert np.array_equal(control.u, case.u) and control.change_at == case.change_at
     # after it, the same output noise (a difference of two simulations: rounding only) on
     # the held plant's output, which is not the changed plant's
-    noise, held_noise = y - case._simulate(case.u), control.y - control._simulate(control.u)
+    noise, held_noise = y - case.simulate(case.u), control.y - control.simulate(control.u)
     scale = np.abs(noise).max()
     assert np.abs(held_noise - noise).max() <= 1e-12 * max(scale, np.abs(y).max())
     after = slice(case.change_at, None)

@@ -27,7 +27,7 @@ def autocorrelation(x: np.ndarray, lags: int = 10) -> np.ndarray:
 
 
 def output_noise(case: TrackingCase) -> np.ndarray:
-    return case.y - TrackingCase(case.seed, 'oe_white')._simulate(case.u)
+    return case.y - TrackingCase(case.seed, 'oe_white').simulate(case.u)
 
 
 @pytest.fixture(scope='module')
