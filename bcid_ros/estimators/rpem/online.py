@@ -789,16 +789,18 @@ class Rpem(RpemState, RecursiveEstimator):
 
     def _standing_precision(self) -> float | None:
         """
-        Return ``STANDING_PRECISION`` with forgetting (lambda < 1), else None.
+        Return ``STANDING_PRECISION``, at every lambda.
 
         With forgetting the estimate rests on a window that stops growing: where it does not
         pin the estimate to a third of its size it never will, and a drift moves the estimate
         within that looseness unseen (tracking plant (2, 19) with lambda 0.999: 20-34 % off
-        with 2 sqrt(tr C) 15-143 % of it). Without, the std shrinks with the record, and early
-        in a run rpem's HAC std overstates the error several times (docs/trust.md,
-        "Precision at all times"): not asked there.
+        with 2 sqrt(tr C) 15-143 % of it). Without, a stationary estimate 95 % off with
+        2 sqrt(tr C) 96 % of it (tracking plant (0, 13) before its gain change) is no
+        model either. Asked at lambda 1 since the std after a fit is calibrated (the fit's
+        profiled scores; the held ones overstated it 2-6 times early in a run: docs/trust.md,
+        "Precision at all times").
         """
-        return STANDING_PRECISION if self._forgetting_factor < 1.0 else None
+        return STANDING_PRECISION
 
     def _covariance_count(self) -> float | None:
         """Return tau, the samples the estimate rests on (``oe``: an output-error covariance)."""
