@@ -414,9 +414,18 @@ def long_run_covariance(gamma: np.ndarray, size: float, prewhitening: str, kerne
 
 
 def positive_part(matrices: np.ndarray) -> np.ndarray:
-    """Return the positive part ``(..., p, p)`` of symmetric matrices: negative eigenvalues at 0."""
-    values, vectors = np.linalg.eigh(0.5 * (matrices + np.swapaxes(matrices, -1, -2)))
-    return (vectors * np.maximum(values, 0.0)[..., None, :]) @ np.swapaxes(vectors, -1, -2)
+    """
+    Return the positive part ``(K, p, p)`` of symmetric matrices: negative eigenvalues at 0.
+
+    A matrix that is not finite (no data: all-zero scores) stays NaN, as the sums it came from.
+    """
+    symmetric = 0.5 * (matrices + np.swapaxes(matrices, -1, -2))
+    finite = np.isfinite(symmetric).all(axis=(-2, -1))
+    result = np.full_like(symmetric, np.nan)
+    values, vectors = np.linalg.eigh(symmetric[finite])
+    result[finite] = (vectors * np.maximum(values, 0.0)[..., None, :]) @ np.swapaxes(
+        vectors, -1, -2)
+    return result
 
 
 def prewhitening_matrix(gamma: np.ndarray, prewhitening: str) -> np.ndarray:

@@ -124,12 +124,11 @@ def test_the_long_run_variance_of_ar1_scores():
 
 def test_larger_is_at_or_above_both_prewhitenings_in_every_direction():
     """
-    'larger' is Omega_d + (Omega_n - Omega_d)_+: above each in the Loewner order, and the
-    least such in the directions where one of them already holds (the plain one's where the
-    diagonal's is below it; the diagonal's where it is the larger).
+    'larger' is Omega_d + (Omega_n - Omega_d)_+, above each in the Loewner order.
 
-    The scores: a persistent AR(1) 0.9 component plus a small one of alternating sign
-    (-0.6), mixed, so that neither prewhitening is the larger in every direction.
+    It is the diagonal's in the directions where the diagonal's is the larger. The scores: a
+    persistent AR(1) 0.9 component plus a small one of alternating sign (-0.6), mixed, so
+    that neither prewhitening is the larger in every direction.
     """
     rng = np.random.default_rng(11)
     persistent = signal.lfilter([1.0], [1.0, -0.9], rng.standard_normal(3000))

@@ -9,8 +9,9 @@ Identification*, 2nd ed., 1999, sec. 9.3, without assuming white
 prediction errors). The middle is :math:`\tau_2\hat\Omega`, with
 :math:`\hat\Omega` the long-run covariance per unit weight of the scores
 :math:`\psi_t\varepsilon_t` that :class:`~bcid_ros.estimators.hac.HacCovariance`
-estimates (prewhitened, windowed) from the scores of the last batch fit's
-samples at its estimate and of every sample the recursion took after it,
+estimates (prewhitened with ``PREWHITENING``, windowed) from the profiled scores
+of the last batch fit's samples at its estimate (:func:`fitted_scores`) and of
+every sample the recursion took after it,
 and :math:`\tau_2` that of every sample the estimate learnt from (the batch
 fits' included), with the small-sample factor T/(T - p). Calibrated whether
 the output error of an OE model is white or coloured (docs/trust.md).
