@@ -138,7 +138,8 @@ def hac_study(args: argparse.Namespace) -> dict[str, Any]:
     rule = 4.0 * (tau * tau / tau2 / 100.0) ** (2.0 / 9.0)  # Newey-West (1994) rule of thumb
     variants = {'newey_west_rule': dict(prewhitening='none', bandwidth=rule, max_lag=64),
                 'newey_west_auto': dict(prewhitening='none', max_lag=64),
-                'prewhitened (shipped)': {}}
+                'prewhitened (shipped)': {},
+                'larger (rpem)': dict(prewhitening='larger')}
     bandwidths = {}
     for name, settings in variants.items():
         hac = HacCovariance(dimension=4, forgetting_factor=lam, plants=runs, **settings)

@@ -34,8 +34,9 @@ import numpy as np
 from bcid_ros.estimators.lagged import effective_size, LaggedProducts, weights_of_counts
 from bcid_ros.estimators.settings import SHARED_SETTINGS
 
-#: Prewhitening: none (plain Newey-West) or an AR(1) per component (docs/trust.md).
-PREWHITENINGS = ('none', 'diagonal')
+#: Prewhitening: none (plain Newey-West), an AR(1) per component, or the larger of the two
+#: in every direction (docs/trust.md).
+PREWHITENINGS = ('none', 'diagonal', 'larger')
 #: Lag windows: Bartlett (Newey-West) and Parzen.
 KERNELS = ('bartlett', 'parzen')
 #: Largest lag of the lag window (the bandwidth is capped here). Prewhitened,
@@ -76,7 +77,15 @@ class HacCovariance:
        coefficients :math:`\rho_a = \Gamma_h(1)_{aa}/\Gamma_h(0)_{aa}`, capped at
        ``PREWHITENING_CAP``; its moments are
        :math:`\Gamma^*(k) = \Gamma_h(k) - A\Gamma_h(k-1) - \Gamma_h(k+1)A
-       + A\Gamma_h(k)A` (:math:`\Gamma_h(-1) = \Gamma_h(1)^T`). ``'none'``: A = 0;
+       + A\Gamma_h(k)A` (:math:`\Gamma_h(-1) = \Gamma_h(1)^T`). ``'none'``: A = 0.
+       ``'larger'``: both, and :math:`\Omega_d + (\Omega_n - \Omega_d)_+` of
+       the diagonal's :math:`\Omega_d` and the plain :math:`\Omega_n` (the
+       positive part of a symmetric matrix keeps its positive eigenvalues): the
+       least matrix of that form at or above each of them in every direction.
+       The diagonal AR(1) misjudges a component that is a sum of unlike
+       ones (a small principal axis hidden under a persistent one: rpem's std
+       after a fit, docs/trust.md), and the plain one a persistent one
+       (oversampled plants, below); each is right where the other fails;
     2. lag window: :math:`\Omega^* = \Gamma^*(0) + \sum_{k=1}^{L}\kappa(k/b)
        [\Gamma^*(k) + \Gamma^*(k)^T]`, Bartlett :math:`\kappa(x) = 1 - x` or
        Parzen, with the bandwidth of Andrews (1991), eq. (6.2) with the AR(1)
@@ -372,8 +381,14 @@ def long_run_covariance(gamma: np.ndarray, size: float, prewhitening: str, kerne
     ``gamma`` ``(K, L + 2, p, p)`` holds :math:`\hat\Gamma(k)`, k = 0..L+1; ``size``
     is the effective sample size T; the forgetting factor :math:`\lambda` of
     the weights (see :func:`whitened_moments`). See :class:`HacCovariance` for
-    the steps.
+    the steps; the bandwidths of ``'larger'`` are those of its diagonal prewhitening.
     """
+    if prewhitening == 'larger':
+        diagonal, widths = long_run_covariance(gamma, size, 'diagonal', kernel, bandwidth,
+                                               forgetting_factor)
+        plain, _ = long_run_covariance(gamma, size, 'none', kernel, bandwidth,
+                                       forgetting_factor)
+        return diagonal + positive_part(plain - diagonal), widths
     count, lags = gamma.shape[0], gamma.shape[1] - 2
     # normalised units: unit variance per component (zero-power components keep scale 1)
     diagonal = np.einsum('kii->ki', gamma[:, 0])
@@ -396,6 +411,21 @@ def long_run_covariance(gamma: np.ndarray, size: float, prewhitening: str, kerne
     omega = recolour @ omega @ np.swapaxes(recolour, -1, -2)
     omega = 0.5 * (omega + np.swapaxes(omega, -1, -2))
     return omega * (scale[:, :, None] * scale[:, None, :]), widths
+
+
+def positive_part(matrices: np.ndarray) -> np.ndarray:
+    """
+    Return the positive part ``(K, p, p)`` of symmetric matrices: negative eigenvalues at 0.
+
+    A matrix that is not finite (no data: all-zero scores) stays NaN, as the sums it came from.
+    """
+    symmetric = 0.5 * (matrices + np.swapaxes(matrices, -1, -2))
+    finite = np.isfinite(symmetric).all(axis=(-2, -1))
+    result = np.full_like(symmetric, np.nan)
+    values, vectors = np.linalg.eigh(symmetric[finite])
+    result[finite] = (vectors * np.maximum(values, 0.0)[..., None, :]) @ np.swapaxes(
+        vectors, -1, -2)
+    return result
 
 
 def prewhitening_matrix(gamma: np.ndarray, prewhitening: str) -> np.ndarray:

@@ -8,8 +8,8 @@ estimator shares: the residual tests' and the simulation check's; a detected
 plant change adds its own, which holds until the residual tests are ready on a
 full window of the new plant's samples and the new estimate is known to
 ``PRECISION`` of its size (:func:`imprecision`; docs/trust.md, docs/tracking.md). An
-estimator that states a standing precision (:meth:`Validity._standing_precision`: rpem with
-forgetting) is, at all times, not valid while its own std says its estimate is not known to
+estimator that states a standing precision (:meth:`Validity._standing_precision`:
+rpem) is, at all times, not valid while its own std says its estimate is not known to
 that looser share of its size. A
 check changes nothing but the reasons: what it finds that needs action is done
 by the estimator's update.
@@ -248,8 +248,8 @@ class Validity:
         """
         Return the share of its size the estimate must be known to at all times (None: not asked).
 
-        :func:`decided_reasons`'s ``precision``; an estimator whose std stops shrinking
-        (forgetting) states ``STANDING_PRECISION`` (rpem).
+        :func:`decided_reasons`'s ``precision``; an estimator whose std is calibrated from
+        its first fit on states ``STANDING_PRECISION`` (rpem).
         """
         return None
 

@@ -122,6 +122,38 @@ def test_the_long_run_variance_of_ar1_scores():
     assert hac.bandwidths.max() <= hac.max_lag
 
 
+def test_larger_is_at_or_above_both_prewhitenings_in_every_direction():
+    """
+    'larger' is Omega_d + (Omega_n - Omega_d)_+, above each in the Loewner order.
+
+    It is the diagonal's in the directions where the diagonal's is the larger. The scores: a
+    persistent AR(1) 0.9 component plus a small one of alternating sign (-0.6), mixed, so
+    that neither prewhitening is the larger in every direction.
+    """
+    rng = np.random.default_rng(11)
+    persistent = signal.lfilter([1.0], [1.0, -0.9], rng.standard_normal(3000))
+    alternating = 0.3 * signal.lfilter([1.0], [1.0, 0.6], rng.standard_normal(3000))
+    scores = np.column_stack((persistent + alternating, persistent - alternating,
+                              rng.standard_normal(3000)))
+    omega = {}
+    for prewhitening in ('diagonal', 'none', 'larger'):
+        hac = HacCovariance(dimension=3, prewhitening=prewhitening)
+        hac.record_all(scores)
+        omega[prewhitening] = hac.long_run()
+    scale = np.abs(omega['larger']).max()
+    for other in ('diagonal', 'none'):
+        assert np.linalg.eigvalsh(omega['larger'] - omega[other]).min() >= -1e-12 * scale
+    # neither contains the other here, and the larger is the diagonal's plus the positive
+    # part of the difference, whose null space it leaves alone
+    difference = np.linalg.eigvalsh(omega['none'] - omega['diagonal'])
+    assert difference.min() < 0.0 < difference.max()
+    values, vectors = np.linalg.eigh(omega['none'] - omega['diagonal'])
+    below = vectors[:, values < 0.0]
+    np.testing.assert_allclose(below.T @ omega['larger'] @ below,
+                               below.T @ omega['diagonal'] @ below, rtol=1e-9,
+                               atol=1e-12 * scale)
+
+
 def test_whitened_moments_are_those_of_the_whitened_series():
     rng = np.random.default_rng(6)
     samples, lags = 5000, 4

@@ -15,8 +15,8 @@ from scipy import signal
 from bcid_ros.analysis.pem import fit_oe, Structure
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
-                                                  parameter_covariance)
+from bcid_ros.estimators.rpem.uncertainty import (fitted_scores, fitted_state_excess,
+                                                  normalised_covariance, parameter_covariance)
 
 
 @pytest.mark.parametrize('seed', range(4))
@@ -45,6 +45,17 @@ def test_rpem_std_on_a_slow_plant_agrees_with_the_batch_fit(seed):
         batch = fit_oe(y - y.mean(), u - u.mean(), Structure(3), offset=True)
     ratio = std / batch.std[:6]
     assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
+
+
+def test_the_hac_takes_theta_s_profiled_scores_and_the_offset_s_own():
+    held = np.arange(12.0).reshape(4, 3)
+    profiled = -np.ones((4, 2))
+    fitted = fitted_scores(held, profiled)
+    np.testing.assert_array_equal(fitted[:, :2], profiled)
+    np.testing.assert_array_equal(fitted[:, 2], held[:, 2])
+    assert held[0, 0] == 0.0  # not changed in place
+    # rows that do not match (nothing profiled): the held scores
+    assert fitted_scores(held, np.zeros((0, 2))) is held
 
 
 def test_the_excess_is_zero_where_the_state_carries_no_information():

@@ -2,7 +2,7 @@
 rpem is valid only while its std says the estimate is known to a third of its size.
 
 The rule is :func:`bcid_ros.estimators.validity.decided_reasons`'s ``precision``
-(``STANDING_PRECISION``, asked by rpem with forgetting; docs/trust.md, *Precision at all
+(``STANDING_PRECISION``, asked by rpem at every lambda; docs/trust.md, *Precision at all
 times*): once the model passed every check, 2 sqrt(tr C) <= 30 % of ||theta_hat||, which bounds
 the relative error by 30 % with probability at least 95.4 % whatever the shape of C.
 """
@@ -66,18 +66,18 @@ def precision_bound(estimator):
             / np.linalg.norm(estimator.theta))
 
 
-def test_rpem_asks_the_level_with_forgetting_only():
-    # without forgetting the std shrinks with the record, and early in a run rpem's HAC std
-    # overstates the error several times (docs/trust.md, *Precision at all times*)
-    assert make_estimator('rpem', order=2)._standing_precision() is None
+def test_rpem_asks_the_level_at_every_lambda():
+    # since its std after a fit is calibrated (docs/trust.md, *Precision at all times*);
+    # the other estimators do not state one
+    assert make_estimator('rpem', order=2)._standing_precision() == LEVEL
     assert make_estimator('rpem', order=2, forgetting_factor=0.999)._standing_precision() == LEVEL
     assert make_estimator('rls', order=2, forgetting_factor=0.999)._standing_precision() is None
-    # the forgetting factor is live: the level follows it at the next decision
+    # the forgetting factor is live: the level stays
     estimator = make_estimator('rpem', order=2)
     estimator.forgetting_factor = 0.995
     assert estimator._standing_precision() == LEVEL
     estimator.forgetting_factor = 1.0
-    assert estimator._standing_precision() is None
+    assert estimator._standing_precision() == LEVEL
 
 
 def test_rpem_with_forgetting_is_valid_only_where_its_std_shows_the_level():

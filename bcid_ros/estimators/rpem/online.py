@@ -35,8 +35,10 @@ from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.state import RpemState
 from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, StoredFit
-from bcid_ros.estimators.rpem.uncertainty import (fitted_state_excess, normalised_covariance,
-                                                  parameter_covariance, with_unresolved)
+from bcid_ros.estimators.rpem.uncertainty import (carried_excess, fitted_scores,
+                                                  fitted_state_excess, normalised_covariance,
+                                                  parameter_covariance, PREWHITENING,
+                                                  with_unresolved)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
 from bcid_ros.estimators.simulation_check import change_rate
@@ -587,9 +589,11 @@ class Rpem(RpemState, RecursiveEstimator):
         self._watch.fitted(on_boundary([theta[:self.order]] + (
             [theta[self._filter_slice]] if self._armax else [])), fresh)
         # the scores recorded so far are of the estimates before the fit, whose errors
-        # would swell the HAC (hundreds of times on a fit that moved far): the fit's own
+        # would swell the HAC (hundreds of times on a fit that moved far): the fit's own,
+        # theta's profiled (the equations the fit solved; the held ones carry each segment's
+        # start-up transient, which overstated the std 2-6 times: docs/trust.md)
         self._hac.reset()
-        self._hac.record_all(result.scores)
+        self._hac.record_all(fitted_scores(result.scores, result.profiled[1]))
         # what the covariance of P leaves out: the fit chose each segment's initial state
         self._excess = fitted_state_excess(
             normalised_covariance(self._hac, p, result.weight, self._forgetting_factor),
@@ -785,16 +789,18 @@ class Rpem(RpemState, RecursiveEstimator):
 
     def _standing_precision(self) -> float | None:
         """
-        Return ``STANDING_PRECISION`` with forgetting (lambda < 1), else None.
+        Return ``STANDING_PRECISION``, at every lambda.
 
         With forgetting the estimate rests on a window that stops growing: where it does not
         pin the estimate to a third of its size it never will, and a drift moves the estimate
         within that looseness unseen (tracking plant (2, 19) with lambda 0.999: 20-34 % off
-        with 2 sqrt(tr C) 15-143 % of it). Without, the std shrinks with the record, and early
-        in a run rpem's HAC std overstates the error several times (docs/trust.md,
-        "Precision at all times"): not asked there.
+        with 2 sqrt(tr C) 15-143 % of it). Without, a stationary estimate 95 % off with
+        2 sqrt(tr C) 96 % of it (tracking plant (0, 13) before its gain change) is no
+        model either. Asked at lambda 1 since the std after a fit is calibrated (the fit's
+        profiled scores; the held ones overstated it 2-6 times early in a run: docs/trust.md,
+        "Precision at all times").
         """
-        return STANDING_PRECISION if self._forgetting_factor < 1.0 else None
+        return STANDING_PRECISION
 
     def _covariance_count(self) -> float | None:
         """Return tau, the samples the estimate rests on (``oe``: an output-error covariance)."""
@@ -804,7 +810,13 @@ class Rpem(RpemState, RecursiveEstimator):
         """Return the HAC covariance of theta_n, offset included, for the residual tests."""
         if not self._tau > 0.0:
             return None
-        return normalised_covariance(self._hac, self._p, self._tau, self._forgetting_factor)
+        covariance = normalised_covariance(self._hac, self._p, self._tau,
+                                           self._forgetting_factor)
+        if covariance is None or self._excess is None or not np.isfinite(self._excess).all():
+            return covariance
+        # the estimate's whole error, as the std's: the last fit's initial states too
+        decay = self._forgetting_factor ** (self._samples - self._fit_sample)
+        return covariance + decay * decay * carried_excess(self._p, self._excess)
 
     def _theta(self) -> np.ndarray:
         return self._theta_n[:self.num_parameters] * self._unscale
@@ -873,7 +885,8 @@ class Rpem(RpemState, RecursiveEstimator):
             num_parameters=self._size if oe else 0,
             parameter_covariance=self._internal_covariance if oe else None)
         self._hac = HacCovariance(dimension=self._size,
-                                  forgetting_factor=self._forgetting_factor)
+                                  forgetting_factor=self._forgetting_factor,
+                                  prewhitening=PREWHITENING)
         if not keep_window:
             self._start_simulation_check()
 

@@ -9,8 +9,9 @@ Identification*, 2nd ed., 1999, sec. 9.3, without assuming white
 prediction errors). The middle is :math:`\tau_2\hat\Omega`, with
 :math:`\hat\Omega` the long-run covariance per unit weight of the scores
 :math:`\psi_t\varepsilon_t` that :class:`~bcid_ros.estimators.hac.HacCovariance`
-estimates (prewhitened, windowed) from the scores of the last batch fit's
-samples at its estimate and of every sample the recursion took after it,
+estimates (prewhitened with ``PREWHITENING``, windowed) from the profiled scores
+of the last batch fit's samples at its estimate (:func:`fitted_scores`) and of
+every sample the recursion took after it,
 and :math:`\tau_2` that of every sample the estimate learnt from (the batch
 fits' included), with the small-sample factor T/(T - p). Calibrated whether
 the output error of an OE model is white or coloured (docs/trust.md).
@@ -64,6 +65,12 @@ from bcid_ros.estimators.base import weighted_square_ratio
 from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.noise_colour import colour, MAX_COLOUR
 from bcid_ros.estimators.residual_statistics import chi2_quantile
+
+#: The HAC's prewhitening for rpem (:class:`~bcid_ros.estimators.hac.HacCovariance`): the
+#: larger of the diagonal AR(1) one and none, in every direction. After a fit the scores are
+#: the profiled ones, whose smallest principal axis the diagonal one understated half
+#: (docs/trust.md, "rpem's std after a fit").
+PREWHITENING = 'larger'
 
 #: The likelihood-ratio region's tail probability within which the fit's other end is one
 #: the data do not tell from its estimate (:func:`with_unresolved`).
@@ -158,6 +165,24 @@ def normalised_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     return 0.5 * (covariance + covariance.T)
 
 
+def fitted_scores(scores: np.ndarray, profiled: np.ndarray) -> np.ndarray:
+    r"""
+    Return a fit's scores ``(m, q)`` for the HAC, theta's columns the profiled ones.
+
+    The fit solved theta's profiled equations (each segment's initial state re-fitted at
+    every theta), so the profiled scores ``(m, p)`` sum to about zero at its estimate;
+    the held ones :math:`\psi_h\varepsilon` do not: they carry each segment's start-up
+    transient (on early-run plant 12, 92 % of their power in the first 10 of 381 samples),
+    which overstated the std 2-6 times (docs/trust.md, "rpem's std after a fit"). The
+    offset's column (q > p) stays. Rows that do not match (none profiled): ``scores``.
+    """
+    if profiled.shape[0] != scores.shape[0]:
+        return scores
+    fitted = scores.copy()
+    fitted[:, :profiled.shape[1]] = profiled
+    return fitted
+
+
 def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
                         profiled_information: np.ndarray, profiled_scores: np.ndarray,
                         prior: float, tau: float, forgetting_factor: float) -> np.ndarray:
@@ -199,7 +224,8 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
         return np.zeros((size, size))
     if held is None:
         return np.full((size, size), np.nan)
-    hac = HacCovariance(dimension=count, forgetting_factor=forgetting_factor)
+    hac = HacCovariance(dimension=count, forgetting_factor=forgetting_factor,
+                        prewhitening=PREWHITENING)
     hac.record_all(profiled_scores)
     try:
         p_profiled = np.linalg.inv(profiled_information + prior * np.eye(count))
