@@ -24,8 +24,8 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import (BLOCK_SHARE, BlockMeanDetector, ChangeDetector,
-                                                  FALSE_ALARM, WARMUP)
+from bcid_ros.estimators.change_detection import (BLOCK_LENGTH, BLOCK_SHARE, BlockMeanDetector,
+                                                  ChangeDetector, FALSE_ALARM, WARMUP)
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, HEALTH_CHECK_PERIOD, repair_covariance,
                                            VARIANCE_FLOOR)
@@ -50,6 +50,9 @@ UNRESOLVED_NOTE = 'plant changed: a refit of its samples found another estimate 
 #: What the change's reason adds when the simulation check found it
 #: (:meth:`~bcid_ros.estimators.simulation_check.SimulationWindow.contradicted_twice`).
 SIMULATION_NOTE = ': the simulated output contradicted on two disjoint windows'
+#: What the change's reason adds when the block-mean test found it (the errors grown at low
+#: frequencies; its change point is placed at whole blocks, late rather than early).
+BLOCK_NOTE = f': the means of the errors over blocks of {BLOCK_LENGTH} samples grew'
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -352,12 +355,15 @@ class Rpem(RpemState, RecursiveEstimator):
             # estimate has been valid since the last change: before, the errors are those
             # of a model still converging, and a detection would only restart it from
             # fewer samples
-            age = self._detector.record(fed)
-            # the block means see an error grown at low frequencies, which the detector's
-            # centring and whitening remove (a slow pole or gain moved: docs/tracking.md)
-            age = age or self._block_test.record(fed, self._samples)
+            age, note = self._detector.record(fed), ''
+            if not age:
+                # the block means see an error grown at low frequencies, which the
+                # detector's centring and whitening remove (a slow pole or gain moved:
+                # docs/tracking.md)
+                age = self._block_test.record(fed, self._samples)
+                note = BLOCK_NOTE
             if age:
-                self._plant_changed(age)
+                self._plant_changed(age, note)
                 return
             # the recursion's own normalised error e / sqrt(s) against the same reference:
             # detected where the fit's model's are not, the recursion left its fit (its
@@ -620,10 +626,10 @@ class Rpem(RpemState, RecursiveEstimator):
         """
         self._restart_after_change(self._store.refused_run())
 
-    def _plant_changed(self, age: int) -> None:
-        """Flag a plant change the detector found ``age`` samples ago, and restart."""
+    def _plant_changed(self, age: int, note: str = '') -> None:
+        """Flag a plant change a test found ``age`` samples ago (``note`` its), and restart."""
         self._flag('plant_change')
-        self._restart_after_change(age)
+        self._restart_after_change(age, note=note)
 
     def _simulation_changed(self, age: int) -> None:
         """
