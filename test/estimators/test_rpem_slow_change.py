@@ -70,6 +70,28 @@ def test_the_reason_names_the_block_test_and_its_change_point(seed):
 
 
 @pytest.mark.parametrize('seed', [0, 1])
+def test_the_block_test_warns_before_it_detects(seed):
+    # not valid whenever the block test's CUSUM is at or past the whitened test's warning
+    # level (the whitened test stays silent on this change): on seed 0 a block or more
+    # before the detection; on seed 1 one block's q passes both levels at once
+    y, u = slow_plant(seed)
+    estimator = make_estimator('rpem', order=1)
+    warned = []
+    for t in range(y.shape[0]):
+        estimator.update(y[t], u[t])
+        if estimator.flags.get('plant_change', 0):
+            break
+        past = estimator._block_test.statistic_of() >= estimator._warning_level
+        reasons = estimator.validity_reasons
+        named = bool(reasons) and reasons[0].startswith('change suspected: the block-mean test')
+        assert past == named and not (past and estimator.valid)
+        warned += [t] if past else []
+    assert estimator.flags.get('plant_change', 0) == 1
+    if seed == 0:
+        assert warned and CHANGE <= warned[0] <= t - BLOCK_LENGTH
+
+
+@pytest.mark.parametrize('seed', [0, 1])
 def test_the_same_plant_without_a_change_is_not_flagged(seed):
     found, theta = detections(*slow_plant(seed, after=0.95))
     # the two tests' stated rate, 1e-5 a sample together, is 0.08 over the record
