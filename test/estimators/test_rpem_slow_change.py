@@ -15,6 +15,7 @@ from scipy import signal
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.change_detection import BLOCK_LENGTH, BlockMeanDetector
+from bcid_ros.estimators.rpem.online import BLOCK_NOTE
 
 CHANGE = 4000
 COUNT = 8000
@@ -31,7 +32,7 @@ def slow_plant(seed, after=0.97, before=0.95):
     return x + v * x[:CHANGE].std() * 10.0 ** (-15.0 / 20.0) / v.std(), u
 
 
-def detections(y, u):
+def detections(y, u, reasons=None):
     """Run rpem (order 1, defaults) over the record; return the samples of plant_change."""
     estimator = make_estimator('rpem', order=1)
     found = []
@@ -40,6 +41,8 @@ def detections(y, u):
         estimator.update(y[t], u[t])
         if estimator.flags.get('plant_change', 0) > before:
             found.append(t)
+            if reasons is not None:
+                reasons.append(estimator.validity_reasons[0])
     return found, estimator.theta
 
 
@@ -51,6 +54,41 @@ def test_a_slow_pole_move_is_flagged_and_the_new_plant_learnt(seed):
     # the fits of the new plant's samples alone: a1 of the new plant, where the blend of
     # both ended 0.006-0.009 short; 3000 samples at 15 dB give a1 within about 0.002
     assert abs(theta[0] + 0.97) < 0.003
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_the_reason_names_the_block_test_and_its_change_point(seed):
+    # the whitened test does not see this change (the module docstring): the block test
+    # does, and the reason says so, with a change point that is late rather than early (at
+    # most a block early, test_the_block_test_places_the_change_at_most_one_block_early);
+    # the new plant's first sample is the CHANGE + 1st
+    reasons = []
+    found, _ = detections(*slow_plant(seed), reasons)
+    assert len(reasons) == 1 and reasons[0].endswith(BLOCK_NOTE)
+    first = int(reasons[0].split('(sample ')[1].split(')')[0])
+    assert CHANGE + 1 - BLOCK_LENGTH <= first <= found[0] + 1
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_the_block_test_warns_before_it_detects(seed):
+    # not valid whenever the block test's CUSUM is at or past the whitened test's warning
+    # level (the whitened test stays silent on this change): on seed 0 a block or more
+    # before the detection; on seed 1 one block's q passes both levels at once
+    y, u = slow_plant(seed)
+    estimator = make_estimator('rpem', order=1)
+    warned = []
+    for t in range(y.shape[0]):
+        estimator.update(y[t], u[t])
+        if estimator.flags.get('plant_change', 0):
+            break
+        past = estimator._block_test.statistic_of() >= estimator._warning_level
+        reasons = estimator.validity_reasons
+        named = bool(reasons) and reasons[0].startswith('change suspected: the block-mean test')
+        assert past == named and not (past and estimator.valid)
+        warned += [t] if past else []
+    assert estimator.flags.get('plant_change', 0) == 1
+    if seed == 0:
+        assert warned and CHANGE <= warned[0] <= t - BLOCK_LENGTH
 
 
 @pytest.mark.parametrize('seed', [0, 1])

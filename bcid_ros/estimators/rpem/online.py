@@ -24,8 +24,8 @@ from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
 from bcid_ros.estimators.hac import HacCovariance
-from bcid_ros.estimators.change_detection import (BLOCK_SHARE, BlockMeanDetector, ChangeDetector,
-                                                  FALSE_ALARM, WARMUP)
+from bcid_ros.estimators.change_detection import (BLOCK_LENGTH, BLOCK_SHARE, BlockMeanDetector,
+                                                  ChangeDetector, FALSE_ALARM, WARMUP)
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.recursion import (downdate, HEALTH_CHECK_PERIOD, repair_covariance,
                                            VARIANCE_FLOOR)
@@ -52,6 +52,9 @@ UNRESOLVED_NOTE = 'plant changed: a refit of its samples found another estimate 
 #: What the change's reason adds when the simulation check found it
 #: (:meth:`~bcid_ros.estimators.simulation_check.SimulationWindow.contradicted_twice`).
 SIMULATION_NOTE = ': the simulated output contradicted on two disjoint windows'
+#: What the change's reason adds when the block-mean test found it (the errors grown at low
+#: frequencies; its change point is placed at whole blocks, late rather than early).
+BLOCK_NOTE = f': the means of the errors over blocks of {BLOCK_LENGTH} samples grew'
 #: Annealed forgetting after a fit: lambda(t) starts at min(lambda, LAMBDA_START)
 #: and approaches the user's lambda by lambda <- lambda_u - LAMBDA_RATE (lambda_u - lambda).
 LAMBDA_START = 1.0
@@ -60,7 +63,8 @@ LAMBDA_RATE = 0.99
 #: Not valid while the change detector's CUSUM S is at or past this share w of its threshold
 #: h: under no change S(t), the largest sum of its last k increments, is >= w h on at
 #: most exp(-w h) (Ville's inequality for the increments' likelihood ratios) =
-#: FALSE_ALARM^w of the samples (0.32 %; docs/tracking.md, "Valid while far off")
+#: (0.8 FALSE_ALARM)^w of the samples (0.28 %; docs/tracking.md, "Valid while far off");
+#: the block-mean test's CUSUM warns at the same level w h (Rpem._live_reasons)
 CHANGE_WARNING = 0.5
 #: The floor of the gate's variance, squared (a power of two: exact)
 _VARIANCE_FLOOR2 = VARIANCE_FLOOR ** 2
@@ -354,12 +358,15 @@ class Rpem(RpemState, RecursiveEstimator):
             # estimate has been valid since the last change: before, the errors are those
             # of a model still converging, and a detection would only restart it from
             # fewer samples
-            age = self._detector.record(fed)
-            # the block means see an error grown at low frequencies, which the detector's
-            # centring and whitening remove (a slow pole or gain moved: docs/tracking.md)
-            age = age or self._block_test.record(fed, self._samples)
+            age, note = self._detector.record(fed), ''
+            if not age:
+                # the block means see an error grown at low frequencies, which the
+                # detector's centring and whitening remove (a slow pole or gain moved:
+                # docs/tracking.md)
+                age = self._block_test.record(fed, self._samples)
+                note = BLOCK_NOTE
             if age:
-                self._plant_changed(age)
+                self._plant_changed(age, note)
                 return
             # the recursion's own normalised error e / sqrt(s) against the same reference:
             # detected where the fit's model's are not, the recursion left its fit (its
@@ -624,10 +631,10 @@ class Rpem(RpemState, RecursiveEstimator):
         """
         self._restart_after_change(self._store.refused_run())
 
-    def _plant_changed(self, age: int) -> None:
-        """Flag a plant change the detector found ``age`` samples ago, and restart."""
+    def _plant_changed(self, age: int, note: str = '') -> None:
+        """Flag a plant change a test found ``age`` samples ago (``note`` its), and restart."""
         self._flag('plant_change')
-        self._restart_after_change(age)
+        self._restart_after_change(age, note=note)
 
     def _simulation_changed(self, age: int) -> None:
         """
@@ -728,19 +735,29 @@ class Rpem(RpemState, RecursiveEstimator):
 
     def _live_reasons(self) -> tuple[str, ...]:
         """
-        Return the change detector's warning: its CUSUM past ``CHANGE_WARNING`` of h.
+        Return the change tests' warning: a CUSUM past ``CHANGE_WARNING`` of the detector's h.
 
         Until a detection the old model is valid, though the detector's evidence
         has been growing for h over its mean increment samples; past w h a change
         is suspected. With S >= w h on at most FALSE_ALARM^w of the samples of no
         change (S(t) is the largest sum of its last k increments: Ville's inequality),
-        the warning costs that share of a stationary record's valid samples.
+        the warning costs that share of a stationary record's valid samples. The
+        block-mean test's CUSUM, a log-likelihood ratio too, warns at the same level
+        c = w h: past it on at most e^-c of its blocks (0.28 %), so that together
+        they cost at most 0.56 % (a drift its blocks see first: tracking plant
+        (1, 17) with lambda 0.999, valid 10-15 % off for the 100 samples before its
+        detection with S_b at 0.94 of its threshold).
         """
         statistic = self._detector.statistic_of()
-        if statistic < self._warning_level:  # (once a sample: valid is asked at each update)
-            return ()
-        return (f'change suspected: the change detector at '
-                f'{statistic / self._detector.threshold:.2f} of its threshold',)
+        # (once a sample: valid is asked at each update)
+        if statistic >= self._warning_level:
+            return (f'change suspected: the change detector at '
+                    f'{statistic / self._detector.threshold:.2f} of its threshold',)
+        block = self._block_test.statistic_of()
+        if block >= self._warning_level:
+            return (f'change suspected: the block-mean test at '
+                    f'{block / self._block_test.threshold:.2f} of its threshold',)
+        return ()
 
     # --------------------------------------------------------- the accessors
     @property
