@@ -727,9 +727,11 @@ class Rpem(RpemState, RecursiveEstimator):
         self._change_note = self._decide_validity(
             notes + self._period_reasons, self._change_note,
             ready_again=self._store.since_start < self._samples)
-        # the detector runs once the model passed its checks; a std judged too small or an
-        # estimate not yet precise is the covariance's matter, and holds no detection back
-        self._settled = self._settled or not doubt_the_model(self._reasons)
+        # the detector runs once the model passed its checks (with forgetting, and is pinned
+        # down); a std judged too small or an estimate not yet precise after a change is the
+        # covariance's matter, and holds no detection back
+        self._settled = self._settled or (not doubt_the_model(self._reasons)
+                                          and self._pinned_down())
         if not (self._change_note or doubt_the_model(self._reasons)):
             self._simulation.vouch()  # the model passed every check: its changes are judged
 
@@ -803,6 +805,23 @@ class Rpem(RpemState, RecursiveEstimator):
         return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
                                     self.num_parameters, self._unscale, self._excess,
                                     self._forgetting_factor ** (self._samples - self._fit_sample))
+
+    def _pinned_down(self) -> bool:
+        """
+        Whether the estimate is known to ``STANDING_PRECISION`` (always, at lambda = 1).
+
+        With forgetting the fits rest on a window that stops growing, and the detector's
+        reference, the fit's residuals, describes the errors to come only for a model its
+        samples pin down: one known to several times its size predicts new samples worse
+        than it fitted its own (tracking plant (3, 2) with lambda 0.999, armed at 2 sqrt(tr C)
+        529 % of |theta|: three false detections before its change, each 50-150 samples
+        after a fit). Without forgetting the fits' windows grow, and no such detection was
+        seen (docs/tracking.md, "Limits", session 10).
+        """
+        if self._forgetting_factor >= 1.0:
+            return True
+        return not imprecision(self._theta(), lambda: self.parameter_covariance,
+                               STANDING_PRECISION)
 
     def _standing_precision(self) -> float | None:
         """
