@@ -741,7 +741,7 @@ class Rpem(RpemState, RecursiveEstimator):
 
         Until a detection the old model is valid, though the detector's evidence
         has been growing for h over its mean increment samples; past w h a change
-        is suspected. With S >= w h on at most FALSE_ALARM^w of the samples of no
+        is suspected. With S >= w h on at most e^(-w h) of the samples of no
         change (S(t) is the largest sum of its last k increments: Ville's inequality),
         the warning costs that share of a stationary record's valid samples. The
         block-mean test's CUSUM, a log-likelihood ratio too, warns at the same level
