@@ -22,14 +22,13 @@ last window, all after the change by construction). Only rpem's configurations a
 
 from __future__ import annotations
 
-import argparse
 import re
 import sys
 from typing import Any, Sequence
 
 import numpy as np
 
-from benchmarks.tracking import CONFIGS, TrackingCase
+from benchmarks.tracking import CONFIGS, family_run_options, TrackingCase
 from bcid_ros.blas_threads import single_threaded_blas
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.rpem.online import BLOCK_NOTE, SIMULATION_NOTE
@@ -74,15 +73,7 @@ def summary(errors: Sequence[int]) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the cases; print the table of change-point errors per configuration and test."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--count', type=int, default=30)
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--estimators', default='rpem,rpem_0.999')
-    args = parser.parse_args(argv)
-    configs = args.estimators.split(',')
-    for config in configs:
-        if config not in CONFIGS:
-            raise ValueError(f'estimators: {config!r} is not one of {sorted(CONFIGS)}')
+    args, configs = family_run_options(argv, __doc__.splitlines()[1])
     errors: dict[tuple[str, str], list[int]] = {}
     again = {config: 0 for config in configs}
     for k in range(args.count):

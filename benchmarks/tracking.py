@@ -351,6 +351,27 @@ def within_reference(ours: int | None, ref: int | None) -> bool:
     return ref is None or ours <= WITHIN * max(ref, 1)
 
 
+def family_run_options(argv: Sequence[str] | None,
+                       description: str) -> tuple[argparse.Namespace, list[str]]:
+    """
+    Parse ``--count``, ``--seed`` and ``--estimators`` of a run over the family's cases.
+
+    The benchmarks beside this one (``tracking_control``, ``change_points``) take these;
+    returns the options and the configurations, each checked against ``CONFIGS`` (an
+    unknown one exits with the usage, status 2).
+    """
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument('--count', type=int, default=30)
+    parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--estimators', default='rpem,rpem_0.999')
+    args = parser.parse_args(argv)
+    configs = args.estimators.split(',')
+    for config in configs:
+        if config not in CONFIGS:
+            parser.error(f'--estimators: {config!r} is not one of {sorted(CONFIGS)}')
+    return args, configs
+
+
 def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]],
               runs: dict[str, list[dict[str, Any]]]) -> list[list[Any]]:
     """Return the table rows: one figure per row, one column per configuration."""

@@ -22,14 +22,13 @@ detections.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import sys
 from typing import Sequence
 
 import numpy as np
 
-from benchmarks.tracking import (CONFIGS, reference, run_estimator, TrackingCase,
+from benchmarks.tracking import (family_run_options, reference, run_estimator, TrackingCase,
                                  within_reference)
 from bcid_ros.markdown import markdown_table
 
@@ -53,15 +52,7 @@ def held(case: TrackingCase) -> TrackingCase:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the control; print the table."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--count', type=int, default=30)
-    parser.add_argument('--seed', type=int, default=0)
-    parser.add_argument('--estimators', default='rpem,rpem_0.999')
-    args = parser.parse_args(argv)
-    configs = args.estimators.split(',')
-    for config in configs:
-        if config not in CONFIGS:
-            raise ValueError(f'estimators: {config!r} is not one of {sorted(CONFIGS)}')
+    args, configs = family_run_options(argv, __doc__.splitlines()[1])
     within = {config: [0, 0] for config in configs}
     missed_held = {config: [] for config in configs}
     false = {config: 0 for config in configs}

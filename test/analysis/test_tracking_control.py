@@ -1,8 +1,9 @@
 """benchmarks/tracking_control.py's held plants: the tracking case without its change."""
 
 import numpy as np
+import pytest
 
-from benchmarks.tracking import TrackingCase
+from benchmarks.tracking import family_run_options, TrackingCase
 from benchmarks.tracking_control import held
 
 SEED = (0, 5)  # an abrupt gain change, order 3, coloured noise
@@ -29,3 +30,12 @@ def test_a_held_case_is_the_case_without_its_change():
     assert np.abs(held_noise - noise).max() <= 1e-12 * max(scale, np.abs(y).max())
     after = slice(case.change_at, None)
     assert np.abs(control.y[after] - y[after]).max() > 10 * scale
+
+
+def test_the_family_runs_take_known_configurations_only():
+    args, configs = family_run_options(['--seed', '3', '--count', '4'], 'run')
+    assert (args.seed, args.count, configs) == (3, 4, ['rpem', 'rpem_0.999'])
+    assert family_run_options(['--estimators', 'rls'], 'run')[1] == ['rls']
+    with pytest.raises(SystemExit) as stopped:  # the usage and status 2, not a traceback
+        family_run_options(['--estimators', 'rpem,bogus'], 'run')
+    assert stopped.value.code == 2
