@@ -35,9 +35,9 @@ from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.state import RpemState
 from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, StoredFit
-from bcid_ros.estimators.rpem.uncertainty import (carried_excess, fitted_scores,
-                                                  fitted_state_excess, normalised_covariance,
-                                                  parameter_covariance, PREWHITENING,
+from bcid_ros.estimators.rpem.uncertainty import (fitted_scores, fitted_state_excess,
+                                                  normalised_covariance, parameter_covariance,
+                                                  PREWHITENING, whole_covariance,
                                                   with_unresolved)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
@@ -804,7 +804,11 @@ class Rpem(RpemState, RecursiveEstimator):
             return None
         return parameter_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
                                     self.num_parameters, self._unscale, self._excess,
-                                    self._forgetting_factor ** (self._samples - self._fit_sample))
+                                    self._fit_decay())
+
+    def _fit_decay(self) -> float:
+        """Return the weight the last fit's samples keep now: lambda^k after k steps."""
+        return self._forgetting_factor ** (self._samples - self._fit_sample)
 
     def _pinned_down(self) -> bool:
         """
@@ -821,7 +825,7 @@ class Rpem(RpemState, RecursiveEstimator):
         if self._forgetting_factor >= 1.0:
             return True
         return not imprecision(self._theta(), lambda: self.parameter_covariance,
-                               STANDING_PRECISION)
+                               self._standing_precision())
 
     def _standing_precision(self) -> float | None:
         """
@@ -846,13 +850,9 @@ class Rpem(RpemState, RecursiveEstimator):
         """Return the HAC covariance of theta_n, offset included, for the residual tests."""
         if not self._tau > 0.0:
             return None
-        covariance = normalised_covariance(self._hac, self._p, self._tau,
-                                           self._forgetting_factor)
-        if covariance is None or self._excess is None or not np.isfinite(self._excess).all():
-            return covariance
         # the estimate's whole error, as the std's: the last fit's initial states too
-        decay = self._forgetting_factor ** (self._samples - self._fit_sample)
-        return covariance + decay * decay * carried_excess(self._p, self._excess)
+        return whole_covariance(self._hac, self._p, self._tau, self._forgetting_factor,
+                                self._excess, self._fit_decay())
 
     def _theta(self) -> np.ndarray:
         return self._theta_n[:self.num_parameters] * self._unscale

@@ -100,7 +100,7 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
         theta_k in the user's units per normalised unit: s_y / s_channel(k).
     excess : numpy.ndarray, shape ``(q, q)``, optional
         R, the square root of E of the last fit (:func:`fitted_state_excess`):
-        decay² P E P joins the sandwich (:func:`carried_excess`); NaN (the share
+        decay² P E P joins the sandwich (:func:`whole_covariance`); NaN (the share
         not known): no covariance.
     decay : float
         The weight the last fit's samples keep now: lambda^k after k steps.
@@ -112,13 +112,28 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
         effective sample size is not above q, or ``excess`` is not known.
 
     """
-    covariance = normalised_covariance(hac, p, tau, forgetting_factor)
-    if covariance is None or (excess is not None and not np.isfinite(excess).all()):
-        return None  # (an excess of NaN: the last fit's share is not known, nor the std)
-    if excess is not None:  # the fitted initial state's share, carried on by the recursion
-        covariance = covariance + decay * decay * carried_excess(p, excess)
+    if excess is not None and not np.isfinite(excess).all():
+        return None  # the last fit's share is not known, nor the std
+    covariance = whole_covariance(hac, p, tau, forgetting_factor, excess, decay)
+    if covariance is None:
+        return None
     # normalised units to theta's: theta_k s_y / s_channel(k)
     return covariance[:count, :count] * np.outer(unscale, unscale)
+
+
+def whole_covariance(hac: HacCovariance, p: np.ndarray, tau: float, forgetting_factor: float,
+                     excess: np.ndarray | None, decay: float) -> np.ndarray | None:
+    """
+    Return :func:`normalised_covariance` with the last fit's initial states' share.
+
+    decay² P E P (:func:`carried_excess`) is what the recursion carries on of the states the
+    fit chose; ``excess`` None or not finite (the share not known): the HAC's alone. The
+    std (:func:`parameter_covariance`) and rpem's residual tests' parameter term take it.
+    """
+    covariance = normalised_covariance(hac, p, tau, forgetting_factor)
+    if covariance is None or excess is None or not np.isfinite(excess).all():
+        return covariance
+    return covariance + decay * decay * carried_excess(p, excess)
 
 
 def carried_excess(p: np.ndarray, root: np.ndarray) -> np.ndarray:
