@@ -6,6 +6,8 @@ The searches of a fit shrink each segment's initial state towards 0 (INITIAL_PRI
 keeps a level out of the offset), and that charges such a segment for its true state: the
 ends of the searches are compared with the state free (docs/tracking.md, session 8), and
 where those losses do not tell them apart the current estimate's end stays (session 9).
+After a change the searches themselves run with the state free (session 11); the fit
+the recursion continues with, and its std, keep the prior.
 """
 
 import numpy as np
@@ -83,6 +85,42 @@ def test_a_fit_after_a_change_lands_near_the_new_plant():
         result = batch.fit([(y, u, np.ones(y.shape[0]))], [old], 1e-6, after_change=True)
         errors.append(np.linalg.norm(result.theta - new) / np.linalg.norm(new))
     assert np.median(errors) < 0.3, np.round(errors, 3)
+
+
+def free_state_decrement(theta, y, u):
+    """
+    Return the loss a Gauss-Newton step of the loss with the state free would still remove.
+
+    Over the loss itself: psi projected off the initial state's free responses (the loss
+    concentrated on theta, Kaufman's variable projection), d = g^T H^-1 g with g = psi^T eps
+    and H = psi^T psi; 0 at a minimum.
+    """
+    predictor = SegmentPredictor(3, 1, False, (0,), armax=False, offset=False)
+    prediction = predictor.predict(theta, y, u, np.ones(y.shape[0]), prior=0.0)
+    nuisance = prediction.nuisance
+    psi = prediction.psi - nuisance @ np.linalg.lstsq(nuisance, prediction.psi, rcond=None)[0]
+    gradient = psi.T @ prediction.eps
+    decrement = float(gradient @ np.linalg.solve(psi.T @ psi, gradient))
+    return decrement / float(prediction.eps @ prediction.eps)
+
+
+def test_the_searches_after_a_change_minimise_the_loss_with_the_state_free():
+    """
+    The fit after a change ends where the loss with each segment's state free is least.
+
+    The searches once shrank the state towards 0 after a change too (INITIAL_PRIOR): their
+    end was the minimum of that criterion, not of the one the ends are compared by, and a
+    step of the free loss from it still removed 1e-5 to 0.9 of the loss on seeds 0-5
+    (tracking drift (2, 19), 2250 samples after its change: the end 40 % off, where the
+    search with the state free from it ends 1.7 % off and the batch OE fit of the same
+    window 0.4 %). Free, the searches stop within 5e-8 of it on these seeds (LM_TOLERANCE:
+    1e-10 of the loss a step).
+    """
+    batch = BatchFit(3, 1, False, (0,), armax=False, offset=False)
+    for seed in range(6):
+        y, u, old, _, _ = changed_plant(seed)
+        result = batch.fit([(y, u, np.ones(y.shape[0]))], [old], 1e-6, after_change=True)
+        assert free_state_decrement(result.theta, y, u) < 1e-6, seed
 
 
 def test_a_snapshot_while_a_fit_after_a_change_is_on_its_way_continues_bit_for_bit():

@@ -115,23 +115,30 @@ def test_rpem_reopens_a_change_when_a_refit_finds_an_estimate_as_good_far_away()
     39 % off (2 sqrt(tr C) 4 % of its size). A later fit of the changed plant's samples (at
     5710 with the ends compared under the searches' prior; at 5485 since they are compared
     with the initial state free after a change) ended its two starts far apart, the other's
-    loss within the likelihood-ratio region: the change holds again, with a std that counts
-    the other end and covers the error.
+    loss within the likelihood-ratio region: the change held again, with a std that counts
+    the other end and covers the error. Since the searches too run with the state free
+    after a change (session 11) the fits of 5400-5800 end 12-19 % off with 2 sqrt(tr C)
+    70-290 % of |theta|: the change is never taken as done while far off, and the reopening
+    is not reached on this plant. What it guarded stays asserted: never valid while more
+    than 10 % off after the detection, and a std that covers the error.
     """
     case = TrackingCase((2, 23), 'family')
     estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs,
                                forgetting_factor=0.999)
-    reopened = None
+    detected = None
     for t in range(5800):
         estimator.update(float(case.y[t]), case.u[t])
-        reasons = estimator.validity_reasons
-        if reopened is None and reasons and reasons[0] == UNRESOLVED_NOTE:
-            reopened = t
-    assert reopened is not None and 5315 < reopened < 5800  # after the change was taken as done
-    assert not estimator.valid
+        if detected is None and estimator.flags.get('plant_change', 0):
+            detected = t
+        if detected is not None and estimator.valid:
+            assert np.linalg.norm(estimator.theta - case.theta[t]) <= 0.1 * np.linalg.norm(
+                case.theta[t]), t
+        if estimator.validity_reasons and estimator.validity_reasons[0] == UNRESOLVED_NOTE:
+            assert t > 5315  # after the change was taken as done
+    assert detected is not None and not estimator.valid
     error = np.linalg.norm(estimator.theta - case.theta[5799])
     assert error > 0.1 * np.linalg.norm(case.theta[5799])
-    # the std now covers the error: 2 sqrt(tr C) is beyond it
+    # the std covers the error: 2 sqrt(tr C) is beyond it
     assert 2.0 * np.sqrt(np.trace(estimator.parameter_covariance)) > error
 
 
