@@ -23,7 +23,6 @@ import numpy as np
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.adequacy import AdequacyMonitor
 from bcid_ros.estimators.base import RecursiveEstimator
-from bcid_ros.estimators.hac import HacCovariance
 from bcid_ros.estimators.change_detection import (BLOCK_LENGTH, BLOCK_SHARE, BlockMeanDetector,
                                                   ChangeDetector, FALSE_ALARM, WARMUP)
 from bcid_ros.estimators.polynomials import is_stable
@@ -34,11 +33,10 @@ from bcid_ros.estimators.rpem.fit import FitResult
 from bcid_ros.estimators.rpem.history import RecursivePredictor
 from bcid_ros.estimators.rpem.stability import HALVINGS, REGION_MARGIN
 from bcid_ros.estimators.rpem.state import RpemState
-from bcid_ros.estimators.rpem.store import BATCH_LIMIT, SampleStore, Segment, StoredFit
-from bcid_ros.estimators.rpem.uncertainty import (fitted_scores, fitted_state_excess,
-                                                  normalised_covariance, parameter_covariance,
-                                                  PREWHITENING, whole_covariance,
-                                                  with_unresolved)
+from bcid_ros.estimators.rpem.store import (BATCH_LIMIT, FitUncertainty, SampleStore, Segment,
+                                            StoredFit)
+from bcid_ros.estimators.rpem.uncertainty import (parameter_covariance, score_hac,
+                                                  whole_covariance)
 from bcid_ros.estimators.rpem.watch import on_boundary, RestartWatch
 from bcid_ros.estimators.rpem.window import KEEP_SHARE, moved
 from bcid_ros.estimators.simulation_check import change_rate
@@ -506,17 +504,15 @@ class Rpem(RpemState, RecursiveEstimator):
         """Continue the recursion from a fit (if it is sound) centred on ``mean``."""
         for _ in range(fitted.outliers):
             self._flag('outlier_excluded')
-        result = fitted.result
-        if result is not None and self._take_fit(result, fitted.segments, fitted.scale, fresh,
-                                                 mean):
+        result, uncertainty = fitted.result, fitted.uncertainty
+        if result is not None and self._take_fit(result, uncertainty, fitted.segments,
+                                                 fitted.scale, fresh, mean):
             self._fits += 1
-            # the other start's end, where the data cannot tell it apart (:mod:`.uncertainty`)
-            root = self._excess
-            self._excess = with_unresolved(
-                root, result.theta, result.alternative, result.weight, self._forgetting_factor,
-                lambda: result.residuals(fitted.segments[-1], self._armax),
-                result.information + np.eye(self._size) / self.initial_covariance)
-            if self._changes and not self._change_note and self._excess is not root and (
+            # the other start's end, where the data cannot tell it apart (:mod:`.uncertainty`;
+            # the job's with_unresolved)
+            self._excess = uncertainty.unresolved
+            if self._changes and not self._change_note and (
+                    uncertainty.unresolved is not uncertainty.root) and (
                     imprecision(self._theta(), lambda: self.parameter_covariance)):
                 # the new plant's estimate was taken as known to PRECISION, and a refit of
                 # its samples found another as good farther away: the change is not done
@@ -563,12 +559,18 @@ class Rpem(RpemState, RecursiveEstimator):
         self._window_weight = 0.0
         return store.restart_schedule(max(int(KEEP_SHARE * store.since_start), WARMUP))
 
-    def _take_fit(self, result: FitResult, segments: list[Segment], scale: np.ndarray,
-                  fresh: bool, mean: np.ndarray | None) -> bool:
-        """Continue from the fit: theta, P, J, tau, its lags, psi and means; False if unsound."""
-        p = result.covariance(self.initial_covariance)
-        if p is None:
+    def _take_fit(self, result: FitResult, uncertainty: FitUncertainty | None,
+                  segments: list[Segment], scale: np.ndarray, fresh: bool,
+                  mean: np.ndarray | None) -> bool:
+        """
+        Continue from the fit: theta, P, J, tau, its lags, psi and means; False if unsound.
+
+        ``uncertainty`` is its P, HAC and R as its job made them before the hand-off
+        (FitJob._uncertainty); None: no P.
+        """
+        if uncertainty is None:
             return False
+        p = uncertainty.covariance
         if mean is not None:  # the frame of the fit's samples, its offset and its lags
             self._fit_mean[:] = mean
         # the errors to come, its model's and the recursion's, are judged against this fit's
@@ -599,13 +601,9 @@ class Rpem(RpemState, RecursiveEstimator):
         # would swell the HAC (hundreds of times on a fit that moved far): the fit's own,
         # theta's profiled (the equations the fit solved; the held ones carry each segment's
         # start-up transient, which overstated the std 2-6 times: docs/trust.md)
-        self._hac.reset()
-        self._hac.record_all(fitted_scores(result.scores, result.profiled[1]))
+        self._hac = uncertainty.hac
         # what the covariance of P leaves out: the fit chose each segment's initial state
-        self._excess = fitted_state_excess(
-            normalised_covariance(self._hac, p, result.weight, self._forgetting_factor),
-            result.information, *result.profiled, 1.0 / self.initial_covariance,
-            result.weight, self._forgetting_factor)
+        self._excess = uncertainty.root
         self._fit_sample = self._samples
         self._lambda_t = min(self._forgetting_factor, LAMBDA_START)
         self._fitted = True
@@ -920,9 +918,7 @@ class Rpem(RpemState, RecursiveEstimator):
             forgetting_factor=self._forgetting_factor,
             num_parameters=self._size if oe else 0,
             parameter_covariance=self._internal_covariance if oe else None)
-        self._hac = HacCovariance(dimension=self._size,
-                                  forgetting_factor=self._forgetting_factor,
-                                  prewhitening=PREWHITENING)
+        self._hac = score_hac(self._size, self._forgetting_factor)
         if not keep_window:
             self._start_simulation_check()
 

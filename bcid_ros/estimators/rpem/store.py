@@ -21,12 +21,18 @@ prediction errors mark as outliers are then taken out and the fit repeated.
 **A fit spread over updates.** A :class:`FitJob` holds a copy of what one
 fit needs (the rows as stored when it was due, the current estimate, the
 means and scales) and runs the fit's passes (:meth:`BatchFit.steps`) a
-bounded amount of work at a time (:meth:`FitJob.advance`): ``SLICE``
-sample-columns per update, so that no update waits on a whole fit. Its
-result is taken at the update where its last pass ends, with the predictor
-run on over the samples stored since (:meth:`BatchFit.continued`). The work
-is counted, not timed: the same samples give the same hand-off, bit for bit,
-in a node and in a replay.
+bounded amount of work at a time (:meth:`FitJob.advance`): each pass's cost
+is announced before it runs, and an update runs the passes that fit in
+``SLICE`` sample-columns (the first whatever its cost), so that no update
+waits on a whole fit nor overruns its slice by a pass. After the fit, the
+job's passes make what the recursion takes from it beside the estimate
+(:class:`FitUncertainty`: P, the HAC of the fit's scores, the root of its
+initial states' share), so that the hand-off only installs them. Its result
+is taken at the update of the job's last pass, the hand-off, with the
+predictor run on over the samples stored since (:meth:`BatchFit.continued`).
+The work is counted, not timed: the same samples give the same hand-off,
+bit for bit, in a node and in a replay, and a restored snapshot runs the
+same passes again to the work done.
 """
 
 from __future__ import annotations
@@ -37,7 +43,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from bcid_ros.estimators import rules
-from bcid_ros.estimators.rpem.fit import BatchFit, FitResult, Steps
+from bcid_ros.estimators.hac import HacCovariance
+from bcid_ros.estimators.rpem.fit import BatchFit, FitResult, PASS_COST, Steps
+from bcid_ros.estimators.rpem.uncertainty import (fitted_scores, normalised_covariance,
+                                                  profiled_excess, score_hac, with_unresolved)
 
 #: The first batch fit waits for this many usable samples (at least) ...
 FIRST_FIT_SAMPLES = 50
@@ -56,10 +65,25 @@ SLIDE = BATCH_LIMIT // 2
 OUTLIER_SHARE = 0.05
 
 #: The work of a fit done per update (sample-columns of its passes, BatchFit.steps): about
-#: 2 ms on one core of the development machine; a pass may overrun it by one pass (at most
-#: BATCH_LIMIT samples of a gradient, about 1.5 ms). A fit of 8192 samples of a second-order
-#: plant is about 40 updates of work.
+#: 2 ms on one core of the development machine, 2.5 ms on the 2-vCPU one of session 11. An
+#: update runs only the passes that fit in it, or one larger pass (at most BATCH_LIMIT
+#: samples of a gradient, 2 (p + 1) columns: 3.2 ms there at p = 4; or the hand-off). A fit
+#: of 8192 samples of a second-order plant is about 40 updates of work.
 SLICE = 1 << 16
+
+#: The scores a HAC records in one pass of a fit's job (FitJob._uncertainty).
+RECORD_ROWS = 2048
+#: The cost of a recorded score per column, in sample-columns of the fit's passes (the
+#: lagged products of each block of lagged.BLOCK rows): 16-25 ns per score-column against
+#: 11-13 ns per sample-column of a gradient pass (tracking plants (0, 1), (1, 27), (2, 5),
+#: (3, 2))
+RECORD_COLUMNS = 3
+#: The cost of a long-run covariance (HacCovariance.long_run: prewhitening, bandwidths and
+#: the lag window at the last block): 0.4-0.6 ms, whatever the samples
+LONG_RUN_COST = 1 << 15
+#: The cost per residual of their colour (noise_colour.colour, a spectrum: up to 1 ms for
+#: 8192 residuals)
+COLOUR_COST = 10
 
 #: A gap-free run of stored samples, normalised: (y, u, weights).
 Segment = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -79,6 +103,31 @@ def signal_size(values: np.ndarray) -> float:
     return size if math.isfinite(size) else 0.0
 
 
+class FitUncertainty(NamedTuple):
+    """
+    What the recursion takes from a fit beside its estimate, made by the fit's job.
+
+    Attributes
+    ----------
+    covariance : numpy.ndarray
+        P_f, the P to continue with (:meth:`FitResult.covariance`).
+    hac : HacCovariance
+        The fit's scores recorded (:func:`~.uncertainty.fitted_scores`): the
+        recursion's HAC from the fit on.
+    root : numpy.ndarray
+        R of the fitted initial states (:func:`~.uncertainty.fitted_state_excess`).
+    unresolved : numpy.ndarray
+        R with the fit's other end where the data do not tell it apart
+        (:func:`~.uncertainty.with_unresolved`; ``root`` itself where they do).
+
+    """
+
+    covariance: np.ndarray
+    hac: HacCovariance
+    root: np.ndarray
+    unresolved: np.ndarray
+
+
 class StoredFit(NamedTuple):
     """
     A fit of the stored samples (see :meth:`SampleStore.start`).
@@ -93,6 +142,9 @@ class StoredFit(NamedTuple):
         The scales of y, u_1 ... u_r it chose.
     outliers : int
         The samples it took out as outliers (0 if none).
+    uncertainty : FitUncertainty or None
+        What the recursion takes from it beside theta; None if it has no
+        covariance (:meth:`FitResult.covariance`) or no result.
 
     """
 
@@ -100,6 +152,7 @@ class StoredFit(NamedTuple):
     segments: list[Segment]
     scale: np.ndarray
     outliers: int
+    uncertainty: FitUncertainty | None = None
 
 
 class FitJob:
@@ -111,8 +164,9 @@ class FitJob:
     ``breaks`` / ``excluded`` (``break_after``: a break after the last row);
     :meth:`SampleStore.take_marks` copies them into the store. The result
     depends on the job's arrays and numbers only; ``done`` counts the work
-    done (a snapshot keeps it, and a restored job runs the same passes
-    again up to it).
+    of the passes run (a snapshot keeps it, and a restored job runs the same
+    passes again up to it: each pass's cost is known before it runs, so
+    ``done`` is always the sum of the first passes' costs).
     """
 
     def __init__(self, rows: np.ndarray, breaks: np.ndarray, excluded: np.ndarray,
@@ -135,6 +189,8 @@ class FitJob:
         self.fitted: StoredFit | None = None
         self._channel, self._armax = channel, armax
         self._steps: Steps | None = None
+        #: The cost of the pass announced, to run next
+        self._next = 0
 
     def steps(self, batch: BatchFit) -> Steps:
         """Fit the job's rows with ``batch`` (see :meth:`SampleStore.start`), a pass at a time."""
@@ -153,27 +209,74 @@ class FitJob:
             result = yield from batch.steps(segments, candidates, self.prior,
                                             self.after_change)
             if result is not None:
+                yield self.rows.shape[0] * batch.loss_columns + PASS_COST
                 outliers = self._exclude_outliers(batch, result.theta, segments)
-                yield self.rows.shape[0]
             if outliers:
                 segments = SampleStore._segments(rows, self.breaks, self.excluded, new_scale,
                                                  lam)
                 result = yield from batch.steps(segments, [result.theta], self.prior,
                                                 self.after_change)
-        return StoredFit(result, segments, new_scale, outliers)
+            uncertainty = None if result is None else (
+                yield from self._uncertainty(result, segments[-1]))
+        # the hand-off (SampleStore.advance): the predictor run on over the last segment
+        # (with its gradient), the fit installed
+        yield segments[-1][0].shape[0] * 2 * (batch.num_parameters + 1) + PASS_COST
+        return StoredFit(result, segments, new_scale, outliers, uncertainty)
+
+    def _uncertainty(self, result: FitResult, last: Segment) -> Steps:
+        """
+        Return the :class:`FitUncertainty` of ``result``, a pass at a time; None if no P_f.
+
+        The work of the hand-off that depends on the fit alone, done before it (the
+        HACs' records took 5 and 3 ms of one update on a fit of 8192 samples): the
+        fit's scores recorded RECORD_ROWS at a time, the profiled ones too, then R
+        (:func:`~.uncertainty.profiled_excess`) and the other end's share
+        (:func:`~.uncertainty.with_unresolved`, with the fit's own residuals).
+        """
+        size, lam = result.information.shape[0], self.forgetting_factor
+        yield PASS_COST
+        covariance = result.covariance(1.0 / self.prior)
+        if covariance is None:
+            return None
+        hac = yield from _recorded(score_hac(size, lam),
+                                   fitted_scores(result.scores, result.profiled[1]))
+        information, scores = result.profiled
+        profiled = yield from _recorded(score_hac(information.shape[0], lam), scores)
+        yield 2 * LONG_RUN_COST  # the held covariance's and the profiled one's
+        root = profiled_excess(normalised_covariance(hac, covariance, result.weight, lam),
+                               result.information, information, profiled, self.prior,
+                               result.weight, lam)
+        yield PASS_COST + COLOUR_COST * last[0].shape[0]  # (the colour only where it decides)
+        unresolved = with_unresolved(
+            root, result.theta, result.alternative, result.weight, lam,
+            lambda: result.residuals(last, self._armax),
+            result.information + np.eye(size) * self.prior)
+        return FitUncertainty(covariance, hac, root, unresolved)
 
     def advance(self, batch: BatchFit, work: float) -> bool:
-        """Do passes until ``work`` more is done or the fit ends; return whether it ended."""
-        if self._steps is None:
-            self._steps = self.steps(batch)
-        goal = self.done + work
+        """
+        Do the passes that fit in ``work`` (the first whatever its cost); return if it ended.
+
+        :meth:`steps` announces each pass's cost before it runs it: a pass that
+        would take the work done over ``work`` waits for the next call, so a
+        call does at most ``max(work, one pass)`` (the largest pass: a
+        gradient over every stored sample, or the hand-off).
+        """
         with np.errstate(all='ignore'):
-            while self.done < goal:
+            if self._steps is None:
+                self._steps = self.steps(batch)
+                self._next = next(self._steps)  # (steps announces at least the hand-off)
+            spent = 0
+            while not spent or spent + self._next <= work:
+                cost = self._next
                 try:
-                    self.done += next(self._steps)
+                    self._next = next(self._steps)  # the pass runs; the next is announced
                 except StopIteration as end:
                     self.fitted = end.value
                     return True
+                finally:
+                    self.done += cost
+                    spent += cost
         return False
 
     def state_items(self, channels: int, size: int) -> tuple[dict[str, np.ndarray],
@@ -264,6 +367,15 @@ class FitJob:
             else:
                 self.break_after = True
         return bad.shape[0]
+
+
+def _recorded(hac: HacCovariance, scores: np.ndarray) -> Steps:
+    """Record ``scores`` in ``hac`` RECORD_ROWS at a time, a pass each; return ``hac``."""
+    for start in range(0, scores.shape[0], RECORD_ROWS):
+        chunk = scores[start:start + RECORD_ROWS]
+        yield chunk.size * RECORD_COLUMNS + PASS_COST
+        hac.record_all(chunk)  # (in pieces: the same sums, bit for bit: LaggedProducts.extend)
+    return hac
 
 
 class SampleStore:
@@ -424,7 +536,8 @@ class SampleStore:
         segments = self._segments(rows, breaks, excluded, fitted.scale, job.forgetting_factor)
         result = None if fitted.result is None else self.fitter().continued(fitted.result,
                                                                             segments)
-        return StoredFit(result, segments, fitted.scale, fitted.outliers), job.fresh
+        return StoredFit(result, segments, fitted.scale, fitted.outliers,
+                         fitted.uncertainty), job.fresh
 
     def take_marks(self, job: FitJob) -> None:
         """Mark the outliers ``job`` found in the store (those of its rows still stored)."""

@@ -198,11 +198,19 @@ def fitted_scores(scores: np.ndarray, profiled: np.ndarray) -> np.ndarray:
     return fitted
 
 
+def score_hac(dimension: int, forgetting_factor: float) -> HacCovariance:
+    """Return an empty HAC of rpem's scores psi e: the recursion's, and a fit's (profiled)."""
+    return HacCovariance(dimension=dimension, forgetting_factor=forgetting_factor,
+                         prewhitening=PREWHITENING)
+
+
 def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
                         profiled_information: np.ndarray, profiled_scores: np.ndarray,
                         prior: float, tau: float, forgetting_factor: float) -> np.ndarray:
     """
     Return R = P_f^-1 D^1/2 of a fit, E = R R^T: what its held-state covariance leaves out.
+
+    :func:`profiled_excess` with the profiled scores recorded in a HAC here.
 
     Parameters
     ----------
@@ -234,19 +242,30 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
         off, and ``valid`` took it as precise.
 
     """
+    hac = score_hac(profiled_information.shape[0], forgetting_factor)
+    hac.record_all(profiled_scores)
+    return profiled_excess(held, information, profiled_information, hac, prior, tau,
+                           forgetting_factor)
+
+
+def profiled_excess(held: np.ndarray | None, information: np.ndarray,
+                    profiled_information: np.ndarray, profiled_hac: HacCovariance,
+                    prior: float, tau: float, forgetting_factor: float) -> np.ndarray:
+    """
+    Return :func:`fitted_state_excess` from the HAC of the profiled scores, ``profiled_hac``.
+
+    (A fit spread over updates records them a pass at a time: rpem/store.py, FitJob.)
+    """
     size, count = information.shape[0], profiled_information.shape[0]
-    if profiled_scores.shape[0] == 0:
+    if not profiled_hac.samples:
         return np.zeros((size, size))
     if held is None:
         return np.full((size, size), np.nan)
-    hac = HacCovariance(dimension=count, forgetting_factor=forgetting_factor,
-                        prewhitening=PREWHITENING)
-    hac.record_all(profiled_scores)
     try:
         p_profiled = np.linalg.inv(profiled_information + prior * np.eye(count))
     except np.linalg.LinAlgError:
         return np.zeros((size, size))
-    profiled = normalised_covariance(hac, p_profiled, tau, forgetting_factor)
+    profiled = normalised_covariance(profiled_hac, p_profiled, tau, forgetting_factor)
     if profiled is None or not np.isfinite(profiled).all():
         return np.full((size, size), np.nan)
     # D: the positive part of C_c - C_h (the held one can be larger in a direction by
