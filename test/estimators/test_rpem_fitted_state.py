@@ -28,7 +28,12 @@ def test_rpem_std_on_a_slow_plant_agrees_with_the_batch_fit(seed):
     initial state fitted): both estimate one asymptotic covariance, each within some
     10-25 % (the HAC's and the batch fit's sampling error at ~1000 samples), so a factor of
     2 either way is gross. With the state held the b's std was 0.01-0.5 times the batch
-    fit's (errors up to 23 std); with the excess 0.94-1.24.
+    fit's (errors up to 23 std); with the excess 0.94-1.24. Judged where a fit of at least
+    700 samples hands over (0.86-1.23 on seeds 0-4), and never below half the batch fit's
+    at any hundredth sample from 700 on. Between fits the recursion's own scores join the
+    HAC and the std may overstate, conservatively (up to 7.6 times on seed 1 at 800
+    samples: docs/tracking.md, "Limits", session 11); a single sample read between fits
+    judged the schedule's timing, not the std.
     """
     rng = np.random.default_rng(seed)
     a = np.real(np.poly([0.98, 0.97, 0.83]))
@@ -37,14 +42,22 @@ def test_rpem_std_on_a_slow_plant_agrees_with_the_batch_fit(seed):
     x = signal.lfilter(np.r_[0.0, b], a, u)
     y = x + 0.1 * x.std() * rng.standard_normal(1200)
     estimator = make_estimator('rpem', order=3)
+    handed_over = 0
     for t in range(1200):
         estimator.update(y[t], u[t])
-    std = np.sqrt(np.diag(estimator.parameter_covariance))
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore')
-        batch = fit_oe(y - y.mean(), u - u.mean(), Structure(3), offset=True)
-    ratio = std / batch.std[:6]
-    assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
+        fitted = estimator.fits > handed_over
+        handed_over = estimator.fits
+        if t < 699 or not (fitted or (t + 1) % 100 == 0):
+            continue
+        std = np.sqrt(np.diag(estimator.parameter_covariance))
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')
+            batch = fit_oe(y[:t + 1] - y[:t + 1].mean(), u[:t + 1] - u[:t + 1].mean(),
+                           Structure(3), offset=True)
+        ratio = std / batch.std[:6]
+        assert np.all(ratio > 0.5), (t, ratio)
+        if fitted:
+            assert np.all(ratio < 2.0), (t, ratio)
 
 
 def test_the_hac_takes_theta_s_profiled_scores_and_the_offset_s_own():
