@@ -41,13 +41,21 @@ def test_the_estimation_fit_never_falls_with_the_order(seed):
     assert all(later >= earlier - 1e-9 for earlier, later in zip(fits, fits[1:])), fits
 
 
+#: How far an order above the right one may fall below its validation fit (points): its extra
+#: parameters fitted to coloured noise cost up to 2.3 (seeds 0-3, orders 3-5: 96.2-98.5 where
+#: the order-2 fits are 97.9-98.5, on a machine whose BLAS ends seed 1's order 4 in another
+#: minimum than the development machine's), where the failure this guards against, cold
+#: starts in far minima, costs 70
+OVERFIT_POINTS = 5.0
+
+
 def test_orders_above_the_right_one_keep_its_validation_fit():
     # seed 1: the cold starts gave 23.7, 27.9, 29.3, 24.7 % for orders 3-6, against 98.5 %
     candidates = search_structures(staircase_record(1), (1, 5), (0, 0))
     second = candidates[1].fit
     assert second > 95.0
     for candidate in candidates[2:]:
-        assert candidate.fit >= second - 2.0, (candidate.order, candidate.fit)
+        assert candidate.fit >= second - OVERFIT_POINTS, (candidate.order, candidate.fit)
 
 
 def noisy_plate(seed: int) -> Record:

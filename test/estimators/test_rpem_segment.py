@@ -13,7 +13,7 @@ POLYNOMIALS = ([1.0, -0.585], [1.0, -1.5, 0.7], [1.0, -0.999], [1.0, 0.1, 0.2, 0
 
 
 def full_response(f_poly: np.ndarray, count: int) -> np.ndarray:
-    """The impulse response of 1/F as one filter call over every sample."""
+    """Return the impulse response of 1/F, one filter call over every sample."""
     impulse = np.zeros(count)
     impulse[0] = 1.0
     return signal.lfilter([1.0], f_poly, impulse)
