@@ -160,3 +160,44 @@ def test_a_snapshot_with_the_share_itself_loads_through_its_root():
     # E's eigen-root differs from R by a rotation, R R^T to the rounding of a 3 x 3 problem
     np.testing.assert_allclose(loaded.parameter_covariance, estimator.parameter_covariance,
                                rtol=1e-6)
+
+
+def test_rpem_reopens_a_change_taken_as_done_when_a_fit_finds_the_other_end_as_good(
+        monkeypatch):
+    """
+    The wiring of the reopening, apart from any plant's path (Rpem._fitted_now).
+
+    Once a change was taken as done (``valid`` again after it), a fit whose job finds the
+    other end as good (``with_unresolved`` returns a share of its own, not the root: here
+    forced from the first fit after that, the root times 1e4, so that 2 sqrt(tr C) is some
+    600-1000 % of |theta|) and whose estimate its std then calls imprecise reopens the
+    change: ``UNRESOLVED_NOTE`` first among the reasons, not valid. (The tracking plant above
+    no longer reaches it since session 11, and a plant's path to it depends on the last bits
+    of its fits.)
+    """
+    from bcid_ros.estimators.rpem import store
+    from test_tracking import changing_plant
+
+    y, u, _ = changing_plant(2, samples=9000, change=3000, noise=0.1)
+    estimator = make_estimator('rpem', order=2)
+    done = {'after': None}
+    joined = store.with_unresolved
+
+    def other_end_as_good(root, *arguments):
+        share = joined(root, *arguments)
+        return 1e4 * root if done['after'] is not None else share
+
+    monkeypatch.setattr(store, 'with_unresolved', other_end_as_good)
+    reopened = None
+    for t in range(y.shape[0]):
+        valid = estimator.update(y[t], u[t])
+        if done['after'] is None and estimator.flags.get('plant_change', 0) and valid:
+            done['after'] = (t, estimator.fits)
+        reasons = estimator.validity_reasons
+        if done['after'] is not None and reasons and reasons[0] == UNRESOLVED_NOTE:
+            reopened = t
+            assert not valid
+            break
+    assert done['after'] is not None, 'the change was never taken as done'
+    assert reopened is not None, 'no reopening'
+    assert estimator.fits > done['after'][1]  # at a fit after the change was taken as done
