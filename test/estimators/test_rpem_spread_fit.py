@@ -111,3 +111,22 @@ def test_a_snapshot_at_any_pass_of_a_fit_continues_bit_for_bit():
         np.testing.assert_array_equal(restored.parameter_covariance,
                                       estimator.parameter_covariance)
         assert restored.fits == estimator.fits
+
+
+def test_a_live_forgetting_factor_reaches_the_hac_a_fit_hands_over():
+    # the job records the fit's scores in a HAC of its own, with the factor in force when it
+    # was due; a live change while it is on its way must reach the HAC the recursion goes on
+    # with, as it reaches the one it replaces
+    y, u = oe_data(6, count=3000)
+    estimator = make_estimator('rpem', order=2, forgetting_factor=0.999)
+    estimator.run(y[:2000], u[:2000])
+    t = 2000
+    while estimator._store.job is None or estimator._store.job.done:  # a fit just due
+        estimator.update(y[t], u[t])
+        t += 1
+    fits = estimator.fits
+    estimator.forgetting_factor = 0.995
+    while estimator.fits == fits:
+        estimator.update(y[t], u[t])
+        t += 1
+    assert estimator._hac.forgetting_factor == 0.995

@@ -602,6 +602,9 @@ class Rpem(RpemState, RecursiveEstimator):
         # theta's profiled (the equations the fit solved; the held ones carry each segment's
         # start-up transient, which overstated the std 2-6 times: docs/trust.md)
         self._hac = uncertainty.hac
+        # made with the job's factor: the recursion's HAC follows the one now in force, as
+        # _follow_forgetting_factor keeps it through a live change (the same bits otherwise)
+        self._hac.forgetting_factor = self._forgetting_factor
         # what the covariance of P leaves out: the fit chose each segment's initial state
         self._excess = uncertainty.root
         self._fit_sample = self._samples
