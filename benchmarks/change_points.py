@@ -2,7 +2,7 @@
 Where rpem places a plant change: the estimated change point against the true one.
 
 Usage: ``.venv/bin/python -m benchmarks.change_points [--count 30] [--seed 0]
-[--estimators rpem,rpem_0.999]`` from the repository root (docs/tracking.md, "Limits and
+[--estimators rpem,rpem_0.999]`` from the repository root (docs/tracking_log.md, "Limits and
 what is left", 2026-11-28, session 10). One line per detection goes to stderr, the table to
 stdout.
 

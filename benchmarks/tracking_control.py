@@ -2,7 +2,7 @@
 The no-change control of ``benchmarks/tracking.py``: how much of a recovery score is chance.
 
 Usage: ``.venv/bin/python -m benchmarks.tracking_control [--count 30] [--seed 0]
-[--estimators rpem,rpem_0.999]`` from the repository root (docs/tracking.md, "Limits and
+[--estimators rpem,rpem_0.999]`` from the repository root (docs/tracking_log.md, "Limits and
 what is left", 2026-11-28, session 9). Progress goes to stderr, the table to stdout.
 
 Each abrupt case of the family (:class:`~benchmarks.tracking.TrackingCase`) is run twice:

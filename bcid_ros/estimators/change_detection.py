@@ -490,7 +490,7 @@ class BlockMeanDetector:
     all but removed: on a tracking plant whose pole moved 0.944 -> 0.963 (13 dB
     coloured noise) rpem's fit's-model errors had 8 times their variance
     after the change, the whitened z^2 1.01-1.06 times theirs
-    (docs/tracking.md, "Limits", 2026-11-28, session 7). This test takes the
+    (docs/tracking_log.md, "Limits", 2026-11-28, session 7). This test takes the
     same errors, less the fit's residual mean (:meth:`prime`), in consecutive
     blocks of B samples; each block mean b is compared with the reference
     variance sigma_b^2 of the block means before it (weights

@@ -34,7 +34,7 @@ change would make the changed plant the detector's reference. The estimate
 of the moving recursion is not used sample by sample: its own wandering (the
 compensation amplifies the LS estimate's error) is what broke the detector's
 reference when bcrls fed it the output error of the current estimate
-(docs/tracking.md, "False detections").
+(docs/tracking_log.md, "False detections left").
 
 **When it is refreshed.** At such a check once the estimate rests on
 ``GROWTH`` times the weighted samples tau of the held one: its error then
@@ -85,7 +85,7 @@ def precise(theta: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     as large as the noise or larger, and the refresh that replaces it changes the
     detector's input by as much (a false detection, seed 2 case 14 of the tracking
     family's ``oe_white`` plants: held 115 % off, refreshed 35 % off, flagged 450
-    samples later; docs/tracking.md, "Limits", 2026-11-28 session 8).
+    samples later; docs/tracking_log.md, "Limits", 2026-11-28 session 8).
     """
     return np.array([not imprecision(row, lambda matrix=matrix: matrix)
                      for row, matrix in zip(theta, covariances)], dtype=bool)

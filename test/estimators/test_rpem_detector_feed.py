@@ -6,7 +6,7 @@ goes on in that frame, so the errors fed to the detector are those of the fitted
 mean 0 like the fit's residuals (its reference). Centred on the running means of each
 sample's own time instead, a slow plant at a high SNR fed errors whose mean moved by tens
 of standard errors over 150 samples early in the record, and the detector flagged plants
-that never changed (docs/tracking.md, "Limits and what is left").
+that never changed (docs/tracking_log.md, "Limits and what is left").
 """
 
 import dataclasses
@@ -154,7 +154,7 @@ def test_the_errors_fed_under_forgetting_are_those_the_fits_residuals_describe(s
     assert max(ratios) < 1.5
     # the bound is 1e-5 per sample: no detection after a fit of 1000 samples or more; fits
     # of a few hundred samples, whose own error their residuals do not count, may still
-    # raise one, and its memory cut brings such fits again (docs/tracking.md; on seeds 0-15
+    # raise one, and its memory cut brings such fits again (docs/tracking_log.md; on seeds 0-15
     # 4 and 7 detections, before and after rpem's OE lags under forgetting followed the
     # step, every one after a fit of 463-569 samples)
     assert all(detections == 0 for size, _, _, detections in fits if size >= 1000)

@@ -6,7 +6,7 @@ restarts the fits from a change point inside it; the fits of all samples since t
 the rest of the drift for good (its weight falling as 1/N). After a change rpem now
 compares each fit with the last one of the same window start, and a move beyond what
 their nested windows explain keeps the newest half of the window (rpem/window.py;
-docs/tracking.md, "Limits and what is left", 2026-11-28, session 7).
+docs/tracking_log.md, "Limits and what is left", 2026-11-28, session 7).
 """
 
 import numpy as np

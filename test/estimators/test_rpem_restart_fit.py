@@ -4,7 +4,7 @@ rpem's fits after a plant change: a segment that starts mid-response (rpem/fit.p
 The samples after a change point begin where the old plant left its output, not at rest.
 The searches of a fit shrink each segment's initial state towards 0 (INITIAL_PRIOR, which
 keeps a level out of the offset), and that charges such a segment for its true state: the
-ends of the searches are compared with the state free (docs/tracking.md, session 8), and
+ends of the searches are compared with the state free (docs/tracking_log.md, session 8), and
 where those losses do not tell them apart the current estimate's end stays (session 9).
 After a change the searches themselves run with the state free (session 11); the fit
 the recursion continues with, and its std, keep the prior.

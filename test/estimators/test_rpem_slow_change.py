@@ -1,5 +1,5 @@
 """
-rpem sees a change that shows only at low frequencies (docs/tracking.md, "Limits", session 7).
+rpem sees a change that shows only at low frequencies (docs/tracking_log.md, "Limits", session 7).
 
 A slow first-order plant whose pole moves 0.95 -> 0.97 (its static gain times 1.67), driven
 by a PRBS held 20 samples, with AR(1) 0.9 output noise at 15 dB: the fit's model's errors

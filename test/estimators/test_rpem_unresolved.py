@@ -4,7 +4,7 @@ rpem's std where the data do not pin the parameters down (rpem/uncertainty.py).
 Two defects let ``valid`` hold far off: the fitted-state share P E P lost the conditioning of
 the fit's information twice (negative variances, so no std at all), and the curvature at the
 estimate said nothing of a long valley of equally good models, which the fit's two starts
-find (docs/tracking.md, 2026-11-28, session 8, far8).
+find (docs/tracking_log.md, 2026-11-28, session 8, far8).
 """
 
 import dataclasses

@@ -85,7 +85,7 @@ def test_rpem_with_forgetting_is_valid_only_where_its_std_shows_the_level():
     # tracking case (2, 19): a slow third-order plant under a PRBS held 9 samples, its pole
     # drifting 0.982 -> 0.991. With lambda 0.999 the old model was valid 4-714 samples into
     # the drift, 20-34 % off with 2 sqrt(tr C) 15-143 % of ||theta_hat||: 45 % of the 2000
-    # samples after the change were valid more than 10 % off (docs/tracking.md, "Limits")
+    # samples after the change were valid more than 10 % off (docs/tracking_log.md, "Limits")
     case = TrackingCase((2, 19), 'family')
     name, settings = CONFIGS['rpem_0.999']
     estimator = make_estimator(name, order=case.order, num_inputs=case.num_inputs, **settings)
@@ -110,7 +110,7 @@ def test_rpem_with_forgetting_is_valid_only_where_its_std_shows_the_level():
     # what the rule cannot see is an estimate off beyond an honest std: a fit in a wrong
     # minimum whose curvature std is small. On this plant 33 % of the 2000 samples after the
     # change are valid more than 10 % off (9 % before the detector waited for a model pinned
-    # down, 45 % before the rule: docs/tracking.md, "Limits", session 10)
+    # down, 45 % before the rule: docs/tracking_log.md, "Limits", session 10)
 
 
 def test_rpem_with_forgetting_arms_its_detector_only_once_the_level_is_shown():

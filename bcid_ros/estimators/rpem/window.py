@@ -4,7 +4,7 @@ After a plant change: whether the plant still moves within the window of the fit
 A detection part of the way through a drift restarts the fits from a change
 point inside the drift, and the fits of the samples since it grow (by
 ``FIT_GROWTH``): the rest of the drift stays in every later fit, its weight
-falling only as 1/N (docs/tracking.md, "Limits and what is left",
+falling only as 1/N (docs/tracking_log.md, "Limits and what is left",
 2026-11-28, session 7). The fits themselves show it: two fits of nested
 windows from the same start, :math:`\hat\theta_1` of :math:`N_1` samples and
 :math:`\hat\theta_2` of :math:`N_2 > N_1` (the newer samples added), differ
