@@ -36,8 +36,8 @@ RESTART_SPAN = 400
 #: own sample, and a row that decided the validity ends its slice. Measured here
 #: (benchmarks/replay_stall.py, tracking cases of seeds 0-2): a replayed row costs 10-25 us
 #: of CPU (rls, bcrls; orders 1-3) and a validity decision 2-3 ms, so that an update of
-#: the catch-up takes at most 4-5 ms (12-21 ms replayed at once), and the at most 400
-#: rows are caught up within about 12 updates.
+#: the catch-up takes at most 3.3 ms (rls) and 4.5 ms (bcrls), against 12-13 and 17-21 ms
+#: replayed at once; the at most 401 rows are caught up within 10 updates (median 5).
 REPLAY_SLICE = 64
 #: The queue's room in a snapshot: the restart's rows, its end and the samples queued
 #: behind them (fewer than these: each update replays two rows at least and queues one; a
