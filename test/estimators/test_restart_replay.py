@@ -1,12 +1,14 @@
 """The restart after a detected plant change, its replay spread over the updates (rls, bcrls)."""
 
+import types
+
 import numpy as np
 import pytest
 from test_tracking import changing_plant
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.identifier import persistence
-from bcid_ros.estimators.rls import REPLAY_SLICE
+from bcid_ros.estimators.rls import REPLAY_SLICE, RESTART_SPAN
 
 #: (estimator, equation-error noise, the plant after): changes small enough to be found
 #: hundreds of samples after (seed 1: rls queues all 400 kept samples, bcrls 187), so that
@@ -58,21 +60,52 @@ def feed(estimator, y, u):
     return np.array(valid), reasons
 
 
+def one_shot_restart(self, age):
+    """Restart as before the spread: the kept rows after the change point replayed at once."""
+    self._flag('plant_change')
+    first = self._seen - age + 1
+    count = min(age + self._regressor.span, RESTART_SPAN, self._seen)
+    rows = self._recent[np.arange(self._seen - count, self._seen) % RESTART_SPAN].copy()
+    theta, scale = self._theta_ls.copy(), self._signal_scale.copy()
+    flags, quiet, recent, updates, seen = (dict(self.flags), self._quiet_left, self._recent,
+                                           self._updates, self._seen)
+    self._reset()
+    self._signal_scale = scale
+    self._set_scale_dependents()
+    self._p = self._initial_p()
+    self._theta_ls[:] = theta
+    self._relearned += 1
+    self._quiet_left = 0
+    with np.errstate(all='ignore'):
+        for row in rows:
+            self._step_sample(float(row[0]), row[1:])
+    self.flags, self._quiet_left, self._recent = flags, quiet, recent
+    self._updates, self._seen = updates, seen
+    self._change_note = f'plant changed (sample {first})'
+    self._check_validity()
+
+
 @pytest.mark.parametrize('name, equation, plant', CASES)
 def test_the_caught_up_estimate_is_the_one_shot_replay_bit_for_bit(name, equation, plant):
-    # at the detection the kept rows are queued; replayed at once there (the one-shot
-    # form, as before the spread), the state after the same later samples is the same bits
+    # the same samples into an estimator whose restart replays the rows at once, as before
+    # the spread: once caught up, the spread one is the same bits, and the flags the same
     spread, y, u, t = to_detection(name, equation, plant)
     assert spread.catching_up > 2 * REPLAY_SLICE  # the change point, the regressor's span
-    one_shot = copy_of(spread, name)
-    one_shot._finish_catch_up()
-    assert not one_shot.catching_up
+    one_shot = make_estimator(name, order=2)
+    one_shot._plant_changed = types.MethodType(one_shot_restart, one_shot)
+    feed(one_shot, y[:t + 1], u[:t + 1])
+    assert one_shot.flags['plant_change'] == 1
     later = slice(t + 1, t + 200)
     feed(one_shot, y[later], u[later])
-    valid, _ = feed(spread, y[later], u[later])
+    feed(spread, y[later], u[later])
     assert not spread.catching_up
     same_state(one_shot.get_state(), spread.get_state())
     assert one_shot.flags == spread.flags  # the replay's own flags are not the updates'
+    # replayed at once by the estimator itself (the batched plants' restart): the same
+    at_once, _, _, _ = to_detection(name, equation, plant)
+    at_once._finish_catch_up()
+    feed(at_once, y[later], u[later])
+    same_state(one_shot.get_state(), at_once.get_state())
 
 
 @pytest.mark.parametrize('name, equation, plant', CASES)
@@ -126,16 +159,20 @@ def test_a_snapshot_mid_catch_up_goes_on_bit_for_bit(
 
 
 @pytest.mark.parametrize('name, equation, plant', CASES)
-def test_a_gap_and_blocks_during_the_catch_up_keep_their_place_among_the_rows(
+def test_a_gap_held_samples_and_blocks_during_the_catch_up_keep_their_place_among_the_rows(
         name, equation, plant):
-    # a gap (restart_regressor) queued behind the rows is the gap after the one-shot replay;
-    # samples fed as a block are the samples fed one by one
+    # a gap (restart_regressor) and samples taken while the adaptation is held, queued
+    # behind the rows, are those after the one-shot replay; a block is its samples one by one
     spread, y, u, t = to_detection(name, equation, plant)
     one_shot = copy_of(spread, name)
     one_shot._finish_catch_up()
     for estimator in (one_shot, spread):
         estimator.update(y[t + 1], u[t + 1])
         estimator.restart_regressor()
-        estimator.update_block(np.column_stack([y[t + 2:t + 100], u[t + 2:t + 100]]))
+        estimator.adapt = False
+        for s in range(t + 2, t + 5):
+            estimator.update(y[s], u[s])
+        estimator.adapt = True
+        estimator.update_block(np.column_stack([y[t + 5:t + 100], u[t + 5:t + 100]]))
     assert not spread.catching_up
     same_state(one_shot.get_state(), spread.get_state())
