@@ -734,8 +734,8 @@ class Rls(LsAccessors, RecursiveEstimator):
             return arrays, scalars
         arrays['replay_queue'][:self._queue.shape[0]] = self._queue
         own = self._replay_own
-        arrays.update(replay_recent=own['_recent'], shown_theta=self._shown[0],
-                      shown_theta_uncompensated=self._shown[1], shown_noise=self._shown[2])
+        arrays.update(shown_theta=self._shown[0], shown_theta_uncompensated=self._shown[1],
+                      shown_noise=self._shown[2])
         scalars.update(
             replay_queued=self._queue.shape[0], restart_left=self._restart_left,
             restart_note=self._restart_note, replay_flags=dict(own['flags']),
@@ -756,7 +756,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._replay_own = {
             'flags': dict(scalars['replay_flags']), '_updates': int(scalars['replay_updates']),
             '_seen': int(scalars['replay_seen']),
-            '_recent': np.array(arrays['replay_recent'], dtype=float),
+            # (the ring the replay remembers its rows in is never read: not kept)
+            '_recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs)),
             '_change_note': str(scalars['replay_change_note']),
             '_reasons': tuple(scalars['replay_reasons']),
             '_next_check': int(scalars['replay_next_check'])}
@@ -767,7 +768,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         """Restore a :meth:`get_state` snapshot; one from before the detector loads too."""
         own, _ = self._state_items()
         arrays = with_detector_arrays(state.arrays, own)
-        for key in ('recent', 'replay_queue', 'replay_recent', 'shown_theta',
+        for key in ('recent', 'replay_queue', 'shown_theta',
                     'shown_theta_uncompensated', 'shown_noise'):  # (older snapshots: none)
             if key not in arrays:
                 arrays = {**arrays, key: np.zeros_like(own[key])}
@@ -804,7 +805,6 @@ def caught_up_items(num_inputs: int, num_parameters: int, noises: int,
                     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Return the snapshot items of a restart's replay of an estimator with no rows queued."""
     return {'replay_queue': np.zeros((QUEUE_ROWS, 2 + num_inputs)),
-            'replay_recent': np.zeros((RESTART_SPAN, 1 + num_inputs)),
             'shown_theta': np.zeros(num_parameters),
             'shown_theta_uncompensated': np.zeros(num_parameters),
             'shown_noise': np.zeros(noises)}, {
