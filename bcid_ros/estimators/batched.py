@@ -43,7 +43,7 @@ from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, L
                                            where_rows)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
-from bcid_ros.estimators.rls import LsAccessors, RESTART_SPAN, Rls
+from bcid_ros.estimators.rls import caught_up_items, LsAccessors, RESTART_SPAN, Rls
 from bcid_ros.estimators.shared_settings import SharedSettings
 from bcid_ros.estimators.simulation_windows import SimulationWindows
 from bcid_ros.estimators.validity import PlantsValidity
@@ -323,6 +323,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                        flags=self.plant_flags(plant),
                        change_score=float(self._change_score[plant]),
                        gate_tail=float(self._gate_tail[plant]))
+        # (a plant's restart replays at once: none is ever catching up)
+        replay_arrays, replay_scalars = caught_up_items(self.num_inputs, self.num_parameters,
+                                                        len(self.noise_names))
+        arrays.update(replay_arrays)
+        scalars.update(replay_scalars)
         return EstimatorState(self.name, {k: np.array(v, copy=True) for k, v in arrays.items()},
                               scalars)
 
@@ -336,6 +341,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         """
         if state.estimator != self.name:
             raise ValueError(f'state is from estimator {state.estimator!r}, not {self.name!r}')
+        if state.scalars.get('replay_queued', 0):  # a single plant catching up: caught up here
+            single = self._single_estimator()
+            single.set_state(state)
+            single._finish_catch_up()
+            state = single.get_state()
         plant = range(self.num_plants)[plant]
         arrays, _ = self._plant_items(plant)
         arrays['history'] = self._regressors.history[plant]
@@ -506,15 +516,21 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         memory cut, the replay of plant k's kept samples, the change's reason)
         and comes back: the other plants are not touched.
         """
-        single = self._single(
+        single = self._single_estimator()
+        single.set_state(self.plant_state(plant))
+        single._plant_changed(age)
+        # the replay at once, in this frame (a plant does not step apart from the others)
+        single._finish_catch_up()
+        self.set_plant_state(plant, single.get_state())
+
+    def _single_estimator(self) -> Rls:
+        """Return a single-plant estimator of these settings (for one plant's restart)."""
+        return self._single(
             order=self.order, num_inputs=self.num_inputs, feedthrough=self.feedthrough,
             initial_covariance=self.initial_covariance,
             forgetting_factor=self._forgetting_factor,
             outlier_threshold=self.outlier_threshold, change_detection=True,
             adaptation=self.adaptation, parameter_drift=self._parameter_drift)
-        single.set_state(self.plant_state(plant))
-        single._plant_changed(age)
-        self.set_plant_state(plant, single.get_state())
 
     def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Extend the LS step of ``rows`` on (y, phi) (the compensation of subclasses)."""

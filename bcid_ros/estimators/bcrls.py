@@ -198,10 +198,11 @@ class Bcrls(Rls):
         return self._sigma2
 
     def _theta(self) -> np.ndarray:
-        return self._theta_c
+        # (while catching up after a change: the estimate shown, Rls._plant_changed)
+        return self._theta_c if self._shown is None else self._shown[0]
 
     def _noise(self) -> np.ndarray:
-        return np.array([self._sigma2])
+        return np.array([self._sigma2]) if self._shown is None else self._shown[2]
 
     def _check_validity(self, more: Sequence[str] = ()) -> None:
         """

@@ -31,6 +31,27 @@ from bcid_ros.estimators.residual_state import residual_items, residual_states
 #: last samples (those after the change point); fewer than the detector's warm-up, so
 #: that the restart cannot detect again.
 RESTART_SPAN = 400
+#: The restart's replay of those samples is spread over the updates (SPEC §16: no update
+#: waits more than 10 ms): each update replays at most this many queued rows before its
+#: own sample, and a row that decided the validity ends its slice. Measured here
+#: (benchmarks/replay_stall.py, tracking cases of seeds 0-2): a replayed row costs 10-25 us
+#: of CPU (rls, bcrls; orders 1-3) and a validity decision 2-3 ms, so that an update of
+#: the catch-up takes at most 3.3 ms (rls) and 4.5 ms (bcrls), against 12-13 and 17-21 ms
+#: replayed at once; the at most 401 rows are caught up within 10 updates (median 5).
+REPLAY_SLICE = 64
+#: The queue's room in a snapshot: the restart's rows, its end and the samples queued
+#: behind them (fewer than these: each update replays two rows at least and queues one; a
+#: detection among the samples, which the detector's warm-up all but rules out, puts at
+#: most RESTART_SPAN + 1 rows ahead of them).
+QUEUE_ROWS = 2 * (RESTART_SPAN + 1)
+#: A queued row's last column: a sample's quiet count (>= 0; see RecursiveEstimator._learn),
+#: or one of these, which keep a gap and a held sample in their place among the rows, and
+#: the restart's end (after its rows: the change's reason set and the validity decided).
+_GAP, _HELD, _END = -1.0, -2.0, -3.0
+#: What the replay of the restart's rows has apart from what the updates show (the one-shot
+#: replay's own counters, flags and reasons, which it discarded at its end).
+_REPLAY_OWN = ('flags', '_updates', '_seen', '_recent', '_change_note', '_reasons',
+               '_next_check')
 
 
 #: No event (a mask of one False).
@@ -154,10 +175,19 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._channel = phi_channels(self.order, self.num_inputs, self.feedthrough)
         self._detector = ChangeDetector()
         self._relearned = 0
+        self._checks = 0
+        self._clear_queue()
         self._reset()
 
     # ------------------------------------------------------------- the step
     def _update(self, y: float, u: np.ndarray) -> None:
+        if self._queue.shape[0]:  # a restart's rows are still being replayed: this joins them
+            self._catch_up(y, u)
+            return
+        self._step_sample(y, u)
+
+    def _step_sample(self, y: float, u: np.ndarray) -> None:
+        """Take one sample: remember it, push it, and step on a ready regressor."""
         if self._change_detection:
             self._remember(y, u)
         phi = self._regressor.push(y, u)
@@ -198,7 +228,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         update = super()._block_step(rows)
         regressor = self._regressor
         if (update != self._guarded_update or self._scales_pending or not regressor.ready
-                or self._undone_in_row):
+                or self._undone_in_row or self._queue.shape[0]):
             return update
         regressors = iter(regressor.push_rows(rows))
         refused_before, relearned_before = self._refused, self._relearned
@@ -218,6 +248,12 @@ class Rls(LsAccessors, RecursiveEstimator):
 
     def _hold(self, y: float, u: np.ndarray) -> None:
         """Move the regressor on without a step: theta, P, J and tau stay as they are."""
+        if self._queue.shape[0]:  # after the rows still to replay, in its place
+            self._catch_up(y, u, _HELD)
+            return
+        self._hold_sample(y, u)
+
+    def _hold_sample(self, y: float, u: np.ndarray) -> None:
         self._regressor.push(y, u)
         self._simulation.gap()  # the held samples are not recorded
 
@@ -264,31 +300,186 @@ class Rls(LsAccessors, RecursiveEstimator):
         after the change point (at most RESTART_SPAN): the memory of the old
         plant is cut, not blended in. Not valid from this sample on, with the
         reason, until the new estimate passes the residual tests.
+
+        The samples are queued here and replayed over the next updates, at
+        most ``REPLAY_SLICE`` in each (:meth:`_catch_up`), each update's own
+        sample joining the queue's end: the same rows in the same order as
+        replayed at once, so the estimate once caught up is the one-shot's
+        bit for bit (:meth:`_finish_catch_up` replays them at once). The
+        replay keeps its own counters, flags and reasons (``_REPLAY_OWN``),
+        which the one-shot replay discarded at its end: the updates meanwhile
+        show this sample's flag and reason, the sample counts of before, and
+        this sample's estimate (theta, the uncompensated, the noise; the
+        covariance is the replay's), not valid.
         """
         self._flag('plant_change')
         first = self._seen - age + 1  # in the samples the estimator was given, from 1
         count = min(age + self._regressor.span, RESTART_SPAN, self._seen)
-        rows = self._recent[(np.arange(self._seen - count, self._seen)) % RESTART_SPAN].copy()
-        theta, scale, updates, seen = (self._theta_ls.copy(), self._signal_scale.copy(),
-                                       self._updates, self._seen)
-        # _reset starts a new ring, so the old one stays as it was through the replay
-        flags, quiet, recent = dict(self.flags), self._quiet_left, self._recent
-        self._reset()
+        rows = self._recent[(np.arange(self._seen - count, self._seen)) % RESTART_SPAN]
+        theta, scale = self._theta_ls.copy(), self._signal_scale.copy()
+        # the estimate published until caught up: this sample's (not valid), not a replay's
+        # of a few rows (theta, the estimate before compensation, the noise)
+        self._shown = (self._theta().copy(), self._theta_uncompensated().copy(),
+                       np.array(self._noise(), dtype=float))
+        shown = {name: getattr(self, name) for name in _REPLAY_OWN}
+        shown['flags'] = dict(self.flags)
+        self._reset()  # (a new ring: the replay remembers its rows in it, as before)
         self._signal_scale = scale
         self._set_scale_dependents()
         self._p = self._initial_p()
         self._theta_ls[:] = theta
         self._relearned += 1
-        self._quiet_left = 0
+        # the replay's own start: the flags so far (bcrls reads its resets' count), the rest
+        # as _reset left them; what the updates show until the replay's end: as before it
+        self._replay_own = {name: getattr(self, name) for name in _REPLAY_OWN}
+        self._replay_own['flags'] = dict(shown['flags'])
+        for name, value in shown.items():
+            setattr(self, name, value)
+        self._restart_note = self._change_note = f'plant changed (sample {first})'
+        self._reasons = (self._restart_note,)
+        self._next_check = self._updates + rules.VALIDITY_PERIOD  # (the replay's end decides)
+        # the rows first, then those queued after this detection's sample (during a catch-up)
+        queued = np.zeros((count + 1, self._queue.shape[1]))
+        queued[:-1, :-1] = rows
+        queued[-1, -1] = _END
+        self._queue = np.concatenate([queued, self._queue])
+        self._restart_left = count
+
+    def _catch_up(self, y: float, u: np.ndarray, kind: float | None = None) -> None:
+        """Replay at most REPLAY_SLICE queued rows, then take this sample (or queue it)."""
+        self._replay(REPLAY_SLICE)
+        if not self._queue.shape[0]:  # caught up: the sample is taken as any other
+            if kind == _HELD:
+                self._hold_sample(y, u)
+            else:
+                self._step_sample(y, u)
+            return
+        row = np.empty((1, self._queue.shape[1]))
+        row[0, 0], row[0, 1:-1] = y, u
+        row[0, -1] = self._quiet_left if kind is None else kind
+        self._queue = np.concatenate([self._queue, row])
+
+    def _finish_catch_up(self) -> None:
+        """Replay every queued row now (the one-shot restart; the batched estimators')."""
+        while self._queue.shape[0]:
+            self._replay(self._queue.shape[0])
+
+    def restart_regressor(self) -> None:
+        """Forget the sample history (after a gap); during a catch-up, after the queued rows."""
+        if self._queue.shape[0]:
+            row = np.zeros((1, self._queue.shape[1]))
+            row[0, -1] = _GAP
+            self._queue = np.concatenate([self._queue, row])
+            return
+        super().restart_regressor()
+
+    def reset(self) -> None:
+        """Return to the state right after construction (no rows queued)."""
+        self._clear_queue()
+        super().reset()
+
+    def _clear_queue(self) -> None:
+        self._queue = np.zeros((0, 2 + self.num_inputs))  # [y, u, quiet count or _GAP/_HELD]
+        self._restart_left = 0
+        self._restart_note = ''
+        self._replay_own = self._fresh_replay_own()
+        self._shown: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def _fresh_replay_own(self) -> dict[str, Any]:
+        """Return the replay's own values of an estimator with no restart under way."""
+        return {'flags': {}, '_updates': 0, '_seen': 0,
+                '_recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs)),
+                '_change_note': '', '_reasons': (), '_next_check': 0}
+
+    def _replay(self, limit: int) -> None:
+        """
+        Replay at most ``limit`` queued rows, oldest first, and at most one validity decision.
+
+        The restart's rows run with the replay's own counters, flags and
+        reasons swapped in, as the one-shot replay ran (quiet, warnings
+        silenced); the row after them (``_END``) sets the change's reason and
+        decides the validity, as after it. The rows queued behind are the
+        updates' own samples, taken as they would have been (a detection
+        among them restarts again, its rows ahead of the rest). A validity
+        decision costs as much as some 60 rows (bcrls: the residual tests and
+        the simulation check, about 2-3 ms here), so a row that made one ends
+        the slice. Refused rows do not count in the refusals the operating
+        point follows: its means took the samples when they came.
+        """
+        refused, quiet, checks = self._refused, self._quiet_left, self._checks
+        shown, self._shown = self._shown, None  # (the rows see the estimate they make)
+        done = 0
         with np.errstate(all='ignore'):
-            for row in rows:
-                self._update(float(row[0]), row[1:])
-        self.flags = flags
-        self._quiet_left = quiet
-        self._recent = recent  # the replay remembered its rows again, in the new ring
-        self._updates, self._seen = updates, seen
-        self._change_note = f'plant changed (sample {first})'
-        self._check_validity()
+            # (two rows at least: the queue shrinks even if each row decides, an outlier's)
+            while done < limit and self._queue.shape[0] and (
+                    self._checks == checks or done < 2):
+                if self._restart_left:
+                    done += self._replay_restart_rows(limit - done, checks, done)
+                    continue
+                row = self._queue[0]
+                self._queue = self._queue[1:]
+                self._replay_queued_row(row)
+                done += 1
+        self._refused, self._quiet_left = refused, quiet
+        if not self._queue.shape[0]:
+            self._shown = None
+        elif self._shown is None:  # (else a detection among the rows showed its own)
+            self._shown = shown
+
+    def _replay_restart_rows(self, limit: int, checks: int, done: int) -> int:
+        """Replay at most ``limit`` of the restart's rows (to a validity decision); count them."""
+        self._swap_replay_own()
+        self._quiet_left = 0
+        start = done
+        while done - start < limit and self._restart_left and (
+                self._checks == checks or done < 2):
+            row = self._queue[0]
+            self._queue = self._queue[1:]
+            self._restart_left -= 1
+            self._step_sample(float(row[0]), row[1:-1])
+            done += 1
+        self._swap_replay_own()
+        return done - start
+
+    def _swap_replay_own(self) -> None:
+        own = self._replay_own
+        for name in _REPLAY_OWN:
+            own[name], value = getattr(self, name), own[name]
+            setattr(self, name, value)
+
+    def _replay_queued_row(self, row: np.ndarray) -> None:
+        """Take a queued row after the restart's: its end, or an update's sample, gap or hold."""
+        y, u, kind = float(row[0]), row[1:-1], float(row[-1])
+        if kind == _END:
+            # the replay's end: its counters, flags and ring gone (_REPLAY_OWN), its reasons
+            # replaced by the change's until the new estimate passes its checks
+            self._change_note = self._restart_note
+            self._check_validity()
+        elif kind == _GAP:
+            self._restart_regressor()
+        elif kind == _HELD:
+            self._hold_sample(y, u)
+        else:
+            self._quiet_left = int(kind)
+            self._step_sample(y, u)
+
+    @property
+    def catching_up(self) -> int:
+        """Count the rows still queued after a detected change (0: caught up)."""
+        return int(self._queue.shape[0])
+
+    @property
+    def valid(self) -> bool:
+        """:attr:`RecursiveEstimator.valid`, and false while a restart's rows are queued."""
+        return not self._queue.shape[0] and super().valid
+
+    @property
+    def validity_reasons(self) -> tuple[str, ...]:
+        """Return why the estimate is not trustworthy now; the change's first while catching up."""
+        reasons = super().validity_reasons
+        if self._queue.shape[0] and self._restart_note not in reasons:
+            return (self._restart_note,) + tuple(reasons)
+        return reasons
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
@@ -414,6 +605,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         The growth test's memory moves on after the decision.
         """
         self._next_check = self._updates + rules.VALIDITY_PERIOD
+        self._checks += 1  # (not state: a replay's slice ends at a decision)
         with np.errstate(all='ignore'):
             power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
             own = rules.unstable_models(self._theta()[None, :self.order], power,
@@ -468,12 +660,14 @@ class Rls(LsAccessors, RecursiveEstimator):
         return self._hac.covariance(self._p)
 
     def _theta(self) -> np.ndarray:
-        return self._theta_ls
+        return self._theta_ls if self._shown is None else self._shown[0]
 
     def _theta_uncompensated(self) -> np.ndarray:
-        return self._theta_ls
+        return self._theta_ls if self._shown is None else self._shown[1]
 
     def _noise(self) -> np.ndarray:
+        if self._shown is not None:
+            return self._shown[2]
         return np.array([self._loss / self._tau if self._tau > 0 else 0.0])
 
     # -------------------------------------------------------------- the state
@@ -527,15 +721,57 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'seen': self._seen, 'change_note': self._change_note}
         residual_arrays, residual_scalars = residual_items(
             self._monitor.get_state(), None if self._hac is None else self._hac.get_state())
+        replay_arrays, replay_scalars = self._replay_items()
         return ({**arrays, **residual_arrays, **self._detector.get_state(),
-                 'recent': self._recent}, {**scalars, **residual_scalars})
+                 'recent': self._recent, **replay_arrays},
+                {**scalars, **residual_scalars, **replay_scalars})
+
+    def _replay_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Return the queued rows (in a fixed-size array) and the replay's own values."""
+        arrays, scalars = caught_up_items(self.num_inputs, self.num_parameters,
+                                          len(self.noise_names))
+        if not self._queue.shape[0]:  # (what the last replay left is never read again)
+            return arrays, scalars
+        arrays['replay_queue'][:self._queue.shape[0]] = self._queue
+        own = self._replay_own
+        arrays.update(shown_theta=self._shown[0], shown_theta_uncompensated=self._shown[1],
+                      shown_noise=self._shown[2])
+        scalars.update(
+            replay_queued=self._queue.shape[0], restart_left=self._restart_left,
+            restart_note=self._restart_note, replay_flags=dict(own['flags']),
+            replay_updates=own['_updates'], replay_seen=own['_seen'],
+            replay_change_note=own['_change_note'], replay_reasons=own['_reasons'],
+            replay_next_check=own['_next_check'])
+        return arrays, scalars
+
+    def _load_replay(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
+        """Take the queued rows and the replay's own values of a snapshot (none: caught up)."""
+        self._clear_queue()
+        queued = int(scalars.get('replay_queued', 0))
+        if not queued:
+            return
+        self._queue = np.array(arrays['replay_queue'][:queued], dtype=float)
+        self._restart_left = int(scalars['restart_left'])
+        self._restart_note = str(scalars['restart_note'])
+        self._replay_own = {
+            'flags': dict(scalars['replay_flags']), '_updates': int(scalars['replay_updates']),
+            '_seen': int(scalars['replay_seen']),
+            # (the ring the replay remembers its rows in is never read: not kept)
+            '_recent': np.zeros((RESTART_SPAN, 1 + self.num_inputs)),
+            '_change_note': str(scalars['replay_change_note']),
+            '_reasons': tuple(scalars['replay_reasons']),
+            '_next_check': int(scalars['replay_next_check'])}
+        self._shown = tuple(np.array(arrays[key], dtype=float) for key in (
+            'shown_theta', 'shown_theta_uncompensated', 'shown_noise'))
 
     def set_state(self, state: Any) -> None:
         """Restore a :meth:`get_state` snapshot; one from before the detector loads too."""
         own, _ = self._state_items()
         arrays = with_detector_arrays(state.arrays, own)
-        if 'recent' not in arrays:
-            arrays = {**arrays, 'recent': np.zeros_like(own['recent'])}
+        for key in ('recent', 'replay_queue', 'shown_theta',
+                    'shown_theta_uncompensated', 'shown_noise'):  # (older snapshots: none)
+            if key not in arrays:
+                arrays = {**arrays, key: np.zeros_like(own[key])}
         super().set_state(dataclasses.replace(state, arrays=arrays))
 
     def _load_state(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
@@ -557,11 +793,24 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._seen = int(scalars.get('seen', 0))
         self._change_note = str(scalars.get('change_note', ''))
         self._recent[:] = arrays['recent']
+        self._load_replay(arrays, scalars)
         self._detector.set_state(arrays)
         monitor, hac = residual_states(arrays, scalars)
         self._monitor.set_state(monitor)
         if self._hac is not None:
             self._hac.set_state(hac)
+
+
+def caught_up_items(num_inputs: int, num_parameters: int, noises: int,
+                    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Return the snapshot items of a restart's replay of an estimator with no rows queued."""
+    return {'replay_queue': np.zeros((QUEUE_ROWS, 2 + num_inputs)),
+            'shown_theta': np.zeros(num_parameters),
+            'shown_theta_uncompensated': np.zeros(num_parameters),
+            'shown_noise': np.zeros(noises)}, {
+        'replay_queued': 0, 'restart_left': 0, 'restart_note': '', 'replay_flags': {},
+        'replay_updates': 0, 'replay_seen': 0, 'replay_change_note': '', 'replay_reasons': (),
+        'replay_next_check': 0}
 
 
 def ls_batch(y: np.ndarray, u: np.ndarray, *, order: int, num_inputs: int = 1,
