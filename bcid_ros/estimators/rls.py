@@ -468,18 +468,14 @@ class Rls(LsAccessors, RecursiveEstimator):
         """Count the rows still queued after a detected change (0: caught up)."""
         return int(self._queue.shape[0])
 
-    @property
-    def valid(self) -> bool:
-        """:attr:`RecursiveEstimator.valid`, and false while a restart's rows are queued."""
-        return not self._queue.shape[0] and super().valid
+    #: Not valid while a restart's rows are queued (:meth:`_live_reasons`).
+    _LIVE_REASONS = True
 
-    @property
-    def validity_reasons(self) -> tuple[str, ...]:
-        """Return why the estimate is not trustworthy now; the change's first while catching up."""
-        reasons = super().validity_reasons
-        if self._queue.shape[0] and self._restart_note not in reasons:
-            return (self._restart_note,) + tuple(reasons)
-        return reasons
+    def _live_reasons(self) -> tuple[str, ...]:
+        """Return the change's reason while its rows are still queued, where not decided yet."""
+        if self._queue.shape[0] and self._restart_note not in self._reasons:
+            return (self._restart_note,)
+        return ()
 
     def _ls_step(self, y: float, phi: np.ndarray) -> bool:
         """Do the RLS step (47)-(50) on a ready regressor ``phi``; return whether it did."""
