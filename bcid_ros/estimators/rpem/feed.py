@@ -77,6 +77,11 @@ class FitModelFeed:
         self._history.set_prediction(yn, prediction, self._theta)
         return yn - prediction
 
+    @property
+    def theta(self) -> np.ndarray:
+        """Return the fit's theta it holds (normalised; zeros before a fit). Do not change it."""
+        return self._theta
+
     def refused(self) -> None:
         """Take the last sample as refused: ARMAX's residual lag becomes 0 (OE needs no y)."""
         if self._history.residual_lags and self._prediction is not None:

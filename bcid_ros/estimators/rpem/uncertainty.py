@@ -38,6 +38,10 @@ computed as :math:`(P R)(P R)^T`: the information behind :math:`P_f^{-1}` spans
 ten and more decades on a slow plant, and the product P E P lost them twice,
 where P R loses them once (:func:`carried_excess`).
 
+**Between fits.** The recursion's estimate leaves its fit (on a slow plant its error was
+1.6-1.9 times a batch fit's of the same samples, 150-280 samples after its fit): the move
+since the fit, d, joins the sandwich as d d^T (:func:`whole_covariance`).
+
 **Ends the data cannot tell apart.** The sandwich is the curvature at the
 estimate. On a plant whose data determine its response but not its
 parameters (an input that barely excites a fast pole, poles near 1), the loss
@@ -80,7 +84,8 @@ UNRESOLVED_LEVEL = 0.05
 def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
                          forgetting_factor: float, count: int,
                          unscale: np.ndarray, excess: np.ndarray | None = None,
-                         decay: float = 1.0) -> np.ndarray | None:
+                         decay: float = 1.0, moved: np.ndarray | None = None
+                         ) -> np.ndarray | None:
     """
     Return the covariance of the first ``count`` parameters in the units of theta, or None.
 
@@ -104,6 +109,9 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
         not known): no covariance.
     decay : float
         The weight the last fit's samples keep now: lambda^k after k steps.
+    moved : numpy.ndarray, shape ``(q,)``, optional
+        theta_n now less the last fit's (normalised): its outer product joins the
+        sandwich (:func:`whole_covariance`).
 
     Returns
     -------
@@ -114,7 +122,7 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
     """
     if excess is not None and not np.isfinite(excess).all():
         return None  # the last fit's share is not known, nor the std
-    covariance = whole_covariance(hac, p, tau, forgetting_factor, excess, decay)
+    covariance = whole_covariance(hac, p, tau, forgetting_factor, excess, decay, moved)
     if covariance is None:
         return None
     # normalised units to theta's: theta_k s_y / s_channel(k)
@@ -122,18 +130,32 @@ def parameter_covariance(hac: HacCovariance, p: np.ndarray, tau: float,
 
 
 def whole_covariance(hac: HacCovariance, p: np.ndarray, tau: float, forgetting_factor: float,
-                     excess: np.ndarray | None, decay: float) -> np.ndarray | None:
-    """
-    Return :func:`normalised_covariance` with the last fit's initial states' share.
+                     excess: np.ndarray | None, decay: float,
+                     moved: np.ndarray | None = None) -> np.ndarray | None:
+    r"""
+    Return :func:`normalised_covariance` with the last fit's share and the move since it.
 
     decay² P E P (:func:`carried_excess`) is what the recursion carries on of the states the
     fit chose; ``excess`` None or not finite (the share not known): the HAC's alone. The
-    std (:func:`parameter_covariance`) and rpem's residual tests' parameter term take it.
+    estimate's error is the fit's plus the move :math:`d = \theta(t) - \theta_f` the
+    recursion made since: ``moved``, known, joins as d d^T (as the fit's other end does,
+    :func:`with_unresolved`). The std (:func:`parameter_covariance`) takes it; rpem's
+    residual tests' parameter term takes it without d.
+
+    Between fits the recursion's estimate leaves its fit: on the slow plant of
+    test_rpem_fitted_state.py (poles 0.98, 0.97, 0.83), over 40 seeds at 900-1600
+    samples, its error was 1.6-1.9 times the batch fit's 150-280 samples after a fit
+    (median), and beyond 2 std of a_1..a_3 in 19 % of the readings (z rms 2.4) without
+    d d^T; 5.0 % with it (z rms 0.97).
     """
     covariance = normalised_covariance(hac, p, tau, forgetting_factor)
-    if covariance is None or excess is None or not np.isfinite(excess).all():
-        return covariance
-    return covariance + decay * decay * carried_excess(p, excess)
+    if covariance is None:
+        return None
+    if excess is not None and np.isfinite(excess).all():
+        covariance = covariance + decay * decay * carried_excess(p, excess)
+    if moved is not None:
+        covariance = covariance + np.outer(moved, moved)
+    return covariance
 
 
 def carried_excess(p: np.ndarray, root: np.ndarray) -> np.ndarray:
