@@ -280,7 +280,7 @@ class BatchFit:
         estimate by their distance for nothing, and the next fits, started from it,
         stay in its basin (tracking plant (0, 5), 311 samples after its change: losses
         0.35 % apart, a statistic of 1.1 against 12.6, and the fit took the end 35 % off
-        over the one 12 % off for the next 1500 samples; docs/tracking.md, "Limits",
+        over the one 12 % off for the next 1500 samples; docs/tracking_log.md, "Limits",
         session 9). The other end still joins the covariance where it is as good
         (:attr:`FitResult.alternative`, its loss ratio then possibly below 1).
         """

@@ -61,7 +61,7 @@ LAMBDA_RATE = 0.99
 #: Not valid while the change detector's CUSUM S is at or past this share w of its threshold
 #: h: under no change S(t), the largest sum of its last k increments, is >= w h on at
 #: most exp(-w h) (Ville's inequality for the increments' likelihood ratios) =
-#: (0.8 FALSE_ALARM)^w of the samples (0.28 %; docs/tracking.md, "Valid while far off");
+#: (0.8 FALSE_ALARM)^w of the samples (0.28 %; docs/tracking.md, "What a detection does");
 #: the block-mean test's CUSUM warns at the same level w h (Rpem._live_reasons)
 CHANGE_WARNING = 0.5
 #: The floor of the gate's variance, squared (a power of two: exact)
@@ -825,7 +825,7 @@ class Rpem(RpemState, RecursiveEstimator):
         than it fitted its own (tracking plant (3, 2) with lambda 0.999, armed at 2 sqrt(tr C)
         529 % of |theta|: three false detections before its change, each 50-150 samples
         after a fit). Without forgetting the fits' windows grow, and no such detection was
-        seen (docs/tracking.md, "Limits", session 10).
+        seen (docs/tracking_log.md, "Limits", session 10).
         """
         if self._forgetting_factor >= 1.0:
             return True
