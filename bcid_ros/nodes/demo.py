@@ -241,12 +241,14 @@ def plot(monitor: Monitor, scenario: str, path: Path) -> None:
     theta = np.array([t for _, t in monitor.history])
     if monitor.truth is not None:
         deltas = [monitor.delta(t, monitor.truth_at(s)) for s, t in monitor.history]
-        top.semilogy(samples, 100 * np.array(deltas), label='compensated')
+        top.semilogy(samples, 100 * np.array(deltas), label='~/parameters')
         if monitor.history_uncompensated:
             unc_samples = np.array([s for s, _ in monitor.history_uncompensated])
             unc = [monitor.delta(t, monitor.truth_at(s))
                    for s, t in monitor.history_uncompensated]
-            top.semilogy(unc_samples, 100 * np.array(unc), label='uncompensated', alpha=0.7)
+            # the LS (or IV) estimate before compensation; rpem's: its fit's ARX least squares
+            top.semilogy(unc_samples, 100 * np.array(unc), label='~/parameters_uncompensated',
+                         alpha=0.7)
         top.legend()
     top.set_ylabel('delta (%)')
     top.set_title(f'bcid demo: {scenario}')
