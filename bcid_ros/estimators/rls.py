@@ -746,8 +746,14 @@ class Rls(LsAccessors, RecursiveEstimator):
         queued = int(scalars.get('replay_queued', 0))
         if not queued:
             return
+        restart_left = int(scalars['restart_left'])
+        if not (restart_left < queued <= arrays['replay_queue'].shape[0]):
+            # (the restart's rows and their end are in the queue: a snapshot that says
+            # otherwise would stop the replay at its first slice)
+            raise ValueError(f'the restart replay state is inconsistent: {queued} rows '
+                             f'queued, {restart_left} of them the restart\'s')
         self._queue = np.array(arrays['replay_queue'][:queued], dtype=float)
-        self._restart_left = int(scalars['restart_left'])
+        self._restart_left = restart_left
         self._restart_note = str(scalars['restart_note'])
         self._replay_own = {
             'flags': dict(scalars['replay_flags']), '_updates': int(scalars['replay_updates']),

@@ -1,5 +1,6 @@
 """The restart after a detected plant change, its replay spread over the updates (rls, bcrls)."""
 
+import dataclasses
 import types
 
 import numpy as np
@@ -176,3 +177,15 @@ def test_a_gap_held_samples_and_blocks_during_the_catch_up_keep_their_place_amon
         estimator.update_block(np.column_stack([y[t + 5:t + 100], u[t + 5:t + 100]]))
     assert not spread.catching_up
     same_state(one_shot.get_state(), spread.get_state())
+
+
+def test_an_inconsistent_replay_snapshot_is_refused():
+    """A snapshot whose queue cannot hold the restart's rows and their end is refused, not run."""
+    estimator, _, _, _ = to_detection(*CASES[0])
+    state = estimator.get_state()
+    queued = state.scalars['replay_queued']
+    assert queued > state.scalars['restart_left'] > 0  # mid-catch-up, as written
+    for bad in ({'restart_left': queued}, {'replay_queued': 10 ** 6}):
+        twin = make_estimator('rls', order=2)
+        with pytest.raises(ValueError, match='restart replay state'):
+            twin.set_state(dataclasses.replace(state, scalars={**state.scalars, **bad}))
