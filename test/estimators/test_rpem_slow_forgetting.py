@@ -129,12 +129,14 @@ def test_under_forgetting_the_output_lags_follow_the_step_along_psi(settings, fo
     checked = 0
     for t in range(1000, 1500):
         before, fits = estimator._theta_n.copy(), estimator.fits
+        returns = estimator.flags.get('returned_to_fit', 0)
         lags = -history.history[[(history.position - k) % rows for k in (1, 2)], 0]
         psi_lags = predictor.psi_history[:2].copy()
         estimator.update(y[t], u[t])
         step = estimator._theta_n - before
-        if not step.any() or estimator.fits != fits:
-            continue  # a step the projection did not take, or a fit handed over its lags
+        if not step.any() or estimator.fits != fits or (
+                estimator.flags.get('returned_to_fit', 0) != returns):
+            continue  # a step the projection did not take, or a fit's lags taken (back)
         phi, psi = taken[-1]
         newest, older = -history.history[[(history.position - k) % rows for k in (1, 2)], 0]
         if follows:
