@@ -379,8 +379,9 @@ class Rpem(RpemState, RecursiveEstimator):
             # estimate moves between fits), and a refit of the stored samples restarts it
             if self._left_fit.record(e / math.sqrt(s)):
                 self._restart('the recursion left its fit')
-        if fed is not None and self._paired.record(e, fed, self._loss / self._tau
-                                                  + _VARIANCE_FLOOR2):
+        # (after a fit only: before the first the feed's model is zero)
+        if self._fitted and fed is not None and self._paired.record(
+                e, fed, self._loss / self._tau + _VARIANCE_FLOOR2):
             # the recursion predicts the samples since the hand-off worse than the fit's
             # model does, beyond the paired test's bound: back to the fit (feed.py), at
             # every stage (the wander comes early too, before the detector runs)
