@@ -19,7 +19,7 @@ from bcid_ros.estimators.rpem.feed import PairedErrorTest, RETURN_FALSE_ALARM
 
 POLES = (0.98, 0.97, 0.83)
 #: The estimate between fits may be this many times the fits' RMS error off (RMS over the
-#: readings of SEEDS records): with the test 1.02, on main 1.68; the ratio's standard error
+#: readings of SEEDS records): with the test 1.02, without it 1.68; the ratio's standard error
 #: over the seeds (a bootstrap of the 20 records) is 0.085 with the test: 3.3 of them above.
 RATIO_LIMIT = 1.3
 SEEDS = range(20)
