@@ -162,8 +162,8 @@ class PairedErrorTest:
     alpha = ``RETURN_FALSE_ALARM`` per hand-off, at any time. rho sets the scale where the
     bound is tightest: sigma^4 (sigma^2 the recursion's J / tau), i.e. an excess of a few
     samples' noise variance with no spread of d. With coloured noise the d's are correlated,
-    V understates the spread of S, and the rate does not hold (tracking plant (5, 28), AR
-    noise at 29 dB: 12 returns in 2900 samples); a return is cheap, and block sums of d
+    V understates the spread of S, and the rate does not hold (tracking plant (5, 28),
+    coloured noise at 29 dB: 12 returns in 2900 samples); a return is cheap, and block sums of d
     would restore it (docs/estimators.md, "Back to the fit").
     """
 
