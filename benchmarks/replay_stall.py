@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from benchmarks.tracking import MODELS, TrackingCase
+from bcid_ros.blas_threads import single_threaded_blas
 from bcid_ros.estimators import make_batched_estimator, make_estimator
 
 #: A detection's update and the next ones, over which its replay's cost is counted.
@@ -95,6 +96,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--estimators', default='rls,bcrls')
     parser.add_argument('--batched', type=int, default=0, help='plants of a batched run')
     args = parser.parse_args(argv)
+    with single_threaded_blas():  # as in a node (docs/nodes.md, "One BLAS thread")
+        run(args)
+    return 0
+
+
+def run(args: argparse.Namespace) -> None:
+    """Print the figures of every seed and estimator ``args`` names."""
     for seed in (int(s) for s in args.seeds.split(',')):
         for name in args.estimators.split(','):
             cases = [TrackingCase((seed, k), MODELS[name]) for k in range(args.count)]
@@ -108,7 +116,6 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             runs = [(f'({seed},{k})', *single_run(case, name)) for k, case in enumerate(cases)]
             report(f'seed {seed} {name}', runs)
-    return 0
 
 
 if __name__ == '__main__':
