@@ -32,6 +32,12 @@ OK, WARN, ERROR = 0, 1, 2
 DIAGNOSTICS_QOS = QoSProfile(depth=10)
 
 
+#: Flags that count a routine event, not a problem: /diagnostics shows their counts but does
+#: not warn when they rise (rpem's return to its fit comes every few hundred samples on
+#: coloured noise, by design: docs/estimators.md, "Back to the fit").
+ROUTINE_FLAGS = frozenset({'returned_to_fit'})
+
+
 def format_value(value: object) -> str:
     """Return a diagnostic value as text: floats with 6 significant digits."""
     if isinstance(value, bool):
@@ -236,7 +242,7 @@ class EstimatorTask:
         estimator = self._estimator
         flags = dict(estimator.flags)
         raised = [name for name, count in flags.items()
-                  if count != self._last_flags.get(name, 0)]
+                  if count != self._last_flags.get(name, 0) and name not in ROUTINE_FLAGS]
         self._last_flags = flags
         trace = estimator.covariance_trace
         status.add(Key.ESTIMATOR, self._name)
@@ -270,4 +276,4 @@ class EstimatorTask:
 
 
 __all__ = ['CounterTask', 'DiagnosticsUpdater', 'ERROR', 'EstimatorTask', 'OK',
-           'SampleRateTask', 'Status', 'Task', 'WARN', 'format_value']
+           'ROUTINE_FLAGS', 'SampleRateTask', 'Status', 'Task', 'WARN', 'format_value']

@@ -104,6 +104,11 @@ def test_estimator_task_warns_on_raised_flags_and_says_when_filling():
     assert values[DiagnosticKey.PUBLISH_PERIOD] == 5
     status = run(task)
     assert (status.level, status.message) == (OK, '')
+    # a routine event is counted, not warned about
+    estimator.flags = {'windup_limited': 1, 'returned_to_fit': 3}
+    status = run(task)
+    assert (status.level, status.message) == (OK, '')
+    assert status.as_dict()[DiagnosticKey.FLAG + 'returned_to_fit'] == 3
 
 
 def test_rate_task_measures_over_the_period_and_warns_without_samples():
