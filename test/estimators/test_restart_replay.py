@@ -5,7 +5,7 @@ import types
 
 import numpy as np
 import pytest
-from test_tracking import changing_plant
+from test_tracking import changing_plant, run as feed
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.identifier import persistence
@@ -50,15 +50,6 @@ def copy_of(estimator, name, path=None):
     persistence.check_values(section, persistence.estimator_section(twin), 'estimator')
     persistence.restore_estimator(twin, section)
     return twin
-
-
-def feed(estimator, y, u):
-    """Feed every sample; return valid and the reasons after each."""
-    valid, reasons = [], []
-    for t in range(y.shape[0]):
-        valid.append(estimator.update(y[t], u[t]))
-        reasons.append(estimator.validity_reasons)
-    return np.array(valid), reasons
 
 
 def one_shot_restart(self, age):

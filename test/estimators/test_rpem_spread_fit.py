@@ -28,6 +28,16 @@ def fit_samples(estimator, y, u):
     return counts
 
 
+def run_to_a_fit_due(estimator, y, u, start):
+    """Feed ``start`` samples, then on to the first whose update starts a fit; return the next."""
+    estimator.run(y[:start], u[:start])
+    t = start
+    while estimator._store.job is None or estimator._store.job.done:
+        estimator.update(y[t], u[t])
+        t += 1
+    return t
+
+
 def logged_passes(monkeypatch):
     """Return a list that gets, per update with a fit on its way, the costs of its passes."""
     updates = []
@@ -90,11 +100,7 @@ def test_a_snapshot_at_any_pass_of_a_fit_continues_bit_for_bit():
     # and the hand-off: a restored job runs them again to the same point
     y, u = oe_data(5, count=3000)
     estimator = make_estimator('rpem', order=2, forgetting_factor=0.999)
-    estimator.run(y[:2000], u[:2000])
-    t = 2000
-    while estimator._store.job is None or estimator._store.job.done:  # a fit just due
-        estimator.update(y[t], u[t])
-        t += 1
+    t = run_to_a_fit_due(estimator, y, u, 2000)
     job = estimator._store.job
     snapshots = []
     while estimator._store.job is job:
@@ -119,11 +125,7 @@ def test_a_live_forgetting_factor_reaches_the_hac_a_fit_hands_over():
     # with, as it reaches the one it replaces
     y, u = oe_data(6, count=3000)
     estimator = make_estimator('rpem', order=2, forgetting_factor=0.999)
-    estimator.run(y[:2000], u[:2000])
-    t = 2000
-    while estimator._store.job is None or estimator._store.job.done:  # a fit just due
-        estimator.update(y[t], u[t])
-        t += 1
+    t = run_to_a_fit_due(estimator, y, u, 2000)
     fits = estimator.fits
     estimator.forgetting_factor = 0.995
     while estimator.fits == fits:
