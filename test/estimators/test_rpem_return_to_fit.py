@@ -12,12 +12,11 @@ test of the two models' squared errors since the hand-off
 import math
 
 import numpy as np
-from scipy import signal
+from test_rpem_fitted_state import POLES, slow_plant
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.rpem.feed import PairedErrorTest, RETURN_FALSE_ALARM
 
-POLES = (0.98, 0.97, 0.83)
 #: The estimate between fits may be this many times the fits' RMS error off (RMS over the
 #: readings of SEEDS records): with the test 1.02, without it 1.68; the ratio's standard error
 #: over the seeds (a bootstrap of the 20 records) is 0.085 with the test: 3.3 of them above.
@@ -25,20 +24,9 @@ RATIO_LIMIT = 1.3
 SEEDS = range(20)
 
 
-def slow_plant(seed, count=3000):
-    """Return (y, u, truth): the plant of the module's docstring, white input, 20 dB."""
-    a = np.real(np.poly(POLES))
-    b = np.array([1.0, -0.5, 0.2]) * 1e-3
-    rng = np.random.default_rng(seed)
-    u = rng.standard_normal(count)
-    x = signal.lfilter(np.r_[0.0, b], a, u)
-    y = x + 0.1 * x.std() * rng.standard_normal(count)
-    return y, u, np.r_[a[1:], b]
-
-
 def errors_between_fits(seed):
     """Return the recursion's and its last fit's relative errors, every 50 samples >= 50 after."""
-    y, u, truth = slow_plant(seed)
+    y, u, truth = slow_plant(seed, 3000)
     estimator = make_estimator('rpem', order=len(POLES))
     size = len(truth)
     fits, fitted_at, rows = 0, 0, []
