@@ -2,60 +2,78 @@
 The nodes' console scripts: each imports its node only when it runs.
 
 A SIGINT while a node's modules are still loading (rclpy, numpy: a second on a
-busy machine) would otherwise end in a traceback from the import machinery; here
-it ends quietly, as a SIGINT while the node spins does.
+busy machine) would otherwise end in a traceback from the import machinery, in
+another error a C extension made of it, or nowhere (a library swallowed it, and
+the node spun on). Here it is only noted while they load, and the script then
+ends quietly, as a SIGINT while the node spins does.
 """
 
-from types import TracebackType
+from collections.abc import Callable
 
-from bcid_ros.interrupts import handle_interrupts_in_finalizers, interrupted
+from bcid_ros.interrupts import (defer_sigints, handle_interrupts_in_finalizers,
+                                 interrupt_on_sigints, interrupted, sigint_noted)
 
 
-class _Loading:
+def _load_and_run(load: Callable[[], Callable[[], int]]) -> int:
     """
-    A ``with`` block around a node's import that ends quietly on a SIGINT.
+    Import a node's ``main`` with SIGINT deferred, then run it; 0 if interrupted.
 
-    :attr:`done` says whether the import finished. A SIGINT inside a C
-    extension's initialisation (rclpy's pybind11 module) comes out as
-    ``ImportError: initialization failed`` with the interrupt as its cause:
-    that is taken as the interrupt too; any other error goes on.
+    An error while loading, with a SIGINT noted, is taken as the interrupt; so is
+    a KeyboardInterrupt with any error on top of it (rclpy's pybind11 module makes
+    ``ImportError: initialization failed`` of one). Any other error goes on.
     """
+    try:
+        defer_sigints()
+        main = load()
+        if sigint_noted():
+            return 0
+        # raised again from here: run_node catches it, and, from rclpy.init on,
+        # rclpy's handler shuts the context down first; a SIGINT noted but not raised
+        # (it came just before this line) stops run_node right after rclpy.init
+        interrupt_on_sigints()
+        handle_interrupts_in_finalizers(deliver_again=False)
+        return main()
+    except BaseException as error:
+        if interrupted(error) or sigint_noted():
+            return 0
+        raise
 
-    done = False
 
-    def __enter__(self) -> '_Loading':
-        handle_interrupts_in_finalizers(deliver_again=True)   # no rclpy handler yet
-        return self
+def _identifier_main() -> Callable[[], int]:
+    from bcid_ros.nodes.identifier_node import main
+    return main
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
-                 traceback: TracebackType | None) -> bool:
-        self.done = error is None
-        return interrupted(error)
+
+def _identifier_lifecycle_main() -> Callable[[], int]:
+    from bcid_ros.nodes.identifier_lifecycle_node import main
+    return main
+
+
+def _simulator_main() -> Callable[[], int]:
+    from bcid_ros.nodes.simulator_node import main
+    return main
+
+
+def _adaptive_controller_main() -> Callable[[], int]:
+    from bcid_ros.nodes.adaptive_controller_node import main
+    return main
 
 
 def identifier_node() -> int:
     """Run ``identifier_node``."""
-    with _Loading() as loading:
-        from bcid_ros.nodes.identifier_node import main
-    return main() if loading.done else 0
+    return _load_and_run(_identifier_main)
 
 
 def identifier_lifecycle_node() -> int:
     """Run ``identifier_lifecycle_node``."""
-    with _Loading() as loading:
-        from bcid_ros.nodes.identifier_lifecycle_node import main
-    return main() if loading.done else 0
+    return _load_and_run(_identifier_lifecycle_main)
 
 
 def simulator_node() -> int:
     """Run ``simulator_node``."""
-    with _Loading() as loading:
-        from bcid_ros.nodes.simulator_node import main
-    return main() if loading.done else 0
+    return _load_and_run(_simulator_main)
 
 
 def adaptive_controller_node() -> int:
     """Run ``adaptive_controller_node``."""
-    with _Loading() as loading:
-        from bcid_ros.nodes.adaptive_controller_node import main
-    return main() if loading.done else 0
+    return _load_and_run(_adaptive_controller_main)

@@ -8,11 +8,19 @@ if no signal had come. A node still stops, since rclpy's own signal handler has
 shut its context down; a ``bcid`` command, whose contexts have no rclpy handler,
 would not. :func:`handle_interrupts_in_finalizers` prints nothing in both cases
 and, for the second, raises the interrupt again in the main thread.
+
+While a node's modules load, before rclpy installs its handler, a library can
+swallow the interrupt too: a C extension's import turns it into another
+ImportError (numpy's "could not import module datetime"), or drops it and loads
+on, and the node then spins with no signal left to stop it. So a node's console
+script defers SIGINT while it loads (:func:`defer_sigints`): the signal is only
+noted, and :func:`sigint_noted` tells the script to end once loaded.
 """
 
 from __future__ import annotations
 
 import _thread
+import signal
 import sys
 import time
 from typing import Any
@@ -70,3 +78,39 @@ def handle_interrupts_in_finalizers(*, deliver_again: bool) -> None:
     if sys.unraisablehook is not _on_unraisable:
         _previous_hook = sys.unraisablehook
         sys.unraisablehook = _on_unraisable
+
+
+_sigint_noted = False
+
+
+def _note(signum: int, frame: Any) -> None:
+    global _sigint_noted
+    _sigint_noted = True
+
+
+def _note_and_interrupt(signum: int, frame: Any) -> None:
+    _note(signum, frame)
+    signal.default_int_handler(signum, frame)
+
+
+def defer_sigints() -> None:
+    """
+    From now on a SIGINT is only noted: no KeyboardInterrupt, see :func:`sigint_noted`.
+
+    Leaves SIGINT alone where it is not Python's default (ignored, as in a
+    background job, or someone else's handler).
+    """
+    previous = signal.signal(signal.SIGINT, _note)
+    if previous is not signal.default_int_handler:
+        signal.signal(signal.SIGINT, previous)
+
+
+def interrupt_on_sigints() -> None:
+    """Undo :func:`defer_sigints`: a SIGINT raises KeyboardInterrupt again (and is noted)."""
+    if signal.getsignal(signal.SIGINT) is _note:
+        signal.signal(signal.SIGINT, _note_and_interrupt)
+
+
+def sigint_noted() -> bool:
+    """Return whether a SIGINT came since :func:`defer_sigints`."""
+    return _sigint_noted

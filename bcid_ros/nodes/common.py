@@ -24,7 +24,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 from bcid_ros.blas_threads import set_one_blas_thread
-from bcid_ros.interrupts import handle_interrupts_in_finalizers
+from bcid_ros.interrupts import handle_interrupts_in_finalizers, sigint_noted
 from bcid_ros.parameter_spec import ParameterSpec
 
 #: Sample topics: reliable and volatile, deep enough for bursts of 1 kHz data.
@@ -331,16 +331,19 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
     if help_requested(argv):
         print(help_text or f'usage: {program} [--ros-args ...]')
         return 0
+    executor = node = None
     try:
         rclpy.init(args=argv if argv is not None else sys.argv)
     except KeyboardInterrupt:  # SIGINT while starting: stop quietly, as while spinning
         rclpy.try_shutdown()
         return 0
-    # from here rclpy's signal handler shuts the context down on SIGINT
-    handle_interrupts_in_finalizers(deliver_again=False)
-    executor = SingleThreadedExecutor()
-    node = None
     try:
+        # from here rclpy's signal handler shuts the context down on SIGINT; one before
+        # may have been swallowed while the node's modules loaded (entry_points)
+        if sigint_noted():
+            return 0
+        handle_interrupts_in_finalizers(deliver_again=False)
+        executor = SingleThreadedExecutor()
         node = factory()
         # one BLAS thread (the libraries the node has loaded by now): its matrices are
         # small, and OpenBLAS's threads, waiting for each other on busy cores, made one
@@ -366,6 +369,7 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
         if node is not None:
             executor.remove_node(node)
             node.destroy_node()
-        executor.shutdown()
+        if executor is not None:
+            executor.shutdown()
         rclpy.try_shutdown()
     return 0
