@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from bcid_ros.estimators.hac import long_run_covariance, MAX_LAG
 from bcid_ros.estimators.rpem.history import PredictorHistory
 
 
@@ -140,6 +141,42 @@ def with_feed_items(arrays: dict[str, np.ndarray], scalars: dict[str, Any],
 RETURN_FALSE_ALARM = 5e-2
 #: 2 log(1 / alpha), the bound's constant term (:meth:`PairedErrorTest.record`).
 _RETURN_LEVEL = 2.0 * math.log(1.0 / RETURN_FALSE_ALARM)
+#: The paired test's longest block (samples): the noise's long-run variance ratio is capped
+#: here (the HAC's AR(1) prewhitening caps its coefficient at 0.97: a ratio below 66).
+RETURN_BLOCK_CAP = 64
+#: The paired test's block length B: B - 1 is this many times the noise's long-run variance
+#: ratio less 1 (:func:`block_length`). With 1 (B the ratio), on held tracking plants with
+#: coloured noise the test crossed on 8 % of its starts, with 2 on 5 % (docs/tracking_log.md,
+#: session 13).
+RETURN_BLOCK_SPAN = 2.0
+
+
+def block_length(residuals: np.ndarray) -> int:
+    r"""
+    Return the paired test's block length B for a fit, from its residuals' correlation.
+
+    kappa, the ratio :math:`\Omega / \gamma(0)` of the residuals' long-run variance (the
+    HAC's: AR(1)-prewhitened, the larger of that and none, Bartlett window with Andrews'
+    bandwidth; :func:`~bcid_ros.estimators.hac.long_run_covariance`) to their variance, is 1
+    for white noise and (1 + r) / (1 - r) for AR(1) noise of coefficient r; B = 1 +
+    ``RETURN_BLOCK_SPAN`` (kappa - 1), rounded: 1 for white noise, (1 + 3r) / (1 - r), about
+    four correlation times 1 / (1 - r), for AR(1). Block sums of B samples of AR(1) noise are
+    then correlated enough that their squares understate the variance of their sum 1.35
+    times (with B = kappa: 1.7 times). Capped at ``RETURN_BLOCK_CAP``; 1 for fewer than
+    4 MAX_LAG residuals (too few to tell).
+    """
+    count = len(residuals)
+    if count < 4 * MAX_LAG:
+        return 1
+    centred = np.asarray(residuals, dtype=float) - float(np.mean(residuals))
+    gamma = np.array([centred[k:].dot(centred[:count - k]) / count
+                      for k in range(MAX_LAG + 2)])
+    if not gamma[0] > 0.0:
+        return 1
+    omega, _ = long_run_covariance(gamma[None, :, None, None], float(count), 'larger',
+                                   'bartlett', None)
+    ratio = float(omega[0, 0, 0]) / gamma[0]
+    return int(min(max(round(1.0 + RETURN_BLOCK_SPAN * (ratio - 1.0)), 1), RETURN_BLOCK_CAP))
 
 
 class PairedErrorTest:
@@ -155,36 +192,68 @@ class PairedErrorTest:
     (errs.py in the session 12 notes: a-priori RMS 0.093 against the feed's 0.058).
 
     The test (a time-uniform, self-normalised bound; de la Peña 1999, Howard et al. 2021,
-    the normal mixture): with :math:`S = \sum d`, :math:`V = \sum d^2` and increments
-    conditionally symmetric about a mean <= 0, :math:`\exp(\lambda S - \lambda^2 V / 2)` is a
-    supermartingale for each lambda > 0; its mixture over a half-normal lambda of variance
-    1/rho is >= 1/alpha whenever S > 0 and
-    :math:`S^2 \ge (V + \rho)[2\log(1/\alpha) + \log((V + \rho)/\rho)]`, so by Ville's
-    inequality a recursion that did not leave its fit crosses it with probability at most
-    alpha = ``RETURN_FALSE_ALARM`` per hand-off, at any time. rho sets the scale where the
-    bound is tightest: sigma^4 (sigma^2 the recursion's J / tau), i.e. an excess of a few
-    samples' noise variance with no spread of d. With coloured noise the d's are correlated,
-    V understates the spread of S, and the rate does not hold (tracking plant (5, 28),
-    coloured noise at 29 dB: 12 returns in 2900 samples); a return is cheap, and block sums of d
-    would restore it (docs/estimators.md, "Back to the fit").
+    the normal mixture) on the sums D of d over consecutive blocks of B samples: with
+    :math:`S = \sum D`, :math:`V = \sum D^2` and block sums conditionally symmetric about a
+    mean <= 0, :math:`\exp(\lambda S - \lambda^2 V / 2)` is a supermartingale for each
+    lambda > 0; its mixture over a half-normal lambda of variance 1/rho is >= 1/alpha
+    whenever S > 0 and :math:`S^2 \ge (V + \rho)[2\log(1/\alpha) + \log((V + \rho)/\rho)]`,
+    so by Ville's inequality a recursion that did not leave its fit crosses it, at a block's
+    end, with probability at most alpha = ``RETURN_FALSE_ALARM`` per start, at any time.
+    rho sets the scale where the bound is tightest: B sigma^4 (sigma^2 the recursion's
+    J / tau), i.e. an excess of a few samples' noise variance with no spread of d.
+
+    **Blocks (batch means).** With coloured noise the d's are correlated: the sum of d's
+    squares understates the spread of S by about the noise's long-run variance ratio, and the
+    per-sample bound crossed on 12 starts in 2900 samples of a held tracking plant (5, 28),
+    coloured noise at 29 dB (docs/tracking_log.md, session 13). Block sums of B samples, B
+    from the fit's residuals (:func:`block_length`: about four correlation times of the
+    noise; 1, the per-sample test, for white noise), are close to uncorrelated, and V of
+    them measures S's spread; a block is cut short only by a new start (its samples are
+    then not tested).
     """
 
     def __init__(self) -> None:
+        self.length = 1
+        self.clear()
+
+    def prime(self, residuals: np.ndarray) -> None:
+        """Start afresh after a fit, with blocks as long as its ``residuals``' correlation."""
+        self.length = block_length(residuals)
         self.clear()
 
     def clear(self) -> None:
         """Start afresh (a hand-off, a return to the fit)."""
         self.total = 0.0
         self.squares = 0.0
+        self.block = 0.0
+        self.count = 0
 
     def record(self, recursion: float, fit: float, variance: float) -> bool:
         """Add the pair of errors; return whether the recursion predicts worse (the bound)."""
-        d = recursion * recursion - fit * fit
-        self.total += d
-        self.squares += d * d
+        self.block += recursion * recursion - fit * fit
+        self.count += 1
+        if self.count < self.length:
+            return False
+        block, self.block, self.count = self.block, 0.0, 0
+        self.total += block
+        self.squares += block * block
         if self.total <= 0.0:
             return False
-        rho = variance * variance
+        rho = self.length * variance * variance
         spread = self.squares + rho
         return self.total * self.total >= spread * (
             _RETURN_LEVEL + math.log(spread / rho))
+
+    def state_items(self) -> dict[str, Any]:
+        """Return its scalars under ``paired_`` names."""
+        return {'paired_total': self.total, 'paired_squares': self.squares,
+                'paired_block': self.block, 'paired_count': self.count,
+                'paired_length': self.length}
+
+    def load_state(self, scalars: dict[str, Any]) -> None:
+        """Take over what :meth:`state_items` made (a snapshot from before: afresh, B = 1)."""
+        self.total = float(scalars.get('paired_total', 0.0))
+        self.squares = float(scalars.get('paired_squares', 0.0))
+        self.block = float(scalars.get('paired_block', 0.0))
+        self.count = int(scalars.get('paired_count', 0))
+        self.length = int(scalars.get('paired_length', 1))

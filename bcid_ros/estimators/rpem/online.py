@@ -593,7 +593,7 @@ class Rpem(RpemState, RecursiveEstimator):
         residuals = result.residuals(segments[-1], self._armax)
         self._detector.prime(residuals)
         self._left_fit.prime(residuals)
-        self._paired.clear()
+        self._paired.prime(residuals)
         self._block_test.prime(residuals)
         # after a change, a fit of WARMUP samples starts the detector valid or not: a drift
         # goes on after its detection, and a model that blends it may never pass the tests

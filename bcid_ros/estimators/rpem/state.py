@@ -105,7 +105,7 @@ class RpemState:
                    **self._watch.state_items(), **lag_scalars, 'reasons': list(self._reasons),
                    'period_reasons': list(self._period_reasons),
                    'change_note': self._change_note, 'settled': self._settled,
-                   'paired_total': self._paired.total, 'paired_squares': self._paired.squares}
+                   **self._paired.state_items()}
         residual_arrays, residual_scalars = residual_items(self._monitor.get_state(),
                                                            self._hac.get_state())
         feed_arrays, feed_scalars = self._feed.state_items()
@@ -154,9 +154,7 @@ class RpemState:
         self._period_reasons = list(scalars.get('period_reasons', ()))
         self._change_note = str(scalars.get('change_note', ''))
         self._settled = bool(scalars.get('settled', False))
-        # (a snapshot from before the paired test: afresh)
-        self._paired.total = float(scalars.get('paired_total', 0.0))
-        self._paired.squares = float(scalars.get('paired_squares', 0.0))
+        self._paired.load_state(scalars)
         self._detector.set_state(arrays)
         self._left_fit.set_state(arrays, prefix=LEFT_FIT_PREFIX)
         self._block_test.load(arrays[BLOCK_TEST_KEY])
