@@ -39,7 +39,7 @@ setup(
             'identifier_lifecycle_node = bcid_ros.entry_points:identifier_lifecycle_node',
             'simulator_node = bcid_ros.entry_points:simulator_node',
             'adaptive_controller_node = bcid_ros.entry_points:adaptive_controller_node',
-            'bcid = bcid_ros.cli:main',
+            'bcid = bcid_ros.entry_points:bcid',
         ],
     },
 )

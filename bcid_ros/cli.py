@@ -20,7 +20,8 @@ from typing import Callable
 
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import ESTIMATOR_NAMES
-from bcid_ros.interrupts import handle_interrupts_in_finalizers
+from bcid_ros.interrupts import (defer_sigints, handle_interrupts_in_finalizers,
+                                 interrupt_on_sigints)
 from bcid_ros.simulation import SCENARIOS
 
 
@@ -252,7 +253,12 @@ def main(argv: list[str] | None = None) -> int:
     module, function = COMMANDS[args.command].handler.split(':')
     handle_interrupts_in_finalizers(deliver_again=True)
     try:
+        # a SIGINT while the command's modules load is only noted, and raised once they
+        # have: raised inside them, a C extension's import could swallow it or make
+        # another error of it (interrupts.py)
+        defer_sigints()
         handler = getattr(importlib.import_module(module), function)
+        interrupt_on_sigints()
         return int(handler(args) or 0)
     except KeyboardInterrupt:
         return 130

@@ -1,11 +1,12 @@
 """
-The nodes' console scripts: each imports its node only when it runs.
+The console scripts: the nodes' and ``bcid``; each imports its modules only when it runs.
 
 A SIGINT while a node's modules are still loading (rclpy, numpy: a second on a
 busy machine) would otherwise end in a traceback from the import machinery, in
 another error a C extension made of it, or nowhere (a library swallowed it, and
 the node spun on). Here it is only noted while they load, and the script then
-ends quietly, as a SIGINT while the node spins does.
+ends quietly, as a SIGINT while the node spins does (``bcid``: exit code 130, as
+a SIGINT while a command runs).
 """
 
 from collections.abc import Callable
@@ -14,28 +15,27 @@ from bcid_ros.interrupts import (defer_sigints, handle_interrupts_in_finalizers,
                                  interrupt_on_sigints, interrupted, sigint_noted)
 
 
-def _load_and_run(load: Callable[[], Callable[[], int]]) -> int:
+def _load_and_run(load: Callable[[], Callable[[], int]], interrupted_code: int = 0) -> int:
     """
-    Import a node's ``main`` with SIGINT deferred, then run it; 0 if interrupted.
+    Import a ``main`` with SIGINT deferred, then run it; ``interrupted_code`` if interrupted.
 
-    An error while loading, with a SIGINT noted, is taken as the interrupt; so is
-    a KeyboardInterrupt with any error on top of it (rclpy's pybind11 module makes
-    ``ImportError: initialization failed`` of one). Any other error goes on.
+    Any error with a SIGINT noted since the start is taken as the interrupt; so is
+    a KeyboardInterrupt with any error on top of it (rclpy's pybind11 module made
+    ``ImportError: initialization failed`` of one raised inside its import). Any
+    other error goes on.
     """
     try:
         defer_sigints()
         main = load()
-        if sigint_noted():
-            return 0
-        # raised again from here: run_node catches it, and, from rclpy.init on,
-        # rclpy's handler shuts the context down first; a SIGINT noted but not raised
-        # (it came just before this line) stops run_node right after rclpy.init
+        # the interrupt noted while loading, if any, raised here; from here a SIGINT
+        # raises it: run_node catches it, and from rclpy.init on rclpy's handler shuts the
+        # context down first (and run_node looks for one noted but swallowed meanwhile)
         interrupt_on_sigints()
         handle_interrupts_in_finalizers(deliver_again=False)
         return main()
     except BaseException as error:
         if interrupted(error) or sigint_noted():
-            return 0
+            return interrupted_code
         raise
 
 
@@ -77,3 +77,13 @@ def simulator_node() -> int:
 def adaptive_controller_node() -> int:
     """Run ``adaptive_controller_node``."""
     return _load_and_run(_adaptive_controller_main)
+
+
+def _bcid_main() -> Callable[[], int]:
+    from bcid_ros.cli import main
+    return main
+
+
+def bcid() -> int:
+    """Run ``bcid`` (130 if interrupted, as a command is)."""
+    return _load_and_run(_bcid_main, interrupted_code=130)

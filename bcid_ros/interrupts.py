@@ -13,8 +13,8 @@ While a node's modules load, before rclpy installs its handler, a library can
 swallow the interrupt too: a C extension's import turns it into another
 ImportError (numpy's "could not import module datetime"), or drops it and loads
 on, and the node then spins with no signal left to stop it. So a node's console
-script defers SIGINT while it loads (:func:`defer_sigints`): the signal is only
-noted, and :func:`sigint_noted` tells the script to end once loaded.
+script, and ``bcid``, defer SIGINT while they load (:func:`defer_sigints`): the
+signal is only noted, and raised once loaded (:func:`interrupt_on_sigints`).
 """
 
 from __future__ import annotations
@@ -97,18 +97,27 @@ def defer_sigints() -> None:
     """
     From now on a SIGINT is only noted: no KeyboardInterrupt, see :func:`sigint_noted`.
 
-    Leaves SIGINT alone where it is not Python's default (ignored, as in a
-    background job, or someone else's handler).
+    Leaves SIGINT alone where it is neither Python's default nor ours (ignored, as in
+    a background job, or someone else's handler).
     """
+    global _sigint_noted
+    _sigint_noted = False
     previous = signal.signal(signal.SIGINT, _note)
-    if previous is not signal.default_int_handler:
+    if previous not in (signal.default_int_handler, _note_and_interrupt):
         signal.signal(signal.SIGINT, previous)
 
 
 def interrupt_on_sigints() -> None:
-    """Undo :func:`defer_sigints`: a SIGINT raises KeyboardInterrupt again (and is noted)."""
+    """
+    Undo :func:`defer_sigints`: a SIGINT raises KeyboardInterrupt again (and is noted).
+
+    Raises KeyboardInterrupt at once if one was noted meanwhile: no moment is left
+    where a SIGINT is neither raised nor about to be.
+    """
     if signal.getsignal(signal.SIGINT) is _note:
         signal.signal(signal.SIGINT, _note_and_interrupt)
+    if _sigint_noted:
+        raise KeyboardInterrupt
 
 
 def sigint_noted() -> bool:

@@ -52,3 +52,27 @@ def test_demo_runs_the_adaptive_loop_or_a_scenario_demo(monkeypatch, scenario, m
 
     monkeypatch.setattr(importlib.import_module(module), function, lambda args: 7)
     assert cli.demo(build_parser().parse_args(['demo', '--scenario', scenario])) == 7
+
+
+def test_a_sigint_while_the_command_loads_exits_130_before_it_runs(monkeypatch):
+    # deferred while the command's modules load (a C extension's import could swallow it
+    # or make another error of it), then raised: the command does not run
+    import os
+    import signal
+    import time
+    import types
+    from bcid_ros import cli, interrupts
+    ran = []
+
+    def import_module(name):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)                      # Python runs its handler here: only noted
+        return types.SimpleNamespace(info=lambda args: ran.append(args) or 0)
+
+    monkeypatch.setattr(cli.importlib, 'import_module', import_module)
+    monkeypatch.setattr(interrupts, '_sigint_noted', False)
+    try:
+        assert cli.main(['info', 'some.bag']) == 130
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    assert not ran

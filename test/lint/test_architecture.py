@@ -26,7 +26,8 @@ LAYERS = (
     ('bag', 'control', 'reproduction'),
     ('analysis',),
     ('nodes',),
-    ('cli', 'entry_points'),
+    ('cli',),
+    ('entry_points',),
 )
 LAYER_OF = {name: rank for rank, names in enumerate(LAYERS) for name in names}
 
