@@ -22,6 +22,7 @@ from __future__ import annotations
 import _thread
 import signal
 import sys
+import threading
 import time
 from typing import Any
 
@@ -98,10 +99,13 @@ def defer_sigints() -> None:
     From now on a SIGINT is only noted: no KeyboardInterrupt, see :func:`sigint_noted`.
 
     Leaves SIGINT alone where it is neither Python's default nor ours (ignored, as in
-    a background job, or someone else's handler).
+    a background job, or someone else's handler), and off the main thread, where
+    Python takes no handler (and delivers no SIGINT).
     """
     global _sigint_noted
     _sigint_noted = False
+    if threading.current_thread() is not threading.main_thread():
+        return
     previous = signal.signal(signal.SIGINT, _note)
     if previous not in (signal.default_int_handler, _note_and_interrupt):
         signal.signal(signal.SIGINT, previous)
@@ -114,7 +118,8 @@ def interrupt_on_sigints() -> None:
     Raises KeyboardInterrupt at once if one was noted meanwhile: no moment is left
     where a SIGINT is neither raised nor about to be.
     """
-    if signal.getsignal(signal.SIGINT) is _note:
+    if (threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is _note):
         signal.signal(signal.SIGINT, _note_and_interrupt)
     if _sigint_noted:
         raise KeyboardInterrupt

@@ -338,8 +338,8 @@ def run_node(factory: Callable[..., Node], argv: list[str] | None, program: str,
         rclpy.try_shutdown()
         return 0
     try:
-        # from here rclpy's signal handler shuts the context down on SIGINT; one before
-        # may have been swallowed while the node's modules loaded (entry_points)
+        # from here rclpy's signal handler shuts the context down on SIGINT; one raised
+        # before (after entry_points loaded the node's modules) may have been swallowed
         if sigint_noted():
             return 0
         handle_interrupts_in_finalizers(deliver_again=False)

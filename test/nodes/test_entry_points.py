@@ -180,3 +180,23 @@ def test_a_deferred_sigint_is_noted_and_raised_when_undeferred(python_sigint):
     interrupts.interrupt_on_sigints()
     with pytest.raises(KeyboardInterrupt):
         _sigint_to_self()
+
+
+def test_deferring_off_the_main_thread_does_nothing_and_does_not_fail(python_sigint):
+    # Python takes SIGINT handlers on its main thread only (signal.signal raises elsewhere)
+    import threading
+    from bcid_ros import interrupts
+    errors = []
+
+    def defer_and_undo():
+        try:
+            interrupts.defer_sigints()
+            interrupts.interrupt_on_sigints()
+        except BaseException as error:   # what the thread must not raise
+            errors.append(error)
+
+    thread = threading.Thread(target=defer_and_undo)
+    thread.start()
+    thread.join()
+    assert errors == []
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
