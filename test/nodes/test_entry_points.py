@@ -70,22 +70,29 @@ def test_every_script_goes_through_entry_points():
         assert f"'{name} = bcid_ros.entry_points:{name}'" in setup
 
 
-def _sigint_to_self() -> None:
-    """Send this process a SIGINT and let Python run its handler (in this thread)."""
-    os.kill(os.getpid(), signal.SIGINT)
-    time.sleep(0.05)
+def run_fresh(code: str) -> subprocess.CompletedProcess:
+    """
+    Run ``code`` in a fresh Python with SIGINT at its default, as a script starts.
+
+    A SIGINT sent to this test process could meet what earlier tests left here (threads of
+    rclpy and DDS, other handlers): a fresh process has none of that.
+    """
+    prelude = ('import os, signal, sys, time\n'
+               'def sigint_to_self():\n'
+               '    os.kill(os.getpid(), signal.SIGINT)\n'
+               '    time.sleep(0.05)     # Python runs its handler here\n')
+    return subprocess.run([sys.executable, '-c', prelude + code], capture_output=True,
+                          text=True, cwd=ROOT, timeout=60, preexec_fn=_default_sigint)
 
 
 class _FailingImport:
-    """A meta path finder whose import of one module raises ``error``, after a SIGINT if asked."""
+    """A meta path finder whose import of one module raises ``error``."""
 
-    def __init__(self, name, error, sigint):
-        self.name, self.error, self.sigint = name, error, sigint
+    def __init__(self, name, error):
+        self.name, self.error = name, error
 
     def find_spec(self, name, path=None, target=None):
         if name == self.name:
-            if self.sigint:
-                _sigint_to_self()
             raise self.error
         return None
 
@@ -101,30 +108,26 @@ def _import_error_from_interrupt():
 
 @pytest.fixture
 def python_sigint(monkeypatch):
-    """Python's own SIGINT handler, and no SIGINT noted, again after the test."""
+    """Python's own SIGINT handler and no SIGINT noted, as a process starts; then as before."""
     from bcid_ros import interrupts
     monkeypatch.setattr(interrupts, '_sigint_noted', False)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGINT, previous)
 
 
-@pytest.mark.parametrize('error, sigint, quiet', [
-    (KeyboardInterrupt(), False, True),
+@pytest.mark.parametrize('error, quiet', [
+    (KeyboardInterrupt(), True),
     # what a SIGINT inside rclpy's pybind11 initialisation became (seen on a fresh CI
     # machine 0.08 s into the script, a traceback before this was caught)
-    (_import_error_from_interrupt(), False, True),
-    # numpy's: the interrupt inside its C import of datetime, dropped for an ImportError
-    # with no trace of it (seen here once in 300 SIGINTs 0-0.3 s into the script); with
-    # SIGINT deferred the import no longer sees it, and an error beside it is the interrupt
-    (ImportError('PyCapsule_Import could not import module "datetime"'), True, True),
-    (ImportError('a missing library'), False, False)])
+    (_import_error_from_interrupt(), True),
+    (ImportError('a missing library'), False)])
 def test_an_interrupt_while_importing_ends_quietly_and_nothing_else_does(
-        error, sigint, quiet, monkeypatch, python_sigint):
+        error, quiet, monkeypatch, python_sigint):
     from bcid_ros import entry_points
     name = 'bcid_ros.nodes.simulator_node'
     monkeypatch.delitem(sys.modules, name, raising=False)
-    monkeypatch.setattr(sys, 'meta_path',
-                        [_FailingImport(name, error, sigint), *sys.meta_path])
+    monkeypatch.setattr(sys, 'meta_path', [_FailingImport(name, error), *sys.meta_path])
     if quiet:
         assert entry_points.simulator_node() == 0
     else:
@@ -132,20 +135,33 @@ def test_an_interrupt_while_importing_ends_quietly_and_nothing_else_does(
             entry_points.simulator_node()
 
 
-def test_a_sigint_while_importing_stops_the_node_before_it_starts(
-        monkeypatch, python_sigint):
+def test_an_error_beside_a_sigint_while_importing_is_the_interrupt():
+    # numpy's: the interrupt inside its C import of datetime became an ImportError with no
+    # trace of it (seen here once in 300 SIGINTs 0-0.3 s into the script); deferred, the
+    # import no longer sees it, and an error beside one noted is taken as the interrupt
+    result = run_fresh(
+        'from bcid_ros import entry_points\n'
+        'def load():\n'
+        '    sigint_to_self()\n'
+        '    raise ImportError("PyCapsule_Import could not import module datetime")\n'
+        'entry_points._simulator_main = load\n'
+        'print(entry_points.simulator_node())\n')
+    assert result.stdout == '0\n', result.stderr
+    assert 'Traceback' not in result.stderr, result.stderr
+
+
+def test_a_sigint_while_importing_stops_the_node_before_it_starts():
     # the import finished as if no SIGINT had come (deferred, or a library dropped it):
     # the node must not start (a CI run spun 60 s with it built, no signal left to stop it)
-    from bcid_ros import entry_points
-    started = []
-
-    def load():
-        _sigint_to_self()
-        return lambda: started.append(True) or 0
-
-    monkeypatch.setattr(entry_points, '_simulator_main', load)
-    assert entry_points.simulator_node() == 0
-    assert not started
+    result = run_fresh(
+        'from bcid_ros import entry_points\n'
+        'started = []\n'
+        'def load():\n'
+        '    sigint_to_self()\n'
+        '    return lambda: started.append(True) or 0\n'
+        'entry_points._simulator_main = load\n'
+        'print(entry_points.simulator_node(), started)\n')
+    assert result.stdout == '0 []\n', result.stderr
 
 
 def test_a_sigint_noted_before_rclpy_init_stops_run_node_before_the_node(monkeypatch):
@@ -168,18 +184,26 @@ def test_deferring_sigints_keeps_an_ignored_sigint_ignored(python_sigint):
         signal.signal(signal.SIGINT, previous)
 
 
-def test_a_deferred_sigint_is_noted_and_raised_when_undeferred(python_sigint):
-    from bcid_ros import interrupts
-    interrupts.defer_sigints()
-    _sigint_to_self()                       # Python runs the handler here: no interrupt
-    assert interrupts.sigint_noted()
-    with pytest.raises(KeyboardInterrupt):  # the one noted meanwhile
-        interrupts.interrupt_on_sigints()
-    interrupts.defer_sigints()              # again in one process (a test, a second call)
-    assert not interrupts.sigint_noted()
-    interrupts.interrupt_on_sigints()
-    with pytest.raises(KeyboardInterrupt):
-        _sigint_to_self()
+def test_a_deferred_sigint_is_noted_and_raised_when_undeferred():
+    result = run_fresh(
+        'from bcid_ros import interrupts\n'
+        'interrupts.defer_sigints()\n'
+        'sigint_to_self()                        # only noted: no interrupt\n'
+        'assert interrupts.sigint_noted()\n'
+        'try:\n'
+        '    interrupts.interrupt_on_sigints()   # raises the one noted meanwhile\n'
+        '    print("not raised")\n'
+        'except KeyboardInterrupt:\n'
+        '    print("raised")\n'
+        'interrupts.defer_sigints()              # again in one process: afresh\n'
+        'assert not interrupts.sigint_noted()\n'
+        'interrupts.interrupt_on_sigints()\n'
+        'try:\n'
+        '    sigint_to_self()\n'
+        '    print("not raised")\n'
+        'except KeyboardInterrupt:\n'
+        '    print("raised")\n')
+    assert result.stdout == 'raised\nraised\n', result.stderr
 
 
 def test_deferring_off_the_main_thread_does_nothing_and_does_not_fail(python_sigint):

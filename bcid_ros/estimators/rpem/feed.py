@@ -213,6 +213,10 @@ class PairedErrorTest:
     """
 
     def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """As new: blocks of one sample (the per-sample test) until a fit primes it."""
         self.length = 1
         self.clear()
 

@@ -76,7 +76,7 @@ class RpemState:
         self._settled = False
         self._detector.clear()
         self._left_fit.clear()
-        self._paired.clear()
+        self._paired.reset()
         self._block_test.clear()
         # (phi, psi, y, u) of the step whose sample the gate is testing
         self._gating: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
