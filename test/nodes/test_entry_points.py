@@ -1,4 +1,4 @@
-"""The nodes' console scripts end quietly on a SIGINT at any moment of their start."""
+"""The console scripts (the nodes', bcid) end quietly on a SIGINT at any moment of their start."""
 
 import os
 from pathlib import Path
