@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from bcid_ros.estimators.hac import long_run_covariance, MAX_LAG
+from bcid_ros.estimators.noise_colour import autocorrelation
 from bcid_ros.estimators.rpem.history import PredictorHistory
 
 
@@ -168,14 +169,12 @@ def block_length(residuals: np.ndarray) -> int:
     count = len(residuals)
     if count < 4 * MAX_LAG:
         return 1
-    centred = np.asarray(residuals, dtype=float) - float(np.mean(residuals))
-    gamma = np.array([centred[k:].dot(centred[:count - k]) / count
-                      for k in range(MAX_LAG + 2)])
-    if not gamma[0] > 0.0:
-        return 1
-    omega, _ = long_run_covariance(gamma[None, :, None, None], float(count), 'larger',
+    # the long-run variance of the autocorrelations (gamma / gamma(0)) is kappa itself
+    correlation = np.concatenate([[1.0], autocorrelation(np.asarray(residuals, dtype=float),
+                                                         MAX_LAG + 1)])
+    omega, _ = long_run_covariance(correlation[None, :, None, None], float(count), 'larger',
                                    'bartlett', None)
-    ratio = float(omega[0, 0, 0]) / gamma[0]
+    ratio = float(omega[0, 0, 0])
     return int(min(max(round(1.0 + RETURN_BLOCK_SPAN * (ratio - 1.0)), 1), RETURN_BLOCK_CAP))
 
 
