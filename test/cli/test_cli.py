@@ -52,27 +52,3 @@ def test_demo_runs_the_adaptive_loop_or_a_scenario_demo(monkeypatch, scenario, m
 
     monkeypatch.setattr(importlib.import_module(module), function, lambda args: 7)
     assert cli.demo(build_parser().parse_args(['demo', '--scenario', scenario])) == 7
-
-
-def test_a_sigint_while_the_command_loads_exits_130_before_it_runs():
-    # deferred while the command's modules load (a C extension's import could swallow it
-    # or make another error of it), then raised: the command does not run. In a fresh
-    # process, as bcid starts: a SIGINT to the test process could meet what earlier tests
-    # left there (rclpy's and DDS's threads, other handlers)
-    import signal
-    import subprocess
-    import sys
-    code = (
-        'import os, signal, time, types\n'
-        'from bcid_ros import cli\n'
-        'ran = []\n'
-        'def import_module(name):\n'
-        '    os.kill(os.getpid(), signal.SIGINT)\n'
-        '    time.sleep(0.05)     # Python runs its handler here: only noted\n'
-        '    return types.SimpleNamespace(info=lambda args: ran.append(args) or 0)\n'
-        'cli.importlib.import_module = import_module\n'
-        'print(cli.main(["info", "some.bag"]), ran)\n')
-    result = subprocess.run(
-        [sys.executable, '-c', code], capture_output=True, text=True, timeout=60,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    assert result.stdout == '130 []\n', result.stderr

@@ -80,7 +80,13 @@ def run_fresh(code: str) -> subprocess.CompletedProcess:
     prelude = ('import os, signal, sys, time\n'
                'def sigint_to_self():\n'
                '    os.kill(os.getpid(), signal.SIGINT)\n'
-               '    time.sleep(0.05)     # Python runs its handler here\n')
+               '    time.sleep(0.05)     # Python runs its handler here\n'
+               'def raises_interrupt(step):\n'
+               '    try:\n'
+               '        step()\n'
+               '    except KeyboardInterrupt:\n'
+               '        return True\n'
+               '    return False\n')
     return subprocess.run([sys.executable, '-c', prelude + code], capture_output=True,
                           text=True, cwd=ROOT, timeout=60, preexec_fn=_default_sigint)
 
@@ -190,20 +196,27 @@ def test_a_deferred_sigint_is_noted_and_raised_when_undeferred():
         'interrupts.defer_sigints()\n'
         'sigint_to_self()                        # only noted: no interrupt\n'
         'assert interrupts.sigint_noted()\n'
-        'try:\n'
-        '    interrupts.interrupt_on_sigints()   # raises the one noted meanwhile\n'
-        '    print("not raised")\n'
-        'except KeyboardInterrupt:\n'
-        '    print("raised")\n'
+        'print(raises_interrupt(interrupts.interrupt_on_sigints))  # the one noted\n'
         'interrupts.defer_sigints()              # again in one process: afresh\n'
         'assert not interrupts.sigint_noted()\n'
         'interrupts.interrupt_on_sigints()\n'
-        'try:\n'
+        'print(raises_interrupt(sigint_to_self))\n')
+    assert result.stdout == 'True\nTrue\n', result.stderr
+
+
+def test_a_sigint_while_the_command_loads_exits_130_before_it_runs():
+    # bcid's own deferral, around its command's module: raised once loaded, the command
+    # does not run
+    result = run_fresh(
+        'import types\n'
+        'from bcid_ros import cli\n'
+        'ran = []\n'
+        'def import_module(name):\n'
         '    sigint_to_self()\n'
-        '    print("not raised")\n'
-        'except KeyboardInterrupt:\n'
-        '    print("raised")\n')
-    assert result.stdout == 'raised\nraised\n', result.stderr
+        '    return types.SimpleNamespace(info=lambda args: ran.append(args) or 0)\n'
+        'cli.importlib.import_module = import_module\n'
+        'print(cli.main(["info", "some.bag"]), ran)\n')
+    assert result.stdout == '130 []\n', result.stderr
 
 
 def test_deferring_off_the_main_thread_does_nothing_and_does_not_fail(python_sigint):
