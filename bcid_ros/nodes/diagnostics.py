@@ -33,8 +33,9 @@ DIAGNOSTICS_QOS = QoSProfile(depth=10)
 
 
 #: Flags that count a routine event, not a problem: /diagnostics shows their counts but does
-#: not warn when they rise (rpem's return to its fit comes every few hundred samples on
-#: coloured noise, by design: docs/estimators.md, "Back to the fit").
+#: not warn when they rise (rpem's return to its fit comes, by design, after up to 5 % of its
+#: fits where the recursion keeps to the fit, more where it walks away: docs/estimators.md,
+#: "Back to the fit").
 ROUTINE_FLAGS = frozenset({'returned_to_fit'})
 
 
