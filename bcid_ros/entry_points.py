@@ -10,6 +10,7 @@ a SIGINT while a command runs).
 """
 
 from collections.abc import Callable
+import importlib
 
 from bcid_ros.interrupts import (defer_sigints, handle_interrupts_in_finalizers,
                                  interrupt_on_sigints, interrupted, sigint_noted)
@@ -39,51 +40,31 @@ def _load_and_run(load: Callable[[], Callable[[], int]], interrupted_code: int =
         raise
 
 
-def _identifier_main() -> Callable[[], int]:
-    from bcid_ros.nodes.identifier_node import main
-    return main
-
-
-def _identifier_lifecycle_main() -> Callable[[], int]:
-    from bcid_ros.nodes.identifier_lifecycle_node import main
-    return main
-
-
-def _simulator_main() -> Callable[[], int]:
-    from bcid_ros.nodes.simulator_node import main
-    return main
-
-
-def _adaptive_controller_main() -> Callable[[], int]:
-    from bcid_ros.nodes.adaptive_controller_node import main
-    return main
+def _main_of(module: str) -> Callable[[], Callable[[], int]]:
+    """Return what imports ``module`` and gives its ``main`` (as ``cli`` its commands)."""
+    return lambda: importlib.import_module(module).main
 
 
 def identifier_node() -> int:
     """Run ``identifier_node``."""
-    return _load_and_run(_identifier_main)
+    return _load_and_run(_main_of('bcid_ros.nodes.identifier_node'))
 
 
 def identifier_lifecycle_node() -> int:
     """Run ``identifier_lifecycle_node``."""
-    return _load_and_run(_identifier_lifecycle_main)
+    return _load_and_run(_main_of('bcid_ros.nodes.identifier_lifecycle_node'))
 
 
 def simulator_node() -> int:
     """Run ``simulator_node``."""
-    return _load_and_run(_simulator_main)
+    return _load_and_run(_main_of('bcid_ros.nodes.simulator_node'))
 
 
 def adaptive_controller_node() -> int:
     """Run ``adaptive_controller_node``."""
-    return _load_and_run(_adaptive_controller_main)
-
-
-def _bcid_main() -> Callable[[], int]:
-    from bcid_ros.cli import main
-    return main
+    return _load_and_run(_main_of('bcid_ros.nodes.adaptive_controller_node'))
 
 
 def bcid() -> int:
     """Run ``bcid`` (130 if interrupted, as a command is)."""
-    return _load_and_run(_bcid_main, interrupted_code=130)
+    return _load_and_run(_main_of('bcid_ros.cli'), interrupted_code=130)

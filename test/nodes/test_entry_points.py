@@ -150,8 +150,7 @@ def test_an_error_beside_a_sigint_while_importing_is_the_interrupt():
         'def load():\n'
         '    sigint_to_self()\n'
         '    raise ImportError("PyCapsule_Import could not import module datetime")\n'
-        'entry_points._simulator_main = load\n'
-        'print(entry_points.simulator_node())\n')
+        'print(entry_points._load_and_run(load))\n')
     assert result.stdout == '0\n', result.stderr
     assert 'Traceback' not in result.stderr, result.stderr
 
@@ -165,8 +164,7 @@ def test_a_sigint_while_importing_stops_the_node_before_it_starts():
         'def load():\n'
         '    sigint_to_self()\n'
         '    return lambda: started.append(True) or 0\n'
-        'entry_points._simulator_main = load\n'
-        'print(entry_points.simulator_node(), started)\n')
+        'print(entry_points._load_and_run(load), started)\n')
     assert result.stdout == '0 []\n', result.stderr
 
 
