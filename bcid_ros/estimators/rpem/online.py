@@ -185,7 +185,9 @@ class Rpem(RpemState, RecursiveEstimator):
       and restarts the fit schedule on the samples after the change; after it
       (lambda = 1) a fit that moved from the last one of the same start by more
       than their nested windows explain keeps the newest half of the window
-      (``window_moved``: the plant still moves, :mod:`.window`);
+      (``window_moved``: the plant still moves, :mod:`.window`), and while the
+      change is pending the simulation check contradicting the new model on two
+      disjoint windows keeps its last window (:meth:`_window_contradicted`);
     * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
       :mod:`.watch` (a stuck projection a refit can move, undone steps; a
       projection active on many steps), and a recursion that left its fit
