@@ -669,11 +669,25 @@ class SimulationWindow:
         1e-6, 0.1 per 100,000 samples). The current window's samples are all after the
         change: it was there before the first contradicted window ended.
         """
-        if not (self.passed and self.reason and self._run_start >= 0):
+        return self.contradicted_across() if self.passed else 0
+
+    def contradicted_across(self) -> int:
+        """
+        Return the samples of the window if two disjoint windows contradict the model, else 0.
+
+        :meth:`contradicted_twice` without its ``passed``: the run of contradictions
+        (no check passing in between) reaches back past the current window's start,
+        whether or not a model passed before. :meth:`new_run` starts the count again.
+        """
+        if not (self.reason and self._run_start >= 0):
             return 0
         if self._recorded - self._filled < self._run_start:
             return 0
         return self._filled
+
+    def new_run(self) -> None:
+        """Count contradictions afresh from the next check (the samples and verdict stay)."""
+        self._run_start = -1
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the window for a snapshot (fixed shapes)."""

@@ -82,6 +82,33 @@ def test_a_model_that_never_passed_is_never_judged_changed():
     assert contradicted == (6000 - WINDOW) // PERIOD + 1
 
 
+def test_across_disjoint_windows_a_model_that_never_passed_is_reported_and_new_run_recounts():
+    """
+    contradicted_across needs no pass; new_run() counts the run afresh.
+
+    It is rpem's evidence that a pending change's fits blend another plant. The first-order
+    model of a second-order plant, contradicted from its first check c, is reported at the
+    first check whose window starts after c, c + WINDOW; after each new_run() the run
+    starts at the next check, so the next report is WINDOW + PERIOD later.
+    """
+    rng = np.random.default_rng(4)
+    u = rng.standard_normal(6000)
+    y = signal.lfilter([0.0, 1.0], np.poly([0.9, 0.5]), u) + 0.3 * rng.standard_normal(6000)
+    first, reported = None, []
+    for recorded, window in judged_windows(y, u, np.array([-0.9]), np.array([1.0])):
+        if window.reason and first is None:
+            first = recorded
+        if window.contradicted_across():
+            assert window.contradicted_across() == WINDOW
+            reported.append(recorded)
+            window.new_run()
+            assert window.contradicted_across() == 0
+    assert first is not None
+    # the run starts at the first contradiction, again at the check after each new_run
+    assert reported[0] == first + WINDOW
+    assert np.all(np.diff(reported) == WINDOW + PERIOD)
+
+
 def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass():
     """A check that passes between two contradicted ones restarts the run; clear() resets."""
     y, u = first_order(0.8, 0.7, 3000)

@@ -185,7 +185,9 @@ class Rpem(RpemState, RecursiveEstimator):
       and restarts the fit schedule on the samples after the change; after it
       (lambda = 1) a fit that moved from the last one of the same start by more
       than their nested windows explain keeps the newest half of the window
-      (``window_moved``: the plant still moves, :mod:`.window`);
+      (``window_moved``: the plant still moves, :mod:`.window`), and while the
+      change is pending the simulation check contradicting the new model on two
+      disjoint windows keeps its last window (:meth:`_window_contradicted`);
     * restart (``restarted``) and the reasons of every ``VALIDITY_PERIOD``:
       :mod:`.watch` (a stuck projection a refit can move, undone steps; a
       projection active on many steps), and a recursion that left its fit
@@ -574,6 +576,31 @@ class Rpem(RpemState, RecursiveEstimator):
         self._window_weight = 0.0
         return store.restart_schedule(max(int(KEEP_SHARE * store.since_start), WARMUP))
 
+    def _window_contradicted(self, age: int) -> None:
+        """
+        While a change is pending, keep the last ``age`` samples if the check contradicts them.
+
+        The new plant's model, fitted to every sample since the change point, contradicted by
+        the simulation check on two disjoint windows with none passing in between
+        (:meth:`~bcid_ros.estimators.simulation_check.SimulationWindow.contradicted_across`,
+        ``age`` the samples of the last: 0, not so): the window still holds samples of
+        another plant, a drift that went on after its detection or a change point placed
+        early. The fits restart from the last window's samples (flag ``window_moved``, as
+        :meth:`_window_moved`; no memory cut, no new change: the one pending stays). Under a
+        plant that does not move, at most at the rate alpha^2 per check, as the change the
+        check finds after a model passed; a false one costs the fits their older samples.
+        """
+        if not age:
+            return
+        self._simulation.new_run()
+        store = self._store
+        if store.since_start <= age:  # the window holds no sample before the last one's
+            return
+        self._flag('window_moved')
+        self._window_weight = 0.0
+        if store.restart_schedule(age):
+            self._fit()
+
     def _take_fit(self, result: FitResult, uncertainty: FitUncertainty | None,
                   segments: list[Segment], scale: np.ndarray, fresh: bool,
                   mean: np.ndarray | None) -> bool:
@@ -740,6 +767,8 @@ class Rpem(RpemState, RecursiveEstimator):
                if self._change_detection and not self._change_note else 0)
         if age:
             self._simulation_changed(age)
+        elif self._change_detection and self._change_note and self._changes:
+            self._window_contradicted(self._simulation.contradicted_across())
 
     def _decide_now(self) -> None:
         """
