@@ -97,3 +97,24 @@ def test_a_drift_still_going_after_its_detection_leaves_the_fits_once_the_check_
     assert estimator.flags.get('window_moved', 0) >= 1
     truth = case.theta[-1]
     assert np.linalg.norm(estimator.theta - truth) < accuracy * np.linalg.norm(truth)
+
+
+def test_the_contradictions_a_window_move_counts_are_state():
+    # (5, 22) saved while its pending change's run of contradictions is under way (a
+    # thousand samples before the move): the restored run moves the window at the same
+    # sample and goes on bit for bit
+    case = TrackingCase((5, 22), 'family')
+    estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs)
+    saved_at = 8000
+    for t in range(saved_at):
+        estimator.update(float(case.y[t]), case.u[t])
+    state = estimator.get_state()
+    assert state.scalars['simulation_run_start'] >= 0 and 'window_moved' not in estimator.flags
+    restored = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs)
+    restored.set_state(state)
+    for each in (estimator, restored):
+        for t in range(saved_at, case.samples):
+            each.update(float(case.y[t]), case.u[t])
+    assert estimator.flags['window_moved'] >= 1 and estimator.flags == restored.flags
+    np.testing.assert_array_equal(estimator.theta, restored.theta)
+    np.testing.assert_array_equal(estimator.parameter_std, restored.parameter_std)
