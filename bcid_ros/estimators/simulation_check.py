@@ -678,8 +678,13 @@ class SimulationWindow:
         :meth:`contradicted_twice` without its ``passed``: the run of contradictions
         (no check passing in between) reaches back past the current window's start,
         whether or not a model passed before. :meth:`new_run` starts the count again.
+        The current verdict must be of the samples kept now (``judged``): after a
+        :meth:`gap` the verdict of the samples before it holds, and the few samples since
+        would otherwise be a second window that no check judged (an outlier refused in a
+        run of contradictions reported a change at the next period, the run's one verdict
+        counted twice).
         """
-        if not (self.reason and self._run_start >= 0):
+        if not (self.reason and self._run_start >= 0 and self._judged):
             return 0
         if self._recorded - self._filled < self._run_start:
             return 0

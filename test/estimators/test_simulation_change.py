@@ -109,6 +109,36 @@ def test_across_disjoint_windows_a_model_that_never_passed_is_reported_and_new_r
     assert np.all(np.diff(reported) == WINDOW + PERIOD)
 
 
+def test_a_gap_in_a_run_waits_for_a_verdict_on_the_samples_after_it():
+    """
+    After a gap (a sample not recorded) the run's one verdict is not a second window.
+
+    Pole 0.8 -> 0.7 at 3000, the old model: at the first contradicted check c a gap. The
+    verdict before the gap holds, but no change is reported on it: only once a check judged
+    the samples after the gap (disjoint from c's window), with their count as the age.
+    """
+    y, u = first_order(0.8, 0.7, 3000)
+    window = SimulationWindow(1, 1, False, [0], period=PERIOD)
+    a, b = np.array([-0.8]), np.array([1.0])
+    gap_at = None
+    for t in range(y.size):
+        window.record(float(y[t]), [u[t]])
+        if gap_at is None and (t + 1) % PERIOD == 0:
+            window.reasons(a, b)
+            window.vouch()
+            if window.reason:
+                gap_at = t + 1
+                window.gap()
+        elif gap_at is not None:
+            assert window.contradicted_twice() == 0 and window.contradicted_across() == 0
+            if (t + 1 - gap_at) % PERIOD == 0:
+                window.reasons(a, b)
+                window.vouch()
+                break
+    assert gap_at is not None and window.reason
+    assert window.contradicted_twice() == window.contradicted_across() == PERIOD
+
+
 def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass():
     """A check that passes between two contradicted ones restarts the run; clear() resets."""
     y, u = first_order(0.8, 0.7, 3000)
