@@ -578,7 +578,7 @@ class Rpem(RpemState, RecursiveEstimator):
 
     def _window_contradicted(self, age: int) -> None:
         """
-        While a change is pending, keep the last ``age`` samples if the check contradicts them.
+        While a change is pending, fit only the last ``age`` samples (the check's last window).
 
         The new plant's model, fitted to every sample since the change point, contradicted by
         the simulation check on two disjoint windows with none passing in between
