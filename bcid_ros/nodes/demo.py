@@ -33,8 +33,8 @@ import numpy as np
 from bcid_ros.errors import BcidError
 from bcid_ros.identifier import interface
 from bcid_ros.identifier.interface import COUNTERS, DiagnosticKey as Key
-from bcid_ros.nodes.demo_graph import (Child, demo_graph, DEMO_DEFAULTS, executable,
-                                       START_TIMEOUT)
+from bcid_ros.nodes.demo_graph import (AfterDiscovery, Child, demo_graph, DEMO_DEFAULTS,
+                                       executable, START_TIMEOUT)
 from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
@@ -92,15 +92,16 @@ class Monitor:
             node.create_subscription(Float64MultiArray, interface.resolve(topic, owner),
                                      callback, LATCHED_QOS)
             for topic, owner, callback in latched]
+        valid = interface.resolve(interface.VALID, identifier)
         self.subscriptions += [
-            node.create_subscription(Float64MultiArray,
-                                     interface.resolve(interface.SAMPLES, identifier),
-                                     self.on_samples, SAMPLES_QOS),
             node.create_subscription(DiagnosticArray, interface.DIAGNOSTICS,
                                      self.on_diagnostics, 10),
-            node.create_subscription(Bool, interface.resolve(interface.VALID, identifier),
-                                     self.on_valid, LATCHED_QOS),
+            node.create_subscription(Bool, valid, self.on_valid, LATCHED_QOS),
         ]
+        #: The samples, taken once the identifier is discovered (the simulator waits for them)
+        self.samples_subscription = AfterDiscovery(node, valid, lambda: node.create_subscription(
+            Float64MultiArray, interface.resolve(interface.SAMPLES, identifier),
+            self.on_samples, SAMPLES_QOS))
 
     def on_samples(self, message: Any) -> None:
         """Count samples (a frame's first dimension is its sample count)."""
@@ -336,6 +337,7 @@ def run(args: argparse.Namespace) -> int:
             finished_at = None
             while True:
                 executor.spin_once(timeout_sec=0.05)
+                monitor.samples_subscription.poll()
                 now = time.monotonic()
                 code = identifier.poll()
                 if code is not None:
@@ -345,7 +347,8 @@ def run(args: argparse.Namespace) -> int:
                 if code is not None and code != 0:
                     raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
                 if monitor.samples == 0 and now - start > START_TIMEOUT:
-                    raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
+                    raise BcidError(f'no samples after {START_TIMEOUT:.0f} s'
+                                    f'{monitor.samples_subscription.note()}; simulator log:\n'
                                     f'{simulator.tail()}\nidentifier log:\n{identifier.tail()}')
                 for line in monitor.events:
                     print(line, flush=True)

@@ -16,7 +16,7 @@ import shutil
 import signal
 import subprocess
 import sys
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 #: Per scenario: (samples, rate in Hz, frame size) that converge in well under a minute.
 DEMO_DEFAULTS = {
@@ -46,6 +46,36 @@ def executable(name: str) -> list[str]:
               'simulator_node': 'bcid_ros.nodes.simulator_node',
               'adaptive_controller_node': 'bcid_ros.nodes.adaptive_controller_node'}[name]
     return [sys.executable, '-m', module]
+
+
+class AfterDiscovery:
+    """
+    A subscription created once this node has discovered a publisher on another topic.
+
+    Each demo's simulator starts once its samples have two subscribers, the identifier and
+    the demo's monitor. The monitor takes the samples only once it knows the identifier's
+    ``~/valid`` publisher: else the simulator can start while the monitor has not yet
+    discovered the identifier, whose latched topics then reach it with their last value
+    only (a CI run of the payload-change demo: the identifier discovered about 2 s late,
+    after the plant change, and ``~/valid``'s turn to false at the change never seen).
+    """
+
+    def __init__(self, node: Any, topic: str, create: Callable[[], Any]) -> None:
+        self._node, self._topic, self._create = node, topic, create
+        #: The subscription, None until the publisher is discovered
+        self.subscription: Any = None
+
+    def poll(self) -> bool:
+        """Create the subscription if the publisher is now known; return whether it exists."""
+        if self.subscription is None and self._node.count_publishers(self._topic) > 0:
+            self.subscription = self._create()
+        return self.subscription is not None
+
+    def note(self) -> str:
+        """Return why nothing came yet if the publisher is still unknown, else ''."""
+        if self.subscription is not None:
+            return ''
+        return f' (no publisher of {self._topic} discovered: the demo waits to subscribe)'
 
 
 class Child:
@@ -120,5 +150,5 @@ def _interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
-__all__ = ['Child', 'DEMO_DEFAULTS', 'START_TIMEOUT', 'STOP_TIMEOUT', 'demo_graph',
-           'executable']
+__all__ = ['AfterDiscovery', 'Child', 'DEMO_DEFAULTS', 'START_TIMEOUT', 'STOP_TIMEOUT',
+           'demo_graph', 'executable']

@@ -30,8 +30,8 @@ from bcid_ros.control.reference import ReferenceGenerator
 from bcid_ros.errors import BcidError
 from bcid_ros.estimators.registry import entry
 from bcid_ros.identifier import interface
-from bcid_ros.nodes.demo_graph import (Child, demo_graph, DEMO_DEFAULTS, executable,
-                                       START_TIMEOUT)
+from bcid_ros.nodes.demo_graph import (AfterDiscovery, Child, demo_graph, DEMO_DEFAULTS,
+                                       executable, START_TIMEOUT)
 from bcid_ros.reproduction.common import relative_error
 from bcid_ros.resources import config_file
 
@@ -289,14 +289,15 @@ class LoopMonitor:
         self.last_sample_time = time.monotonic()
         identifier, simulator = interface.IDENTIFIER_NODE, interface.SIMULATOR_NODE
         controller = interface.CONTROLLER_NODE
+        valid = interface.resolve(interface.VALID, identifier)
+        #: The samples, taken once the identifier is discovered (the simulator waits for them)
+        self.samples_subscription = AfterDiscovery(node, valid, lambda: node.create_subscription(
+            Float64MultiArray, '/' + interface.SAMPLES, self.on_samples, SAMPLES_QOS))
         self.subscriptions = [
-            node.create_subscription(Float64MultiArray, '/' + interface.SAMPLES,
-                                     self.on_samples, SAMPLES_QOS),
             node.create_subscription(Float64MultiArray,
                                      interface.resolve(interface.TRUE_PARAMETERS, simulator),
                                      lambda m: record.add_truth(np.array(m.data)), deep),
-            node.create_subscription(Bool, interface.resolve(interface.VALID, identifier),
-                                     self.on_valid, LATCHED_QOS),
+            node.create_subscription(Bool, valid, self.on_valid, LATCHED_QOS),
             node.create_subscription(Float64MultiArray,
                                      interface.resolve(interface.PARAMETERS, identifier),
                                      lambda m: record.add_estimate(np.array(m.data)),
@@ -392,6 +393,7 @@ def run_adaptive_loop(args: argparse.Namespace) -> int:
             next_line = start + 1.0
             while True:
                 executor.spin_once(timeout_sec=0.05)
+                monitor.samples_subscription.poll()
                 now = time.monotonic()
                 for child in children[:-1]:
                     code = child.poll()
@@ -401,7 +403,8 @@ def run_adaptive_loop(args: argparse.Namespace) -> int:
                 if code is not None and code != 0:
                     raise BcidError(f'simulator_node exited with code {code}:\n{simulator.tail()}')
                 if not record.y and now - start > START_TIMEOUT:
-                    raise BcidError(f'no samples after {START_TIMEOUT:.0f} s; simulator log:\n'
+                    raise BcidError(f'no samples after {START_TIMEOUT:.0f} s'
+                                    f'{monitor.samples_subscription.note()}; simulator log:\n'
                                     f'{simulator.tail()}')
                 switches = max(len(record.controllers) - 1, 0)
                 if now >= next_line:
