@@ -56,7 +56,7 @@ class AfterDiscovery:
     the demo's monitor. The monitor takes the samples only once it knows the identifier's
     ``~/valid`` publisher: else the simulator can start while the monitor has not yet
     discovered the identifier, whose latched topics then reach it with their last value
-    only (a CI run of the payload-change demo: the identifier discovered about 2 s late,
+    only (a CI run of the payload-change demo: the identifier discovered 1-2 s late,
     after the plant change, and ``~/valid``'s turn to false at the change never seen).
     """
 

@@ -3,7 +3,7 @@ The demos' monitors take the samples only once they know the identifier (AfterDi
 
 The simulator starts publishing once its samples have two subscribers, the identifier and
 the demo's monitor. A CI run of the payload-change demo saw the monitor discover the
-identifier about 2 s after the samples began, after the plant change: ``~/valid``, latched,
+identifier 1-2 s after the samples began, after the plant change: ``~/valid``, latched,
 reached it with its last value only, and its turn to false at the change was never seen.
 The monitor now subscribes to the samples once the identifier's ``~/valid`` publisher is
 discovered, so the simulator cannot start before.
