@@ -572,9 +572,7 @@ class Rpem(RpemState, RecursiveEstimator):
         if covariance is None or not moved(theta - previous, covariance, weight,
                                            previous_weight):
             return False
-        self._flag('window_moved')
-        self._window_weight = 0.0
-        return store.restart_schedule(max(int(KEEP_SHARE * store.since_start), WARMUP))
+        return self._keep_newest(max(int(KEEP_SHARE * store.since_start), WARMUP))
 
     def _window_contradicted(self, age: int) -> None:
         """
@@ -593,13 +591,21 @@ class Rpem(RpemState, RecursiveEstimator):
         if not age:
             return
         self._simulation.new_run()
-        store = self._store
-        if store.since_start <= age:  # the window holds no sample before the last one's
+        if self._store.since_start <= age:  # the window holds no sample before the last one's
             return
+        if self._keep_newest(age):
+            self._fit()
+
+    def _keep_newest(self, keep: int) -> bool:
+        """
+        Move the fits' window to the newest ``keep`` samples (flag ``window_moved``).
+
+        The nested-window comparison starts again from the next fit; returns whether a fit
+        of the kept samples is due now.
+        """
         self._flag('window_moved')
         self._window_weight = 0.0
-        if store.restart_schedule(age):
-            self._fit()
+        return self._store.restart_schedule(keep)
 
     def _take_fit(self, result: FitResult, uncertainty: FitUncertainty | None,
                   segments: list[Segment], scale: np.ndarray, fresh: bool,
