@@ -40,6 +40,14 @@ def first_order(pole_before, pole_after, change, samples=6000, seed=3):
     return y + 0.3 * rng.standard_normal(samples), u
 
 
+def second_order(samples=6000, seed=4):
+    """Return (y, u): y = q^-1/((1 - 0.9 q^-1)(1 - 0.5 q^-1)) u + 0.3 e, beyond a first order."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal(samples)
+    y = signal.lfilter([0.0, 1.0], np.poly([0.9, 0.5]), u)
+    return y + 0.3 * rng.standard_normal(samples), u
+
+
 def test_a_model_that_passed_is_judged_changed_on_the_second_disjoint_window():
     """
     Pole 0.8 -> 0.7 at 3000: the change is reported at c + WINDOW, c the first contradiction.
@@ -71,9 +79,7 @@ def test_a_model_that_never_passed_is_never_judged_changed():
     A first-order model of a second-order plant (poles 0.9 and 0.5): however long the
     contradiction, no change.
     """
-    rng = np.random.default_rng(4)
-    u = rng.standard_normal(6000)
-    y = signal.lfilter([0.0, 1.0], np.poly([0.9, 0.5]), u) + 0.3 * rng.standard_normal(6000)
+    y, u = second_order()
     contradicted = 0
     for recorded, window in judged_windows(y, u, np.array([-0.9]), np.array([1.0])):
         contradicted += bool(window.reason) and recorded >= WINDOW
@@ -91,9 +97,7 @@ def test_across_disjoint_windows_a_model_that_never_passed_is_reported_and_new_r
     first check whose window starts after c, c + WINDOW; after each new_run() the run
     starts at the next check, so the next report is WINDOW + PERIOD later.
     """
-    rng = np.random.default_rng(4)
-    u = rng.standard_normal(6000)
-    y = signal.lfilter([0.0, 1.0], np.poly([0.9, 0.5]), u) + 0.3 * rng.standard_normal(6000)
+    y, u = second_order()
     first, reported = None, []
     for recorded, window in judged_windows(y, u, np.array([-0.9]), np.array([1.0])):
         if window.reason and first is None:
