@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The README's test command: set up .venv, then run the whole test suite.
-# Extra arguments go to pytest (for example: scripts/test.sh -k bcrls).
-# --fast first: the inner loop, without the tests that start a ROS graph, the Monte Carlo
-# checks, the papers' studies and the slow tests (the folders of test/ are the markers).
+# Extra arguments go to pytest, which then runs them as given, in one process (for example:
+# scripts/test.sh -k bcrls). --fast first: the inner loop, without the tests that start a
+# ROS graph, the Monte Carlo checks, the papers' studies and the slow tests (the folders of
+# test/ are the markers).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup_venv.sh
@@ -11,8 +12,20 @@ scripts/setup_venv.sh
 # (test/conftest.py): runs at once on one machine need ids that differ modulo 33.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
+# --fast and the whole suite spread the tests without a ROS graph over the cores
+# (pytest-xdist, -n auto; add -n 0 for one process, as --pdb needs). The whole suite then
+# runs the ROS graph tests in one process, with the machine to themselves: their nodes
+# need the cores within the timing their tests allow (with the other core busy, 4 of 100
+# failed), and the workers would share the suite's domains (test/conftest.py).
 if [ "${1:-}" = "--fast" ]; then
   shift
-  set -- -m "not ros and not statistical and not papers and not slow" "$@"
+  exec .venv/bin/python -m pytest -n auto \
+    -m "not ros and not statistical and not papers and not slow" "$@"
+fi
+if [ $# -eq 0 ]; then
+  status=0
+  .venv/bin/python -m pytest -n auto -m "not ros" || status=$?
+  .venv/bin/python -m pytest -m ros || status=$(( status ? status : $? ))
+  exit "$status"
 fi
 exec .venv/bin/python -m pytest "$@"
