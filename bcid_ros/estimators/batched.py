@@ -43,12 +43,17 @@ from bcid_ros.estimators.recursion import (Forgetting, ls_step_rows, LsPlants, L
                                            where_rows)
 from bcid_ros.estimators.regressor import phi_channels
 from bcid_ros.estimators.residual_state import residual_items, residual_states
-from bcid_ros.estimators.rls import caught_up_items, LsAccessors, RESTART_SPAN, Rls
+from bcid_ros.estimators.rls import (caught_up_items, LsAccessors, REPLAY_SLICE, RESTART_SPAN,
+                                     Rls)
 from bcid_ros.estimators.shared_settings import SharedSettings
 from bcid_ros.estimators.simulation_windows import SimulationWindows
 from bcid_ros.estimators.validity import PlantsValidity
 
 Rows = slice | np.ndarray
+
+#: What a validity decision costs of the REPLAY_SLICE the plants catching up share in an
+#: update, in replayed rows (Rls._replay: some 60 rows' worth, 2-3 ms for bcrls).
+DECISION_ROWS = 60
 
 
 class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
@@ -76,8 +81,13 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     restarts plant k alone, as its single-plant estimator does
     (:meth:`~bcid_ros.estimators.rls.Rls._plant_changed`, run on plant k's
     snapshot: one implementation of the restart), from plant k's kept samples
-    after the change point. ``adaptation: kalman`` propagates P by the same
-    random walk as the single plant (:class:`~bcid_ros.estimators.recursion.RandomWalk`).
+    after the change point. Until the replay of those samples has caught up
+    (spread over the next updates, as the single plant's), that single-plant
+    estimator holds plant k and takes its samples: the plants catching up
+    share one ``REPLAY_SLICE`` an update, in turns, so that a change seen on
+    every joint at once does not stall one update. ``adaptation: kalman``
+    propagates P by the same random walk as the single plant
+    (:class:`~bcid_ros.estimators.recursion.RandomWalk`).
 
     Parameters
     ----------
@@ -167,7 +177,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         y, u, present = self._checked(y, u, present)
         huge = self._huge
         # one comparison each screens for NaN, Inf and values that could overflow
-        if present is None and np.abs(y).max() < huge and np.abs(u).max() < huge:
+        if (not self._catching and present is None and np.abs(y).max() < huge
+                and np.abs(u).max() < huge):
             skipped = None
         else:
             skipped = self._screen(y, u, present)
@@ -192,6 +203,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         elif self._quiet_left:
             self._quiet_left -= 1
             np.maximum(self._quiet - 1, 0, out=self._quiet)
+        if self._catching:
+            self._show_catching()
         return self.valid
 
     def reset(self, plants: Any = None) -> None:
@@ -206,6 +219,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self._allocate()
             self._quiet_left = 0
             self._quiet = np.zeros(self.num_plants, dtype=np.int64)
+            #: The plants catching up after a restart, each held by its single-plant estimator.
+            self._catching: dict[int, Rls] = {}
+            self._catch_turn = 0
+        for plant in self._indices(rows).tolist():
+            self._catching.pop(plant, None)
         for counts in self.flags.values():
             counts[rows] = 0
         self._change_score[rows] = 0.0
@@ -219,6 +237,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         rows = self._plant_rows(plants)
         self._regressors.clear(rows)
         self._clear_simulations(rows)
+        for plant in self._indices(rows).tolist():
+            if plant in self._catching:  # (after its queued rows, as the single plant's)
+                self._catching[plant].restart_regressor()
 
     def _clear_simulations(self, rows: Any) -> None:
         """Empty the simulation check's window of ``rows`` (a gap, a restart, a reset)."""
@@ -227,19 +248,19 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     @property
     def theta(self) -> np.ndarray:
         """Compensated estimates, shape ``(K, p)`` (a copy)."""
-        return self._theta().copy()
+        return self._shown(self._theta().copy(), 'theta')
 
     @property
     def theta_uncompensated(self) -> np.ndarray:
         """LS estimates before compensation, shape ``(K, p)`` (a copy)."""
-        return self._theta_ls.copy()
+        return self._shown(self._theta_ls.copy(), 'theta_uncompensated')
 
     @property
     def noise(self) -> np.ndarray:
         """Noise estimates named by :attr:`noise_names`, shape ``(K, len(noise_names))``."""
         variance = np.zeros(self.num_plants)
         np.divide(self._loss, self._tau, out=variance, where=self._tau > 0)
-        return variance[:, None]
+        return self._shown(variance[:, None], 'noise')
 
     @property
     def ready(self) -> np.ndarray:
@@ -316,6 +337,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         single-plant estimator of the same configuration accepts it.
         """
         plant = range(self.num_plants)[plant]
+        if plant in self._catching:
+            return self._catching[plant].get_state()
         arrays, scalars = self._plant_items(plant)
         arrays['history'], filled, position = self._regressors.plant_ring(plant)
         scalars.update(filled=filled, position=position,
@@ -323,7 +346,6 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                        flags=self.plant_flags(plant),
                        change_score=float(self._change_score[plant]),
                        gate_tail=float(self._gate_tail[plant]))
-        # (a plant's restart replays at once: none is ever catching up)
         replay_arrays, replay_scalars = caught_up_items(self.num_inputs, self.num_parameters,
                                                         len(self.noise_names))
         arrays.update(replay_arrays)
@@ -336,17 +358,24 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         Load a single-plant snapshot (or one of :meth:`plant_state`) into plant k.
 
         The forgetting factor in the snapshot is ignored: it is shared by all
-        plants. A snapshot of another estimator or of other dimensions raises
-        ValueError.
+        plants. A snapshot taken while catching up after a restart goes on
+        catching up here. A snapshot of another estimator or of other
+        dimensions raises ValueError.
         """
         if state.estimator != self.name:
             raise ValueError(f'state is from estimator {state.estimator!r}, not {self.name!r}')
-        if state.scalars.get('replay_queued', 0):  # a single plant catching up: caught up here
+        plant = range(self.num_plants)[plant]
+        single = None
+        if state.scalars.get('replay_queued', 0):
             single = self._single_estimator()
             single.set_state(state)
-            single._finish_catch_up()
-            state = single.get_state()
-        plant = range(self.num_plants)[plant]
+        self._load_single(plant, state)  # (raises before anything changed, as set_state)
+        self._catching.pop(plant, None)
+        if single is not None:
+            self._catching[plant] = single
+
+    def _load_single(self, plant: int, state: EstimatorState) -> None:
+        """Load a single-plant snapshot (its shown values aside) into plant k's arrays."""
         arrays, _ = self._plant_items(plant)
         arrays['history'] = self._regressors.history[plant]
         # a snapshot from before the detector loads too, its detector started afresh (Rls's)
@@ -396,13 +425,22 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
 
     def _screen(self, y: np.ndarray, u: np.ndarray,
                 present: np.ndarray | None) -> np.ndarray | None:
-        """Count the samples not used; return their plants (None if all are used)."""
+        """
+        Count the samples not used; return the plants not stepped here (None: all are).
+
+        The plants catching up take theirs through their single-plant
+        estimators (:meth:`_catch_up`) and are not stepped here either.
+        """
         usable = usable_samples(y, u, present)
         if present is not None:
             self.missing += ~present
             self.nonfinite += present & ~usable
         else:
             self.nonfinite += ~usable
+        if self._catching:  # their single-plant estimators take them, not the step here
+            detached = list(self._catching)
+            self._catch_up(y, u, usable)
+            usable[detached] = False
         with np.errstate(invalid='ignore', over='ignore'):
             # the single plant's screen: the sum of the magnitudes (RecursiveEstimator.update)
             huge = usable & ~(np.abs(y) + np.abs(u).sum(axis=1) < HUGE_VALUE)
@@ -513,15 +551,53 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
 
         Plant k's snapshot goes into a single-plant estimator of the same
         settings, which takes the restart (:meth:`Rls._plant_changed`: the
-        memory cut, the replay of plant k's kept samples, the change's reason)
-        and comes back: the other plants are not touched.
+        memory cut, the queue of plant k's kept samples to replay, the change's
+        reason) and holds plant k until caught up (:meth:`_catch_up`): the
+        other plants are not touched.
         """
         single = self._single_estimator()
         single.set_state(self.plant_state(plant))
         single._plant_changed(age)
-        # the replay at once, in this frame (a plant does not step apart from the others)
-        single._finish_catch_up()
-        self.set_plant_state(plant, single.get_state())
+        self._catching[plant] = single
+        self._load_single(plant, single.get_state())
+
+    def _catch_up(self, y: np.ndarray, u: np.ndarray, usable: np.ndarray) -> None:
+        """
+        Give each plant catching up its sample, through its single-plant estimator.
+
+        They share one REPLAY_SLICE of rows (a validity decision counts
+        DECISION_ROWS), in turns from update to update; a plant whose turn
+        finds none left only queues its sample. Each plant's rows are replayed
+        in the same order whatever its slice, so once caught up it is its
+        single plant's estimate bit for bit.
+        """
+        plants = sorted(self._catching)
+        turn = self._catch_turn % len(plants)
+        self._catch_turn += 1
+        left = REPLAY_SLICE
+        for plant in plants[turn:] + plants[:turn]:
+            single = self._catching[plant]
+            single._replay_slice = max(left, 0)
+            queued, checks = single.catching_up, single._checks
+            if usable[plant]:
+                single.update(y[plant], u[plant])
+            else:  # (missing or not finite: the identifier's policy, as for every plant)
+                single.restart_regressor()
+            left -= queued + 1 - single.catching_up + DECISION_ROWS * (single._checks - checks)
+
+    def _show_catching(self) -> None:
+        """Show the plants catching up as their single plants; take back those caught up."""
+        for plant, single in list(self._catching.items()):
+            if not single.catching_up:
+                del self._catching[plant]
+            self._load_single(plant, single.get_state())
+            self._reasons.set(plant, single.validity_reasons)
+
+    def _shown(self, values: np.ndarray, name: str) -> np.ndarray:
+        """Return ``values`` with the row of each plant catching up its single plant's ``name``."""
+        for plant, single in self._catching.items():
+            values[plant] = getattr(single, name)
+        return values
 
     def _single_estimator(self) -> Rls:
         """Return a single-plant estimator of these settings (for one plant's restart)."""

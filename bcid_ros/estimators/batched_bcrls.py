@@ -57,7 +57,7 @@ class BatchedBcrls(BatchedRls):
     @property
     def noise(self) -> np.ndarray:
         """Return the noise estimates ``sigma2``, shape ``(K, 1)``."""
-        return self._sigma2[:, None].copy()
+        return self._shown(self._sigma2[:, None].copy(), 'noise')
 
     def _after_ls_step(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray) -> None:
         """Apply eqs. (51) and (46) to the plants ``rows``; keep z = [phi; y] for the moments."""

@@ -346,8 +346,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._restart_left = count
 
     def _catch_up(self, y: float, u: np.ndarray, kind: float | None = None) -> None:
-        """Replay at most REPLAY_SLICE queued rows, then take this sample (or queue it)."""
-        self._replay(REPLAY_SLICE)
+        """Replay at most ``_replay_slice`` queued rows, then take this sample (or queue it)."""
+        self._replay(self._replay_slice)
         if not self._queue.shape[0]:  # caught up: the sample is taken as any other
             if kind == _HELD:
                 self._hold_sample(y, u)
@@ -360,7 +360,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._queue = np.concatenate([self._queue, row])
 
     def _finish_catch_up(self) -> None:
-        """Replay every queued row now (the one-shot restart; the batched estimators')."""
+        """Replay every queued row now (the one-shot restart)."""
         while self._queue.shape[0]:
             self._replay(self._queue.shape[0])
 
@@ -467,6 +467,11 @@ class Rls(LsAccessors, RecursiveEstimator):
     def catching_up(self) -> int:
         """Count the rows still queued after a detected change (0: caught up)."""
         return int(self._queue.shape[0])
+
+    #: The rows an update replays at most while catching up (:meth:`_catch_up`). The
+    #: batched estimators share REPLAY_SLICE among their plants catching up at once; the
+    #: rows and their order are the same whatever the slice, so is the estimate caught up.
+    _replay_slice = REPLAY_SLICE
 
     #: Not valid while a restart's rows are queued (:meth:`_live_reasons`).
     _LIVE_REASONS = True

@@ -10,6 +10,7 @@ from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators import make_batched_estimator
 from bcid_ros.estimators.batched import BatchedRls
 from bcid_ros.estimators.batched_bcrls import BatchedBcrls
+from bcid_ros.estimators.rls import REPLAY_SLICE, Rls
 from equivalence import assert_paths_agree, rounding_spread
 
 # Stable second-order plants (a1, a2, b1, b2), one per row: different poles and gains.
@@ -577,9 +578,9 @@ def test_the_hot_step_written_twice_agrees_within_rounding():
                            {'step': single}, spread, 1, 'hot step')
 
 
-def changed_data(samples, seed, changed=(1, 3), at=2000):
+def changed_data(samples, seed, changed=(1, 3), at=2000, noise=0.3):
     """Return :func:`plant_data` whose plants ``changed`` double their gain at ``at``."""
-    y, u = plant_data(samples, seed)
+    y, u = plant_data(samples, seed, noise=noise)
     for k in changed:
         a1, a2, b1, b2 = PLANTS[k]
         y[at:, k] += signal.lfilter([0.0, b1, b2], [1.0, a1, a2], u[:, k, 0])[at:]
@@ -618,6 +619,80 @@ def test_a_detected_change_restarts_that_plant_as_its_single_plant(name, seed):
     # where none changed
     clean, _ = first_detections(name, *plant_data(2600, seed))
     assert_same_bits(batched, clean, [0, 2, 4])
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_a_plant_catching_up_shows_its_single_plant_at_every_update(name):
+    # plant 1 alone doubles its gain: from its detection on, its replay is spread over the
+    # next updates as the single plant's, and each update shows what the single shows
+    y, u = changed_data(2400, 3, changed=(1,))
+    batched = make_batched_estimator(name, y.shape[1], order=2)
+    single = make_estimator(name, order=2)
+    copy = None
+    catching = 0
+    for t in range(y.shape[0]):
+        batched.update(y[t], u[t])
+        single.update(y[t, 1], u[t, 1])
+        if copy is not None:
+            copy.update(y[t], u[t])
+        elif single.catching_up:
+            # a snapshot taken while catching up goes on catching up where it is loaded
+            copy = make_batched_estimator(name, y.shape[1], order=2)
+            for k in range(y.shape[1]):
+                copy.set_plant_state(k, batched.plant_state(k))
+        assert batched.plant_validity_reasons(1) == single.validity_reasons, t
+        assert batched.valid[1] == single.valid
+        assert batched.plant_flags(1) == single.flags
+        assert batched.plant_state(1).scalars['replay_queued'] == single.catching_up
+        if single.catching_up:
+            catching += 1
+            # the estimate of the detection's sample (the batched path's, within rounding)
+            np.testing.assert_allclose(batched.theta[1], single.theta, rtol=1e-9)
+            np.testing.assert_allclose(batched.noise[1], single.noise, rtol=1e-9)
+    assert single.flags['plant_change'] == 1
+    assert 2 <= catching <= 20  # (the single plant's catch-up: 400 // REPLAY_SLICE to 20)
+    np.testing.assert_array_equal(copy.theta, batched.theta)  # (one code path: bit for bit)
+    assert copy.validity_reasons == batched.validity_reasons
+
+
+def replayed_rows(monkeypatch):
+    """Count the rows the single-plant replays take and the decisions they make, per call."""
+    calls = []
+    replay = Rls._replay
+
+    def counted(self, limit):
+        queued, checks = self.catching_up, self._checks
+        replay(self, limit)
+        calls.append((queued - self.catching_up, self._checks - checks))
+
+    monkeypatch.setattr(Rls, '_replay', counted)
+    return calls
+
+
+@pytest.mark.parametrize('name, seed', [('rls', 5), ('bcrls', 3)])
+def test_plants_changing_at_once_share_one_replay_slice_an_update(name, seed, monkeypatch):
+    # every plant doubles its gain at 2000 (a payload on every joint): 4 of the 5 detect it
+    # at 2003-2010 (the fifth, of gain 0.05, later if at all), and their replays, up to 401
+    # rows each, would take one update 14-31 ms at once; they share one slice instead
+    y, u = changed_data(2600, seed, changed=range(len(PLANTS)), noise=0.05)
+    present = np.ones(y.shape, dtype=bool)
+    calls = replayed_rows(monkeypatch)
+    batched = make_batched_estimator(name, y.shape[1], order=2)
+    most_rows = most_decisions = together = 0
+    for t in range(y.shape[0]):
+        calls.clear()
+        batched.update(y[t], u[t])
+        rows, decisions = map(sum, zip(*calls)) if calls else (0, 0)
+        most_rows, most_decisions = max(most_rows, rows), max(most_decisions, decisions)
+        together = max(together, len(batched._catching))
+    assert together >= 3  # (the detections are a few samples apart)
+    assert batched.flags['plant_change'].sum() >= 4
+    assert 0 < most_rows <= REPLAY_SLICE
+    assert most_decisions <= 2  # (one ends a plant's slice; what is left allows one more)
+    assert not batched._catching
+    monkeypatch.undo()
+    # once caught up, each plant is its single-plant estimator on its own samples
+    assert_plants_follow_their_singles(name, y, u, present, batched, order=2)
 
 
 def test_the_detector_round_trips_per_plant_through_a_single_plant_estimator():
