@@ -95,6 +95,11 @@ def pytest_collection_modifyitems(config, items):
                                     'its module to test/ros/')
         if item.path.resolve().relative_to(TEST_DIR).as_posix() in RECORDED_DATA_MODULES:
             item.add_marker(pytest.mark.recorded_data)
+    if os.environ.get('PYTEST_XDIST_WORKER'):
+        # spread over workers (scripts/test.sh), the long tests go first: started last, one
+        # of 30-90 s keeps the run waiting on one worker while the others are idle
+        items.sort(key=lambda item: not (item.get_closest_marker('slow')
+                                         or item.get_closest_marker('statistical')))
 
 
 def run_demo(arguments, out_dir, timeout):
