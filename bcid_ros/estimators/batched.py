@@ -229,6 +229,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._change_score[rows] = 0.0
         self._gate_tail[rows] = 1.0
         self._reset_learning(rows)
+        if isinstance(rows, slice):
+            # plants that start together would decide together every VALIDITY_PERIOD updates,
+            # each decision's simulation check a refit of its window: their decisions after
+            # the first are spread over the period (Rls._check_phase)
+            self._check_phase[:] = self._all_plants * rules.VALIDITY_PERIOD // self.num_plants
         self._regressors.clear(rows)
         self._clear_simulations(rows)
 
@@ -657,7 +662,9 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
     # --------------------------------------------------------- the validity
     def _check_validity(self, plants: np.ndarray, more: Any = None) -> None:
         """Decide the reasons of ``plants`` (Rls._check_validity; ``more``: a subclass's)."""
-        self._next_check[plants] = self._updates[plants] + rules.VALIDITY_PERIOD
+        self._next_check[plants] = (self._updates[plants] + rules.VALIDITY_PERIOD
+                                    - self._check_phase[plants])
+        self._check_phase[plants] = 0
         with np.errstate(all='ignore'):
             power = rules.output_powers(self._p[plants], self._tau[plants], self.order)
             own = rules.unstable_models(self._theta()[plants, :self.order], power,
@@ -720,6 +727,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._change_score = np.zeros(plants)
         self._gate_tail = np.ones(plants)
         self._next_check = np.zeros(plants, dtype=np.int64)
+        self._check_phase = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
         self._reasons = PlantReasons(plants)
         # the change detector and each plant's last RESTART_SPAN samples (Rls._remember)
@@ -749,6 +757,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._set_scale_dependents(rows)
         self._undone_in_row[rows] = 0
         self._next_check[rows] = self.num_parameters
+        self._check_phase[rows] = 0
         self._last_power[rows] = math.inf
         self._reasons.clear(self._indices(rows))
         for plant in self._indices(rows).tolist():
@@ -773,6 +782,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         return ({**arrays, **residual_arrays, **detector, 'recent': self._recent[plant],
                  **window_arrays},
                 {**scalars, **residual_scalars, 'seen': int(self._seen[plant]),
+                 'check_phase': int(self._check_phase[plant]),
                  'change_note': self._change_notes[plant], **window_scalars})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
@@ -792,6 +802,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._change_notes[plant] = str(scalars.get('change_note', ''))
         self._recent[plant] = arrays['recent']
         self._seen[plant] = int(scalars.get('seen', 0))
+        self._check_phase[plant] = int(scalars.get('check_phase', 0))
         self._detector.set_state(arrays, [plant])
 
 

@@ -210,12 +210,21 @@ def settling_sums(sums: np.ndarray, ring: np.ndarray, block_weights: np.ndarray,
 
 
 def covariance_factors(covariance: np.ndarray) -> np.ndarray:
-    """Return L with L L' = C of each covariance ``(K, p, p)`` (PSD part; zeros if not finite)."""
+    """
+    Return L = C^(1/2), L L' = C, of each covariance ``(K, p, p)`` (PSD part; 0 if not finite).
+
+    The settling term takes the estimate's error as L_t xi with one xi over the
+    window, so L_t must move with C_t continuously. The symmetric square root
+    does; a factor of eigenvectors does not: their signs, and their directions
+    at close eigenvalues, can flip from one block to the next on a last-bit
+    difference.
+    """
     known = np.isfinite(covariance).all(axis=(1, 2))
     symmetric = np.where(known[:, None, None],
                          0.5 * (covariance + np.swapaxes(covariance, -1, -2)), 0.0)
     values, vectors = np.linalg.eigh(symmetric)
-    return vectors * np.sqrt(np.maximum(values, 0.0))[:, None, :]
+    scaled = vectors * np.sqrt(np.maximum(values, 0.0))[:, None, :]
+    return scaled @ np.swapaxes(vectors, -1, -2)
 
 
 def prewhitening_filter(autocovariance: np.ndarray, order: int) -> np.ndarray:

@@ -605,7 +605,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         then ``more`` (a subclass's); the base class adds the shared ones.
         The growth test's memory moves on after the decision.
         """
-        self._next_check = self._updates + rules.VALIDITY_PERIOD
+        self._next_check = self._updates + rules.VALIDITY_PERIOD - self._check_phase
+        self._check_phase = 0
         self._checks += 1  # (not state: a replay's slice ends at a decision)
         with np.errstate(all='ignore'):
             power = rules.output_powers(self._p[None], np.array([self._tau]), self.order)
@@ -685,6 +686,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._gate_from = rules.GATE_WARMUP * p
         self._undone_in_row = 0
         self._next_check = p
+        #: Updates by which the decision after the first comes early (once): 0 here; the
+        #: batched forms stagger their plants' decisions by it (BatchedRls._reset_learning).
+        self._check_phase = 0
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
         self._error = 0.0
@@ -718,6 +722,7 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
+                   'check_phase': self._check_phase,
                    'last_power': self._last_power, 'reasons': self._reasons,
                    'seen': self._seen, 'change_note': self._change_note}
         residual_arrays, residual_scalars = residual_items(
@@ -795,6 +800,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._forgetting_factor = float(scalars['forgetting_factor'])
         self._undone_in_row = int(scalars['undone_in_row'])
         self._next_check = int(scalars['next_check'])
+        self._check_phase = int(scalars.get('check_phase', 0))  # (older snapshots: none)
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
         self._seen = int(scalars.get('seen', 0))

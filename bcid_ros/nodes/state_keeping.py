@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import numpy as np
+import rclpy.logging
 from rclpy.node import Node
 
 from bcid_ros.estimators import RecursiveEstimator
@@ -166,14 +167,17 @@ class StateKeeper:
         """Save the state, run ``destroy`` (the node's own destroy_node), then log the save."""
         error = self._write()
         self.release()
-        # logged after the node is gone, when its /rosout publisher (whose context a
-        # signal has already shut down) no longer takes the line
+        # logged after the node is gone, to the console and the log file only: a /rosout
+        # publisher, whose context a signal has already shut down, would refuse the line
+        # with an error of rcl's. The node's own logger is not used: its publisher can
+        # outlive destroy() (its destruction waits while a handle is in use; seen once)
+        logger = rclpy.logging.get_logger(f'{self._node.get_logger().name}.state_file')
         destroy()
         if error is None:
-            self._node.get_logger().info(f'state saved to {self.path} at shutdown '
-                                         f'({self._feeder.used} samples used)')
+            logger.info(f'state saved to {self.path} at shutdown '
+                        f'({self._feeder.used} samples used)')
         elif not self._failing:
-            self._node.get_logger().error(error)
+            logger.error(error)
 
 
 __all__ = ['StateKeeper']

@@ -15,6 +15,7 @@ from scipy import signal
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.adequacy import AdequacyMonitor, chi2_quantile
+from bcid_ros.estimators.residual_statistics import covariance_factors
 
 PLANTS = 1000
 SAMPLES = 1000
@@ -61,6 +62,24 @@ def run(residual, inputs, psi, scale, term):
 def tolerance(tail):
     """Return four binomial standard errors of a share ``tail`` over PLANTS."""
     return 4.0 * math.sqrt(tail * (1.0 - tail) / PLANTS)
+
+
+def test_the_factor_of_the_covariance_moves_with_it_continuously():
+    # the sums add the blocks of C(t) and of C(t') a last bit apart: their factors must be as
+    # close, whatever eigenvectors eigh picks for two close eigenvalues (a factor of them was
+    # 0.3 apart here, a rotation within their plane)
+    rng = np.random.default_rng(3)
+    basis, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    covariance = basis @ np.diag([1.0, 1.0 + 1e-12, 2.0]) @ basis.T
+    nudge = 1e-13 * rng.standard_normal((3, 3))
+    first, second = covariance_factors(np.stack([covariance, covariance + nudge + nudge.T]))
+    assert np.abs(first - second).max() < 1e-11
+    np.testing.assert_allclose(first @ first.T, covariance, rtol=0.0, atol=1e-14)
+    # the PSD part of an indefinite matrix, zeros for one not finite
+    indefinite, unknown = covariance_factors(
+        np.stack([np.diag([4.0, -1.0, 0.0]), np.full((3, 3), np.nan)]))
+    np.testing.assert_allclose(indefinite, np.diag([2.0, 0.0, 0.0]), rtol=0.0, atol=1e-15)
+    np.testing.assert_array_equal(unknown, np.zeros((3, 3)))
 
 
 def test_the_settling_term_keeps_the_output_error_tests_within_their_rate():

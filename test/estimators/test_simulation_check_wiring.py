@@ -69,10 +69,11 @@ def test_rpem_is_not_flagged_beyond_the_false_alarm_rate():
 def test_the_batched_bcrls_plant_equals_its_single_run():
     y, u = ding_miso(0, drift=0.5)
     # the detector off on both, as above: it would follow the drift
-    single = make_estimator('bcrls', order=2, num_inputs=2, change_detection=False)
-    single.run(y, u)
     batched = make_batched_estimator('bcrls', num_plants=2, order=2, num_inputs=2,
                                      change_detection=False)
+    single = make_estimator('bcrls', order=2, num_inputs=2, change_detection=False)
+    single.set_state(batched.plant_state(1))  # (its decisions half a period after plant 0's)
+    single.run(y, u)
     for k in range(SAMPLES):
         batched.update(np.array([y[k], y[k]]), np.stack([u[k], u[k]]))
     assert batched.plant_validity_reasons(1) == single.validity_reasons

@@ -86,7 +86,13 @@ def single_feeders(name, joints, messages, publish_period):
     Return the feeders, the joints due per message, each joint's published
     parameters and noise as float arrays, and the validity after each message.
     """
-    singles = [SampleFeeder(make_estimator(name, order=2), 0, publish_period) for _ in joints]
+    # each starts as its joint of a new batched estimator (its validity decisions' phase)
+    start = make_batched_estimator(name, len(joints), order=2)
+    singles = []
+    for k in range(len(joints)):
+        estimator = make_estimator(name, order=2)
+        estimator.set_state(start.plant_state(k))
+        singles.append(SampleFeeder(estimator, 0, publish_period))
     due, theta, noise = [], [[] for _ in joints], [[] for _ in joints]
     valid = []
     for message in messages:
