@@ -14,9 +14,9 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
 # --fast and the whole suite spread the tests without a ROS graph over the cores
 # (pytest-xdist, -n auto; add -n 0 for one process, as --pdb needs). The whole suite then
-# runs the ROS graph tests in one process, with the machine to themselves: their nodes
-# need the cores within the timing their tests allow (with the other core busy, 4 of 100
-# failed), and the workers would share the suite's domains (test/conftest.py).
+# runs the ROS graph tests in one process: spread over workers, they would share the
+# suite's domains (test/conftest.py; 4 of 100 failed so, a demo's identifier taking
+# another test's samples), and alone they have the cores their timing assumes.
 if [ "${1:-}" = "--fast" ]; then
   shift
   exec .venv/bin/python -m pytest -n auto \
