@@ -687,7 +687,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._undone_in_row = 0
         self._next_check = p
         #: Updates by which the decision after the first comes early (once): 0 here; the
-        #: batched forms stagger their plants' decisions by it (BatchedRls._reset_learning).
+        #: batched forms stagger their plants' decisions by it (BatchedRls.reset).
         self._check_phase = 0
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()

@@ -169,8 +169,9 @@ class StateKeeper:
         self.release()
         # logged after the node is gone, to the console and the log file only: a /rosout
         # publisher, whose context a signal has already shut down, would refuse the line
-        # with an error of rcl's. The node's own logger is not used: its publisher can
-        # outlive destroy() (its destruction waits while a handle is in use; seen once)
+        # with an error of rcl's. The node's own logger is not used: its publisher outlived
+        # destroy() once in a test run (likely a destruction deferred while a handle was in
+        # use; not reproduced), and a logger of another name has no publisher at all
         logger = rclpy.logging.get_logger(f'{self._node.get_logger().name}.state_file')
         destroy()
         if error is None:
