@@ -232,8 +232,10 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         if isinstance(rows, slice):
             # plants that start together would decide together every VALIDITY_PERIOD updates,
             # each decision's simulation check a refit of its window: their decisions after
-            # the first are spread over the period (Rls._check_phase)
-            self._check_phase[:] = self._all_plants * rules.VALIDITY_PERIOD // self.num_plants
+            # the first are spread over the period, and again after each restart (plants
+            # changing at once restart in one frame: Rls._check_offset)
+            self._check_offset[:] = self._all_plants * rules.VALIDITY_PERIOD // self.num_plants
+            self._check_phase[:] = self._check_offset
         self._regressors.clear(rows)
         self._clear_simulations(rows)
 
@@ -728,6 +730,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._gate_tail = np.ones(plants)
         self._next_check = np.zeros(plants, dtype=np.int64)
         self._check_phase = np.zeros(plants, dtype=np.int64)
+        self._check_offset = np.zeros(plants, dtype=np.int64)
         self._last_power = np.zeros(plants)
         self._reasons = PlantReasons(plants)
         # the change detector and each plant's last RESTART_SPAN samples (Rls._remember)
@@ -757,7 +760,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._set_scale_dependents(rows)
         self._undone_in_row[rows] = 0
         self._next_check[rows] = self.num_parameters
-        self._check_phase[rows] = 0
+        self._check_phase[rows] = self._check_offset[rows]
         self._last_power[rows] = math.inf
         self._reasons.clear(self._indices(rows))
         for plant in self._indices(rows).tolist():
@@ -783,6 +786,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                  **window_arrays},
                 {**scalars, **residual_scalars, 'seen': int(self._seen[plant]),
                  'check_phase': int(self._check_phase[plant]),
+                 'check_offset': int(self._check_offset[plant]),
                  'change_note': self._change_notes[plant], **window_scalars})
 
     def _load_plant(self, plant: int, arrays: dict[str, np.ndarray],
@@ -803,6 +807,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._recent[plant] = arrays['recent']
         self._seen[plant] = int(scalars.get('seen', 0))
         self._check_phase[plant] = int(scalars.get('check_phase', 0))
+        self._check_offset[plant] = int(scalars.get('check_offset', 0))
         self._detector.set_state(arrays, [plant])
 
 

@@ -176,6 +176,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._detector = ChangeDetector()
         self._relearned = 0
         self._checks = 0
+        #: This plant's place in the validity period: a restart's decisions come this many
+        #: updates early (0 here; a batched form's plant k of K: k·100/K, BatchedRls.reset)
+        self._check_offset = 0
         self._clear_queue()
         self._reset()
 
@@ -454,6 +457,9 @@ class Rls(LsAccessors, RecursiveEstimator):
             # the replay's end: its counters, flags and ring gone (_REPLAY_OWN), its reasons
             # replaced by the change's until the new estimate passes its checks
             self._change_note = self._restart_note
+            # plants of a batched form restarting in one frame would decide together from
+            # here on, the replay's own decisions having spent the phase
+            self._check_phase = self._check_offset
             self._check_validity()
         elif kind == _GAP:
             self._restart_regressor()
@@ -686,9 +692,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._gate_from = rules.GATE_WARMUP * p
         self._undone_in_row = 0
         self._next_check = p
-        #: Updates by which the decision after the first comes early (once): 0 here; the
-        #: batched forms stagger their plants' decisions by it (BatchedRls.reset).
-        self._check_phase = 0
+        #: Updates by which the decision after the first comes early (once): the offset,
+        #: so that plants restarting in one frame of a batched form still decide apart
+        self._check_phase = self._check_offset
         self._last_power = math.inf
         self._reasons: tuple[str, ...] = ()
         self._error = 0.0
@@ -722,7 +728,7 @@ class Rls(LsAccessors, RecursiveEstimator):
                    'position': self._regressor.position,
                    'forgetting_factor': self._forgetting_factor,
                    'undone_in_row': self._undone_in_row, 'next_check': self._next_check,
-                   'check_phase': self._check_phase,
+                   'check_phase': self._check_phase, 'check_offset': self._check_offset,
                    'last_power': self._last_power, 'reasons': self._reasons,
                    'seen': self._seen, 'change_note': self._change_note}
         residual_arrays, residual_scalars = residual_items(
@@ -801,6 +807,7 @@ class Rls(LsAccessors, RecursiveEstimator):
         self._undone_in_row = int(scalars['undone_in_row'])
         self._next_check = int(scalars['next_check'])
         self._check_phase = int(scalars.get('check_phase', 0))  # (older snapshots: none)
+        self._check_offset = int(scalars.get('check_offset', 0))
         self._last_power = float(scalars['last_power'])
         self._reasons = tuple(scalars['reasons'])
         self._seen = int(scalars.get('seen', 0))

@@ -711,6 +711,44 @@ def test_plants_changing_at_once_share_one_replay_slice_an_update(name, seed, mo
     assert_plants_follow_their_singles(name, y, u, present, batched, order=2)
 
 
+def changes(batched):
+    """Count the plant changes ``batched`` detected, over its plants."""
+    return int(batched.flags.get('plant_change', np.zeros(1)).sum())
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_plants_restarting_in_one_frame_still_decide_apart(name):
+    # one plant's samples on every plant: all detect its change in one frame and restart
+    # together; from their replays' ends on they would decide in one frame (each decision
+    # refitting a simulation check's window) but for each plant's place in the period
+    y, u = changed_data(2600, 5, changed=[1], noise=0.05)
+    y, u = np.repeat(y[:, 1:2], 5, axis=1), np.repeat(u[:, 1:2], 5, axis=1)
+    batched = make_batched_estimator(name, y.shape[1], order=2)
+    deciding, detections, catching = [], [], 0
+    decide = batched._check_validity
+
+    def counted(plants, *more):
+        deciding[-1] += len(plants)
+        return decide(plants, *more)
+
+    batched._check_validity = counted
+    for t in range(y.shape[0]):
+        flagged = changes(batched)
+        deciding.append(0)
+        batched.update(y[t], u[t])
+        if changes(batched) > flagged:
+            detections.append((t, changes(batched) - flagged))
+        if batched._catching:
+            catching = t
+    [(detected, count)] = detections
+    assert count == y.shape[1] and detected < catching
+    assert max(deciding[100:detected]) == 1  # (spread from the start: BatchedRls.reset)
+    assert max(deciding[catching + 1:]) == 1
+    # and each plant is its single plant started from the batched plant's state
+    assert_plants_follow_their_singles(name, y, u, np.ones(y.shape, dtype=bool), batched,
+                                       order=2)
+
+
 def test_the_detector_round_trips_per_plant_through_a_single_plant_estimator():
     # moved at 2005, while the evidence of the change at 2000 is building on plants 1
     # and 3 (bcrls's held model's output error flags plant 1 at 2009): the detection after
