@@ -10,10 +10,13 @@ other processes held the core), and prints per seed and estimator the slowest up
 within ``WINDOW`` updates from each detection (the detection's own and its catch-up's),
 the slowest update anywhere, and the cases whose slowest detection update is over 5 ms.
 ``--batched K`` runs the batched estimator over the seed's first K cases of one structure
-instead (one frame per sample) and times the frames. Run the same command on two commits
-to compare.
+instead (one frame per sample) and times the frames. ``--joints K`` runs it over K joints
+of the simulator's ``joints`` scenario (random second-order plants, PRBS efforts) whose
+gains all grow by half at one sample (a payload on every joint), so that the plants detect
+and catch up together. Run the same command on two commits to compare.
 
     .venv/bin/python -m benchmarks.replay_stall [--seeds 0,1,2] [--count 30] [--batched K]
+        [--joints K]
 """
 
 from __future__ import annotations
@@ -24,12 +27,18 @@ from typing import Any
 
 import numpy as np
 
+from scipy import signal
+
 from benchmarks.tracking import MODELS, TrackingCase
 from bcid_ros.blas_threads import single_threaded_blas
 from bcid_ros.estimators import make_batched_estimator, make_estimator
+from bcid_ros.simulation.joints import draw_plants
 
 #: A detection's update and the next ones, over which its replay's cost is counted.
 WINDOW = 16
+
+#: ``--joints``: the samples, the sample at which every gain changes, and by what factor.
+JOINT_SAMPLES, JOINT_CHANGE, JOINT_GAIN = 6000, 3000, 1.5
 
 
 def detection_times(times: np.ndarray, detections: np.ndarray) -> np.ndarray:
@@ -70,6 +79,20 @@ def batched_run(cases: list[TrackingCase], name: str) -> tuple[np.ndarray, np.nd
     return timed_updates(estimator, y, u)
 
 
+def joints_data(num_joints: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return y, u of shape (N, K), (N, K, 1): K joints, every gain JOINT_GAIN x at once."""
+    rng = np.random.default_rng(seed)
+    theta, sigma2 = draw_plants(num_joints, rng)
+    u = rng.choice([-1.0, 1.0], size=(JOINT_SAMPLES, num_joints))
+    y = np.sqrt(sigma2) * rng.standard_normal((JOINT_SAMPLES, num_joints))
+    gain = np.where(np.arange(JOINT_SAMPLES) < JOINT_CHANGE, 1.0, JOINT_GAIN)
+    for k in range(num_joints):
+        # B(q) scaled: the output of the new plant is the old one's times the factor
+        y[:, k] += gain * signal.lfilter(np.r_[0.0, theta[k, 2:]], np.r_[1.0, theta[k, :2]],
+                                         u[:, k])
+    return y, u[:, :, None]
+
+
 def report(label: str, runs: list[tuple[str, np.ndarray, np.ndarray]]) -> None:
     """Print the slowest detection updates of ``runs`` (case label, times, detections)."""
     at = [(case, detection_times(times, detections)) for case, times, detections in runs]
@@ -93,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--count', type=int, default=30)
     parser.add_argument('--estimators', default='rls,bcrls')
     parser.add_argument('--batched', type=int, default=0, help='plants of a batched run')
+    parser.add_argument('--joints', type=int, default=0,
+                        help='joints of a batched run, all changing at once')
     args = parser.parse_args(argv)
     with single_threaded_blas():  # as in a node (docs/nodes.md, "One BLAS thread")
         run(args)
@@ -103,6 +128,12 @@ def run(args: argparse.Namespace) -> None:
     """Print the figures of every seed and estimator ``args`` names."""
     for seed in (int(s) for s in args.seeds.split(',')):
         for name in args.estimators.split(','):
+            if args.joints:
+                estimator = make_batched_estimator(name, args.joints, order=2, num_inputs=1)
+                times, detections = timed_updates(estimator, *joints_data(args.joints, seed))
+                report(f'seed {seed} {name} {args.joints} joints changing at once',
+                       [('frames', times, detections)])
+                continue
             cases = [TrackingCase((seed, k), MODELS[name]) for k in range(args.count)]
             if args.batched:
                 first = cases[0]

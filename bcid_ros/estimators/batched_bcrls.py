@@ -52,7 +52,7 @@ class BatchedBcrls(BatchedRls):
     @property
     def sigma2(self) -> np.ndarray:
         """Return the noise variance estimates of eq. (51), shape ``(K,)`` (a copy)."""
-        return self._sigma2.copy()
+        return self._shown(self._sigma2.copy(), 'sigma2')
 
     @property
     def noise(self) -> np.ndarray:

@@ -11,6 +11,7 @@ estimated model's cross test (docs/trust.md).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -53,6 +54,9 @@ def chi2_survival(x: float, dof: int) -> float:
     return min(1.0, math.erfc(chi / math.sqrt(2.0)) + 2.0 * density * total)
 
 
+# (each residual monitor asks for the same few thresholds; a batched plant's restart builds
+# two, some 45 bisection steps each)
+@functools.lru_cache(maxsize=256)
 def chi2_quantile(tail: float, dof: int) -> float:
     """Return x with :func:`chi2_survival` (x, dof) = ``tail``, by bisection (relative 1e-12)."""
     low, high = 0.0, float(dof) + 10.0

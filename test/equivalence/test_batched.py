@@ -635,6 +635,22 @@ def test_a_detected_change_restarts_that_plant_as_its_single_plant(name, seed):
     assert_same_bits(batched, clean, [0, 2, 4])
 
 
+#: What a batched estimator shows of each plant, as its single plant shows it.
+ACCESSORS = ('theta', 'theta_uncompensated', 'noise', 'ready', 'samples', 'covariance_trace',
+             'loss', 'weighted_count', 'parameter_covariance', 'signal_scale',
+             'initial_covariance_diagonal', 'covariance')
+
+
+def assert_shows_its_single(batched, k):
+    """Assert that plant k, catching up, shows every accessor as the single plant holding it."""
+    single = batched._catching[k]
+    names = ACCESSORS + (('sigma2',) if hasattr(single, 'sigma2') else ())
+    for name in names:
+        mine = getattr(single, name)
+        np.testing.assert_array_equal(getattr(batched, name)[k],
+                                      np.nan if mine is None else mine, err_msg=name)
+
+
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
 def test_a_plant_catching_up_shows_its_single_plant_at_every_update(name):
     # plant 1 alone doubles its gain: from its detection on, its replay is spread over the
@@ -663,6 +679,7 @@ def test_a_plant_catching_up_shows_its_single_plant_at_every_update(name):
             # the estimate of the detection's sample (the batched path's, within rounding)
             np.testing.assert_allclose(batched.theta[1], single.theta, rtol=1e-9)
             np.testing.assert_allclose(batched.noise[1], single.noise, rtol=1e-9)
+            assert_shows_its_single(batched, 1)
     assert single.flags['plant_change'] == 1
     # (the rows since the change point and those queued meanwhile: 3 updates here; at most
     # RESTART_SPAN rows take 10 updates)
