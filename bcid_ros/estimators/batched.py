@@ -635,6 +635,11 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             values[plant] = np.nan if value is None else value  # (None: unknown, as NaN)
         return values
 
+    def _pass_on(self, name: str, value: Any) -> None:
+        """Give a setting changed while running to the single plants catching up, as to all."""
+        for single in getattr(self, '_catching', {}).values():  # (none while being built)
+            setattr(single, name, value)
+
     def _single_estimator(self) -> Rls:
         """Return a single-plant estimator of these settings (for one plant's restart)."""
         return self._single(

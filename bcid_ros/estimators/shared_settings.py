@@ -61,6 +61,10 @@ class SharedSettings:
     def forgetting_factor(self, value: float) -> None:
         self._forgetting_factor = check_forgetting_factor(value)
         self._follow_forgetting_factor()
+        self._pass_on('forgetting_factor', self._forgetting_factor)
+
+    def _pass_on(self, name: str, value: Any) -> None:
+        """Give a setting changed while running to parts that keep their own (none here)."""
 
     def _follow_forgetting_factor(self) -> None:
         """
@@ -112,6 +116,7 @@ class SharedSettings:
         if not isinstance(value, (bool, np.bool_)):
             raise ValueError(f'change_detection must be true or false, got {value!r}')
         self._change_detection = bool(value)
+        self._pass_on('change_detection', self._change_detection)
 
     @property
     def parameter_drift(self) -> float:
@@ -134,6 +139,7 @@ class SharedSettings:
         propagation = getattr(self, '_propagation', None)
         if propagation is not None and hasattr(propagation, 'drift'):
             propagation.drift = value  # the random walk's Q follows a live change
+        self._pass_on('parameter_drift', value)
 
     @property
     def outlier_threshold(self) -> float:
@@ -144,6 +150,7 @@ class SharedSettings:
     def outlier_threshold(self, value: float) -> None:
         self._outlier_threshold = SHARED_SETTINGS['outlier_threshold'].check_argument(value)
         self._gate_limit2 = rules.gate_limit2(self._outlier_threshold)
+        self._pass_on('outlier_threshold', self._outlier_threshold)
 
 
 __all__ = ['SharedSettings', 'check_forgetting_factor']

@@ -688,6 +688,42 @@ def test_a_plant_catching_up_shows_its_single_plant_at_every_update(name):
     assert copy.validity_reasons == batched.validity_reasons
 
 
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_a_setting_changed_while_a_plant_catches_up_reaches_it(name):
+    # plant 1 detects its change at 2004-2010; a live change of every setting a node can
+    # change while it catches up reaches its single plant then, as it reaches a single
+    # plant identifier at that sample (before, it reached the plant at its hand-back only)
+    y, u = changed_data(2400, 4, changed=(1,))
+    batched = make_batched_estimator(name, y.shape[1], order=2)
+    changed_at = None
+    for t in range(y.shape[0]):
+        batched.update(y[t], u[t])
+        if changed_at is None and batched._catching:
+            changed_at = t + 1
+            change_settings(batched)
+            assert batched._catching[1].forgetting_factor == 0.995
+            assert batched._catching[1].outlier_threshold == 4.0
+    assert changed_at is not None and not batched._catching
+
+    def run(y, u):
+        singles = plant_singles(name, y.shape[1], order=2)
+        for t in range(y.shape[0]):
+            if t == changed_at:
+                for single in singles:
+                    change_settings(single)
+            for k, single in enumerate(singles):
+                single.update(y[t, k], u[t, k])
+        return singles
+
+    assert_plants_equal(batched, run(y, u), plant_spreads(run, y, u))
+
+
+def change_settings(estimator):
+    """Change the settings a node may change while running (forgetting, the gate)."""
+    estimator.forgetting_factor = 0.995
+    estimator.outlier_threshold = 4.0
+
+
 def replayed_rows(monkeypatch):
     """Count the rows the single-plant replays take and the decisions they make, per call."""
     calls = []
