@@ -8,24 +8,20 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup_venv.sh
 # Keep every ROS graph of this run on this machine and on a domain of its own. The ROS
-# graph tests take their domains from a slice of 101..232 that this id selects
-# (test/conftest.py): runs at once on one machine need ids that differ modulo 33.
+# graph tests take their domains from slices of 101..232 that this id selects, one per
+# worker (test/conftest.py): runs at once on one machine need ids that differ modulo 33 by
+# at least the workers' count.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( ($$ % 100) + 1 ))}
-# --fast and the whole suite spread the tests without a ROS graph over the cores
-# (pytest-xdist, -n auto; add -n 0 for one process, as --pdb needs). The whole suite then
-# runs the ROS graph tests in one process: spread over workers, they would share the
-# suite's domains (test/conftest.py; 4 of 100 failed so, a demo's identifier taking
-# another test's samples), and alone they have the cores their timing assumes.
+# --fast and the whole suite spread the tests over the cores (pytest-xdist, -n auto; add
+# -n 0 for one process, as --pdb needs), the ROS graph tests too: each worker takes its own
+# slice of test domains (test/conftest.py), so two graphs started at once never meet.
 if [ "${1:-}" = "--fast" ]; then
   shift
   exec .venv/bin/python -m pytest -n auto \
     -m "not ros and not statistical and not papers and not slow" "$@"
 fi
 if [ $# -eq 0 ]; then
-  status=0
-  .venv/bin/python -m pytest -n auto -m "not ros" || status=$?
-  .venv/bin/python -m pytest -m ros || status=$(( status ? status : $? ))
-  exit "$status"
+  exec .venv/bin/python -m pytest -n auto
 fi
 exec .venv/bin/python -m pytest "$@"

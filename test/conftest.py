@@ -27,17 +27,31 @@ def _caller_domain():
     return int(text)
 
 
-def suite_domains(caller):
-    """Return the test domains of a suite started on domain ``caller`` (a range)."""
-    for shift in (0, 1):  # a caller inside the band never gets its own domain
-        first = FIRST_TEST_DOMAIN + (caller + shift) % SLICES * DOMAINS_PER_SUITE
+def _worker():
+    """Return this pytest-xdist worker's number and the workers' count ((0, 1): no xdist)."""
+    name = os.environ.get('PYTEST_XDIST_WORKER', '')
+    if not name.startswith('gw'):
+        return 0, 1
+    return int(name[2:]), int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+
+
+def suite_domains(caller, worker=0, workers=1):
+    """
+    Return the test domains of a suite started on domain ``caller`` (a range).
+
+    Worker w of a run spread over ``workers`` (pytest-xdist) takes the w-th
+    slice after the caller's, so that the graphs of tests running at once in
+    two workers never meet.
+    """
+    for shift in (0, workers):  # a caller inside the band never gets its own domain
+        first = FIRST_TEST_DOMAIN + (caller + worker + shift) % SLICES * DOMAINS_PER_SUITE
         domains = range(first, first + DOMAINS_PER_SUITE)
         if caller not in domains:
             return domains
 
 
 # read once, at collection: a test that sets ROS_DOMAIN_ID for its children moves nothing
-_SUITE_DOMAINS = suite_domains(_caller_domain())
+_SUITE_DOMAINS = suite_domains(_caller_domain(), *_worker())
 _sequence = itertools.count()
 
 #: The test folder: every test module lives in a folder below it that says its kind.
@@ -116,11 +130,12 @@ def fresh_domain_id():
     Return a ROS domain id for one test: the next of its suite's slice, in turn.
 
     The slice (:func:`suite_domains`) follows from the ROS_DOMAIN_ID the
-    suite was started with, read once at collection. Suites run at once on
-    one machine with ROS_DOMAIN_IDs in 0..100 that differ modulo
-    :data:`SLICES` (33) never share a domain: give each concurrent run its
-    own ROS_DOMAIN_ID in 1..33, or distinct ones that differ modulo 33 (21 and
-    61..64 do). The test domains lie in 101..232 and never on the caller's own
+    suite was started with, read once at collection, and from its xdist
+    worker. Suites run at once on one machine with ROS_DOMAIN_IDs in 0..100
+    whose slices differ modulo :data:`SLICES` (33) never share a domain: a
+    suite over W workers takes W slices from its ROS_DOMAIN_ID on, so give
+    concurrent runs ROS_DOMAIN_IDs at least W apart modulo 33 (one process:
+    21 and 61..64 are). The test domains lie in 101..232 and never on the caller's own
     domain, so a graph the caller runs on its ROS_DOMAIN_ID is not crossed
     either. Without ROS_DOMAIN_ID the slice follows from the pid. Consecutive
     calls cycle through the slice's :data:`DOMAINS_PER_SUITE` domains: a test

@@ -8,10 +8,20 @@ from conftest import (DOMAINS_PER_SUITE, FIRST_TEST_DOMAIN, LAST_DOMAIN, SLICES,
 
 def test_every_caller_domain_gets_a_slice_in_range_without_its_own_domain():
     for caller in range(LAST_DOMAIN + 1):
-        domains = list(suite_domains(caller))
-        assert len(domains) == DOMAINS_PER_SUITE
-        assert FIRST_TEST_DOMAIN <= min(domains) and max(domains) <= LAST_DOMAIN
-        assert caller not in domains
+        for worker, workers in ((0, 1), (0, 2), (1, 2), (3, 4)):
+            domains = list(suite_domains(caller, worker, workers))
+            assert len(domains) == DOMAINS_PER_SUITE
+            assert FIRST_TEST_DOMAIN <= min(domains) and max(domains) <= LAST_DOMAIN
+            assert caller not in domains
+
+
+def test_the_workers_of_one_run_never_share_a_test_domain():
+    # scripts/test.sh spreads the ROS graph tests over pytest-xdist's workers too
+    for workers in (2, 3, 8):
+        for caller in range(LAST_DOMAIN + 1):
+            slices = [set(suite_domains(caller, worker, workers)) for worker in range(workers)]
+            for a, b in itertools.combinations(slices, 2):
+                assert not a & b, (caller, workers)
 
 
 def test_callers_that_differ_modulo_slices_never_share_a_test_domain():
