@@ -100,16 +100,17 @@ def whiteness_statistic(autocovariance: np.ndarray, lags: int, size: Any,
     forms = 0.5 * (forms + np.swapaxes(forms, -1, -2))
     statistic = sizes * np.einsum('ki,ki->k', rho, rho)
     deviation = rho.copy()
-    for k in np.flatnonzero(known).tolist():
-        statistic[k], deviation[k] = profiled_whiteness(rho[k], forms[k], float(sizes[k]))
+    if known.any():
+        statistic[known], deviation[known] = profiled_whiteness(rho[known], forms[known],
+                                                                sizes[known])
     worst = np.argmax(np.abs(deviation), axis=-1)
     return statistic, worst + 1, rho[np.arange(rho.shape[0]), worst]
 
 
-def profiled_whiteness(rho: np.ndarray, forms: np.ndarray, size: float
-                       ) -> tuple[float, np.ndarray]:
+def profiled_whiteness(rho: np.ndarray, forms: np.ndarray, size: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
     r"""
-    Return :math:`\min_\xi F(\xi)` and :math:`\hat\rho - q(\hat\xi)` at the minimum.
+    Return :math:`\min_\xi F(\xi)` and :math:`\hat\rho - q(\hat\xi)` at the minimum, per plant.
 
     A recursive estimate's output error is
     :math:`\varepsilon(t) = v(t) + \psi^T(t)\tilde\theta(t)`. In open loop
@@ -135,49 +136,62 @@ def profiled_whiteness(rho: np.ndarray, forms: np.ndarray, size: float
     well (the seeded Monte Carlo of test_adequacy.py measures its tail).
     Damped Gauss-Newton from :math:`\xi = 0` and from the best point along
     each leading eigenvector e of :math:`\sum_k \hat\rho_k A_k` (along e, F is
-    a quadratic in :math:`u = s^2`); ``forms`` ``(M, p, p)`` holds
-    :math:`A_k`, ``size`` N.
+    a quadratic in :math:`u = s^2`). ``rho`` ``(K, M)``, ``forms`` ``(K, M, p, p)``
+    (:math:`A_k`) and ``size`` ``(K,)`` (N) are those of K plants, searched at
+    once (each plant's numbers do not depend on the others'); returns ``(K,)``
+    and ``(K, M)``.
     """
-    lags, p = forms.shape[0], forms.shape[-1]
-    rows = forms.reshape(lags * p, p)
-
-    def objective(xi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        # A_k xi of every k (M, p), then q_k = xi' A_k xi
-        spread = (rows @ xi).reshape(lags, p)
-        residual = rho - spread @ xi
-        return size * float(residual @ residual) + float(xi @ xi), residual, spread
-
-    best, deviation, _ = objective(np.zeros(p))
-    values, vectors = np.linalg.eigh(np.tensordot(rho, forms, axes=1))
+    count, lags, p = forms.shape[0], forms.shape[1], forms.shape[-1]
+    rows = forms.reshape(count, lags * p, p)
     identity = np.eye(p)
-    for j in np.argsort(values)[::-1][:PROFILE_STARTS].tolist():
-        direction = vectors[:, j]
-        along = (rows @ direction).reshape(lags, p) @ direction
+
+    def objective(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # A_k xi of every k (K, M, p), then q_k = xi' A_k xi
+        spread = np.einsum('kij,kj->ki', rows, xi).reshape(count, lags, p)
+        residual = rho - np.einsum('kmj,kj->km', spread, xi)
+        value = size * np.einsum('km,km->k', residual, residual) + np.einsum('kj,kj->k', xi, xi)
+        return value, residual, spread
+
+    best, deviation, _ = objective(np.zeros((count, p)))
+    values, vectors = np.linalg.eigh(np.einsum('km,kmij->kij', rho, forms))
+    leading = np.argsort(values, axis=-1)[:, ::-1]
+    for start in range(min(PROFILE_STARTS, p)):
+        direction = np.take_along_axis(vectors, leading[:, None, start:start + 1], axis=2)[..., 0]
+        along = np.einsum('kmj,kj->km',
+                          np.einsum('kij,kj->ki', rows, direction).reshape(count, lags, p),
+                          direction)
         # F(u) = N |rho - u a|^2 + u: least at u = (2 N rho.a - 1) / (2 N a.a)
-        scale = (2.0 * size * float(rho @ along) - 1.0) / max(2.0 * size * float(along @ along),
-                                                              1e-300)
-        if not scale > 0.0:
-            continue
-        xi = math.sqrt(scale) * direction
+        scale = ((2.0 * size * np.einsum('km,km->k', rho, along) - 1.0)
+                 / np.maximum(2.0 * size * np.einsum('km,km->k', along, along), 1e-300))
+        started = scale > 0.0
+        xi = np.sqrt(np.where(started, scale, 0.0))[:, None] * direction
         value, residual, spread = objective(xi)
-        damping = 1e-3
+        damping = np.full(count, 1e-3)
+        searching = started.copy()
         for _ in range(PROFILE_ITERATIONS):
+            if not searching.any():
+                break
             # F = |[sqrt(N) (rho - q); xi]|^2; the Jacobian of q is 2 A_k xi
             jacobian = -2.0 * spread
-            gradient = size * (residual @ jacobian) + xi
-            hessian = size * (jacobian.T @ jacobian) + identity
-            step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), -gradient)
+            gradient = size[:, None] * np.einsum('km,kmj->kj', residual, jacobian) + xi
+            hessian = (size[:, None, None] * np.einsum('kmi,kmj->kij', jacobian, jacobian)
+                       + identity)
+            damped = hessian + damping[:, None, None] * (
+                np.diagonal(hessian, axis1=1, axis2=2)[:, :, None] * identity)
+            step = np.linalg.solve(damped, -gradient[..., None])[..., 0]
             trial, trial_residual, trial_spread = objective(xi + step)
-            if trial < value:
-                converged = value - trial <= PROFILE_TOLERANCE * value
-                xi, value, residual, spread = xi + step, trial, trial_residual, trial_spread
-                damping /= 10.0
-                if converged:
-                    break
-            else:
-                damping *= 10.0
-        if value < best:
-            best, deviation = value, residual
+            better = searching & (trial < value)
+            converged = better & (value - trial <= PROFILE_TOLERANCE * value)
+            xi = np.where(better[:, None], xi + step, xi)
+            residual = np.where(better[:, None], trial_residual, residual)
+            spread = np.where(better[:, None, None], trial_spread, spread)
+            value = np.where(better, trial, value)
+            damping = np.where(better, damping / 10.0,
+                               np.where(searching, damping * 10.0, damping))
+            searching &= ~converged
+        lower = started & (value < best)
+        best = np.where(lower, value, best)
+        deviation = np.where(lower[:, None], residual, deviation)
     return best, deviation
 
 

@@ -15,7 +15,7 @@ from scipy import signal
 
 from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators.adequacy import AdequacyMonitor, chi2_quantile
-from bcid_ros.estimators.residual_statistics import covariance_factors
+from bcid_ros.estimators.residual_statistics import covariance_factors, profiled_whiteness
 
 PLANTS = 1000
 SAMPLES = 1000
@@ -62,6 +62,25 @@ def run(residual, inputs, psi, scale, term):
 def tolerance(tail):
     """Return four binomial standard errors of a share ``tail`` over PLANTS."""
     return 4.0 * math.sqrt(tail * (1.0 - tail) / PLANTS)
+
+
+def test_the_profiled_statistic_of_plants_searched_together_is_each_ones_alone():
+    # the batched forms search all their plants at once: each plant's numbers must be
+    # those of the plant searched alone, bit for bit (one code path, the same draws)
+    rng = np.random.default_rng(3)
+    rho = rng.normal(0.0, 0.05, (6, LAGS))
+    halves = rng.normal(0.0, 0.05, (6, LAGS, P, P))
+    forms = 0.5 * (halves + np.swapaxes(halves, -1, -2))
+    size = rng.uniform(200.0, 5000.0, 6)
+    together, deviations = profiled_whiteness(rho, forms, size)
+    for k in range(6):
+        alone, deviation = profiled_whiteness(rho[k:k + 1], forms[k:k + 1], size[k:k + 1])
+        assert together[k] == alone[0]
+        np.testing.assert_array_equal(deviations[k], deviation[0])
+    # the profile never does worse than xi = 0 (the plain statistic), and with A = 0 is it
+    assert (together <= size * np.einsum('km,km->k', rho, rho)).all()
+    plain, _ = profiled_whiteness(rho, np.zeros_like(forms), size)
+    np.testing.assert_array_equal(plain, size * np.einsum('km,km->k', rho, rho))
 
 
 def test_the_factor_of_the_covariance_moves_with_it_continuously():
