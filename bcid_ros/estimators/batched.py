@@ -54,6 +54,9 @@ Rows = slice | np.ndarray
 #: What a validity decision costs of the REPLAY_SLICE the plants catching up share in an
 #: update, in replayed rows (Rls._replay: some 60 rows' worth, 2-3 ms for bcrls).
 DECISION_ROWS = 60
+#: What a plant's restart costs of that slice in the update that detects it (the snapshot
+#: into a new single-plant estimator and its restart, about 1.2 ms: some 50-60 rows).
+RESTART_ROWS = 60
 
 
 class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
@@ -176,12 +179,13 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         """
         y, u, present = self._checked(y, u, present)
         huge = self._huge
+        catching = sorted(self._catching)  # (a plant detecting a change here joins next time)
         # one comparison each screens for NaN, Inf and values that could overflow
-        if (not self._catching and present is None and np.abs(y).max() < huge
+        if (not catching and present is None and np.abs(y).max() < huge
                 and np.abs(u).max() < huge):
-            skipped = None
+            skipped = usable = None
         else:
-            skipped = self._screen(y, u, present)
+            skipped, usable = self._screen(y, u, present)
         if self._change_detection:
             self._remember(y, u, skipped)
         regressors = self._regressors
@@ -203,6 +207,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         elif self._quiet_left:
             self._quiet_left -= 1
             np.maximum(self._quiet - 1, 0, out=self._quiet)
+        if catching:
+            self._catch_up(catching, y, u, usable)
         if self._catching:
             self._show_catching()
         return self.valid
@@ -449,13 +455,14 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                 present = None
         return y, u, present
 
-    def _screen(self, y: np.ndarray, u: np.ndarray,
-                present: np.ndarray | None) -> np.ndarray | None:
+    def _screen(self, y: np.ndarray, u: np.ndarray, present: np.ndarray | None
+                ) -> tuple[np.ndarray | None, np.ndarray]:
         """
         Count the samples not used; return the plants not stepped here (None: all are).
 
-        The plants catching up take theirs through their single-plant
-        estimators (:meth:`_catch_up`) and are not stepped here either.
+        Also return which samples are usable. The plants catching up take
+        theirs through their single-plant estimators (:meth:`_catch_up`) and
+        are not stepped here either.
         """
         usable = usable_samples(y, u, present)
         if present is not None:
@@ -463,19 +470,19 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
             self.nonfinite += present & ~usable
         else:
             self.nonfinite += ~usable
-        if self._catching:  # their single-plant estimators take them, not the step here
-            detached = list(self._catching)
-            self._catch_up(y, u, usable)
-            usable[detached] = False
+        stepped = usable
+        if self._catching:  # their single-plant estimators take them, after the step
+            stepped = usable.copy()
+            stepped[list(self._catching)] = False
         with np.errstate(invalid='ignore', over='ignore'):
             # the single plant's screen: the sum of the magnitudes (RecursiveEstimator.update)
-            huge = usable & ~(np.abs(y) + np.abs(u).sum(axis=1) < HUGE_VALUE)
+            huge = stepped & ~(np.abs(y) + np.abs(u).sum(axis=1) < HUGE_VALUE)
         if huge.any():
             # the order + 2 steps whose regressors can hold it run with warnings off, and
             # those plants' residual tests skip them (as Rls._record_residual's)
             self._quiet_left = self.order + 2
             self._quiet[huge] = self.order + 2
-        return None if usable.all() else np.flatnonzero(~usable)
+        return (None if stepped.all() else np.flatnonzero(~stepped)), usable
 
     def _remember(self, y: np.ndarray, u: np.ndarray, skipped: np.ndarray | None) -> None:
         """Keep each used sample among its plant's last RESTART_SPAN (Rls._remember)."""
@@ -585,22 +592,26 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         single.set_state(self.plant_state(plant))
         single._plant_changed(age)
         self._catching[plant] = single
-        self._load_single(plant, single.get_state())
+        # plant k's rows are its single's only once caught up (_show_catching); until then
+        # no decision of this update's step may take them
+        self._next_check[plant] = np.iinfo(np.int64).max
 
-    def _catch_up(self, y: np.ndarray, u: np.ndarray, usable: np.ndarray) -> None:
+    def _catch_up(self, plants: list[int], y: np.ndarray, u: np.ndarray,
+                  usable: np.ndarray) -> None:
         """
-        Give each plant catching up its sample, through its single-plant estimator.
+        Give each plant catching up (``plants``) its sample, through its single plant.
 
         They share one REPLAY_SLICE of rows (a validity decision counts
-        DECISION_ROWS), in turns from update to update; a plant whose turn
+        DECISION_ROWS), in turns from update to update, after the restarts
+        of this update's detections (RESTART_ROWS each); a plant whose turn
         finds none left only queues its sample. Each plant's rows are replayed
         in the same order whatever its slice, so once caught up it is its
         single plant's estimate bit for bit.
         """
-        plants = sorted(self._catching)
         turn = self._catch_turn % len(plants)
         self._catch_turn += 1
-        left = REPLAY_SLICE
+        # (the plants catching up only grow in an update: those more are its detections)
+        left = REPLAY_SLICE - RESTART_ROWS * (len(self._catching) - len(plants))
         for plant in plants[turn:] + plants[:turn]:
             single = self._catching[plant]
             single._replay_slice = max(left, 0)
