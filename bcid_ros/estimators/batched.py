@@ -57,6 +57,10 @@ DECISION_ROWS = 60
 #: What a plant's restart costs of that slice in the update that detects it (the snapshot
 #: into a new single-plant estimator and its restart, about 1.2 ms: some 50-60 rows).
 RESTART_ROWS = 60
+#: The rows each plant catching up replays in every update, whatever is left of the slice
+#: (up to a row that would decide): its own sample's and one more, so that its queue
+#: shrinks and stays within a snapshot's room (rls.QUEUE_ROWS) however many plants catch up.
+LEAST_ROWS = 2
 
 
 class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
@@ -604,9 +608,13 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         They share one REPLAY_SLICE of rows (a validity decision counts
         DECISION_ROWS), in turns from update to update, after the restarts
         of this update's detections (RESTART_ROWS each); a plant whose turn
-        finds none left only queues its sample. Each plant's rows are replayed
-        in the same order whatever its slice, so once caught up it is its
-        single plant's estimate bit for bit.
+        finds none left replays LEAST_ROWS up to a row that would decide, so
+        that its queue still shrinks while it can (with more plants catching
+        up than the slice has rows, an update costs more than the slice rather
+        than leave queues growing for good) and no update makes more than two
+        decisions. Each plant's rows are replayed in the same order whatever
+        its slice, so once caught up it is its single plant's estimate bit for
+        bit.
         """
         turn = self._catch_turn % len(plants)
         self._catch_turn += 1
@@ -614,7 +622,8 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         left = REPLAY_SLICE - RESTART_ROWS * (len(self._catching) - len(plants))
         for plant in plants[turn:] + plants[:turn]:
             single = self._catching[plant]
-            single._replay_slice = max(left, 0)
+            single._replay_slice = max(left, LEAST_ROWS)
+            single._replay_decides = left > 0
             queued, checks = single.catching_up, single._checks
             if usable[plant]:
                 single.update(y[plant], u[plant])

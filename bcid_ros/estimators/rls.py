@@ -407,7 +407,9 @@ class Rls(LsAccessors, RecursiveEstimator):
         decision costs as much as some 60 rows (bcrls: the residual tests and
         the simulation check, about 2-3 ms here), so a row that made one ends
         the slice. Refused rows do not count in the refusals the operating
-        point follows: its means took the samples when they came.
+        point follows: its means took the samples when they came. Without
+        ``_replay_decides`` (a batched form's plant whose turn found the
+        shared slice spent) the replay stops before a row that would decide.
         """
         refused, quiet, checks = self._refused, self._quiet_left, self._checks
         shown, self._shown = self._shown, None  # (the rows see the estimate they make)
@@ -417,9 +419,14 @@ class Rls(LsAccessors, RecursiveEstimator):
             while done < limit and self._queue.shape[0] and (
                     self._checks == checks or done < 2):
                 if self._restart_left:
-                    done += self._replay_restart_rows(limit - done, checks, done)
-                    continue
+                    replayed = self._replay_restart_rows(limit - done, checks, done)
+                    done += replayed
+                    if replayed:
+                        continue
+                    break
                 row = self._queue[0]
+                if not self._replay_decides and (row[-1] == _END or self._decides_next()):
+                    break
                 self._queue = self._queue[1:]
                 self._replay_queued_row(row)
                 done += 1
@@ -436,6 +443,8 @@ class Rls(LsAccessors, RecursiveEstimator):
         start = done
         while done - start < limit and self._restart_left and (
                 self._checks == checks or done < 2):
+            if not self._replay_decides and self._decides_next():
+                break
             row = self._queue[0]
             self._queue = self._queue[1:]
             self._restart_left -= 1
@@ -443,6 +452,10 @@ class Rls(LsAccessors, RecursiveEstimator):
             done += 1
         self._swap_replay_own()
         return done - start
+
+    def _decides_next(self) -> bool:
+        """Whether the next update that steps makes the periodic validity decision."""
+        return self._updates + 1 >= self._next_check
 
     def _swap_replay_own(self) -> None:
         own = self._replay_own
@@ -478,6 +491,9 @@ class Rls(LsAccessors, RecursiveEstimator):
     #: batched estimators share REPLAY_SLICE among their plants catching up at once; the
     #: rows and their order are the same whatever the slice, so is the estimate caught up.
     _replay_slice = REPLAY_SLICE
+    #: Whether a replay's slice may make a validity decision (the batched forms' plants
+    #: whose turn finds their shared slice spent may not: :meth:`_replay`).
+    _replay_decides = True
 
     #: Not valid while a restart's rows are queued (:meth:`_live_reasons`).
     _LIVE_REASONS = True

@@ -10,7 +10,7 @@ from bcid_ros.estimators import make_estimator
 from bcid_ros.estimators import make_batched_estimator
 from bcid_ros.estimators.batched import BatchedRls
 from bcid_ros.estimators.batched_bcrls import BatchedBcrls
-from bcid_ros.estimators.rls import REPLAY_SLICE, Rls
+from bcid_ros.estimators.rls import QUEUE_ROWS, REPLAY_SLICE, Rls
 from equivalence import assert_paths_agree, rounding_spread
 
 # Stable second-order plants (a1, a2, b1, b2), one per row: different poles and gains.
@@ -716,6 +716,41 @@ def test_a_setting_changed_while_a_plant_catches_up_reaches_it(name):
         return singles
 
     assert_plants_equal(batched, run(y, u), plant_spreads(run, y, u))
+
+
+def test_more_plants_catching_up_than_the_slice_has_rows_all_catch_up(monkeypatch):
+    # 70 plants on one plant's samples detect its change in one update: with 64 rows an
+    # update for all, the plants whose turn found none left only queued their samples, so
+    # the queues grew for good (and a snapshot of one overflowed its room); each replays
+    # two rows now (but a row that would decide), and no update decides more than twice
+    y, u = changed_data(2300, 5, changed=[1], noise=0.05)
+    count = 70
+    y, u = np.repeat(y[:, 1:2], count, axis=1), np.repeat(u[:, 1:2], count, axis=1)
+    batched = make_batched_estimator('rls', count, order=2)
+    watched = (0, count - 1)
+    singles = {k: make_estimator('rls', order=2) for k in watched}
+    for k, single in singles.items():
+        single.set_state(batched.plant_state(k))
+    calls = replayed_rows(monkeypatch)
+    longest, most_decisions = {}, 0
+    for t in range(y.shape[0]):
+        calls.clear()
+        batched.update(y[t], u[t])
+        most_decisions = max(most_decisions, sum(decisions for _, decisions in calls))
+        for k, catching in batched._catching.items():
+            longest[k] = max(longest.get(k, 0), catching.catching_up)
+            batched.plant_state(k)  # (a snapshot fits its room)
+    monkeypatch.undo()
+    for t in range(y.shape[0]):
+        for k, single in singles.items():
+            single.update(y[t, k], u[t, k])
+    assert len(longest) == count and not batched._catching
+    assert max(longest.values()) < QUEUE_ROWS
+    assert most_decisions <= 2
+    for k, single in singles.items():
+        assert batched.plant_flags(k) == single.flags
+        assert batched.plant_validity_reasons(k) == single.validity_reasons
+        np.testing.assert_allclose(batched.theta[k], single.theta, rtol=1e-9)
 
 
 def change_settings(estimator):
