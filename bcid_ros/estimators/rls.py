@@ -42,7 +42,9 @@ REPLAY_SLICE = 64
 #: The queue's room in a snapshot: the restart's rows, its end and the samples queued
 #: behind them (fewer than these: each update replays two rows at least and queues one; a
 #: detection among the samples, which the detector's warm-up all but rules out, puts at
-#: most RESTART_SPAN + 1 rows ahead of them).
+#: most RESTART_SPAN + 1 rows ahead of them). A batched form's plant that finds its shared
+#: slice spent waits before a row that would decide, for at most about half as many
+#: updates as plants are catching up with it (two decide an update): room for some 700.
 QUEUE_ROWS = 2 * (RESTART_SPAN + 1)
 #: A queued row's last column: a sample's quiet count (>= 0; see RecursiveEstimator._learn),
 #: or one of these, which keep a gap and a held sample in their place among the rows, and
