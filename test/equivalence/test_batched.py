@@ -690,9 +690,10 @@ def test_a_plant_catching_up_shows_its_single_plant_at_every_update(name):
 
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
 def test_a_setting_changed_while_a_plant_catches_up_reaches_it(name):
-    # plant 1 detects its change at 2004-2010; a live change of every setting a node can
-    # change while it catches up reaches its single plant then, as it reaches a single
-    # plant identifier at that sample (before, it reached the plant at its hand-back only)
+    # plant 1 detects its change at 2004-2010; a live change of the forgetting factor and
+    # the gate while it catches up reaches its single plant then (every live setting is
+    # passed on alike), as it reaches a single plant identifier at that sample (before, it
+    # reached the plant at its hand-back only)
     y, u = changed_data(2400, 4, changed=(1,))
     batched = make_batched_estimator(name, y.shape[1], order=2)
     changed_at = None
