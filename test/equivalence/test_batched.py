@@ -724,9 +724,8 @@ def test_more_plants_catching_up_than_the_slice_has_rows_all_catch_up(monkeypatc
     # update for all, the plants whose turn found none left only queued their samples, so
     # the queues grew for good (and a snapshot of one overflowed its room); each replays
     # two rows now (but a row that would decide), and no update decides more than twice
-    y, u = changed_data(2300, 5, changed=[1], noise=0.05)
     count = 70
-    y, u = np.repeat(y[:, 1:2], count, axis=1), np.repeat(u[:, 1:2], count, axis=1)
+    y, u = one_plant_everywhere(2300, count)
     batched = make_batched_estimator('rls', count, order=2)
     watched = (0, count - 1)
     singles = {k: make_estimator('rls', order=2) for k in watched}
@@ -800,6 +799,12 @@ def test_plants_changing_at_once_share_one_replay_slice_an_update(name, seed, mo
     assert_plants_follow_their_singles(name, y, u, present, batched, order=2)
 
 
+def one_plant_everywhere(samples, count):
+    """Return plant 1's samples (its gain doubled at 2000, noise 0.05) as ``count`` plants'."""
+    y, u = changed_data(samples, 5, changed=[1], noise=0.05)
+    return np.repeat(y[:, 1:2], count, axis=1), np.repeat(u[:, 1:2], count, axis=1)
+
+
 def changes(batched):
     """Count the plant changes ``batched`` detected, over its plants."""
     return int(batched.flags.get('plant_change', np.zeros(1)).sum())
@@ -810,8 +815,7 @@ def test_plants_restarting_in_one_frame_still_decide_apart(name):
     # one plant's samples on every plant: all detect its change in one frame and restart
     # together; from their replays' ends on they would decide in one frame (each decision
     # refitting a simulation check's window) but for each plant's place in the period
-    y, u = changed_data(2600, 5, changed=[1], noise=0.05)
-    y, u = np.repeat(y[:, 1:2], 5, axis=1), np.repeat(u[:, 1:2], 5, axis=1)
+    y, u = one_plant_everywhere(2600, 5)
     batched = make_batched_estimator(name, y.shape[1], order=2)
     deciding, detections, catching = [], [], 0
     decide = batched._check_validity
