@@ -554,7 +554,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           f'{result["far_valid_share"]:.3f}', file=sys.stderr)
     header: list[str] = ['']
     rows: list[list[Any]] = []
-    for model in models:
+    for model in models if args.count else ():  # --count 0: the early-run table alone
         recoveries = [r['recovery'] for r in references[model] if r['recovery'] is not None]
         print(f'reference recovery ({model} plants): median {np.median(recoveries):.0f} '
               f'samples over {len(recoveries)} changes (none in the grid: '
@@ -563,13 +563,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         header += list(group)
         table = summarise(cases[model], references[model], group)
         rows = table if not rows else [row + extra[1:] for row, extra in zip(rows, table)]
-    print()
-    print(markdown_table(header, rows))
+    if rows:
+        print()
+        print(markdown_table(header, rows))
     if args.early:
         print()
         print(markdown_table(['accurate but invalid at', '500', '1000', '3000'],
                              early(args.early)))
-    if args.plot:
+    if args.plot and args.count:
         column = next(iter(columns))
         model = columns[column][1]
         first = next(k for k, case in enumerate(cases[model]) if case.kind == 'abrupt')

@@ -58,8 +58,10 @@ misfit.
 
 **A plant change.** A model that passed on a full window and is then contradicted on two
 disjoint windows, no check passing in between, is evidence that the plant changed
-(:meth:`SimulationWindow.contradicted_twice`: at most :math:`\alpha^2` per check under a
-plant that does not change; rpem restarts on it where its change detector is silent).
+(:meth:`SimulationWindow.contradicted_twice`: at most :math:`2\alpha^2` per check under a
+plant that does not change; rpem restarts on it where its change detector is silent). The
+second window is the samples since the first contradiction, looked at as they come (a few
+looks, alpha shared among them), or once the window starts after it, the whole window.
 
 Everything is over a leading plant axis where it can be (:func:`simulate`,
 :func:`input_drive`); the refit is per plant. Pure numpy (the estimators import no scipy;
@@ -491,6 +493,10 @@ class SimulationWindow:
     period : int
         The recorded samples from one check to the next (:data:`CHECK_PERIOD`; 1: at every
         :meth:`reasons` with a sample since the last check).
+    looks_at_tail : bool
+        Whether a run of contradictions judges its samples alone too
+        (:meth:`_look_at_tail`): for an estimator that takes :meth:`contradicted_twice` as
+        evidence of a change (rpem); others would pay for looks no one reads.
 
     Raises
     ------
@@ -504,10 +510,11 @@ class SimulationWindow:
 
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
                  input_delay: Sequence[int], forgetting_factor: float = 1.0,
-                 period: int = CHECK_PERIOD) -> None:
+                 period: int = CHECK_PERIOD, looks_at_tail: bool = False) -> None:
         if period < 1:
             raise ValueError(f'period must be at least 1, got {period!r}')
         self.period = period
+        self.looks_at_tail = looks_at_tail
         self.order = order
         self.lags = numerator_lags(order, num_inputs, feedthrough, input_delay)
         self.minimum = SAMPLES_PER_PARAMETER * (state_count(order, self.lags) + 1 + order
@@ -544,6 +551,10 @@ class SimulationWindow:
         self._full_pass = False
         self.passed = False
         self._run_start = -1
+        # the run's looks at the samples since its start (:meth:`_look_at_tail`): the
+        # samples at which the next is due, and the last one's (0: it passed, or none)
+        self._next_look = 0
+        self._tail = 0
 
     def gap(self) -> None:
         """
@@ -627,6 +638,7 @@ class SimulationWindow:
                 f'parameters up to {math.sqrt(understated[0]):.3g} times less well than it says'
                 if understated[0] > UNDERSTATEMENT_LIMIT else '')
             self._follow_run(bool(contradicted[0]), bool(np.isfinite(statistic[0])))
+            self._tail = self._look_at_tail(a, b, covariance) if contradicted[0] else 0
         # below the minimum: the verdict from before a gap, if any
         return [reason for reason in (self.reason, self.coverage_reason) if reason]
 
@@ -636,8 +648,34 @@ class SimulationWindow:
         if contradicted:
             if self._run_start < 0:
                 self._run_start = self._recorded
+                self._next_look = self.minimum
         elif judged:
             self._run_start = -1
+
+    def _look_at_tail(self, a: np.ndarray, b: np.ndarray,
+                      covariance: np.ndarray | None) -> int:
+        r"""
+        Return the samples since the run began if they alone contradict the model, else 0.
+
+        A look of the run's second stage before its window is disjoint
+        (:meth:`contradicted_across`): the samples recorded since the run's first
+        contradiction, judged at :math:`\alpha/J` (:func:`tail_looks`), once they are
+        ``minimum`` and then each time they have doubled. After a change the first
+        contradicted window still holds the old plant's samples, whose fit the refit must
+        share; the samples after it are the new plant's alone, and a change that moves the
+        simulated output little shows in a few hundred of them (tracking plant (4, 5)).
+        """
+        tail = self._recorded - self._run_start
+        if not (self.looks_at_tail and self.passed and self._run_start >= 0
+                and self._next_look <= tail < self._filled):
+            return 0
+        self._next_look = 2 * tail
+        rows = self._rows[self._end - tail:self._end]
+        contradicted = judge(
+            rows[None, :, 0], rows[None, :, 1:], a[None], b.reshape(1, *self.lags.shape),
+            self.lags, false_alarm=FALSE_ALARM / tail_looks(self.minimum, self.window),
+            covariance=None if covariance is None else covariance[None])[3]
+        return tail if contradicted[0] else 0
 
     def vouch(self) -> None:
         """
@@ -653,36 +691,44 @@ class SimulationWindow:
 
     def contradicted_twice(self) -> int:
         r"""
-        Return the samples of the window if it contradicts a model that had passed, else 0.
+        Return the samples of a second window that contradicts a model that had passed, else 0.
 
         The evidence of a plant change: a model that passed the check on a full window,
         and every other check (:meth:`vouch`), since the last :meth:`clear` (``passed``: a
         model that never did, a structure too poor for the plant, is never judged changed
-        by this), contradicted at every check
-        since one whose window ended before the current window began: two disjoint windows
-        contradict it, with no check passing in between. Under a plant that does not
-        change, the verdicts of disjoint windows are those of independent noise, each
-        contradicting at most at the rate :math:`\alpha` = ``FALSE_ALARM``: a run that
-        starts at a given check reaches a disjoint window at most at the rate
-        :math:`\alpha^2`, and with a check every c samples that is at most
-        :math:`\alpha^2/c` per sample (rpem, c = ``rules.VALIDITY_PERIOD`` = 100:
-        1e-6, 0.1 per 100,000 samples). The current window's samples are all after the
-        change: it was there before the first contradicted window ended.
+        by this), contradicted at every check since the first of a run, and contradicted
+        again on samples all recorded after that first check's window ended: two disjoint
+        windows contradict it, with no check passing in between. The second is either the
+        whole window, once it starts after the run's first check, or before that the
+        samples since then alone (:meth:`_look_at_tail`, at most J looks at
+        :math:`\alpha/J` each). Under a plant that does not change, the verdicts of
+        disjoint samples are those of independent noise: a run starts at a given check at
+        most at the rate :math:`\alpha` = ``FALSE_ALARM``, its looks at the tail
+        contradict together at most at :math:`\alpha`, its first disjoint window at most at
+        :math:`\alpha`, so that a change comes of a given check at most at :math:`2\alpha^2`,
+        and with a check every c samples at most :math:`2\alpha^2/c` per sample
+        (:func:`change_rate`; rpem, c = ``rules.VALIDITY_PERIOD`` = 100: 2e-6, 0.2 per
+        100,000 samples). The second window's samples are all after the change: it was
+        there before the first contradicted window ended.
         """
-        return self.contradicted_across() if self.passed else 0
+        if not self.passed:
+            return 0
+        return self.contradicted_across() or (self._tail if self._judged else 0)
 
     def contradicted_across(self) -> int:
         """
         Return the samples of the window if two disjoint windows contradict the model, else 0.
 
-        :meth:`contradicted_twice` without its ``passed``: the run of contradictions
-        (no check passing in between) reaches back past the current window's start,
-        whether or not a model passed before. :meth:`new_run` starts the count again.
-        The current verdict must be of the samples kept now (``judged``): after a
-        :meth:`gap` the verdict of the samples before it holds, and the few samples since
-        would otherwise be a second window that no check judged (an outlier refused in a
-        run of contradictions reported a change at the next period, the run's one verdict
-        counted twice).
+        :meth:`contradicted_twice` without its ``passed`` and its looks at the run's tail:
+        the run of contradictions (no check passing in between) reaches back past the
+        current window's start, whether or not a model passed before (rpem, while a change
+        is pending: its fits blend another plant; a look at a short tail would cut them to
+        its few samples on the evidence of a new model still settling). :meth:`new_run`
+        starts the count again. The current verdict must be of the samples kept now
+        (``judged``): after a :meth:`gap` the verdict of the samples before it holds, and
+        the few samples since would otherwise be a second window that no check judged (an
+        outlier refused in a run of contradictions reported a change at the next period,
+        the run's one verdict counted twice).
         """
         if not (self.reason and self._run_start >= 0 and self._judged):
             return 0
@@ -693,6 +739,7 @@ class SimulationWindow:
     def new_run(self) -> None:
         """Count contradictions afresh from the next check (the samples and verdict stay)."""
         self._run_start = -1
+        self._tail = 0
 
     def state_items(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Return (arrays, scalars) of the window for a snapshot (fixed shapes)."""
@@ -707,7 +754,8 @@ class SimulationWindow:
                  'simulation_statistic': self.statistic,
                  'simulation_recorded': self._recorded, 'simulation_passed': self.passed,
                  'simulation_full_pass': self._full_pass,
-                 'simulation_run_start': self._run_start})
+                 'simulation_run_start': self._run_start,
+                 'simulation_next_look': self._next_look, 'simulation_tail': self._tail})
 
     def load(self, arrays: dict[str, np.ndarray], scalars: dict[str, Any]) -> None:
         """Take over :meth:`state_items` (a snapshot without them: an empty window)."""
@@ -728,17 +776,35 @@ class SimulationWindow:
         self.passed = bool(scalars.get('simulation_passed', False))
         self._full_pass = bool(scalars.get('simulation_full_pass', False))
         self._run_start = int(scalars.get('simulation_run_start', -1))
+        # from before the looks at the run's tail: the next due at once, no verdict of one
+        self._next_look = int(scalars.get('simulation_next_look', self.minimum))
+        self._tail = int(scalars.get('simulation_tail', 0))
+
+
+def tail_looks(minimum: int, window: int) -> int:
+    """
+    Return J, the most looks a run takes at its tail (:meth:`SimulationWindow._look_at_tail`).
+
+    Its lengths: from ``minimum``, each at least twice the last, below ``window``. At least
+    1 (the divisor of alpha).
+    """
+    looks, length = 0, minimum
+    while length < window:
+        looks, length = looks + 1, 2 * length
+    return max(looks, 1)
 
 
 def change_rate(period: int) -> float:
     r"""
     Return the most changes a sample that :meth:`SimulationWindow.contradicted_twice` reports.
 
-    Under no change, with a check every ``period`` samples: :math:`\alpha^2`/period, the
-    share of the stated false-alarm rate the estimator gives this evidence (rpem: 1e-6 with
-    a check every 100 samples, a tenth of ``change_detection.FALSE_ALARM``).
+    Under no change, with a check every ``period`` samples: :math:`2\alpha^2`/period (a run
+    starts at most at alpha; its looks at its tail and its first disjoint window contradict
+    at most at alpha each), the share of the stated false-alarm rate the estimator gives
+    this evidence (rpem: 2e-6 with a check every 100 samples, a fifth of
+    ``change_detection.FALSE_ALARM``).
     """
-    return FALSE_ALARM ** 2 / period
+    return 2.0 * FALSE_ALARM ** 2 / period
 
 
 def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order: int,
@@ -770,5 +836,5 @@ def simulation_reasons(window: SimulationWindow | None, theta: np.ndarray, order
 __all__ = ['BLOCK', 'CHECK_PERIOD', 'FALSE_ALARM', 'SAMPLES_PER_PARAMETER', 'SETTLING_EXCUSE',
            'UNDERSTATED', 'UNDERSTATEMENT_LIMIT', 'WINDOW', 'SimulationWindow', 'block_recursion',
            'change_rate', 'check', 'input_drive', 'judge', 'numerator_lags', 'refit',
-           'settled_statistic', 'simulate', 'simulation_reasons', 'state_count', 'understatement',
-           'window_length']
+           'settled_statistic', 'simulate', 'simulation_reasons', 'state_count', 'tail_looks',
+           'understatement', 'window_length']

@@ -135,6 +135,9 @@ class _PlantWindow(SimulationWindow):
         self.passed = False
         self._full_pass = False
         self._run_start = -1
+        self.looks_at_tail = False  # the batched estimators take no change from the check
+        self._next_look = 0
+        self._tail = 0
 
     def follow_forgetting_factor(self, forgetting_factor: float) -> None:
         """Take the window length of a new lambda (shared: every plant's window takes it)."""

@@ -196,6 +196,9 @@ class Validity:
     _simulation: SimulationWindow | None = None
     #: The recorded samples from one simulation check to the next (1: at every decision).
     _SIMULATION_CHECK_PERIOD: ClassVar[int] = CHECK_PERIOD
+    #: Whether the estimator takes a plant change from the check's runs of contradictions
+    #: (its window then looks at a run's samples alone as well: ``looks_at_tail``).
+    _SIMULATION_CHANGES: ClassVar[bool] = False
 
     @property
     def valid(self) -> bool:
@@ -275,7 +278,8 @@ class Validity:
         """
         self._simulation = SimulationWindow(self.order, self.num_inputs, self.feedthrough,
                                             self.input_delay, self._forgetting_factor,
-                                            self._SIMULATION_CHECK_PERIOD)
+                                            self._SIMULATION_CHECK_PERIOD,
+                                            self._SIMULATION_CHANGES)
 
     def _live_reasons(self) -> list[str] | tuple[str, ...]:
         """Return the reasons that change with every sample (``_LIVE_REASONS``); none here."""

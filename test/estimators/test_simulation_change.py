@@ -8,20 +8,25 @@ samples of the last window); a model that never passed is never restarted by it
 """
 
 import numpy as np
+import pytest
 from scipy import signal
 
 from benchmarks.tracking import TrackingCase
 from bcid_ros.estimators import make_estimator, rules
 from bcid_ros.estimators.change_detection import BLOCK_LENGTH, FALSE_ALARM
 from bcid_ros.estimators.rpem.online import SIMULATION_NOTE
-from bcid_ros.estimators.simulation_check import change_rate, SimulationWindow, WINDOW
+from bcid_ros.estimators import simulation_check
+from bcid_ros.estimators.simulation_check import (change_rate, SimulationWindow, tail_looks,
+                                                  WINDOW)
+
+FALSE_ALARM_CHECK = simulation_check.FALSE_ALARM
 
 PERIOD = 100
 
 
-def judged_windows(y, u, a, b):
+def judged_windows(y, u, a, b, looks_at_tail=True):
     """Yield (recorded samples, window) after each check of a window every PERIOD samples."""
-    window = SimulationWindow(a.size, 1, False, [0], period=PERIOD)
+    window = SimulationWindow(a.size, 1, False, [0], period=PERIOD, looks_at_tail=looks_at_tail)
     for t in range(y.size):
         window.record(float(y[t]), [u[t]])
         if (t + 1) % PERIOD == 0:
@@ -48,13 +53,14 @@ def second_order(samples=6000, seed=4):
     return y + 0.3 * rng.standard_normal(samples), u
 
 
-def test_a_model_that_passed_is_judged_changed_on_the_second_disjoint_window():
+def test_a_model_that_passed_is_judged_changed_on_the_samples_since_its_first_contradiction():
     """
-    Pole 0.8 -> 0.7 at 3000: the change is reported at c + WINDOW, c the first contradiction.
+    Pole 0.8 -> 0.7 at 3000: the change is reported on the samples after c alone.
 
     A model at the old plant (10 dB SNR) passes on full windows before; the first
-    contradicted check is at c (after 3000), and a change is reported at the first check
-    whose window starts after c, with the window's samples as its age.
+    contradicted check is at c (after 3000). The samples recorded since c, disjoint from c's
+    window, contradict it at the first look (their first PERIOD, at least ``minimum``):
+    reported there, with their count as the age, long before c + WINDOW.
     """
     y, u = first_order(0.8, 0.7, 3000)
     first, found = None, None
@@ -69,6 +75,53 @@ def test_a_model_that_passed_is_judged_changed_on_the_second_disjoint_window():
             break
     assert window.passed
     assert first is not None and 3000 < first <= 3000 + WINDOW
+    assert window.minimum <= PERIOD
+    assert found == (first + PERIOD, PERIOD)
+    # a window that does not look at a run's tail (rls, bcrls: they take no change from
+    # it) reports at the first check whose window starts after c
+    for recorded, window in judged_windows(y, u, np.array([-0.8]), np.array([1.0]),
+                                           looks_at_tail=False):
+        if window.contradicted_twice():
+            break
+    assert (recorded, window.contradicted_twice()) == (first + WINDOW, WINDOW)
+
+
+@pytest.fixture
+def tails_pass(monkeypatch):
+    """Make every look at a run's tail pass; return the looks' (samples, alpha)."""
+    real_judge = simulation_check.judge
+    looks = []
+
+    def judge(y, u, a, b, lags, false_alarm=FALSE_ALARM_CHECK, **settings):
+        verdict = real_judge(y, u, a, b, lags, false_alarm=false_alarm, **settings)
+        if false_alarm == FALSE_ALARM_CHECK:  # the check of the window
+            return verdict
+        looks.append((y.shape[1], false_alarm))
+        return verdict[:3] + (np.zeros(1, dtype=bool),) + verdict[4:]
+
+    monkeypatch.setattr(simulation_check, 'judge', judge)
+    return looks
+
+
+def test_the_looks_at_the_tail_double_share_alpha_and_leave_the_disjoint_window(tails_pass):
+    """
+    Where no look at the samples since c contradicts, the whole window does at c + WINDOW.
+
+    The same change, with every look at the tail passing (judge's verdict replaced): the
+    looks come at tails of 100, 200, 400 and 800 samples (from ``minimum`` = 80, each at
+    least twice the last, below WINDOW), each at alpha / tail_looks = alpha / 4, and the
+    change is reported as before the looks, at the first check whose window starts after c.
+    """
+    y, u = first_order(0.8, 0.7, 3000)
+    first, found = None, None
+    for recorded, window in judged_windows(y, u, np.array([-0.8]), np.array([1.0])):
+        if recorded > 3000 and window.reason and first is None:
+            first = recorded
+        if window.contradicted_twice():
+            found = (recorded, window.contradicted_twice())
+            break
+    assert tail_looks(window.minimum, WINDOW) == 4
+    assert tails_pass == [(tail, FALSE_ALARM_CHECK / 4) for tail in (100, 200, 400, 800)]
     assert found == (first + WINDOW, WINDOW)
 
 
@@ -90,12 +143,14 @@ def test_a_model_that_never_passed_is_never_judged_changed():
 
 def test_across_disjoint_windows_a_model_that_never_passed_is_reported_and_new_run_recounts():
     """
-    contradicted_across needs no pass; new_run() counts the run afresh.
+    contradicted_across needs no pass, takes no look at the tail; new_run() counts afresh.
 
     It is rpem's evidence that a pending change's fits blend another plant. The first-order
     model of a second-order plant, contradicted from its first check c, is reported at the
-    first check whose window starts after c, c + WINDOW; after each new_run() the run
-    starts at the next check, so the next report is WINDOW + PERIOD later.
+    first check whose window starts after c, c + WINDOW (the samples since c alone
+    contradict it from c + PERIOD, but a model that never passed takes no look at them);
+    after each new_run() the run starts at the next check, so the next report is
+    WINDOW + PERIOD later.
     """
     y, u = second_order()
     first, reported = None, []
@@ -122,7 +177,7 @@ def test_a_gap_in_a_run_waits_for_a_verdict_on_the_samples_after_it():
     the samples after the gap (disjoint from c's window), with their count as the age.
     """
     y, u = first_order(0.8, 0.7, 3000)
-    window = SimulationWindow(1, 1, False, [0], period=PERIOD)
+    window = SimulationWindow(1, 1, False, [0], period=PERIOD, looks_at_tail=True)
     a, b = np.array([-0.8]), np.array([1.0])
     gap_at = None
     for t in range(y.size):
@@ -143,10 +198,14 @@ def test_a_gap_in_a_run_waits_for_a_verdict_on_the_samples_after_it():
     assert window.contradicted_twice() == window.contradicted_across() == PERIOD
 
 
-def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass():
-    """A check that passes between two contradicted ones restarts the run; clear() resets."""
+def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass(tails_pass):
+    """
+    A check that passes between two contradicted ones restarts the run; clear() resets.
+
+    The looks at the run's tail pass (else they report the change before the pass).
+    """
     y, u = first_order(0.8, 0.7, 3000)
-    window = SimulationWindow(1, 1, False, [0], period=PERIOD)
+    window = SimulationWindow(1, 1, False, [0], period=PERIOD, looks_at_tail=True)
     a, b = np.array([-0.8]), np.array([1.0])
     for t in range(y.size):
         window.record(float(y[t]), [u[t]])
@@ -167,14 +226,20 @@ def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass():
     assert not window.passed and window.contradicted_twice() == 0
 
 
-def test_the_run_survives_a_snapshot():
-    """The run's start, the pass and the recorded count go through state_items/load."""
+def test_the_run_survives_a_snapshot(tails_pass):
+    """
+    The run's start, its looks, the pass and the recorded count go through state_items/load.
+
+    Taken in a run whose looks at its tail pass (its next look due at 800 samples).
+    """
     y, u = first_order(0.8, 0.7, 3000)
     for recorded, window in judged_windows(y, u, np.array([-0.8]), np.array([1.0])):
         if recorded == 3600:
             break
-    copy = SimulationWindow(1, 1, False, [0], period=PERIOD)
+    copy = SimulationWindow(1, 1, False, [0], period=PERIOD, looks_at_tail=True)
     copy.load(*window.state_items())
+    assert copy.state_items()[1] == window.state_items()[1]
+    assert window.state_items()[1]['simulation_next_look'] == 800
     for t in range(3600, 5000):
         for each in (window, copy):
             each.record(float(y[t]), [u[t]])
@@ -183,6 +248,8 @@ def test_the_run_survives_a_snapshot():
                 each.vouch()
         assert copy.contradicted_twice() == window.contradicted_twice()
         assert copy.passed == window.passed
+    # three looks before the snapshot, then both the fourth
+    assert [tail for tail, _ in tails_pass] == [100, 200, 400, 800, 800]
 
 
 def test_rpem_takes_a_change_its_detector_misses_from_the_simulation_check():
@@ -191,8 +258,9 @@ def test_rpem_takes_a_change_its_detector_misses_from_the_simulation_check():
 
     The detector never fires on it; before this path the recursion crept (5 % off 4000
     samples later) while the check contradicted it from about 500 samples after the change.
-    Now: flag ``plant_change`` after the change only, the change's reason names the check,
-    and the estimate ends within 2 % (its pre-change error is 0.3 %).
+    Now: flag ``plant_change`` after the change only, within WINDOW samples of it (the
+    samples since the check's first contradiction alone contradict the model), the change's
+    reason names the check, and the estimate ends within 2 % (its pre-change error is 0.3 %).
     """
     case = TrackingCase((4, 5), 'family')
     estimator = make_estimator('rpem', order=case.order, num_inputs=case.num_inputs)
@@ -202,6 +270,9 @@ def test_rpem_takes_a_change_its_detector_misses_from_the_simulation_check():
         estimator.update(float(case.y[t]), case.u[t])
         if estimator.flags.get('plant_change', 0) != before:
             assert t >= case.change_at, t
+            # on the samples since the check's first contradiction, about 600 samples
+            # after the change (the whole disjoint window came 1000 later: 1601)
+            assert t < case.change_at + WINDOW, t
             reasons = reasons or estimator.validity_reasons
     assert estimator.flags.get('plant_change', 0) == 1
     assert reasons[0].startswith('plant changed') and reasons[0].endswith(SIMULATION_NOTE)
@@ -213,7 +284,7 @@ def test_rpem_takes_a_change_its_detector_misses_from_the_simulation_check():
 def test_a_model_the_estimator_does_not_vouch_for_never_passes():
     """The check's pass alone is not enough: without vouch() no change is ever reported."""
     y, u = first_order(0.8, 0.7, 3000)
-    window = SimulationWindow(1, 1, False, [0], period=PERIOD)
+    window = SimulationWindow(1, 1, False, [0], period=PERIOD, looks_at_tail=True)
     for t in range(y.size):
         window.record(float(y[t]), [u[t]])
         if (t + 1) % PERIOD == 0:

@@ -61,7 +61,7 @@ LAMBDA_RATE = 0.99
 #: Not valid while the change detector's CUSUM S is at or past this share w of its threshold
 #: h: under no change S(t), the largest sum of its last k increments, is >= w h on at
 #: most exp(-w h) (Ville's inequality for the increments' likelihood ratios) =
-#: (0.8 FALSE_ALARM)^w of the samples (0.28 %; docs/tracking.md, "What a detection does");
+#: (0.7 FALSE_ALARM)^w of the samples (0.26 %; docs/tracking.md, "What a detection does");
 #: the block-mean test's CUSUM warns at the same level w h (Rpem._live_reasons)
 CHANGE_WARNING = 0.5
 #: The floor of the gate's variance, squared (a power of two: exact)
@@ -233,6 +233,8 @@ class Rpem(RpemState, RecursiveEstimator):
     #: The simulation check at every validity decision, not every CHECK_PERIOD samples: a
     #: verdict kept between checks let a drift's lag or a new fit go unjudged (docs/trust.md)
     _SIMULATION_CHECK_PERIOD = 1
+    #: a change the detector misses, from the check's runs of contradictions
+    _SIMULATION_CHANGES = True
     #: the change detector's warning (CHANGE_WARNING) moves with every sample
     _LIVE_REASONS = True
 
@@ -272,7 +274,7 @@ class Rpem(RpemState, RecursiveEstimator):
                                   self._offset, self._channel)
         self._watch = RestartWatch()
         # the stated false-alarm rate is shared: the block test takes BLOCK_SHARE of it, the
-        # simulation check's two disjoint contradictions their alpha^2 a check, and the
+        # simulation check's two disjoint contradictions their 2 alpha^2 a check, and the
         # detector the rest, so that a plant_change of any of them stays within FALSE_ALARM
         self._detector = ChangeDetector(false_alarm=(1.0 - BLOCK_SHARE) * FALSE_ALARM
                                         - change_rate(rules.VALIDITY_PERIOD))
@@ -576,9 +578,11 @@ class Rpem(RpemState, RecursiveEstimator):
 
     def _window_contradicted(self, age: int) -> None:
         """
-        While a change is pending, fit only the last ``age`` samples (the check's last window).
+        After a change, fit only the last ``age`` samples (the check's last window).
 
-        The new plant's model, fitted to every sample since the change point, contradicted by
+        While the change is pending, or until the new plant's model passed the check on a
+        full window (it may pass the other checks on a shorter one and be valid for a
+        while), the model, fitted to every sample since the change point, contradicted by
         the simulation check on two disjoint windows with none passing in between
         (:meth:`~bcid_ros.estimators.simulation_check.SimulationWindow.contradicted_across`,
         ``age`` the samples of the last: 0, not so): the window still holds samples of
@@ -773,7 +777,10 @@ class Rpem(RpemState, RecursiveEstimator):
                if self._change_detection and not self._change_note else 0)
         if age:
             self._simulation_changed(age)
-        elif self._change_detection and self._change_note and self._changes:
+        elif self._change_detection and self._changes and (
+                self._change_note or not self._simulation.passed):
+            # the new plant's model, not yet passed on a full window (valid on a shorter
+            # one or not): its fits may blend another plant
             self._window_contradicted(self._simulation.contradicted_across())
 
     def _decide_now(self) -> None:
@@ -811,8 +818,8 @@ class Rpem(RpemState, RecursiveEstimator):
         change (S(t) is the largest sum of its last k increments: Ville's inequality),
         the warning costs that share of a stationary record's valid samples. The
         block-mean test's CUSUM, a log-likelihood ratio too, warns at the same level
-        c = w h: past it on at most e^-c of its blocks (0.28 %), so that together
-        they cost at most 0.56 % (a drift its blocks see first: tracking plant
+        c = w h: past it on at most e^-c of its blocks (0.26 %), so that together
+        they cost at most 0.53 % (a drift its blocks see first: tracking plant
         (1, 17) with lambda 0.999, valid 10-15 % off for the 100 samples before its
         detection with S_b at 0.94 of its threshold).
         """
