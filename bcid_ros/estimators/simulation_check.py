@@ -638,7 +638,8 @@ class SimulationWindow:
                 f'parameters up to {math.sqrt(understated[0]):.3g} times less well than it says'
                 if understated[0] > UNDERSTATEMENT_LIMIT else '')
             self._follow_run(bool(contradicted[0]), bool(np.isfinite(statistic[0])))
-            self._tail = self._look_at_tail(a, b, covariance) if contradicted[0] else 0
+            self._tail = (self._look_at_tail(a, b, covariance, float(statistic[0]))
+                          if contradicted[0] else 0)
         # below the minimum: the verdict from before a gap, if any
         return [reason for reason in (self.reason, self.coverage_reason) if reason]
 
@@ -652,30 +653,35 @@ class SimulationWindow:
         elif judged:
             self._run_start = -1
 
-    def _look_at_tail(self, a: np.ndarray, b: np.ndarray,
-                      covariance: np.ndarray | None) -> int:
+    def _look_at_tail(self, a: np.ndarray, b: np.ndarray, covariance: np.ndarray | None,
+                      statistic: float) -> int:
         r"""
-        Return the samples since the run began if they alone contradict the model, else 0.
+        Return the samples kept since the run began if they alone contradict the model, else 0.
 
-        A look of the run's second stage before its window is disjoint
+        A look of the run's second stage before a whole window of them is in
         (:meth:`contradicted_across`): the samples recorded since the run's first
-        contradiction, judged at :math:`\alpha/J` (:func:`tail_looks`), once they are
-        ``minimum`` and then each time they have doubled. After a change the first
-        contradicted window still holds the old plant's samples, whose fit the refit must
-        share; the samples after it are the new plant's alone, and a change that moves the
-        simulated output little shows in a few hundred of them (tracking plant (4, 5)).
+        contradiction and kept (after a :meth:`gap`, those since the gap), judged at
+        :math:`\alpha/J` (:func:`tail_looks`), once they are ``minimum`` and then each time
+        they have doubled. After a change the first contradicted window still holds the old
+        plant's samples, whose fit the refit must share; the samples after it are the new
+        plant's alone, and a change that moves the simulated output little shows in a few
+        hundred of them (tracking plant (4, 5)). Where they are the whole kept window
+        (after a gap), the check's own ``statistic`` is their verdict, at the lower level.
         """
-        tail = self._recorded - self._run_start
+        second = min(self._filled, self._recorded - self._run_start)
         if not (self.looks_at_tail and self.passed and self._run_start >= 0
-                and self._next_look <= tail < self._filled):
+                and self._next_look <= second < self.window):
             return 0
-        self._next_look = 2 * tail
-        rows = self._rows[self._end - tail:self._end]
+        self._next_look = 2 * second
+        level = FALSE_ALARM / tail_looks(self.minimum, self.window)
+        if second == self._filled:
+            return second if statistic > chi2_quantile(level, self.order + self.lags.size) else 0
+        rows = self._rows[self._end - second:self._end]
         contradicted = judge(
             rows[None, :, 0], rows[None, :, 1:], a[None], b.reshape(1, *self.lags.shape),
-            self.lags, false_alarm=FALSE_ALARM / tail_looks(self.minimum, self.window),
+            self.lags, false_alarm=level,
             covariance=None if covariance is None else covariance[None])[3]
-        return tail if contradicted[0] else 0
+        return second if contradicted[0] else 0
 
     def vouch(self) -> None:
         """
@@ -698,18 +704,19 @@ class SimulationWindow:
         model that never did, a structure too poor for the plant, is never judged changed
         by this), contradicted at every check since the first of a run, and contradicted
         again on samples all recorded after that first check's window ended: two disjoint
-        windows contradict it, with no check passing in between. The second is either the
-        whole window, once it starts after the run's first check, or before that the
-        samples since then alone (:meth:`_look_at_tail`, at most J looks at
-        :math:`\alpha/J` each). Under a plant that does not change, the verdicts of
-        disjoint samples are those of independent noise: a run starts at a given check at
-        most at the rate :math:`\alpha` = ``FALSE_ALARM``, its looks at the tail
-        contradict together at most at :math:`\alpha`, its first disjoint window at most at
-        :math:`\alpha`, so that a change comes of a given check at most at :math:`2\alpha^2`,
-        and with a check every c samples at most :math:`2\alpha^2/c` per sample
-        (:func:`change_rate`; rpem, c = ``rules.VALIDITY_PERIOD`` = 100: 2e-6, 0.2 per
-        100,000 samples). The second window's samples are all after the change: it was
-        there before the first contradicted window ended.
+        windows contradict it, with no check passing in between. The second is either a
+        whole window, once one starts after the run's first check, or before that the
+        samples kept since then alone (since a :meth:`gap`, if one came after it;
+        :meth:`_look_at_tail`, at most J looks at :math:`\alpha/J` each). Under a plant
+        that does not change, the verdicts of disjoint samples are those of independent
+        noise: a run starts at a given check at most at the rate :math:`\alpha` =
+        ``FALSE_ALARM``, its looks at the tail contradict together at most at
+        :math:`\alpha`, its first whole disjoint window at most at :math:`\alpha`, so that a
+        change comes of a given check at most at :math:`2\alpha^2`, and with a check every c
+        samples at most :math:`2\alpha^2/c` per sample (:func:`change_rate`; rpem, c =
+        ``rules.VALIDITY_PERIOD`` = 100: 2e-6, 0.2 per 100,000 samples). The second
+        window's samples are all after the change: it was there before the first
+        contradicted window ended.
         """
         if not self.passed:
             return 0
@@ -724,13 +731,16 @@ class SimulationWindow:
         current window's start, whether or not a model passed before (rpem, while a change
         is pending: its fits blend another plant; a look at a short tail would cut them to
         its few samples on the evidence of a new model still settling). :meth:`new_run`
-        starts the count again. The current verdict must be of the samples kept now
-        (``judged``): after a :meth:`gap` the verdict of the samples before it holds, and
-        the few samples since would otherwise be a second window that no check judged (an
-        outlier refused in a run of contradictions reported a change at the next period,
-        the run's one verdict counted twice).
+        starts the count again. The current verdict must be of a whole window of the
+        samples kept now (``judged``): after a :meth:`gap` the verdict of the samples
+        before it holds, and the few samples since would otherwise be a second window that
+        no check judged (an outlier refused in a run of contradictions reported a change at
+        the next period, the run's one verdict counted twice), or, judged, a short one
+        judged again at alpha at every check while the window refills, more looks than
+        the bound allows.
         """
-        if not (self.reason and self._run_start >= 0 and self._judged):
+        if not (self.reason and self._run_start >= 0 and self._judged
+                and self._filled == self.window):
             return 0
         if self._recorded - self._filled < self._run_start:
             return 0

@@ -174,7 +174,9 @@ def test_a_gap_in_a_run_waits_for_a_verdict_on_the_samples_after_it():
 
     Pole 0.8 -> 0.7 at 3000, the old model: at the first contradicted check c a gap. The
     verdict before the gap holds, but no change is reported on it: only once a check judged
-    the samples after the gap (disjoint from c's window), with their count as the age.
+    the samples after the gap (disjoint from c's window), with their count as the age, as
+    a look at the run's tail (alpha / J); contradicted_across, which takes no looks, waits
+    for a whole window of them.
     """
     y, u = first_order(0.8, 0.7, 3000)
     window = SimulationWindow(1, 1, False, [0], period=PERIOD, looks_at_tail=True)
@@ -195,7 +197,40 @@ def test_a_gap_in_a_run_waits_for_a_verdict_on_the_samples_after_it():
                 window.vouch()
                 break
     assert gap_at is not None and window.reason
-    assert window.contradicted_twice() == window.contradicted_across() == PERIOD
+    assert window.contradicted_twice() == PERIOD
+    assert window.contradicted_across() == 0
+
+
+def test_after_a_gap_the_pending_path_waits_for_a_whole_window_after_it():
+    """
+    contradicted_across after a gap: a whole window of the samples after it, not their first.
+
+    The first-order model of a second-order plant, contradicted from its first check c, a
+    gap there. The samples after the gap contradict it at every check while the window
+    refills; each such verdict at alpha, a look the alpha^2 bound does not allow (the code
+    before reported at c + PERIOD with their PERIOD samples). Reported at c + WINDOW, with
+    the whole window; never by contradicted_twice (the model never passed).
+    """
+    y, u = second_order()
+    window = SimulationWindow(1, 1, False, [0], period=PERIOD, looks_at_tail=True)
+    a, b = np.array([-0.9]), np.array([1.0])
+    gap_at = reported = None
+    for t in range(y.size):
+        window.record(float(y[t]), [u[t]])
+        if (t + 1) % PERIOD:
+            continue
+        window.reasons(a, b)
+        window.vouch()
+        if gap_at is None and window.reason:
+            gap_at = t + 1
+            window.gap()
+        elif gap_at is not None:
+            assert window.reason and window.contradicted_twice() == 0
+            if window.contradicted_across():
+                reported = (t + 1, window.contradicted_across())
+                break
+    assert gap_at is not None
+    assert reported == (gap_at + WINDOW, WINDOW)
 
 
 def test_a_passing_check_ends_the_run_and_a_clear_forgets_the_pass(tails_pass):
