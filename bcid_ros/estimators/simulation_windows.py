@@ -9,7 +9,6 @@ check, the snapshot and a restart of one plant are the one-plant window's own co
 
 from __future__ import annotations
 
-import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -129,15 +128,8 @@ class _PlantWindow(SimulationWindow):
         self.order = windows.order
         self.lags = windows.lags
         self.minimum = windows.minimum
-        self.reason = ''
-        self.coverage_reason = ''
-        self.statistic = math.nan
-        self.passed = False
-        self._full_pass = False
-        self._run_start = -1
         self.looks_at_tail = False  # the batched estimators take no change from the check
-        self._next_look = 0
-        self._tail = 0
+        self.clear()  # the verdict and the run as a new window's (its counters are zeros)
 
     def follow_forgetting_factor(self, forgetting_factor: float) -> None:
         """Take the window length of a new lambda (shared: every plant's window takes it)."""
