@@ -12,10 +12,9 @@ import pytest
 from scipy import signal
 
 from benchmarks.tracking import TrackingCase
-from bcid_ros.estimators import make_estimator, rules
+from bcid_ros.estimators import make_estimator, rules, simulation_check
 from bcid_ros.estimators.change_detection import BLOCK_LENGTH, FALSE_ALARM
 from bcid_ros.estimators.rpem.online import SIMULATION_NOTE
-from bcid_ros.estimators import simulation_check
 from bcid_ros.estimators.simulation_check import (change_rate, SimulationWindow, tail_looks,
                                                   WINDOW)
 
