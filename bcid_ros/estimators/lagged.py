@@ -9,11 +9,13 @@ The HAC covariance (:mod:`bcid_ros.estimators.hac`) keeps
     w_t = \mu^{T - t},
 
 of its scores :math:`z_t` (the newest row has weight 1). A row costs one
-list append; every ``BLOCK`` rows the block is added in one matrix product:
-the rows of the block times the windows :math:`[z_t, z_{t-1}, \ldots,
-z_{t-L}]` (a strided view of the block and the L rows before it). At
-p = 6, L = 17 that took 18 us per block of 64 rows where one product per lag
-(as ``bcrls.add_lagged_moments`` does) took 32 us, on the same machine.
+list append; every ``BLOCK`` rows the block is added, one matrix product per
+lag: the block's rows times the same rows k earlier (a view of the block and
+the L rows before it). One product of the rows with their windows
+:math:`[z_t, \ldots, z_{t-L}]` is a little faster for one plant (42 against
+55 us a block at p = 4, L = 17), but its windows are a copy L + 1 times the
+block: for 100 plants 15 MB, 3.5 ms a block and 28 ms the first time (fresh
+pages), against 1.2 ms (benchmarks/replay_stall.py ``--joints 100``).
 
 K plants that do not step together (a batched estimator skips a plant whose
 sample is missing or refused) keep a cursor each (:class:`PlantCursors`):
@@ -28,7 +30,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 #: Rows kept in lists before they are added to the sums in one product (a block's
 #: dozen numpy calls cost about as much as two hundred rows' list appends).
@@ -58,19 +59,19 @@ def add_lagged_products(sums: np.ndarray, context: np.ndarray, rows: np.ndarray,
         The new sums (a new array).
 
     """
-    count, width = rows.shape[-2], rows.shape[-1]
+    count = rows.shape[-2]
     lags = sums.shape[-1] - 1
     ring = np.concatenate((context, rows), axis=-2)
-    # windows[..., t, b, k] = z_{t-k, b}: the window of each new row, newest first
-    windows = sliding_window_view(ring, lags + 1, axis=-2)[..., ::-1]
-    right = windows.reshape(windows.shape[:-3] + (count, width * (lags + 1)))
     if decay == 1.0:
         left = rows
     else:
         # w = mu^(age): the newest row has weight 1
         left = rows * (decay ** np.arange(count - 1, -1, -1, dtype=float))[:, None]
-    block = np.swapaxes(left, -1, -2) @ right
-    return sums * decay ** count + block.reshape(sums.shape)
+    left = np.swapaxes(left, -1, -2)
+    sums = sums * decay ** count
+    for k in range(lags + 1):  # ring[lags - k + t] = z_{t-k} of new row t
+        sums[..., k] += left @ ring[..., lags - k:lags - k + count, :]
+    return sums
 
 
 def decayed_weights(weight: float, squared: float, count: int,
@@ -109,11 +110,12 @@ def effective_size(weight: Any, squared: Any) -> Any:
     Return the effective sample size :math:`(\sum w)^2 / \sum w^2` (0 without weights).
 
     Floats, or ``(K,)`` arrays: each plant's with the scalar arithmetic of one
-    plant, bit for bit.
+    plant, bit for bit (a product and a quotient, each correctly rounded).
     """
     if np.ndim(weight) == 0:
-        return weight ** 2 / squared if squared > 0.0 else 0.0
-    return np.array([effective_size(w, s) for w, s in zip(weight.tolist(), squared.tolist())])
+        return weight * weight / squared if squared > 0.0 else 0.0
+    positive = squared > 0.0
+    return np.where(positive, weight * weight / np.where(positive, squared, 1.0), 0.0)
 
 
 class PlantCursors:
