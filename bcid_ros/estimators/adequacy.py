@@ -532,7 +532,11 @@ class AdequacyMonitor(MonitorStates):
         return self.effective_samples >= SAMPLES_PER_LAG * self.lags
 
     def ready_of(self, plant: int) -> bool:  # ready[k] would size all K plants to give one
-        return bool(self._sizes(plant) >= SAMPLES_PER_LAG * self.lags)
+        return bool(self.effective_samples_of(plant) >= SAMPLES_PER_LAG * self.lags)
+
+    def effective_samples_of(self, plant: int) -> float:
+        """Return plant k's :attr:`effective_samples` (without sizing the other plants)."""
+        return float(np.reshape(self._sizes(plant), -1)[0])
 
     def _sizes(self, plants: Any) -> np.ndarray:
         """Return the effective sample sizes N of ``plants``, ``(R,)``."""

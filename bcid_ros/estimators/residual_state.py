@@ -34,7 +34,7 @@ def residual_reasons(monitor: AdequacyMonitor, plant: int | None = None) -> list
         short = monitor.short_reasons(plant)
         if short is not None:
             return list(short)
-        size = monitor.effective_samples if plant is None else monitor.effective_samples[plant]
+        size = monitor.effective_samples if plant is None else monitor.effective_samples_of(plant)
         return [f'residual tests not ready ({size:.0f} of '
                 f'{adequacy.SAMPLES_PER_LAG * monitor.lags} samples)']
     return list(monitor.reasons if plant is None else monitor.reasons_of(plant))

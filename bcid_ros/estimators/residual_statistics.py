@@ -385,13 +385,16 @@ def quadratic_forms(variance: np.ndarray, r: np.ndarray, size: Any,
     finite = np.isfinite(variance).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
     if extra is not None:
         finite &= np.isfinite(extra).all(axis=(1, 2))
-    for k in np.flatnonzero(finite).tolist():
-        symmetric = 0.5 * (variance[k] + variance[k].T)
-        top = float(np.linalg.eigvalsh(symmetric)[-1]) if extra is not None else None
-        if extra is not None:
-            symmetric = symmetric + 0.5 * (extra[k] + extra[k].T)
-        values, vectors = np.linalg.eigh(symmetric)
-        top = values[-1] if top is None else top
+    rows = np.flatnonzero(finite)
+    # one stacked decomposition (LAPACK on each matrix, as one at a time: the same bits)
+    symmetric = 0.5 * (variance[rows] + np.swapaxes(variance[rows], -1, -2))
+    tops = None if extra is None else np.linalg.eigvalsh(symmetric)[:, -1]
+    if extra is not None:
+        symmetric = symmetric + 0.5 * (extra[rows] + np.swapaxes(extra[rows], -1, -2))
+    decomposed = np.linalg.eigh(symmetric)
+    for index, k in enumerate(rows.tolist()):
+        values, vectors = decomposed.eigenvalues[index], decomposed.eigenvectors[index]
+        top = values[-1] if tops is None else float(tops[index])
         if not top > 0.0:
             continue
         kept = values > top / max(sizes[k], 1.0)

@@ -14,6 +14,8 @@ from scipy import signal, stats
 
 from bcid_ros.estimators.adequacy import (AdequacyMonitor, BLOCK, chi2_quantile, chi2_survival,
                                           default_window, levinson, MAX_WINDOW, MIN_WINDOW)
+from bcid_ros.estimators.lagged import effective_size
+from bcid_ros.estimators.residual_statistics import quadratic_forms
 
 PLANTS = 600
 SAMPLES = 3000
@@ -325,3 +327,30 @@ def test_settings_are_validated(settings, message):
 def test_repr_is_one_line():
     text = repr(AdequacyMonitor(num_inputs=2, model='oe'))
     assert '\n' not in text and "model='oe'" in text and 'window=1000' in text
+
+
+def test_many_plants_statistics_are_each_plants_alone_bit_for_bit():
+    # the batched estimators test K plants in one call: the quadratic forms (one stacked
+    # eigendecomposition) and the effective sizes are each plant's of a call of its own
+    rng = np.random.default_rng(5)
+    count, lags = 9, 6
+    factors = rng.standard_normal((count, lags, lags + 2))
+    variance = factors @ np.swapaxes(factors, -1, -2) / (lags + 2)
+    variance[2, 0, :] = variance[2, :, 0] = 1e-12 * variance[2, 0, 0]  # one direction dropped
+    variance[4, 1, 1] = np.nan  # one plant without a test
+    extra = 0.01 * np.einsum('kia,kja->kij', *(2 * [rng.standard_normal((count, lags, 2))]))
+    r = 0.1 * rng.standard_normal((count, lags))
+    sizes = rng.uniform(50.0, 2000.0, count)
+    for more in (None, extra):
+        statistics, standardised = quadratic_forms(variance, r, sizes, more)
+        for k in range(count):
+            alone = quadratic_forms(variance[k:k + 1], r[k:k + 1], sizes[k:k + 1],
+                                    None if more is None else more[k:k + 1])
+            assert alone[0][0] == statistics[k]
+            np.testing.assert_array_equal(alone[1][0], standardised[k])
+        assert statistics[4] == 0.0 and np.isfinite(statistics).all()
+    weight, squared = rng.uniform(0.0, 900.0, 500), rng.uniform(0.0, 900.0, 500)
+    squared[::7] = 0.0
+    sizes = effective_size(weight, squared)
+    assert [effective_size(w, q) for w, q in zip(weight.tolist(), squared.tolist())] == (
+        sizes.tolist())
