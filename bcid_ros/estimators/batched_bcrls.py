@@ -113,7 +113,7 @@ class BatchedBcrls(BatchedRls):
 
     def _covariances(self, plants: np.ndarray) -> np.ndarray:
         """Return the covariances of ``plants`` (NaN where none), as Bcrls's."""
-        return self.parameter_covariance[plants]
+        return self.parameter_covariance_of(plants)
 
     def _record_residuals(self, rows: np.ndarray, y: np.ndarray, phi: np.ndarray,
                           u: np.ndarray, errors: np.ndarray) -> None:
@@ -186,13 +186,22 @@ class BatchedBcrls(BatchedRls):
                                 self._sigma2[full], self._component_scale[full],
                                 self._signal_scale[full, 0])
 
-    def _parameter_covariance(self) -> np.ndarray:
-        """Return each plant's sandwich covariance (``Bcrls._parameter_covariance``)."""
+    def _parameter_covariance(self, wanted: np.ndarray | None = None) -> np.ndarray:
+        """
+        Return each plant's sandwich covariance (``Bcrls._parameter_covariance``).
+
+        ``wanted`` ``(K,)``: only those plants' (the others NaN). The sandwiches of every
+        plant whose block ended are evaluated together all the same, once a block: a
+        decision a frame would otherwise evaluate one alone in each.
+        """
         known = (self._updates >= self.num_parameters) & (self._moments.weight > 0.0)
+        sandwiches = self._moments.sandwiches(known)
+        if wanted is not None:
+            known &= wanted
         tau = self._tau
         factor = np.full(self.num_plants, np.nan)
         factor[known] = weighted_square_ratio(tau[known], self._forgetting_factor) / tau[known]
-        return factor[:, None, None] * self._moments.sandwiches(known)
+        return factor[:, None, None] * np.where(known[:, None, None], sandwiches, np.nan)
 
     def _allocate(self) -> None:
         super()._allocate()

@@ -311,7 +311,8 @@ class HacCovariance:
             return None
         return float(self._bandwidths[0]) if self.plants is None else self._bandwidths.copy()
 
-    def covariance(self, bread_inverse: np.ndarray) -> np.ndarray | None:
+    def covariance(self, bread_inverse: np.ndarray,
+                   wanted: np.ndarray | None = None) -> np.ndarray | None:
         r"""
         Return :math:`\tau_2 P\hat\Omega P\,T/(T - p)`, the HAC covariance of the estimate.
 
@@ -319,6 +320,9 @@ class HacCovariance:
         ----------
         bread_inverse : numpy.ndarray, shape ``(p, p)`` or ``(K, p, p)``
             :math:`P = (\sum_t w_t\psi_t\psi_t^T)^{-1}` now.
+        wanted : numpy.ndarray of bool, shape ``(K,)``, optional
+            K plants: the plants whose covariance is asked (the others NaN, not
+            computed: a validity decision of one plant among many).
 
         Returns
         -------
@@ -340,6 +344,8 @@ class HacCovariance:
             return covariance * (tau2 * size / (size - self.dimension))
         size = np.where(tau2 > 0.0, tau * tau / np.where(tau2 > 0.0, tau2, 1.0), 0.0)
         enough = size > self.dimension
+        if wanted is not None:
+            enough &= wanted
         # the plants with too few samples are left out (their P may not be finite yet)
         covariance = self._long_run_rows(enough, bread_inverse)
         covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))

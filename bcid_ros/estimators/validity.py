@@ -165,16 +165,16 @@ def doubt_the_model(reasons: Sequence[str]) -> bool:
     return not all(reason.startswith(UNDERSTATED) for reason in reasons)
 
 
-def _row(rows: Callable[[], np.ndarray], plant: int) -> np.ndarray:
-    """Return ``rows()[plant]``: one plant's parameter covariance (NaN: none known)."""
-    return rows()[plant]
+def _plant_covariance(estimator: Any, plant: int) -> np.ndarray:
+    """Return one plant's parameter covariance of K plants (NaN: none known)."""
+    return estimator.parameter_covariance_of(np.array([plant]))[0]
 
 
 def _ready_again(monitor: Any, plant: int | None) -> bool:
     """Whether the residual tests (of ``plant``) are ready (no tests: ready)."""
     if monitor is None:
         return True
-    return bool(np.all(monitor.ready if plant is None else monitor.ready[plant]))
+    return bool(np.all(monitor.ready if plant is None else monitor.ready_of(plant)))
 
 
 class Validity:
@@ -292,7 +292,9 @@ class PlantsValidity:
 
     Each plant is valid when :attr:`ready` with no reasons; the reasons are
     its own and the shared ones (:func:`decided_reasons`), kept in
-    ``_reasons`` (a :class:`~bcid_ros.estimators.plants.PlantReasons`).
+    ``_reasons`` (a :class:`~bcid_ros.estimators.plants.PlantReasons`). A
+    check that asks a plant's covariance gets that plant's alone, from the
+    estimator's ``parameter_covariance_of``.
     """
 
     _monitor: Any = None
@@ -324,15 +326,14 @@ class PlantsValidity:
         """
         windows = self._simulations
         theta = None if windows is None else self._theta()
-        # every plant's covariance at most once per decision, and only if a check runs
-        covariances = functools.cache(lambda: self.parameter_covariance)
         with np.errstate(all='ignore'):
             for plant, mine in zip(plants.tolist(), own):
                 reasons, change = decided_after_change(
                     mine, '' if changes is None else changes[plant], self._monitor, plant,
                     None if windows is None else windows[plant],
                     None if theta is None else theta[plant], self.order,
-                    functools.partial(_row, covariances, plant))
+                    # the plant's own covariance, at most once, and only if a check asks
+                    functools.cache(functools.partial(_plant_covariance, self, plant)))
                 self._reasons.set(plant, tuple(reasons))
                 if changes is not None:
                     changes[plant] = change

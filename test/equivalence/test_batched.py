@@ -689,6 +689,29 @@ def test_a_plant_catching_up_shows_its_single_plant_at_every_update(name):
 
 
 @pytest.mark.parametrize('name', ['rls', 'bcrls'])
+def test_the_covariance_of_some_plants_is_their_rows_of_all_bit_for_bit(name):
+    # a validity decision of a few plants among many asks only their covariances: the same
+    # bits as those rows of every plant's, for plants stepping and for one catching up
+    # (another estimator on the same samples is asked only the few, so that bcrls's cached
+    # sandwiches are computed from a few plants there)
+    y, u = changed_data(2400, 4, changed=(1,))
+    every_plant = make_batched_estimator(name, y.shape[1], order=2)
+    few = make_batched_estimator(name, y.shape[1], order=2)
+    while_catching = 0
+    for t in range(y.shape[0]):
+        every_plant.update(y[t], u[t])
+        few.update(y[t], u[t])
+        if t % 50 == 7 or every_plant._catching:
+            while_catching += 1 in every_plant._catching
+            rows = every_plant.parameter_covariance
+            for k in range(y.shape[1]):
+                np.testing.assert_array_equal(few.parameter_covariance_of([k])[0], rows[k])
+            np.testing.assert_array_equal(few.parameter_covariance_of([3, 1]), rows[[3, 1]])
+    assert while_catching >= 2
+    assert np.isfinite(rows).all()
+
+
+@pytest.mark.parametrize('name', ['rls', 'bcrls'])
 def test_a_setting_changed_while_a_plant_catches_up_reaches_it(name):
     # plant 1 detects its change at 2004-2010; a live change of the forgetting factor and
     # the gate while it catches up reaches its single plant then (every live setting is
