@@ -334,8 +334,7 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         where that one is None (not ready, no data for one yet, not finite
         or a negative variance).
         """
-        return _known_only(self._shown(self._parameter_covariance(),
-                                       'parameter_covariance'))
+        return self.parameter_covariance_of(self._all_plants)
 
     def parameter_covariance_of(self, plants: np.ndarray) -> np.ndarray:
         """
@@ -348,13 +347,13 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         plants = np.asarray(plants, dtype=np.int64).reshape(-1)
         wanted = np.zeros(self.num_plants, dtype=bool)
         wanted[plants] = True
-        wanted[list(self._catching)] = False
-        covariance = self._parameter_covariance(wanted)[plants]
-        for row, plant in enumerate(plants.tolist()):
-            if plant in self._catching:
-                value = self._catching[plant].parameter_covariance
-                covariance[row] = np.nan if value is None else value
-        return _known_only(covariance)
+        wanted[list(self._catching)] = False  # (their rows are their single plants')
+        covariance = self._shown(self._parameter_covariance(wanted), 'parameter_covariance',
+                                 wanted=set(plants.tolist()))[plants]
+        diagonal = np.diagonal(covariance, axis1=1, axis2=2)
+        unknown = ~(np.isfinite(covariance).all(axis=(1, 2)) & (diagonal >= 0.0).all(axis=1))
+        covariance[unknown] = np.nan
+        return covariance
 
     @property
     def parameter_std(self) -> np.ndarray:
@@ -668,9 +667,15 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
                 self._load_single(plant, single.get_state())
             self._reasons.set(plant, single.validity_reasons)
 
-    def _shown(self, values: np.ndarray, name: str) -> np.ndarray:
-        """Return ``values`` with the row of each plant catching up its single plant's ``name``."""
+    def _shown(self, values: np.ndarray, name: str, wanted: Any = None) -> np.ndarray:
+        """
+        Return ``values`` with the row of each plant catching up its single plant's ``name``.
+
+        ``wanted``: only those plants' rows (None: all); the others are not asked.
+        """
         for plant, single in self._catching.items():
+            if wanted is not None and plant not in wanted:
+                continue
             value = getattr(single, name)
             values[plant] = np.nan if value is None else value  # (None: unknown, as NaN)
         return values
@@ -883,14 +888,6 @@ class BatchedRls(LsAccessors, PlantsValidity, SharedSettings):
         self._check_phase[plant] = int(scalars.get('check_phase', 0))
         self._check_offset[plant] = int(scalars.get('check_offset', 0))
         self._detector.set_state(arrays, [plant])
-
-
-def _known_only(covariance: np.ndarray) -> np.ndarray:
-    """Return covariances ``(R, p, p)``, NaN where one is not finite or has a negative variance."""
-    diagonal = np.diagonal(covariance, axis1=1, axis2=2)
-    unknown = ~(np.isfinite(covariance).all(axis=(1, 2)) & (diagonal >= 0.0).all(axis=1))
-    covariance[unknown] = np.nan
-    return covariance
 
 
 __all__ = ['BatchedRls']
