@@ -22,7 +22,8 @@ import numpy as np
 
 from bcid_ros.estimators.polynomials import is_stable
 from bcid_ros.estimators.rpem.segment import INITIAL_PRIOR, SegmentPredictor, solve_regularised
-from bcid_ros.estimators.rpem.stability import HALVINGS, pull_inside, REGION_MARGIN
+from bcid_ros.estimators.rpem.stability import (edge_mode_cancelled, HALVINGS, pull_inside,
+                                                REGION_MARGIN)
 from bcid_ros.estimators.rpem.uncertainty import unresolved_limit
 
 #: Steiglitz-McBride (OE) or extended least-squares (ARMAX) iterations of a fit.
@@ -165,8 +166,11 @@ class BatchFit:
     segment's initial state free (OE; elsewhere the searches' loss shrinks it
     towards 0, which charges samples that start where the old plant left the
     output for their true state): the end of lower loss where the losses tell
-    the ends apart, else the current estimate's (:meth:`_ranked`). The fit the
-    recursion continues with (:meth:`_result`) keeps the prior.
+    the ends apart, else the current estimate's (:meth:`_ranked`). An OE end with a
+    mode on the region's edge that a zero of every B_i cancels comes after the other
+    whatever its loss (:func:`~bcid_ros.estimators.rpem.stability.edge_mode_cancelled`),
+    and stays the fit's alternative. The fit the recursion continues with
+    (:meth:`_result`) keeps the prior.
     """
 
     def __init__(self, order: int, num_inputs: int, feedthrough: bool,
@@ -181,6 +185,7 @@ class BatchFit:
         self.offset = offset
         self.span = predictor.span
         self.num_b = predictor.num_b
+        self.num_inputs = num_inputs
         self.num_parameters = predictor.num_parameters
         #: the information of the prior on each segment's initial state in the fit under way
         #: (:meth:`steps`: none after a plant change)
@@ -257,6 +262,10 @@ class BatchFit:
             ends = self._ranked(free, usable)
         else:
             ends.sort(key=lambda end: end[1])  # stable: a tie goes to the first start
+        if not self.armax:  # (ARMAX's A is the noise's too: a cancelled pole is its pole)
+            # an end whose mode on the edge serves only the initial state goes last, whatever
+            # its loss: the free state's share of it is the disturbance's (edge_mode_cancelled)
+            ends.sort(key=lambda end: self._cancelled_at_edge(end[0]))
         yield self._cost(usable, 2 * (self.num_parameters + 1))
         result = self._result(ends[0][0], segments, usable, arx)
         # the other start's end: where the data may not tell it from the estimate, its
@@ -365,6 +374,11 @@ class BatchFit:
         if self.armax and not is_stable(theta[n + self.num_b:], REGION_MARGIN):
             theta[n + self.num_b:] = pull_inside(theta[n + self.num_b:])
         return theta
+
+    def _cancelled_at_edge(self, theta: np.ndarray) -> bool:
+        """Return whether a root of F on the region's edge is cancelled by every B_i's zeros."""
+        n = self.order
+        return edge_mode_cancelled(theta[:n], np.split(theta[n:n + self.num_b], self.num_inputs))
 
     def _is_inside(self, theta: np.ndarray) -> bool:
         n = self.order

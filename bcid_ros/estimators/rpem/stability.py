@@ -22,6 +22,8 @@ radius's square root rounds), measured.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
 #: Largest pole (and, for ARMAX, zero of C) radius of an estimate: the
@@ -32,6 +34,11 @@ STABILITY_RADIUS = 0.999
 REGION_MARGIN = 1.0 - STABILITY_RADIUS
 #: Step halvings tried before a step that leaves D_M is not taken at all.
 HALVINGS = 8
+#: A root this close to the unit circle is on the region's edge: within half the region's
+#: margin of the edge (a fit there is pushed there: rpem/watch.py, edge_mode_cancelled).
+EDGE_MARGIN = 1.5 * REGION_MARGIN
+#: A zero of a numerator this close to a root on the edge cancels it (edge_mode_cancelled).
+CANCELLING_DISTANCE = 0.01
 
 
 def pull_inside(a: np.ndarray, radius: float = STABILITY_RADIUS) -> np.ndarray:
@@ -50,3 +57,34 @@ def pull_inside(a: np.ndarray, radius: float = STABILITY_RADIUS) -> np.ndarray:
     size = np.abs(roots)
     roots = np.where(size >= radius, roots * (0.99 * radius / np.maximum(size, 1e-300)), roots)
     return np.real(np.poly(roots))[1:]
+
+
+def edge_mode_cancelled(f: np.ndarray, numerators: Sequence[np.ndarray]) -> bool:
+    """
+    Return whether a root of 1 + f q^-1 + ... on the region's edge is cancelled in every input.
+
+    On the edge: within ``EDGE_MARGIN`` of the unit circle. Cancelled: each numerator (an
+    input's b coefficients, lags in order) has a zero within ``CANCELLING_DISTANCE`` of it,
+    or is all zero. Such a mode leaves the inputs' response all but alone, and in a fit with
+    each segment's initial state free it serves that state: a slow exponential that fits the
+    slow part of the disturbance (a drift, coloured noise), where the plant's own modes fit
+    worse. The data do not push the model there as they push an integrator's pole, which no
+    zero cancels (tracking plant (8, 22): a fit during a drift took poles 0.998 with zeros
+    0.997 and stayed 180 % off for 4000 samples; docs/tracking_log.md, session 19).
+    """
+    if not (np.isfinite(f).all() and all(np.isfinite(b).all() for b in numerators)):
+        return False
+    roots = np.roots(np.concatenate(([1.0], f)))
+    for root in roots[np.abs(roots) > 1.0 - EDGE_MARGIN]:
+        if all(_has_zero_near(b, root) for b in numerators):
+            return True
+    return False
+
+
+def _has_zero_near(b: np.ndarray, root: complex) -> bool:
+    """Return whether the polynomial of ``b`` has a zero within CANCELLING_DISTANCE of root."""
+    b = np.trim_zeros(b, 'f')
+    if not b.size:  # (no response at all through this input)
+        return True
+    zeros = np.roots(b)
+    return bool(zeros.size) and float(np.min(np.abs(zeros - root))) < CANCELLING_DISTANCE

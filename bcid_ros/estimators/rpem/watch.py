@@ -37,7 +37,7 @@ import numpy as np
 
 from bcid_ros.estimators import rules
 from bcid_ros.estimators.polynomials import is_stable
-from bcid_ros.estimators.rpem.stability import REGION_MARGIN
+from bcid_ros.estimators.rpem.stability import EDGE_MARGIN
 
 #: Steps in a row that the stability projection refuses before the estimator restarts.
 PROJECTION_RESTART = 50
@@ -49,8 +49,8 @@ UNDONE_RESTART = 3
 
 
 def on_boundary(polynomials: list[np.ndarray]) -> bool:
-    """Return whether a root of one of the monic tails lies within half the margin of the edge."""
-    return not all(is_stable(a, 1.5 * REGION_MARGIN) for a in polynomials)
+    """Return whether a root of one of the monic tails lies on the region's edge (EDGE_MARGIN)."""
+    return not all(is_stable(a, EDGE_MARGIN) for a in polynomials)
 
 
 class RestartWatch:
