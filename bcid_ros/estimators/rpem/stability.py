@@ -34,8 +34,8 @@ STABILITY_RADIUS = 0.999
 REGION_MARGIN = 1.0 - STABILITY_RADIUS
 #: Step halvings tried before a step that leaves D_M is not taken at all.
 HALVINGS = 8
-#: A root this close to the unit circle is on the region's edge: within half the region's
-#: margin of the edge (a fit there is pushed there: rpem/watch.py, edge_mode_cancelled).
+#: A root within this of the unit circle is on the region's edge (beyond 0.9985: within half
+#: the region's margin of its boundary): rpem/watch.py's on_boundary, edge_mode_cancelled.
 EDGE_MARGIN = 1.5 * REGION_MARGIN
 #: A zero of a numerator this close to a root on the edge cancels it (edge_mode_cancelled).
 CANCELLING_DISTANCE = 0.01
@@ -70,7 +70,8 @@ def edge_mode_cancelled(f: np.ndarray, numerators: Sequence[np.ndarray]) -> bool
     slow part of the disturbance (a drift, coloured noise), where the plant's own modes fit
     worse. The data do not push the model there as they push an integrator's pole, which no
     zero cancels (tracking plant (8, 22): a fit during a drift took poles 0.998 with zeros
-    0.997 and stayed 180 % off for 4000 samples; docs/tracking_log.md, session 19).
+    0.997, and rpem stayed 180 % off for the record's last 4400 samples; docs/tracking_log.md,
+    session 19).
     """
     if not (np.isfinite(f).all() and all(np.isfinite(b).all() for b in numerators)):
         return False
