@@ -195,10 +195,11 @@ class HacCovariance:
         r"""
         Add one score :math:`s_t = \psi_t\varepsilon_t`, ``(p,)`` or ``(K, p)`` (every plant).
 
-        One plant keeps it by reference until the next block of 64: do not
-        change it afterwards. :math:`\varepsilon_t` may be the a-priori or the
-        a-posteriori error of a recursive estimator: on stationary data both
-        give the coverage of the batch residual (docs/trust.md).
+        One plant keeps it by reference until the next block of
+        :data:`~bcid_ros.estimators.lagged.BLOCK`: do not change it afterwards.
+        :math:`\varepsilon_t` may be the a-priori or the a-posteriori error of a recursive
+        estimator: on stationary data both give the coverage of the batch residual
+        (docs/trust.md).
         """
         self._products.append(score)
 
@@ -214,6 +215,16 @@ class HacCovariance:
     def record_all(self, scores: Any) -> None:
         """Add one plant's scores ``(m, p)``, oldest first: ``record`` of each row (copied)."""
         self._products.extend(scores)
+
+    def complete(self) -> None:
+        """
+        Add the scores not yet in a block: the estimate is then of every score recorded.
+
+        For a record that is whole (a batch fit's scores): the estimate is otherwise
+        that of the last full block, and none before the first. Later scores start a
+        new block.
+        """
+        self._products.flush()
 
     def record_rows(self, rows: Any, scores: Any) -> None:
         """

@@ -245,6 +245,32 @@ def test_no_covariance_before_the_first_block():
     assert hac.covariance(np.eye(2)) is not None
 
 
+@pytest.mark.parametrize('lam', [1.0, 0.995])
+def test_complete_puts_every_recorded_score_in_the_estimate(lam):
+    """A record shorter than a block (a short batch fit's scores) has an estimate once complete."""
+    rng = np.random.default_rng(7)
+    scores = rng.standard_normal((100, 2))
+    hac = HacCovariance(dimension=2, forgetting_factor=lam)
+    hac.record_all(scores)
+    assert hac.long_run() is None
+    hac.complete()
+    assert hac.long_run() is not None and hac.samples == 100
+    # G(0) = sum_t w_t^2 s_t s_t', w_t = lam^(T - t): 100 terms, each rounded, so within
+    # about 100 eps of the sum of their sizes
+    weights = lam ** (2 * np.arange(99, -1, -1, dtype=float))
+    expected = np.einsum('t,ti,tj->ij', weights, scores, scores)
+    sizes = np.einsum('t,ti,tj->ij', weights, np.abs(scores), np.abs(scores))
+    error = np.abs(hac.get_state().products['sums'][..., 0] - expected)
+    assert (error <= 100 * np.finfo(float).eps * sizes).all()
+    # the scores after it start a block of their own
+    before = hac.long_run()
+    for score in rng.standard_normal((BLOCK - 1, 2)):
+        hac.record(score)
+    assert hac.long_run().tobytes() == before.tobytes()
+    hac.record(np.ones(2))
+    assert hac.long_run().tobytes() != before.tobytes()
+
+
 @pytest.mark.parametrize('settings, message', [
     ({'dimension': 0}, 'dimension must be an integer >= 1'),
     ({'forgetting_factor': 0.0}, r'forgetting_factor must be in \(0, 1\]'),

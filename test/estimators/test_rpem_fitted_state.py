@@ -107,7 +107,12 @@ def test_the_excess_is_zero_where_the_state_carries_no_information():
 
 
 def test_a_fit_too_short_for_the_hac_leaves_the_share_unknown_not_zero():
-    """Fewer scores than the HAC's first estimate needs: E is NaN, and there is no std."""
+    """
+    A held covariance not known (a HAC of fewer scores than a block, not completed): E is NaN.
+
+    A fit's own HACs are completed (rpem/store.py, ``_recorded``); an unknown share is still
+    no std, not a zero one.
+    """
     rng = np.random.default_rng(5)
     scores = rng.standard_normal((200, 3))
     information = np.eye(4) * 200.0
@@ -127,10 +132,13 @@ def test_rpem_first_std_on_a_slow_plant_bounds_its_error():
     """
     Poles 0.992, 0.95 and 0.9, a PRBS held 5 samples, white noise at 30 dB: rpem's first std.
 
-    The first fits (57-200 samples) have too few scores for the HAC; the recursion's scores
-    gave it an estimate at ~256 samples, and the std was the held-state one until the fit of
-    ~310 samples: the error was beyond twice sqrt(tr C) on 5 of 12 seeds (3-4.5 times it;
-    tracking plant (2, 10) after its change: 12 times, and ``valid`` took it as precise).
+    When the first fits (57-200 samples) had too few scores for the HAC and their share was
+    taken as zero, the recursion's scores gave it an estimate at ~256 samples, and the std was
+    the held-state one until the fit of ~310 samples: the error was beyond twice sqrt(tr C)
+    on 5 of 12 seeds (3-4.5 times it; tracking plant (2, 10) after its change: 12 times, and
+    ``valid`` took it as precise); 1 of 12 with no std until that fit. A fit's scores now
+    complete their HAC's block: the first std comes with the first fit (64-71 samples), its
+    error beyond twice sqrt(tr C) on 0 of 12 (at most 0.68 times it).
     For an honest Gaussian C, P(||e|| >= 2 sqrt(tr C)) <= 4.6 % (validity.imprecision), so
     3 or more of 12 has probability below 2 %.
     """

@@ -370,11 +370,20 @@ class FitJob:
 
 
 def _recorded(hac: HacCovariance, scores: np.ndarray) -> Steps:
-    """Record ``scores`` in ``hac`` RECORD_ROWS at a time, a pass each; return ``hac``."""
+    """
+    Record ``scores`` in ``hac`` RECORD_ROWS at a time, a pass each, all in its estimate.
+
+    The rows short of a last whole block complete it (HacCovariance.complete): a fit of
+    fewer than lagged.BLOCK samples left the HAC no estimate, and rpem no std until the
+    first block of the recursion's scores after a fit of a block or more (312-389
+    samples into tracking runs, valid from 120-160 on: docs/trust.md, "Precision at all
+    times"). Return ``hac``.
+    """
     for start in range(0, scores.shape[0], RECORD_ROWS):
         chunk = scores[start:start + RECORD_ROWS]
         yield chunk.size * RECORD_COLUMNS + PASS_COST
         hac.record_all(chunk)  # (in pieces: the same sums, bit for bit: LaggedProducts.extend)
+    hac.complete()  # (its cost is in the last chunk's)
     return hac
 
 

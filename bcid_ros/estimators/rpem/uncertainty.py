@@ -266,6 +266,7 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     """
     hac = score_hac(profiled_information.shape[0], forgetting_factor)
     hac.record_all(profiled_scores)
+    hac.complete()
     return profiled_excess(held, information, profiled_information, hac, prior, tau,
                            forgetting_factor)
 
