@@ -232,7 +232,8 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     """
     Return R = P_f^-1 D^1/2 of a fit, E = R R^T: what its held-state covariance leaves out.
 
-    :func:`profiled_excess` with the profiled scores recorded in a HAC here.
+    :func:`profiled_excess` with the profiled scores recorded whole in a HAC here
+    (``HacCovariance.complete``, as rpem/store.py's ``_recorded`` records a fit's).
 
     Parameters
     ----------
@@ -255,9 +256,8 @@ def fitted_state_excess(held: np.ndarray | None, information: np.ndarray,
     numpy.ndarray
         ``(q, q)``, its columns outside theta's block zero (R R^T is E: symmetric
         positive semi-definite); zeros where nothing was profiled; NaN where either
-        covariance is not known
-        (a fit of fewer scores than the HAC's first estimate needs): the share is
-        then unknown, not zero. Taken as zero, a short fit of a slow plant had
+        covariance is not known (``held`` None, or fewer scores than parameters): the
+        share is then unknown, not zero. Taken as zero, a short fit of a slow plant had
         the held covariance alone once the recursion's scores gave the HAC an
         estimate: on tracking plant (2, 10) (a pole at 0.992, 200 samples after
         its change) 2 sqrt(tr C) was 8 % of the estimate's size while it was 49 %
