@@ -37,10 +37,11 @@ def test_rpem_std_after_a_fit_is_calibrated_and_covers(samples):
     """
     sqrt(tr C) over the RMS error within [0.6, 1.5], the 95 % ellipsoid covering >= 88 of 100.
 
-    Measured on these draws at 1000 samples: ratio 0.83 (the held scores' 3.04), coverage 96
-    of 100; at 200 samples (a fit's scores, fewer than a block, completing it) 0.83 and 92,
-    where the code before had no std. The ratio's MC error is about 7 %: 0.83 is 3.3 of
-    them above 0.6, the held scores' 3.04 far above 1.5. Coverage: Binomial(100, 0.95) falls
+    Measured on these draws at 1000 samples: ratio 0.83 (the held scores' 3.04; 0.84 before
+    a fit's partial block was counted), coverage 96 of 100; at 200 samples (a fit's scores,
+    fewer than a block, completing it) 0.83 and 92, where the code before had no std. The
+    ratio's MC error is about 7 %: 0.83 is 3.9 of them above 0.6, the held scores' 3.04 far
+    above 1.5. Coverage: Binomial(100, 0.95) falls
     below 88 with probability 0.1 %; the diagonal prewhitening alone covered 30 of 40 at 1000
     samples (75 %).
     """
