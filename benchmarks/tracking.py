@@ -34,7 +34,9 @@ not recover from within its grid counts as within for any recovery the estimator
 since 5 times the grid's end exceeds the record; over those the reference recovers from;
 and over all, those counted as missed), the median recovery, changes flagged
 (``plant_change`` after the change), drifts never recovered, the share of the 2000 samples
-after the change that are ``valid`` while delta > 10 %, and false detections
+after the change that are ``valid`` while delta > 10 % (and the share that are so with the
+error ``||theta_hat - theta||`` beyond 2 sqrt(tr C) of the estimator's
+``parameter_covariance``: its std does not cover it either), and false detections
 (``plant_change`` before the change or on the ``none`` plants) per 100,000 samples.
 
 **The oracle** (:func:`oracle_recovery`): an estimator's band is twice its own error on the
@@ -340,6 +342,7 @@ def run_estimator(case: TrackingCase, config: str) -> dict[str, Any]:
     theta = np.zeros((count, estimator.num_parameters))
     valid = np.zeros(count, dtype=bool)
     changes = np.zeros(count, dtype=bool)
+    uncovered = np.zeros(count, dtype=bool)  # valid, far off, and beyond 2 sqrt(tr C)
     worst_ms = 0.0
     before = 0
     with single_threaded_blas():  # as in a node (docs/nodes.md, "One BLAS thread")
@@ -351,6 +354,8 @@ def run_estimator(case: TrackingCase, config: str) -> dict[str, Any]:
             if t >= 10:  # the first updates load modules
                 worst_ms = max(worst_ms, 1e3 * (time.thread_time() - start))
             theta[t] = estimator.theta
+            if valid[t] and case.change_at <= t < case.change_at + AFTER:
+                uncovered[t] = not covered(estimator, theta[t], case.theta[t])
             flagged = estimator.flags.get('plant_change', 0)
             changes[t] = flagged > before
             before = flagged
@@ -365,10 +370,25 @@ def run_estimator(case: TrackingCase, config: str) -> dict[str, Any]:
         'false_detections': int(changes[:case.change_at].sum()
                                 + (changes[case.change_at:].sum() if case.kind == 'none'
                                    else 0)),
-        'far_valid_share': float(far_valid.mean()), 'worst_update_ms': worst_ms,
+        'far_valid_share': float(far_valid.mean()),
+        'uncovered_share': float(uncovered[window].mean()), 'worst_update_ms': worst_ms,
         'delta_final': float(deltas[-1]), 'valid_final': bool(valid[-1]),
         'deltas': deltas, 'valid': valid, 'changes': changes, 'theta': theta,
     }
+
+
+def covered(estimator: Any, theta_hat: np.ndarray, theta: np.ndarray) -> bool:
+    """
+    Return whether an estimate is within FAR or its std covers its error.
+
+    Covered: ||theta_hat - theta|| <= 2 sqrt(tr C), the bound `valid`'s precision rule
+    states (docs/trust.md, "Precision after a change"). An estimate with no std is not.
+    """
+    error = float(np.linalg.norm(theta_hat - theta))
+    if error <= FAR * float(np.linalg.norm(theta)):
+        return True
+    covariance = estimator.parameter_covariance
+    return covariance is not None and error <= 2.0 * math.sqrt(float(np.trace(covariance)))
 
 
 def within_reference(ours: int | None, ref: int | None) -> bool:
@@ -445,6 +465,8 @@ def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]
         oracle_drift = sum(results[k].get('oracle_recovery', 0) is None for k in drift)
         flagged = sum(results[k]['flagged'] for k in abrupt)
         far = np.mean([results[k]['far_valid_share'] for k in changing]) if changing else 0.0
+        uncovered = (np.mean([results[k]['uncovered_share'] for k in changing]) if changing
+                     else 0.0)
         false = sum(r['false_detections'] for r in results)
         samples = sum(case.change_at for case in cases) + sum(
             case.samples - case.change_at for case in cases if case.kind == 'none')
@@ -455,7 +477,8 @@ def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]
                 f'{oracle_abrupt} / {len(missed_abrupt)}',
                 f'{flagged} / {len(abrupt)}', f'{never_drift} / {len(drift)}',
                 f'{oracle_drift} / {never_drift}',
-                f'{100.0 * far:.1f} %', f'{1e5 * false / samples:.2f} ({false})',
+                f'{100.0 * far:.1f} %', f'{100.0 * uncovered:.1f} %',
+                f'{1e5 * false / samples:.2f} ({false})',
                 f'{max(r["worst_update_ms"] for r in results):.0f} ms']
 
     labels = ['abrupt within 5x the reference',
@@ -466,6 +489,7 @@ def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]
               'abrupt change flagged', 'drift: never recovered',
               'drifts never recovered the oracle does not recover either',
               f'valid while > 10 % off, first {AFTER} samples after the change',
+              'the same, and the error beyond 2 sqrt(tr C)',
               'false detections per 100,000 samples (count)', 'slowest update (CPU)']
     columns = {config: per(config) for config in runs}
     for index, label in enumerate(labels):

@@ -1,11 +1,11 @@
-"""benchmarks/tracking.py's oracle: which misses the new plant's samples themselves cause."""
+"""benchmarks/tracking.py's oracle, and its count of valid estimates their std does not cover."""
 
 from types import SimpleNamespace
 
 import numpy as np
 
-from benchmarks.tracking import (grid_recovery, ORACLE_WINDOWS, oracle_recovery, summarise,
-                                 TrackingCase, window_deltas)
+from benchmarks.tracking import (covered, FAR, grid_recovery, ORACLE_WINDOWS, oracle_recovery,
+                                 summarise, TrackingCase, window_deltas)
 
 
 def test_a_grid_recovery_is_the_first_window_from_which_the_deltas_stay_in_band():
@@ -38,7 +38,7 @@ def test_the_oracle_rows_count_the_misses_it_shares():
     references = [{'recovery': 100}, {'recovery': 100}, {'recovery': None},
                   {'recovery': 50}, {'recovery': 50}, {'recovery': None}]
     common = {'flagged': True, 'false_detections': 0, 'far_valid_share': 0.0,
-              'worst_update_ms': 1.0}
+              'uncovered_share': 0.0, 'worst_update_ms': 1.0}
     results = [
         {'recovery': 90, **common},  # within: no oracle
         {'recovery': 900, 'oracle_recovery': 80, **common},  # the oracle is within: ours
@@ -47,8 +47,22 @@ def test_the_oracle_rows_count_the_misses_it_shares():
         {'recovery': None, 'oracle_recovery': 2560, **common},  # one it recovers from
         {'recovery': 0, **common},
     ]
+    results[3]['uncovered_share'] = 0.5
     rows = {row[0]: row[1] for row in summarise(cases, references, {'x': results})}
     assert rows['abrupt within 5x the reference'] == '1 / 3'
     assert rows['abrupt misses the oracle misses too'] == '1 / 2'
     assert rows['drift: never recovered'] == '2 / 2'
     assert rows['drifts never recovered the oracle does not recover either'] == '1 / 2'
+    # the mean over the changing plants (three abrupt, two drifts)
+    assert rows['the same, and the error beyond 2 sqrt(tr C)'] == '10.0 %'
+
+
+def test_an_estimate_is_covered_within_far_or_within_twice_its_std():
+    theta = np.array([1.0, 0.0])
+    near = theta + [0.5 * FAR, 0.0]
+    off = theta + [0.3, 0.0]  # 0.3 off: 2 sqrt(tr C) must reach 0.3
+    assert covered(SimpleNamespace(parameter_covariance=None), near, theta)
+    assert not covered(SimpleNamespace(parameter_covariance=None), off, theta)
+    assert covered(SimpleNamespace(parameter_covariance=np.diag([0.012, 0.012])), off, theta)
+    assert not covered(SimpleNamespace(parameter_covariance=np.diag([0.011, 0.011])), off,
+                       theta)
