@@ -324,10 +324,11 @@ def oracle_recovery(case: TrackingCase, band: float,
 
     The oracle is the reference's batch fit of every sample of the new plant, told where the
     change (a drift's end) is, over ``ORACLE_WINDOWS``, which run on to the record's end. A
-    change it misses too, in the estimator's own band, is one no estimator of that band
-    recovers from in time: the band asks for more than the new plant's samples give (an
-    estimator's band is twice its error on the old plant, and the new one may be harder to
-    pin down). ``deltas``: the oracle's, from :func:`window_deltas`, if already computed.
+    change it misses too, in the estimator's own band, is one that an efficient fit of the
+    new plant's samples does not recover from in time either: the band asks for more than
+    those samples give (an estimator's band is twice its error on the old plant, and the new
+    one may be harder to pin down). ``deltas``: the oracle's, from :func:`window_deltas`, if
+    already computed.
     """
     if deltas is None:
         deltas = window_deltas(case, ORACLE_WINDOWS)
