@@ -463,7 +463,8 @@ def summarise(cases: Sequence[TrackingCase], references: Sequence[dict[str, Any]
         oracle_abrupt = sum(not within_reference(results[k]['oracle_recovery'],
                                                  references[k]['recovery'])
                             for k in missed_abrupt)
-        oracle_drift = sum(results[k].get('oracle_recovery', 0) is None for k in drift)
+        oracle_drift = sum('oracle_recovery' in results[k]
+                           and results[k]['oracle_recovery'] is None for k in drift)
         flagged = sum(results[k]['flagged'] for k in abrupt)
         far = np.mean([results[k]['far_valid_share'] for k in changing]) if changing else 0.0
         uncovered = (np.mean([results[k]['uncovered_share'] for k in changing]) if changing
@@ -622,15 +623,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      else {'recovery': None})
             print(f'{case.describe()}: reference recovery '
                   f'{references[model][-1]["recovery"]}', file=sys.stderr)
-            oracle: list[np.ndarray] = []  # its deltas, fitted once a run needs them
+            oracle = None  # its deltas, fitted once a run needs them
             for column, (config, of) in columns.items():
                 if of == model:
                     result = run_estimator(case, config)
                     if missed(case, result, references[model][-1]):
-                        if not oracle:
-                            oracle.append(window_deltas(case, ORACLE_WINDOWS))
+                        if oracle is None:
+                            oracle = window_deltas(case, ORACLE_WINDOWS)
                         result['oracle_recovery'] = oracle_recovery(case, result['band'],
-                                                                    oracle[0])
+                                                                    oracle)
                     runs[column].append(result)
                     print(f'  {column}: recovery {result["recovery"]} flagged '
                           f'{result["flagged"]} false {result["false_detections"]} far-valid '
