@@ -40,8 +40,9 @@ def test_the_oracle_rows_count_the_misses_it_shares():
     common = {'flagged': True, 'false_detections': 0, 'far_valid_share': 0.0,
               'uncovered_share': 0.0, 'worst_update_ms': 1.0}
     results = [
-        {'recovery': 90, **common},  # within: no oracle
-        {'recovery': 900, 'oracle_recovery': 80, **common},  # the oracle is within: ours
+        {'recovery': 90, 'oracle_recovery': 10, **common},  # within, but not 5x the oracle's
+        # the oracle within the reference's 5x: the miss is ours; within 5x the oracle's
+        {'recovery': 900, 'oracle_recovery': 200, **common},
         {'recovery': None, 'oracle_recovery': None, **common},  # the oracle never: the band's
         {'recovery': None, 'oracle_recovery': None, **common},  # a drift the oracle misses
         {'recovery': None, 'oracle_recovery': 2560, **common},  # one it recovers from
@@ -51,6 +52,8 @@ def test_the_oracle_rows_count_the_misses_it_shares():
     rows = {row[0]: row[1] for row in summarise(cases, references, {'x': results})}
     assert rows['abrupt within 5x the reference'] == '1 / 3'
     assert rows['abrupt misses the oracle misses too'] == '1 / 2'
+    # ours against the oracle's: 90 > 5 x 10, 900 <= 5 x 200, never is never within
+    assert rows['abrupt within 5x the oracle'] == '1 / 3'
     assert rows['drift: never recovered'] == '2 / 2'
     assert rows['drifts never recovered the oracle does not recover either'] == '1 / 2'
     # the mean over the changing plants (three abrupt, two drifts)
