@@ -48,8 +48,9 @@ count the misses (an abrupt change not within, a drift never recovered) that eve
 the band's rather than the estimator's, and "abrupt within 5x the oracle" judges the
 estimator's recovery against the oracle's, as the first row judges it against the
 reference's, on the changes the oracle recovers from by the record's end: against an
-efficient fit that knows where the change is, in the estimator's own band. It is a growing window: for an estimator with forgetting, whose band is wider, a
-miss it does not share may still be the forgetting window's own scatter.
+efficient fit that knows where the change is, in the estimator's own band. It is a growing
+window: for an estimator with forgetting, whose band is wider, a miss it does not share may
+still be the forgetting window's own scatter.
 
 **Where each estimator's model holds** (``--model-holds``): the same cases (plants, inputs,
 changes, white noise sequence and SNR: the seeded draws are the same) with the output noise
